@@ -1,0 +1,243 @@
+"""π0 / π0.5: prefix (images + prompt) through the VLM, suffix (state + noisy actions) through the action expert.
+
+Time convention (as openpi, the reverse of the paper): t = 1 is pure noise, t = 0 is data. The sampler integrates
+dx/dt = v(x_t, t) with Euler steps of dt = -1/num_steps from t = 1 down to t = 0.
+
+All public functions are pure: `config` (a frozen, hashable dataclass) and `num_steps` are static under jit;
+params are the openpi param tree (a plain nested dict); noise is always passed in.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import einops
+import flax.linen as nn
+import flax.struct
+import jax
+import jax.numpy as jnp
+
+from pi0_jax import gemma, siglip
+from pi0_jax.config import IMAGE_KEYS, Pi0Config
+from pi0_jax.gemma import KVCache
+
+
+@flax.struct.dataclass
+class Observation:
+    """Model-ready inputs (after the policy's transforms).
+
+    images: {key: (B, H, W, 3) f32 in [-1, 1]} for key in IMAGE_KEYS; image_masks: {key: (B,) bool};
+    state: (B, action_dim) f32, normalised and zero-padded; tokenized_prompt: (B, L) int32;
+    tokenized_prompt_mask: (B, L) bool.
+    """
+
+    images: dict[str, jax.Array]
+    image_masks: dict[str, jax.Array]
+    state: jax.Array
+    tokenized_prompt: jax.Array
+    tokenized_prompt_mask: jax.Array
+
+
+def make_attn_mask(input_mask: jax.Array, ar_mask: jax.Array) -> jax.Array:
+    """big_vision mask semantics. input_mask: (B, N) bool valid tokens; ar_mask: (N,) or (B, N) bool.
+
+    Token i may attend token j iff cumsum(ar)[j] <= cumsum(ar)[i] and both are valid. An ar flag of True starts a
+    new block that earlier tokens cannot see. Examples:
+      ar = [0 0 0 1 1 1]: a bidirectional prefix of 3 followed by 3 causal tokens;
+      ar = [0 0 0 1 0 0]: a prefix of 3, then a block of 3 that is bidirectional within itself and sees the prefix.
+    Returns (B, N, N) bool.
+    """
+    ar_mask = jnp.broadcast_to(ar_mask, input_mask.shape)
+    cum = jnp.cumsum(ar_mask, axis=1)
+    causal = cum[:, None, :] <= cum[:, :, None]
+    valid = input_mask[:, None, :] & input_mask[:, :, None]
+    return causal & valid
+
+
+def posemb_sincos(t: jax.Array, dim: int, min_period: float = 4e-3, max_period: float = 4.0) -> jax.Array:
+    """Sinusoidal embedding of scalar times t (B,) -> (B, dim), [sin | cos]. fp32 island, HIGHEST precision."""
+    fraction = jnp.linspace(0.0, 1.0, dim // 2)
+    period = min_period * (max_period / min_period) ** fraction
+    arg = jnp.einsum("i,j->ij", t, 1.0 / period * 2 * jnp.pi, precision=jax.lax.Precision.HIGHEST)
+    return jnp.concatenate([jnp.sin(arg), jnp.cos(arg)], axis=-1)
+
+
+class PaliGemma(nn.Module):
+    """Container so the tree reads PaliGemma/{llm,img}/... exactly as openpi's."""
+
+    config: Pi0Config
+
+    def setup(self):
+        cfg = self.config
+        dtype = jnp.dtype(cfg.dtype)
+        self.llm = gemma.Gemma(configs=(cfg.paligemma, cfg.action_expert), vocab_size=cfg.vocab_size, embed_dtype=dtype)
+        self.img = siglip.Siglip(cfg.siglip, out_dim=cfg.paligemma.width, dtype_mm=dtype)
+
+
+class Pi0(nn.Module):
+    """The whole network; methods are the pieces the pure functions below compose."""
+
+    config: Pi0Config
+
+    def setup(self):
+        cfg = self.config
+        expert = cfg.action_expert
+        self.PaliGemma = PaliGemma(cfg)
+        # Projections compute in the promoted dtype (openpi's nnx.Linear with dtype=None): f32 for f32 inputs.
+        self.action_in_proj = nn.Dense(expert.width, name="action_in_proj")
+        if cfg.pi05:
+            self.time_mlp_in = nn.Dense(expert.width, name="time_mlp_in")
+            self.time_mlp_out = nn.Dense(expert.width, name="time_mlp_out")
+        else:
+            self.state_proj = nn.Dense(expert.width, name="state_proj")
+            self.action_time_mlp_in = nn.Dense(expert.width, name="action_time_mlp_in")
+            self.action_time_mlp_out = nn.Dense(expert.width, name="action_time_mlp_out")
+        self.action_out_proj = nn.Dense(cfg.action_dim, name="action_out_proj")
+
+    def embed_images(self, images: jax.Array) -> jax.Array:
+        return self.PaliGemma.img(images)[0]
+
+    def embed_prefix(self, obs: Observation):
+        tokens, input_mask, ar = [], [], []
+        for key in IMAGE_KEYS[: self.config.num_cameras]:
+            t = self.embed_images(obs.images[key])
+            tokens.append(t)
+            input_mask.append(einops.repeat(obs.image_masks[key], "b -> b s", s=t.shape[1]))
+            ar += [False] * t.shape[1]
+        tokens.append(self.PaliGemma.llm.embed(obs.tokenized_prompt))
+        input_mask.append(obs.tokenized_prompt_mask)
+        ar += [False] * obs.tokenized_prompt.shape[1]
+        return jnp.concatenate(tokens, axis=1), jnp.concatenate(input_mask, axis=1), jnp.asarray(ar)
+
+    def embed_suffix(self, state: jax.Array | None, x_t: jax.Array, t: jax.Array):
+        cfg = self.config
+        tokens, ar = [], []
+        if not cfg.pi05:
+            tokens.append(self.state_proj(state)[:, None, :])
+            ar += [True]
+        action_tokens = self.action_in_proj(x_t)
+        time_emb = posemb_sincos(t, cfg.action_expert.width)
+        if cfg.pi05:
+            cond = nn.swish(self.time_mlp_out(nn.swish(self.time_mlp_in(time_emb))))
+            tokens.append(action_tokens)
+        else:
+            time_tokens = einops.repeat(time_emb, "b d -> b s d", s=cfg.action_horizon)
+            h = jnp.concatenate([action_tokens, time_tokens], axis=-1)  # action first, then time
+            tokens.append(self.action_time_mlp_out(nn.swish(self.action_time_mlp_in(h))))
+            cond = None
+        ar += [True] + [False] * (cfg.action_horizon - 1)
+        tokens = jnp.concatenate(tokens, axis=1)
+        return tokens, jnp.ones(tokens.shape[:2], bool), jnp.asarray(ar), cond
+
+    def prefix_pass(self, obs: Observation):
+        tokens, input_mask, ar = self.embed_prefix(obs)
+        positions = jnp.cumsum(input_mask, axis=1) - 1
+        _, (k, v) = self.PaliGemma.llm([tokens, None], positions, make_attn_mask(input_mask, ar))
+        return KVCache(k=k, v=v, mask=input_mask, state=obs.state)
+
+    def velocity(self, cache: KVCache, x_t: jax.Array, t: jax.Array) -> jax.Array:
+        """v(x_t, t) over a filled prefix cache. x_t: (B, H, action_dim) f32; t: (B,)."""
+        tokens, suffix_mask, ar, cond = self.embed_suffix(cache.state, x_t, t)
+        s = tokens.shape[1]
+        mask = jnp.concatenate(
+            [einops.repeat(cache.mask, "b p -> b s p", s=s), make_attn_mask(suffix_mask, ar)], axis=-1
+        )
+        # The suffix continues right after the number of *valid* prefix tokens.
+        positions = jnp.sum(cache.mask, axis=-1, keepdims=True) + jnp.cumsum(suffix_mask, axis=1) - 1
+        (_, out), _ = self.PaliGemma.llm([None, tokens], positions, mask, adarms_cond=[None, cond], kv_cache=(cache.k, cache.v))
+        return self.action_out_proj(out[:, -self.config.action_horizon :])
+
+    def joint_velocity(self, obs: Observation, x_t: jax.Array, t: jax.Array) -> jax.Array:
+        """One pass over prefix + suffix together (the training path)."""
+        prefix, prefix_mask, prefix_ar = self.embed_prefix(obs)
+        suffix, suffix_mask, suffix_ar, cond = self.embed_suffix(obs.state, x_t, t)
+        input_mask = jnp.concatenate([prefix_mask, suffix_mask], axis=1)
+        ar = jnp.concatenate([prefix_ar, suffix_ar])
+        positions = jnp.cumsum(input_mask, axis=1) - 1
+        (_, out), _ = self.PaliGemma.llm([prefix, suffix], positions, make_attn_mask(input_mask, ar), adarms_cond=[None, cond])
+        return self.action_out_proj(out[:, -self.config.action_horizon :])
+
+    def __call__(self, obs: Observation, x_t: jax.Array, t: jax.Array) -> jax.Array:
+        return self.joint_velocity(obs, x_t, t)
+
+
+def fake_observation(config: Pi0Config, batch_size: int = 1) -> Observation:
+    s = config.image_size
+    return Observation(
+        images={k: jnp.zeros((batch_size, s, s, 3), jnp.float32) for k in IMAGE_KEYS[: config.num_cameras]},
+        image_masks={k: jnp.ones((batch_size,), bool) for k in IMAGE_KEYS[: config.num_cameras]},
+        state=jnp.zeros((batch_size, config.action_dim), jnp.float32),
+        tokenized_prompt=jnp.zeros((batch_size, config.max_token_len), jnp.int32),
+        tokenized_prompt_mask=jnp.ones((batch_size, config.max_token_len), bool),
+    )
+
+
+def init_params(config: Pi0Config, rng: jax.Array) -> dict:
+    """Random params in openpi's tree layout (f32). Note: like openpi, norms and adaRMS Dense start at zero."""
+    obs = fake_observation(config)
+    x = jnp.zeros((1, config.action_horizon, config.action_dim), jnp.float32)
+    variables = Pi0(config).init(rng, obs, x, jnp.ones((1,), jnp.float32))
+    return variables["params"]
+
+
+def param_shapes(config: Pi0Config) -> dict:
+    """The param tree as jax.ShapeDtypeStruct leaves, computed without allocating (works for full-size presets)."""
+    return jax.eval_shape(functools.partial(init_params, config), jax.random.key(0))
+
+
+def _apply(config: Pi0Config, params: dict, *args, method):
+    return Pi0(config).apply({"params": params}, *args, method=method)
+
+
+def embed_images(config: Pi0Config, params: dict, images: jax.Array) -> jax.Array:
+    """SigLIP + projector: (B, H, W, 3) in [-1, 1] -> (B, 256, VLM width)."""
+    return _apply(config, params, images, method=Pi0.embed_images)
+
+
+def embed_prefix(config: Pi0Config, params: dict, obs: Observation):
+    """-> (tokens (B, P, D), input_mask (B, P) bool, ar_mask (P,) bool)."""
+    return _apply(config, params, obs, method=Pi0.embed_prefix)
+
+
+def fill_prefix_cache(config: Pi0Config, params: dict, obs: Observation) -> KVCache:
+    """The prefix pass through the VLM expert alone; returns the KV-cache pytree the denoiser reads."""
+    return _apply(config, params, obs, method=Pi0.prefix_pass)
+
+
+def denoise_step(config: Pi0Config, params: dict, cache: KVCache, x_t: jax.Array, t: jax.Array) -> jax.Array:
+    """The velocity v(x_t, t): (B, H, action_dim) f32. t: scalar or (B,)."""
+    t = jnp.broadcast_to(jnp.asarray(t, jnp.float32), x_t.shape[:1])
+    return _apply(config, params, cache, x_t, t, method=Pi0.velocity)
+
+
+def sample_actions(config: Pi0Config, params: dict, obs: Observation, noise: jax.Array, num_steps: int = 10):
+    """Euler flow-matching sampler: noise (B, H, action_dim) at t = 1 -> actions at t = 0.
+
+    Runs exactly num_steps steps at t = 1, 1 - 1/n, ..., 1/n (fixed trip count, so the loop is static).
+    """
+    cache = fill_prefix_cache(config, params, obs)
+    dt = -1.0 / num_steps
+
+    def step(_, carry):
+        x_t, t = carry  # t accumulates in f32 exactly as openpi's while_loop does
+        return x_t + dt * denoise_step(config, params, cache, x_t, t), t + dt
+
+    x_0, _ = jax.lax.fori_loop(0, num_steps, step, (noise.astype(jnp.float32), jnp.float32(1.0)))
+    return x_0
+
+
+def compute_loss(config: Pi0Config, params: dict, obs: Observation, actions: jax.Array, noise: jax.Array,
+                 t: jax.Array) -> jax.Array:
+    """Flow-matching loss per (B, H): mean over action dims of (v - (noise - actions))^2.
+
+    x_t = t * noise + (1 - t) * actions; t: (B,), sampled by the caller (openpi: Beta(1.5, 1) * 0.999 + 0.001,
+    see `sample_time`).
+    """
+    t_ = t[:, None, None]
+    x_t = t_ * noise + (1 - t_) * actions
+    v_t = _apply(config, params, obs, x_t, t, method=Pi0.joint_velocity)
+    return jnp.mean(jnp.square(v_t - (noise - actions)), axis=-1)
+
+
+def sample_time(rng: jax.Array, batch_size: int) -> jax.Array:
+    return jax.random.beta(rng, 1.5, 1.0, (batch_size,)) * 0.999 + 0.001

@@ -1,0 +1,94 @@
+"""SigLIP ViT (So400m/14) as openpi instantiates it: no pooling, per-token linear head to the VLM width.
+
+Param names and the scanned (stacked) layer layout mirror openpi / big_vision, so released checkpoints load as is:
+`embedding/{kernel,bias}`, `pos_embedding`, `Transformer/encoderblock/...` (leading axis = depth),
+`Transformer/encoder_norm`, `head`.
+"""
+
+from __future__ import annotations
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from pi0_jax.config import SiglipConfig
+
+
+class MlpBlock(nn.Module):
+    mlp_dim: int
+    dtype_mm: jnp.dtype
+
+    @nn.compact
+    def __call__(self, x):
+        inits = {"kernel_init": nn.initializers.xavier_uniform(), "bias_init": nn.initializers.normal(stddev=1e-6)}
+        d = x.shape[-1]
+        x = nn.Dense(self.mlp_dim, dtype=self.dtype_mm, **inits)(x)
+        x = nn.gelu(x)  # approximate=True: the tanh GELU (HF `gelu_pytorch_tanh`)
+        return nn.Dense(d, dtype=self.dtype_mm, **inits)(x)
+
+
+class Encoder1DBlock(nn.Module):
+    """Pre-LN block. LayerNorm statistics are computed in >= f32 by Flax; eps 1e-6."""
+
+    mlp_dim: int
+    num_heads: int
+    dtype_mm: jnp.dtype
+
+    @nn.compact
+    def __call__(self, x, _):
+        y = nn.LayerNorm(dtype=self.dtype_mm)(x)
+        y = nn.MultiHeadDotProductAttention(
+            num_heads=self.num_heads, kernel_init=nn.initializers.xavier_uniform(), deterministic=True,
+            dtype=self.dtype_mm,
+        )(y, y)
+        x = x + y
+        y = nn.LayerNorm(dtype=self.dtype_mm)(x)
+        x = x + MlpBlock(mlp_dim=self.mlp_dim, dtype_mm=self.dtype_mm)(y)
+        return x, None
+
+
+class Encoder(nn.Module):
+    cfg: SiglipConfig
+    dtype_mm: jnp.dtype
+
+    @nn.compact
+    def __call__(self, x):
+        blocks = nn.scan(
+            Encoder1DBlock, variable_axes={"params": 0}, split_rngs={"params": True}, length=self.cfg.depth,
+        )(mlp_dim=self.cfg.mlp_dim, num_heads=self.cfg.num_heads, dtype_mm=self.dtype_mm, name="encoderblock")
+        x, _ = blocks(x, None)
+        return nn.LayerNorm(name="encoder_norm", dtype=self.dtype_mm)(x)
+
+
+class Siglip(nn.Module):
+    """Images (B, H, W, 3) float in [-1, 1] -> tokens (B, (H/14)*(W/14), out_dim).
+
+    Returns `(tokens, intermediates)`; intermediates hold the patch embedding and the encoder output.
+    """
+
+    cfg: SiglipConfig
+    out_dim: int
+    dtype_mm: jnp.dtype = jnp.bfloat16
+
+    @nn.compact
+    def __call__(self, image):
+        # fp32 island: the patch conv and the position-embedding add run in f32, then cast to dtype_mm.
+        image = jnp.asarray(image, jnp.float32)
+        p = self.cfg.patch_size
+        x = nn.Conv(self.cfg.width, (p, p), strides=(p, p), padding="VALID", name="embedding", dtype=jnp.float32)(image)
+        b, h, w, c = x.shape
+        x = jnp.reshape(x, (b, h * w, c))  # row-major: token = row * (W/14) + col
+        pos = self.param("pos_embedding", nn.initializers.normal(stddev=1 / np.sqrt(c)), (1, h * w, c), jnp.float32)
+        x = x + pos
+        stem = x
+        x = x.astype(self.dtype_mm)
+        encoded = Encoder(self.cfg, self.dtype_mm, name="Transformer")(x)
+        # Image tokens are *not* scaled by sqrt(width) (spec §3.8).
+        tokens = nn.Dense(self.out_dim, dtype=self.dtype_mm, kernel_init=nn.initializers.zeros, name="head")(encoded)
+        return tokens, {"stem": stem, "encoded": encoded}
+
+
+def encode_images(module: Siglip, params, images: jax.Array) -> jax.Array:
+    """Convenience: run a bound-free Siglip on (B, H, W, 3) images and drop intermediates."""
+    return module.apply({"params": params}, images)[0]
