@@ -1,0 +1,30 @@
+"""Shared fixtures. `sp_model_path`: a tiny SentencePiece model trained in well under a second, shaped like the real
+PaliGemma tokenizer where it matters (pad 0, eos 1, bos 2; identity normalisation; no dummy prefix; "\\n" a
+user-defined piece; digits split; byte fallback so any text encodes)."""
+
+import io
+
+import pytest
+import sentencepiece
+
+_SENTENCES = [
+    "pick up the black bowl between the plate and the ramekin and place it on the plate",
+    "put both the alphabet soup and the tomato sauce in the basket",
+    "open the top drawer and put the bowl inside",
+    "turn on the stove and put the moka pot on it",
+    "Task: put the cream cheese in the bowl, State: 12 255 0 128 7;\nAction: ",
+    "0123456789 ,;:. _",
+]
+
+
+@pytest.fixture(scope="session")
+def sp_model_path(tmp_path_factory):
+    buf = io.BytesIO()
+    sentencepiece.SentencePieceTrainer.train(
+        sentence_iterator=iter(_SENTENCES * 4), model_writer=buf, vocab_size=400, hard_vocab_limit=False,
+        model_type="bpe", byte_fallback=True, split_digits=True, user_defined_symbols=["\n"],
+        normalization_rule_name="identity", add_dummy_prefix=False, remove_extra_whitespaces=False,
+        pad_id=0, eos_id=1, bos_id=2, unk_id=3, minloglevel=2)
+    path = tmp_path_factory.mktemp("sp") / "tokenizer.model"
+    path.write_bytes(buf.getvalue())
+    return path
