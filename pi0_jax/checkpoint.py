@@ -21,7 +21,6 @@ from pathlib import Path
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import orbax.checkpoint as ocp
 from flax import traverse_util
@@ -44,6 +43,9 @@ def atomic_directory(dst: str | os.PathLike, *, overwrite: bool = False) -> Iter
         raise FileExistsError(f"destination {dst} already exists (pass overwrite / --overwrite to replace it)")
     dst.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{dst.name}.tmp-", dir=dst.parent))
+    umask = os.umask(0)
+    os.umask(umask)
+    tmp.chmod(0o777 & ~umask)  # mkdtemp makes it 0700; the checkpoint should be as readable as any new directory
     try:
         yield tmp
         old = None
@@ -60,7 +62,7 @@ def atomic_directory(dst: str | os.PathLike, *, overwrite: bool = False) -> Iter
 
 def save_params(path: str | os.PathLike, params: Mapping) -> None:
     """Write an orbax PyTree checkpoint {"params": params} at `path` (which must not exist)."""
-    params = jax.tree.map(jnp.asarray, dict(params))
+    params = jax.tree.map(lambda x: x if isinstance(x, (np.ndarray, jax.Array)) else np.asarray(x), dict(params))
     with ocp.PyTreeCheckpointer() as ckptr:
         ckptr.save(Path(path).absolute(), {"params": params})
 

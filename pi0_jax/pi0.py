@@ -172,6 +172,7 @@ def fake_observation(config: Pi0Config, batch_size: int = 1) -> Observation:
     )
 
 
+@functools.partial(jax.jit, static_argnums=0)
 def init_params(config: Pi0Config, rng: jax.Array) -> dict:
     """Random params in openpi's tree layout (f32). Note: like openpi, norms and adaRMS Dense start at zero."""
     obs = fake_observation(config)
@@ -180,8 +181,11 @@ def init_params(config: Pi0Config, rng: jax.Array) -> dict:
     return variables["params"]
 
 
+@functools.lru_cache(maxsize=32)
 def param_shapes(config: Pi0Config) -> dict:
-    """The param tree as jax.ShapeDtypeStruct leaves, computed without allocating (works for full-size presets)."""
+    """The param tree as jax.ShapeDtypeStruct leaves, computed without allocating (works for full-size presets).
+
+    Cached per config (tracing the full model takes ~1 s); treat the result as read-only."""
     return jax.eval_shape(functools.partial(init_params, config), jax.random.key(0))
 
 

@@ -46,7 +46,7 @@ def make_obs(config, batch=2, seed=0, valid_lens=(13, 31)):
 @pytest.fixture(scope="module", params=["dummy", "dummy_pi05"])
 def setup(request):
     config = get_config(request.param)
-    params = randomize(jax.jit(pi0.init_params, static_argnums=0)(config, jax.random.key(0)))
+    params = randomize(pi0.init_params(config, jax.random.key(0)))
     return config, params
 
 
