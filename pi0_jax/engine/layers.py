@@ -1,0 +1,104 @@
+"""The engine's transformer passes: plain jnp over `weights.prepare` output, the same function as `pi0_jax.gemma`.
+
+Numerics follow the reference exactly where it matters (fp32 islands: RMSNorm statistics, RoPE angles and rotation,
+attention logits and softmax, the time embedding; the big negative fill for masked logits); what differs is the
+grouping of matmuls (fused q/k/v and gate/up) and the schedule (layers unrolled or scanned, attention over the cached
+prefix and the suffix as one softmax over two logit blocks, so the cache is never concatenated or copied).
+
+Axis legend: B batch, T query tokens, P cached prefix tokens, S suffix tokens, K kv heads, G query heads per kv
+head, H head dim, D width.
+"""
+
+from __future__ import annotations
+
+import einops
+import jax
+import jax.numpy as jnp
+
+from pi0_jax.config import GemmaConfig
+from pi0_jax.gemma import _BIG_NEG, apply_rope
+
+
+def rms_norm(x, scale=None, mod=None):
+    """Plain RMSNorm (scale) or adaRMS (mod = concat[scale, shift, gate], (B or 1, 3D)); returns (y, gate)."""
+    dtype = x.dtype
+    var = jnp.mean(jnp.square(x.astype(jnp.float32)), axis=-1, keepdims=True)
+    normed = x * jax.lax.rsqrt(var + 1e-6)
+    if mod is None:
+        return (normed * (1 + scale)).astype(dtype), None
+    s, shift, gate = jnp.split(mod[:, None, :], 3, axis=-1)
+    return (normed * (1 + s) + shift).astype(dtype), gate
+
+
+def _qkv(h, w, cfg: GemmaConfig, positions):
+    qkv = h @ w
+    nq = cfg.num_heads * cfg.head_dim
+    q = einops.rearrange(qkv[..., :nq], "B T (N H) -> B T N H", H=cfg.head_dim)
+    k, v = einops.rearrange(qkv[..., nq:], "B T (two K H) -> two B T K H", two=2, H=cfg.head_dim)
+    q = apply_rope(q, positions)
+    q = q * jnp.asarray(cfg.head_dim**-0.5, q.dtype)
+    k = apply_rope(k, positions)
+    return einops.rearrange(q, "B T (K G) H -> B T K G H", K=cfg.num_kv_heads), k, v
+
+
+def _mlp(h, w):
+    gate, up = jnp.split(h @ w["gate_up"], 2, axis=-1)
+    return (jax.nn.gelu(gate, approximate=True) * up) @ w["down"]
+
+
+def _attend(q, ks, vs, masks, dtype):
+    """One softmax over several key blocks: q (B,T,K,G,H); ks/vs [(B,S_i,K,H)]; masks [(B,T,S_i) bool]."""
+    logits = [jnp.einsum("BTKGH,BSKH->BKGTS", q, k, preferred_element_type=jnp.float32) for k in ks]
+    logits = [jnp.where(m[:, None, None], lg, _BIG_NEG) for lg, m in zip(logits, masks)]
+    probs = jax.nn.softmax(jnp.concatenate(logits, axis=-1), axis=-1).astype(dtype)
+    out, start = 0, 0
+    for v in vs:
+        out = out + jnp.einsum("BKGTS,BSKH->BTKGH", probs[..., start : start + v.shape[1]], v)
+        start += v.shape[1]
+    return einops.rearrange(out, "B T K G H -> B T (K G H)")
+
+
+def prefix_layer(cfg: GemmaConfig, w, x, positions, mask):
+    """One VLM layer over the prefix. x (B,P,D); mask (B,P,P). Returns (x, k, v) with k, v (B,P,K,H) post-RoPE."""
+    h, _ = rms_norm(x, w["pre_attn"])
+    q, k, v = _qkv(h, w["qkv"], cfg, positions)
+    x = x + _attend(q, [k], [v], [mask], x.dtype) @ w["attn_out"]
+    h, _ = rms_norm(x, w["pre_ffw"])
+    return x + _mlp(h, w), k, v
+
+
+def suffix_layer(cfg: GemmaConfig, w, x, positions, cache_k, cache_v, prefix_mask, suffix_mask, mods=None):
+    """One action-expert layer over the suffix, attending to [cached prefix | suffix].
+
+    cache_k/v (B,P,K,H); prefix_mask (B,S,P); suffix_mask (B,S,S); mods: None (π0) or (attn, ffw) adaRMS outputs.
+    """
+    mod_attn, mod_ffw = mods if mods is not None else (None, None)
+    h, gate = rms_norm(x, w.get("pre_attn"), mod_attn)
+    q, k, v = _qkv(h, w["qkv"], cfg, positions)
+    y = _attend(q, [cache_k, k], [cache_v, v], [prefix_mask, suffix_mask], x.dtype) @ w["attn_out"]
+    x = x + (y if gate is None else y * gate)
+    h, gate = rms_norm(x, w.get("pre_ffw"), mod_ffw)
+    y = _mlp(h, w)
+    return x + (y if gate is None else y * gate)
+
+
+def run_layers(layer_fn, weights, x, per_layer=(), *, unroll: bool):
+    """Apply layer_fn(w_i, x, *per_layer_i) -> (x, *outs) over layers; returns (x, outs).
+
+    weights: a list of per-layer dicts (unroll=True) or one stacked dict (unroll=False, lax.scan). Each per_layer
+    input and each returned output is indexed by layer: a tuple of per-layer arrays when unrolled (separate buffers,
+    no slicing), an array stacked on axis 0 when scanned."""
+    if unroll:
+        outs = []
+        for i, w in enumerate(weights):
+            x, *o = layer_fn(w, x, *(a[i] for a in per_layer))
+            outs.append(o)
+        return x, [tuple(o) for o in zip(*outs)]
+
+    def body(x, xs):
+        w, extra = xs
+        x, *o = layer_fn(w, x, *extra)
+        return x, tuple(o)
+
+    x, outs = jax.lax.scan(body, x, (weights, tuple(per_layer)))
+    return x, list(outs)

@@ -1,0 +1,125 @@
+"""The three inference stages and the fused program, as pure functions of (engine weights, inputs).
+
+Static per compiled program: the config, batch size, the active cameras (a camera masked for every element is not
+encoded at all), the prompt bucket length, num_steps, and whether layers are unrolled. Masked-out tokens never
+advance positions, so skipping them leaves every number as it was.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+
+from pi0_jax import pi0, siglip
+from pi0_jax.config import Pi0Config
+from pi0_jax.engine import layers
+
+
+@flax.struct.dataclass
+class PrefixCache:
+    """k, v: per layer (B, P, K, H), post-RoPE (a tuple when unrolled, (L, ...) stacked when scanned); mask (B, P)."""
+
+    k: tuple | jax.Array
+    v: tuple | jax.Array
+    mask: jax.Array
+
+
+def encode_images(config: Pi0Config, weights: dict, images: jax.Array) -> jax.Array:
+    """images (C, B, H, W, 3) f32 in [-1, 1] for the C active cameras -> (B, C * 256, VLM width), camera-major."""
+    c, b = images.shape[:2]
+    module = siglip.Siglip(config.siglip, out_dim=config.paligemma.width, dtype_mm=jnp.dtype(config.dtype))
+    tokens = module.apply({"params": weights["img"]}, images.reshape(c * b, *images.shape[2:]))[0]
+    return tokens.reshape(c, b, *tokens.shape[1:]).transpose(1, 0, 2, 3).reshape(b, -1, tokens.shape[-1])
+
+
+def fill_prefix_cache(config: Pi0Config, weights: dict, image_tokens, image_masks, tokens, token_mask, *,
+                      unroll: bool) -> PrefixCache:
+    """image_tokens (B, C*256, D); image_masks (C, B) bool; tokens / token_mask (B, L). The prefix is bidirectional."""
+    dtype = jnp.dtype(config.dtype)
+    n_img = image_tokens.shape[1] // image_masks.shape[0]
+    text = weights["embedding"][tokens]
+    text = text * jnp.sqrt(config.paligemma.width).astype(text.dtype)  # sqrt(width) cast to the table dtype first
+    x = jnp.concatenate([image_tokens.astype(dtype), text.astype(dtype)], axis=1)
+    mask = jnp.concatenate([jnp.repeat(image_masks.T, n_img, axis=1), token_mask], axis=1)
+    positions = jnp.cumsum(mask, axis=1) - 1
+    attn_mask = mask[:, None, :] & mask[:, :, None]
+    layer = functools.partial(_prefix_layer, config, positions=positions, mask=attn_mask)
+    _, (k, v) = layers.run_layers(layer, weights["vlm"], x, unroll=unroll)
+    return PrefixCache(k=k, v=v, mask=mask)
+
+
+def _prefix_layer(config, w, x, *, positions, mask):
+    x, k, v = layers.prefix_layer(config.paligemma, w, x, positions, mask)
+    return x, k, v
+
+
+def _dense(p, x):
+    return x @ p["kernel"] + p["bias"]
+
+
+def velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, cache: PrefixCache, state, x_t, *,
+             unroll: bool) -> jax.Array:
+    """v(x_t, t_step) over the cache. `sched` is `weights.precompute_schedule` output, indexed by the step number."""
+    dtype = jnp.dtype(config.dtype)
+    top, horizon = weights["top"], config.action_horizon
+    b = x_t.shape[0]
+    action_tokens = _dense(top["action_in_proj"], x_t)  # f32: the projections run in the promoted dtype
+    if config.pi05:
+        x = action_tokens
+        mods = (sched["mods_attn"][step], sched["mods_ffw"][step])  # (L, 3D) each
+        ar_state = []
+    else:
+        w_in = top["action_time_mlp_in"]["kernel"]
+        h = action_tokens @ w_in[: config.action_expert.width].astype(jnp.float32) + sched["time_in"][step]
+        x = jnp.concatenate([_dense(top["state_proj"], state)[:, None, :],
+                             _dense(top["action_time_mlp_out"], jax.nn.swish(h))], axis=1)
+        mods = None
+        ar_state = [True]
+    x = x.astype(dtype)
+    s = x.shape[1]
+    ar = jnp.asarray(ar_state + [True] + [False] * (horizon - 1))
+    suffix_mask = jnp.broadcast_to(pi0.make_attn_mask(jnp.ones((1, s), bool), ar), (b, s, s))
+    prefix_mask = jnp.broadcast_to(cache.mask[:, None, :], (b, s, cache.mask.shape[1]))
+    positions = jnp.sum(cache.mask, axis=-1, keepdims=True) + jnp.arange(s)[None, :]
+
+    def layer(w, x, k, v, *mod):
+        m = None if mods is None else (mod[0][None], mod[1][None])
+        return (layers.suffix_layer(config.action_expert, w, x, positions, k, v, prefix_mask, suffix_mask, m),)
+
+    per_layer = [cache.k, cache.v]
+    if mods is not None:
+        per_layer += [_by_layer(mods[0], unroll), _by_layer(mods[1], unroll)]
+    x, _ = layers.run_layers(layer, weights["expert"], x, per_layer, unroll=unroll)
+    if config.pi05:
+        x, _ = layers.rms_norm(x, mod=sched["mods_final"][step][None])
+    else:
+        x, _ = layers.rms_norm(x, weights["final_norm_1"])
+    return _dense(top["action_out_proj"], x[:, -horizon:])
+
+
+def _by_layer(x, unroll):
+    return tuple(x[i] for i in range(x.shape[0])) if unroll else x
+
+
+def denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixCache, state, noise, *, num_steps: int,
+            unroll: bool, unroll_steps: bool) -> jax.Array:
+    """num_steps Euler steps from noise (t = 1) to actions (t = 0); the loop has a fixed trip count."""
+    dt = -1.0 / num_steps
+
+    def step(i, x_t):
+        v = velocity(config, weights, sched, i, cache, state, x_t, unroll=unroll)
+        return x_t + dt * v  # dt * v in v's dtype, then promoted to f32: as the reference
+
+    return jax.lax.fori_loop(0, num_steps, step, noise.astype(jnp.float32), unroll=unroll_steps)
+
+
+def infer(config: Pi0Config, weights: dict, sched: dict, images, image_masks, tokens, token_mask, state, noise, *,
+          num_steps: int, unroll: bool, unroll_steps: bool) -> jax.Array:
+    """The fused program: vision -> prefix cache -> denoise, one XLA executable, no host round trip."""
+    image_tokens = encode_images(config, weights, images)
+    cache = fill_prefix_cache(config, weights, image_tokens, image_masks, tokens, token_mask, unroll=unroll)
+    return denoise(config, weights, sched, cache, state, noise, num_steps=num_steps, unroll=unroll,
+                   unroll_steps=unroll_steps)

@@ -1,0 +1,167 @@
+"""`Engine`: ahead-of-time compiled, static-shape programs for π0 / π0.5 inference.
+
+One executable per (stage, batch, num_steps, active cameras, prompt bucket); the config (preset, dtype) is fixed per
+Engine. Executables are kept, compiled ahead of time (`jit(...).lower(...).compile()`), so an input of the wrong
+shape is an error, never a silent recompile. XLA's persistent compilation cache makes a second process start warm.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from pi0_jax import pi0
+from pi0_jax.config import IMAGE_KEYS, Pi0Config
+from pi0_jax.engine import programs, weights as weights_lib
+
+PROMPT_BUCKETS = (16, 32, 48, 64, 96, 128, 160, 200)
+STAGES = ("encode_images", "fill_prefix_cache", "denoise", "infer")
+
+
+def default_cache_dir() -> Path:
+    return Path(os.environ.get("PI0_JAX_CACHE_DIR", Path.home() / ".cache" / "pi0_jax" / "xla"))
+
+
+def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path:
+    """Turn on XLA's persistent compilation cache at `path` (default: $PI0_JAX_CACHE_DIR or ~/.cache/pi0_jax/xla)."""
+    path = Path(path) if path is not None else default_cache_dir()
+    path.mkdir(parents=True, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    return path
+
+
+def prompt_bucket(valid_len: int, max_len: int) -> int:
+    """The smallest bucket that holds `valid_len` tokens (prompts are right-padded, so a prefix slice keeps them)."""
+    for b in PROMPT_BUCKETS:
+        if valid_len <= b <= max_len:
+            return b
+    return max_len
+
+
+class Engine:
+    """Compiled inference for one model.
+
+    >>> engine = Engine(config, params)
+    >>> actions = engine.sample_actions(observation, noise, num_steps=10)   # picks cameras / bucket, compiles once
+
+    unroll: layers unrolled (separate per-layer weight buffers) instead of `lax.scan`; unroll_steps: the denoise
+    loop unrolled. Both change the schedule only, never the numbers.
+    """
+
+    def __init__(self, config: Pi0Config, params: dict, *, unroll: bool = True, unroll_steps: bool = False,
+                 cache_dir: str | os.PathLike | None | bool = None):
+        if cache_dir is not False:
+            self.cache_dir = enable_compilation_cache(None if cache_dir in (None, True) else cache_dir)
+        self.config = config
+        self.unroll = unroll
+        self.unroll_steps = unroll_steps
+        self._params = params
+        w = jax.jit(functools.partial(weights_lib.prepare, config))(params)
+        if unroll:
+            depth = config.paligemma.depth
+            w["vlm"] = weights_lib.unstack(w["vlm"], depth)
+            w["expert"] = weights_lib.unstack(w["expert"], depth)
+        self.weights = w
+        self._schedules: dict[int, dict] = {}
+        self._executables: dict[tuple, jax.stages.Compiled] = {}
+        self.compile_seconds: dict[tuple, float] = {}
+
+    # -- schedules and executables ------------------------------------------------------------------------------
+    def schedule(self, num_steps: int) -> dict:
+        if num_steps not in self._schedules:
+            fn = jax.jit(functools.partial(weights_lib.precompute_schedule, self.config), static_argnums=1)
+            self._schedules[num_steps] = fn(self._params, num_steps)
+        return self._schedules[num_steps]
+
+    @property
+    def num_compiled(self) -> int:
+        return len(self._executables)
+
+    def executable(self, stage: str, batch: int, num_steps: int, cameras: Sequence[str], prompt_len: int):
+        """The compiled program for a stage and static shape (compiled on first use, then kept)."""
+        cameras = tuple(cameras)
+        key = (stage, batch, num_steps, cameras, prompt_len)
+        if key not in self._executables:
+            start = time.perf_counter()
+            fn, args, donate = self._stage(stage, batch, num_steps, cameras, prompt_len)
+            self._executables[key] = jax.jit(fn, donate_argnums=donate).lower(*args).compile()
+            self.compile_seconds[key] = time.perf_counter() - start
+        return self._executables[key]
+
+    def _stage(self, stage, batch, num_steps, cameras, prompt_len):
+        cfg, s = self.config, self.config.image_size
+        f32, dtype = jnp.float32, jnp.dtype(cfg.dtype)
+        spec = jax.ShapeDtypeStruct
+        c = len(cameras)
+        images = spec((c, batch, s, s, 3), f32)
+        image_masks = spec((c, batch), jnp.bool_)
+        tokens, token_mask = spec((batch, prompt_len), jnp.int32), spec((batch, prompt_len), jnp.bool_)
+        state = spec((batch, cfg.action_dim), f32)
+        noise = spec((batch, cfg.action_horizon, cfg.action_dim), f32)
+        w = jax.tree.map(lambda x: spec(x.shape, x.dtype), self.weights)
+        sched = jax.tree.map(lambda x: spec(x.shape, x.dtype), self.schedule(num_steps))
+        kw = {"unroll": self.unroll}
+        denoise_kw = {**kw, "num_steps": num_steps, "unroll_steps": self.unroll_steps}
+        if stage == "encode_images":
+            return functools.partial(programs.encode_images, cfg), (w, images), ()
+        image_tokens = spec((batch, c * cfg.siglip.num_patches, cfg.paligemma.width), dtype)
+        if stage == "fill_prefix_cache":
+            fn = functools.partial(programs.fill_prefix_cache, cfg, **kw)
+            return fn, (w, image_tokens, image_masks, tokens, token_mask), ()
+        if stage == "denoise":
+            cache = jax.eval_shape(functools.partial(programs.fill_prefix_cache, cfg, **kw), w, image_tokens,
+                                   image_masks, tokens, token_mask)
+            fn = functools.partial(programs.denoise, cfg, **denoise_kw)
+            return fn, (w, sched, cache, state, noise), (4,)
+        if stage == "infer":
+            fn = functools.partial(programs.infer, cfg, **denoise_kw)
+            return fn, (w, sched, images, image_masks, tokens, token_mask, state, noise), (7,)
+        raise ValueError(f"unknown stage {stage!r}; stages: {STAGES}")
+
+    # -- inputs -----------------------------------------------------------------------------------------------------
+    def plan(self, obs: pi0.Observation) -> tuple[tuple[str, ...], int]:
+        """Active cameras (valid for some element) and the prompt bucket, read from the host-side masks."""
+        keys = IMAGE_KEYS[: self.config.num_cameras]
+        cameras = tuple(k for k in keys if np.asarray(obs.image_masks[k]).any())
+        valid = int(np.asarray(obs.tokenized_prompt_mask).sum(axis=1).max(initial=0))
+        return cameras, prompt_bucket(valid, obs.tokenized_prompt.shape[1])
+
+    def pack(self, obs: pi0.Observation, cameras: Sequence[str], prompt_len: int):
+        """pi0.Observation -> the arrays the programs take (cameras stacked, prompt cut to its bucket)."""
+        mask = np.asarray(obs.tokenized_prompt_mask)
+        if mask[:, prompt_len:].any():
+            raise ValueError(f"valid prompt tokens beyond the bucket of {prompt_len} (prompts must be right-padded)")
+        images = jnp.stack([jnp.asarray(obs.images[k], jnp.float32) for k in cameras])
+        image_masks = jnp.stack([jnp.asarray(obs.image_masks[k], bool) for k in cameras])
+        return (images, image_masks, jnp.asarray(obs.tokenized_prompt[:, :prompt_len], jnp.int32),
+                jnp.asarray(mask[:, :prompt_len]), jnp.asarray(obs.state, jnp.float32))
+
+    # -- running ------------------------------------------------------------------------------------------------------
+    def sample_actions(self, obs: pi0.Observation, noise: jax.Array, num_steps: int = 10) -> jax.Array:
+        """The fused program. The noise buffer is donated (do not reuse it after the call)."""
+        cameras, prompt_len = self.plan(obs)
+        images, image_masks, tokens, token_mask, state = self.pack(obs, cameras, prompt_len)
+        exe = self.executable("infer", noise.shape[0], num_steps, cameras, prompt_len)
+        return exe(self.weights, self.schedule(num_steps), images, image_masks, tokens, token_mask, state,
+                   jnp.asarray(noise, jnp.float32))
+
+    def run_stages(self, obs: pi0.Observation, noise: jax.Array, num_steps: int = 10):
+        """The three stage programs one after another (for per-stage timing); returns (image_tokens, cache, actions)."""
+        cameras, prompt_len = self.plan(obs)
+        images, image_masks, tokens, token_mask, state = self.pack(obs, cameras, prompt_len)
+        b = noise.shape[0]
+        image_tokens = self.executable("encode_images", b, num_steps, cameras, prompt_len)(self.weights, images)
+        cache = self.executable("fill_prefix_cache", b, num_steps, cameras, prompt_len)(
+            self.weights, image_tokens, image_masks, tokens, token_mask)
+        actions = self.executable("denoise", b, num_steps, cameras, prompt_len)(
+            self.weights, self.schedule(num_steps), cache, state, jnp.asarray(noise, jnp.float32))
+        return image_tokens, cache, actions

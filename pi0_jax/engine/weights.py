@@ -1,0 +1,110 @@
+"""Engine weights: the openpi param tree rearranged for inference, computing the same function.
+
+- q/k/v of each expert fused into one (D, (N + 2K) H) GEMM, gate/up into one (D, 2F) GEMM, attention out as
+  (N H, D): fewer, larger kernels.
+- Per-layer weights split into separate buffers (unrolled layers) or kept stacked (scanned layers).
+- The prefix pass returns only K/V, so XLA drops the VLM's last MLP and final norm as dead code; the VLM's final
+  norm weights are not carried at all.
+- The step schedule of a fixed-step sampler is known: its times, the time embeddings and what depends only on them
+  (π0.5's adaRMS scale/shift/gate for every layer and step; π0's time half of `action_time_mlp_in`) are precomputed
+  once per (params, num_steps) with exactly the reference's ops, so the denoise loop never reads those weights.
+
+Axis legend: L layers, D width, N query heads, K kv heads, H head dim, F MLP hidden, T steps.
+"""
+
+from __future__ import annotations
+
+import einops
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from pi0_jax import pi0
+from pi0_jax.config import Pi0Config
+
+
+def step_times(num_steps: int) -> np.ndarray:
+    """t_k at which the velocity is evaluated, accumulated in f32 exactly as the reference sampler does."""
+    dt = np.float32(-1.0 / num_steps)
+    t, out = np.float32(1.0), []
+    for _ in range(num_steps):
+        out.append(t)
+        t = np.float32(t + dt)
+    return np.asarray(out, np.float32)
+
+
+def _expert_weights(attn: dict, mlp: dict, suffix: str, dtype) -> dict:
+    q = attn[f"q_einsum{suffix}"]["w"]  # (L, N, D, H)
+    kv = attn[f"kv_einsum{suffix}"]["w"]  # (L, 2, K, D, H)
+    qkv = jnp.concatenate(
+        [einops.rearrange(q, "L N D H -> L D (N H)"), einops.rearrange(kv, "L two K D H -> L D (two K H)")], axis=-1)
+    return {
+        "qkv": qkv.astype(dtype),
+        "attn_out": einops.rearrange(attn[f"attn_vec_einsum{suffix}"]["w"], "L N H D -> L (N H) D").astype(dtype),
+        "gate_up": einops.rearrange(mlp["gating_einsum"], "L two D F -> L D (two F)").astype(dtype),
+        "down": mlp["linear"].astype(dtype),
+    }
+
+
+def prepare(config: Pi0Config, params: dict) -> dict:
+    """Engine weights (stacked over layers) from openpi-layout params. Pure; jit it to run on device."""
+    dtype = jnp.dtype(config.dtype)
+    llm = params["PaliGemma"]["llm"]
+    layers = llm["layers"]
+    vlm = _expert_weights(layers["attn"], layers["mlp"], "", dtype)
+    vlm["pre_attn"] = layers["pre_attention_norm"]["scale"]
+    vlm["pre_ffw"] = layers["pre_ffw_norm"]["scale"]
+    expert = _expert_weights(layers["attn"], layers["mlp_1"], "_1", dtype)
+    if not config.pi05:
+        expert["pre_attn"] = layers["pre_attention_norm_1"]["scale"]
+        expert["pre_ffw"] = layers["pre_ffw_norm_1"]["scale"]
+    top = {k: v for k, v in params.items() if k != "PaliGemma"}
+    out = {
+        "img": params["PaliGemma"]["img"],
+        "embedding": llm["embedder"]["input_embedding"],
+        "vlm": vlm,
+        "expert": expert,
+        "top": top,
+    }
+    if not config.pi05:
+        out["final_norm_1"] = llm["final_norm_1"]["scale"]
+    return out
+
+
+def precompute_schedule(config: Pi0Config, params: dict, num_steps: int) -> dict:
+    """Everything that depends only on the step times. Pure; jit it to run on device.
+
+    π0.5: `mods_attn`, `mods_ffw` (T, L, 3 D) and `mods_final` (T, 3 D): the adaRMS Dense outputs, computed in the
+    activation dtype as the reference does (cond cast to it, then Dense). π0: `time_in` (T, D) = the time half of
+    `action_time_mlp_in` plus its bias, in f32 (the projection runs in f32 in the reference too).
+    """
+    dtype = jnp.dtype(config.dtype)
+    width = config.action_expert.width
+    t = jnp.asarray(step_times(num_steps))
+    emb = pi0.posemb_sincos(t, width)  # (T, D) f32
+    if config.pi05:
+        def dense(p, x):
+            return x @ p["kernel"] + p["bias"]
+
+        cond = jax.nn.swish(dense(params["time_mlp_out"], jax.nn.swish(dense(params["time_mlp_in"], emb))))
+        cond = cond.astype(dtype)
+        layers = params["PaliGemma"]["llm"]["layers"]
+
+        def mods(norm):  # kernel (L, D, 3D), bias (L, 3D) -> (T, L, 3D)
+            k, b = norm["Dense_0"]["kernel"].astype(dtype), norm["Dense_0"]["bias"].astype(dtype)
+            return jnp.einsum("TD,LDE->TLE", cond, k) + b
+
+        final = params["PaliGemma"]["llm"]["final_norm_1"]["Dense_0"]
+        return {
+            "mods_attn": mods(layers["pre_attention_norm_1"]),
+            "mods_ffw": mods(layers["pre_ffw_norm_1"]),
+            "mods_final": cond @ final["kernel"].astype(dtype) + final["bias"].astype(dtype),
+        }
+    w = params["action_time_mlp_in"]
+    kernel = w["kernel"].astype(jnp.float32)
+    return {"time_in": emb @ kernel[width:] + w["bias"].astype(jnp.float32)}
+
+
+def unstack(tree: dict, depth: int) -> list[dict]:
+    """Stacked (L, ...) leaves -> one dict per layer with separate buffers (for unrolled layers)."""
+    return [jax.tree.map(lambda x, i=i: x[i], tree) for i in range(depth)]
