@@ -2,6 +2,7 @@
 
   pi0-jax convert SRC DST   PyTorch (openpi / LeRobot) checkpoint -> pi0-jax checkpoint
   pi0-jax demo              convert the embedded tiny model, run the policy on a synthetic observation, print timings
+  pi0-jax benchmark         per-stage latency of the compiled engine over steps x batch x dtype
 """
 
 from __future__ import annotations
@@ -89,6 +90,15 @@ def _run_demo(args: argparse.Namespace) -> int:
     return 0 if same else 1
 
 
+def _benchmark_parser(subparsers) -> None:
+    from pi0_jax import benchmark  # noqa: F401  (imports jax; only the parser is built here)
+
+    p = subparsers.add_parser("benchmark", help="per-stage latency of the compiled engine (JSON, table, chart)",
+                              description=benchmark.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    benchmark.add_arguments(p)
+    p.set_defaults(func=benchmark.main)
+
+
 def build_parser() -> argparse.ArgumentParser:
     from converters.cli import add_convert_parser
 
@@ -97,6 +107,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     add_convert_parser(sub)
     _demo_parser(sub)
+    _benchmark_parser(sub)
     return parser
 
 

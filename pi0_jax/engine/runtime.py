@@ -89,6 +89,10 @@ class Engine:
     def executable(self, stage: str, batch: int, num_steps: int, cameras: Sequence[str], prompt_len: int):
         """The compiled program for a stage and static shape (compiled on first use, then kept)."""
         cameras = tuple(cameras)
+        if stage in ("encode_images", "fill_prefix_cache"):
+            num_steps = 0  # these programs do not depend on the step count
+        if stage == "encode_images":
+            prompt_len = 0
         key = (stage, batch, num_steps, cameras, prompt_len)
         if key not in self._executables:
             start = time.perf_counter()
@@ -108,7 +112,7 @@ class Engine:
         state = spec((batch, cfg.action_dim), f32)
         noise = spec((batch, cfg.action_horizon, cfg.action_dim), f32)
         w = jax.tree.map(lambda x: spec(x.shape, x.dtype), self.weights)
-        sched = jax.tree.map(lambda x: spec(x.shape, x.dtype), self.schedule(num_steps))
+        sched = jax.tree.map(lambda x: spec(x.shape, x.dtype), self.schedule(num_steps)) if num_steps else None
         kw = {"unroll": self.unroll}
         denoise_kw = {**kw, "num_steps": num_steps, "unroll_steps": self.unroll_steps}
         if stage == "encode_images":

@@ -1,0 +1,316 @@
+"""The jit benchmark: per-stage latency of the compiled engine over steps x batch x dtype.
+
+Fixed random inputs (several sets, rotated so caches do not flatter), warm-up, `block_until_ready` before the clock
+is read, median and p90 over the timed iterations. Stages are timed as separate programs (vision, prefix KV fill,
+denoise); `total` is the fused program, timed on its own. Cold compile (empty persistent cache) and warm start (a
+second process reading the cache) are measured for the fused B=1 program. Peers (LeRobot's PyTorch policy) come
+from the `peers` package, which may import torch; this module does not.
+
+    pi0-jax benchmark --preset pi0_base --steps 1,2,3,5,10 --batch 1,8,64 --out bench.json
+    pi0-jax benchmark --preset dummy --steps 1,2 --batch 1 --iters 3       # CPU smoke test
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import functools
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from pi0_jax import pi0
+from pi0_jax.config import IMAGE_KEYS, PRESETS, Pi0Config, get_config
+from pi0_jax.engine import Engine
+
+
+def _ints(s: str) -> list[int]:
+    return [int(x) for x in s.split(",") if x]
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--preset", default="pi0_base", choices=sorted(PRESETS),
+                   help="model preset; random weights unless --checkpoint (default: %(default)s)")
+    p.add_argument("--checkpoint", type=Path, default=None,
+                   help="a pi0-jax checkpoint directory to benchmark instead of random weights of --preset")
+    p.add_argument("--steps", type=_ints, default=[1, 2, 3, 5, 10], help="comma list of denoise steps")
+    p.add_argument("--batch", type=_ints, default=[1, 8, 64], help="comma list of batch sizes")
+    p.add_argument("--dtype", default="bfloat16", help="comma list of dtypes: bfloat16,float32")
+    p.add_argument("--iters", type=int, default=50, help="timed iterations per measurement (default: %(default)s)")
+    p.add_argument("--warmup", type=int, default=3, help="untimed calls before timing (default: %(default)s)")
+    p.add_argument("--input-sets", type=int, default=4, help="distinct random input sets, rotated (default: 4)")
+    p.add_argument("--cameras", type=int, default=3, help="active cameras (the rest are masked and skipped)")
+    p.add_argument("--prompt-tokens", type=int, default=20,
+                   help="valid prompt tokens; the rest of max_token_len is padding (default: %(default)s)")
+    p.add_argument("--fused-steps", type=_ints, default=None,
+                   help="steps at which the fused program is also timed (default: all of --steps)")
+    p.add_argument("--no-unroll", action="store_true", help="scan over layers instead of unrolling them")
+    p.add_argument("--unroll-steps", action="store_true", help="unroll the denoise loop as well")
+    p.add_argument("--reference", action="store_true",
+                   help="also time the reference model (pi0_jax.pi0.sample_actions: openpi's structure, layers "
+                        "scanned, one jit) at each batch for the largest step count")
+    p.add_argument("--compare", choices=["lerobot"], default=None,
+                   help="also time LeRobot's PyTorch policy of the same preset (random weights) on the same device")
+    p.add_argument("--torch-compile", action="store_true", help="with --compare: also time torch.compile")
+    p.add_argument("--torch-compile-mode", default="max-autotune",
+                   help="torch.compile mode for --torch-compile (default: LeRobot's own, %(default)s)")
+    p.add_argument("--warm-start", action="store_true",
+                   help="measure the warm start: a second process loads the fused B=1 program from the cache")
+    p.add_argument("--cache-dir", type=Path, default=None,
+                   help="persistent compilation cache (default: a fresh temp dir, so the cold compile is cold)")
+    p.add_argument("--out", type=Path, default=Path("benchmark.json"), help="JSON results (default: %(default)s)")
+    p.add_argument("--chart", type=Path, default=None, help="PNG chart (default: --out with .png)")
+    p.add_argument("--seed", type=int, default=0, help="seed of weights and inputs")
+
+
+def random_params(config: Pi0Config, seed: int) -> dict:
+    """Random weights in the config's dtype, drawn on the device (norms and adaRMS made non-zero too)."""
+    shapes = pi0.param_shapes(config)
+    leaves, treedef = jax.tree.flatten(shapes)
+    keys = jax.random.split(jax.random.key(seed), len(leaves))
+    dtype = jnp.dtype(config.dtype)
+
+    @functools.partial(jax.jit, static_argnums=(1,))
+    def draw(key, shape):
+        std = 1.0 / np.sqrt(shape[-2]) if len(shape) >= 2 else 0.1
+        return (jax.random.normal(key, shape, jnp.float32) * std).astype(dtype)
+
+    return jax.tree.unflatten(treedef, [draw(k, tuple(x.shape)) for k, x in zip(keys, leaves)])
+
+
+def make_inputs(config: Pi0Config, batch: int, cameras: int, prompt_tokens: int, seed: int):
+    rng = np.random.default_rng(seed)
+    s, keys = config.image_size, IMAGE_KEYS[: config.num_cameras]
+    L = config.max_token_len
+    tmask = np.arange(L)[None, :] < min(prompt_tokens, L)
+    obs = pi0.Observation(
+        images={k: jnp.asarray(rng.uniform(-1, 1, (batch, s, s, 3)), jnp.float32) for k in keys},
+        image_masks={k: jnp.full((batch,), i < cameras) for i, k in enumerate(keys)},
+        state=jnp.asarray(rng.normal(size=(batch, config.action_dim)), jnp.float32),
+        tokenized_prompt=jnp.asarray(np.where(tmask, rng.integers(2, config.vocab_size, (batch, L)), 0), jnp.int32),
+        tokenized_prompt_mask=jnp.asarray(np.broadcast_to(tmask, (batch, L))),
+    )
+    noise = jnp.asarray(rng.normal(size=(batch, config.action_horizon, config.action_dim)), jnp.float32)
+    return obs, noise
+
+
+def time_calls(fn, inputs: list, iters: int, warmup: int) -> dict:
+    """fn(*inputs[i % n]) timed one call at a time, synchronised; returns median / p90 / min in ms."""
+    for i in range(warmup):
+        jax.block_until_ready(fn(*inputs[i % len(inputs)]))
+    times = []
+    for i in range(iters):
+        args = inputs[i % len(inputs)]
+        start = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        times.append((time.perf_counter() - start) * 1e3)
+    return {"median_ms": float(np.median(times)), "p90_ms": float(np.percentile(times, 90)),
+            "min_ms": float(np.min(times))}
+
+
+def _peak_bytes() -> int | None:
+    stats = jax.devices()[0].memory_stats() or {}
+    return stats.get("peak_bytes_in_use")
+
+
+def environment() -> dict:
+    import flax
+
+    dev = jax.devices()[0]
+    return {"device": getattr(dev, "device_kind", str(dev)), "platform": dev.platform, "jax": jax.__version__,
+            "flax": flax.__version__, "python": platform.python_version(),
+            "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            "commit": _git_commit(), "xla_flags": os.environ.get("XLA_FLAGS", "")}
+
+
+def _git_commit() -> str | None:
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                              cwd=Path(__file__).parent, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return None
+
+
+def bench_engine(engine: Engine, args, batch: int) -> list[dict]:
+    cfg = engine.config
+    sets = [make_inputs(cfg, batch, args.cameras, args.prompt_tokens, args.seed + i) for i in range(args.input_sets)]
+    cameras, bucket = engine.plan(sets[0][0])
+    packed = [engine.pack(obs, cameras, bucket) for obs, _ in sets]
+    w = engine.weights
+    enc = engine.executable("encode_images", batch, 0, cameras, bucket)
+    pre = engine.executable("fill_prefix_cache", batch, 0, cameras, bucket)
+    t_vis = time_calls(lambda im: enc(w, im), [(p[0],) for p in packed], args.iters, args.warmup)
+    tokens = [enc(w, p[0]) for p in packed]
+    t_pre = time_calls(lambda it, p: pre(w, it, p[1], p[2], p[3]), list(zip(tokens, packed)), args.iters, args.warmup)
+    caches = [pre(w, it, p[1], p[2], p[3]) for it, p in zip(tokens, packed)]
+    rows = []
+    for steps in args.steps:
+        sched = engine.schedule(steps)
+        den = engine.executable("denoise", batch, steps, cameras, bucket)
+        # denoise donates its noise argument: hand it a fresh copy each call
+        t_den = time_calls(lambda c, p, n: den(w, sched, c, p[4], jnp.copy(n)),
+                           [(c, p, n) for c, p, (_, n) in zip(caches, packed, sets)], args.iters, args.warmup)
+        row = {"dtype": cfg.dtype, "batch": batch, "steps": steps, "cameras": len(cameras), "prompt_bucket": bucket,
+               "vision": t_vis, "prefix": t_pre, "denoise": t_den,
+               "denoise_per_step_ms": t_den["median_ms"] / steps}
+        if args.fused_steps is None or steps in args.fused_steps:
+            fused = engine.executable("infer", batch, steps, cameras, bucket)
+            row["total"] = time_calls(lambda p, n: fused(w, sched, *p, jnp.copy(n)),
+                                      [(p, n) for p, (_, n) in zip(packed, sets)], args.iters, args.warmup)
+            key = ("infer", batch, steps, cameras, bucket)
+            row["compile_s"] = engine.compile_seconds.get(key)
+        total = row.get("total", {}).get("median_ms") or (t_vis["median_ms"] + t_pre["median_ms"] + t_den["median_ms"])
+        row["total_ms"], row["hz"], row["samples_per_s"] = total, 1e3 / total, 1e3 * batch / total
+        rows.append(row)
+        print(_row_line(row), flush=True)
+    return rows
+
+
+def bench_reference(config: Pi0Config, params: dict, args, batch: int, steps: int) -> dict:
+    sets = [make_inputs(config, batch, args.cameras, args.prompt_tokens, args.seed + i) for i in range(args.input_sets)]
+    fn = jax.jit(functools.partial(pi0.sample_actions, config, num_steps=steps))
+    start = time.perf_counter()
+    fn.lower(params, *sets[0]).compile()
+    compile_s = time.perf_counter() - start
+    t = time_calls(lambda o, n: fn(params, o, n), sets, args.iters, args.warmup)
+    return {"impl": "reference (pi0_jax.pi0, openpi structure)", "dtype": config.dtype, "batch": batch,
+            "steps": steps, "total": t, "compile_s": compile_s}
+
+
+_WARM_CHILD = """
+import json, sys, time
+t0 = time.perf_counter()
+from pi0_jax import benchmark
+from pi0_jax.config import get_config
+from pi0_jax.engine import Engine
+cfg = get_config(sys.argv[1], dtype=sys.argv[2])
+params = benchmark.random_params(cfg, 0)
+engine = Engine(cfg, params, unroll=sys.argv[4] == "1", cache_dir=sys.argv[3])
+obs, noise = benchmark.make_inputs(cfg, 1, int(sys.argv[5]), int(sys.argv[6]), 0)
+start = time.perf_counter()
+engine.executable("infer", 1, int(sys.argv[7]), *engine.plan(obs))
+print(json.dumps({"warm_compile_s": time.perf_counter() - start, "process_s": time.perf_counter() - t0}))
+"""
+
+
+def measure_warm_start(config: Pi0Config, args, cache_dir: Path, steps: int) -> dict:
+    out = subprocess.run([sys.executable, "-c", _WARM_CHILD, config.name, config.dtype, str(cache_dir),
+                          "0" if args.no_unroll else "1", str(args.cameras), str(args.prompt_tokens), str(steps)],
+                         capture_output=True, text=True, check=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def _row_line(r: dict) -> str:
+    return (f"| {r['dtype']} | {r['batch']} | {r['steps']} | {r['total_ms']:.2f} | {r['hz']:.1f} | "
+            f"{r['vision']['median_ms']:.2f} | {r['prefix']['median_ms']:.2f} | {r['denoise']['median_ms']:.2f} | "
+            f"{r['denoise_per_step_ms']:.3f} | {r['samples_per_s']:.1f} |")
+
+
+TABLE_HEADER = ("| dtype | batch | steps | total ms | Hz | vision ms | prefix KV ms | denoise ms | ms/step | samples/s |\n"
+                "|---|---|---|---|---|---|---|---|---|---|")
+
+
+def markdown(results: dict) -> str:
+    lines = [f"{results['env']['device']} · {results['preset']} · {results['env']['date']} · "
+             f"commit {results['env']['commit']}", "", TABLE_HEADER]
+    lines += [_row_line(r) for r in results["rows"]]
+    for peer in results.get("peers", []):
+        lines.append(f"\n{peer['impl']} ({peer['dtype']}, B={peer['batch']}, {peer['steps']} steps): "
+                     f"{peer['total']['median_ms']:.2f} ms median; pi0-jax is {peer.get('ratio', float('nan')):.2f}x "
+                     "faster")
+    if results.get("compile"):
+        lines.append(f"\ncompile: {json.dumps(results['compile'])}")
+    return "\n".join(lines)
+
+
+def chart(results: dict, path: Path) -> None:
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("matplotlib not installed: no chart", file=sys.stderr)
+        return
+    rows = results["rows"]
+    groups = sorted({(r["dtype"], r["batch"]) for r in rows})
+    fig, axes = plt.subplots(1, len(groups), figsize=(4 * len(groups), 3.6), squeeze=False)
+    for ax, (dtype, batch) in zip(axes[0], groups):
+        sel = [r for r in rows if (r["dtype"], r["batch"]) == (dtype, batch)]
+        x = np.arange(len(sel))
+        bottom = np.zeros(len(sel))
+        for stage, color in (("vision", "#4c72b0"), ("prefix", "#dd8452"), ("denoise", "#55a868")):
+            h = np.array([r[stage]["median_ms"] for r in sel])
+            ax.bar(x, h, bottom=bottom, color=color, label=stage)
+            bottom += h
+        ax.set_xticks(x, [str(r["steps"]) for r in sel])
+        ax.set_xlabel("denoise steps")
+        ax.set_title(f"{dtype}, batch {batch}")
+    axes[0][0].set_ylabel("ms (median, per stage)")
+    axes[0][-1].legend()
+    fig.suptitle(f"{results['preset']} on {results['env']['device']}")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+def run(args: argparse.Namespace) -> dict:
+    cache_dir = args.cache_dir or Path(tempfile.mkdtemp(prefix="pi0-jax-xla-"))
+    results = {"preset": args.preset, "env": environment(), "rows": [], "peers": [], "compile": {},
+               "args": {k: str(v) for k, v in vars(args).items() if k != "func"}}
+    print(f"{results['env']['device']} · jax {jax.__version__}\n\n{TABLE_HEADER}", flush=True)
+    for dtype in args.dtype.split(","):
+        if args.checkpoint is not None:
+            from pi0_jax import checkpoint
+
+            config, params = checkpoint.load_checkpoint(args.checkpoint, dtype=dtype)
+            config = config.replace(dtype=dtype)
+        else:
+            config = get_config(args.preset, dtype=dtype)
+            params = random_params(config, args.seed)
+        engine = Engine(config, params, unroll=not args.no_unroll, unroll_steps=args.unroll_steps,
+                        cache_dir=cache_dir)
+        for batch in args.batch:
+            results["rows"] += bench_engine(engine, args, batch)
+            if args.reference:
+                ref = bench_reference(config, params, args, batch, max(args.steps))
+                mine = next(r for r in results["rows"] if (r["dtype"], r["batch"], r["steps"]) ==
+                            (dtype, batch, max(args.steps)))
+                ref["ratio"] = ref["total"]["median_ms"] / mine["total_ms"]
+                results["peers"].append(ref)
+                print(f"reference B={batch}: {ref['total']['median_ms']:.2f} ms ({ref['ratio']:.2f}x)", flush=True)
+        cold = {k: v for k, v in engine.compile_seconds.items() if k[0] == "infer"}
+        results["compile"][dtype] = {"cold_compile_s_fused": {f"B{k[1]}_S{k[2]}": round(v, 2) for k, v in cold.items()},
+                                     "peak_device_bytes": _peak_bytes()}
+        if args.warm_start:
+            results["compile"][dtype]["warm_start"] = measure_warm_start(config, args, cache_dir, max(args.steps))
+        if args.compare == "lerobot":
+            from peers import lerobot_torch
+
+            for peer in lerobot_torch.benchmark(config, args):
+                mine = next(r for r in results["rows"] if (r["dtype"], r["batch"], r["steps"]) ==
+                            (dtype, peer["batch"], peer["steps"]))
+                peer["ratio"] = peer["total"]["median_ms"] / mine["total_ms"]
+                results["peers"].append(peer)
+                print(f"{peer['impl']} B={peer['batch']}: {peer['total']['median_ms']:.2f} ms "
+                      f"({peer['ratio']:.2f}x)", flush=True)
+        del engine, params
+    return results
+
+
+def main(args: argparse.Namespace) -> int:
+    results = run(args)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(results, indent=2, default=str) + "\n")
+    print("\n" + markdown(results))
+    chart(results, args.chart or args.out.with_suffix(".png"))
+    print(f"\nwrote {args.out}")
+    return 0

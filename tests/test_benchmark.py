@@ -1,0 +1,21 @@
+"""The benchmark's CPU smoke test: `pi0-jax benchmark --preset dummy` writes JSON with every stage, and a chart."""
+
+import json
+
+from pi0_jax import cli
+
+
+def test_benchmark_dummy_writes_every_stage(tmp_path):
+    out = tmp_path / "bench.json"
+    args = ["benchmark", "--preset", "dummy", "--steps", "1,2", "--batch", "1", "--iters", "2", "--warmup", "1",
+            "--input-sets", "2", "--reference", "--out", str(out), "--cache-dir", str(tmp_path / "xla")]
+    assert cli.main(args) == 0
+    results = json.loads(out.read_text())
+    assert [(r["batch"], r["steps"]) for r in results["rows"]] == [(1, 1), (1, 2)]
+    for row in results["rows"]:
+        for stage in ("vision", "prefix", "denoise", "total"):
+            assert row[stage]["median_ms"] > 0 and row[stage]["p90_ms"] >= row[stage]["median_ms"]
+        assert row["prompt_bucket"] == 32 and row["cameras"] == 3
+    assert results["peers"][0]["impl"].startswith("reference")
+    assert results["env"]["device"] and results["compile"]["bfloat16"]["cold_compile_s_fused"]
+    assert out.with_suffix(".png").stat().st_size > 1000
