@@ -106,7 +106,7 @@ def benchmark(config: Pi0Config, args) -> list[dict]:
             first_s = time.perf_counter() - start
             rows.append({"impl": f"LeRobot {lerobot.__version__} torch {torch.__version__} {name}",
                          "dtype": config.dtype, "batch": batch, "steps": steps, "first_call_s": first_s,
-                         "total": _time(lambda x: call(fn, x), sets, args.iters, args.warmup)})
+                         "total": _time(lambda x: call(fn, x), sets, args.peer_iters, args.warmup)})
     del policy, model
     torch.cuda.empty_cache()
     return rows

@@ -55,12 +55,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="steps at which the fused program is also timed (default: all of --steps)")
     p.add_argument("--no-unroll", action="store_true", help="scan over layers instead of unrolling them")
     p.add_argument("--unroll-steps", action="store_true", help="unroll the denoise loop as well")
+    p.add_argument("--attention", choices=["xla", "cudnn"], default="xla",
+                   help="denoise attention: XLA ops or one cuDNN fused kernel (GPU) (default: %(default)s)")
     p.add_argument("--reference", action="store_true",
                    help="also time the reference model (pi0_jax.pi0.sample_actions: openpi's structure, layers "
                         "scanned, one jit) at each batch for the largest step count")
     p.add_argument("--compare", choices=["lerobot"], default=None,
                    help="also time LeRobot's PyTorch policy of the same preset (random weights) on the same device")
     p.add_argument("--torch-compile", action="store_true", help="with --compare: also time torch.compile")
+    p.add_argument("--peer-iters", type=int, default=10, help="timed iterations for peers (default: %(default)s)")
     p.add_argument("--torch-compile-mode", default="max-autotune",
                    help="torch.compile mode for --torch-compile (default: LeRobot's own, %(default)s)")
     p.add_argument("--warm-start", action="store_true",
@@ -144,6 +147,7 @@ def bench_engine(engine: Engine, args, batch: int) -> list[dict]:
     cfg = engine.config
     sets = [make_inputs(cfg, batch, args.cameras, args.prompt_tokens, args.seed + i) for i in range(args.input_sets)]
     cameras, bucket = engine.plan(sets[0][0])
+    attention = engine.attention_for(sets[0][0], cameras)
     packed = [engine.pack(obs, cameras, bucket) for obs, _ in sets]
     w = engine.weights
     enc = engine.executable("encode_images", batch, 0, cameras, bucket)
@@ -155,18 +159,19 @@ def bench_engine(engine: Engine, args, batch: int) -> list[dict]:
     rows = []
     for steps in args.steps:
         sched = engine.schedule(steps)
-        den = engine.executable("denoise", batch, steps, cameras, bucket)
+        den = engine.executable("denoise", batch, steps, cameras, bucket, attention)
         # denoise donates its noise argument: hand it a fresh copy each call
         t_den = time_calls(lambda c, p, n: den(w, sched, c, p[4], jnp.copy(n)),
                            [(c, p, n) for c, p, (_, n) in zip(caches, packed, sets)], args.iters, args.warmup)
         row = {"dtype": cfg.dtype, "batch": batch, "steps": steps, "cameras": len(cameras), "prompt_bucket": bucket,
+               "attention": attention,
                "vision": t_vis, "prefix": t_pre, "denoise": t_den,
                "denoise_per_step_ms": t_den["median_ms"] / steps}
         if args.fused_steps is None or steps in args.fused_steps:
-            fused = engine.executable("infer", batch, steps, cameras, bucket)
+            fused = engine.executable("infer", batch, steps, cameras, bucket, attention)
             row["total"] = time_calls(lambda p, n: fused(w, sched, *p, jnp.copy(n)),
                                       [(p, n) for p, (_, n) in zip(packed, sets)], args.iters, args.warmup)
-            key = ("infer", batch, steps, cameras, bucket)
+            key = ("infer", batch, steps, cameras, bucket, attention)
             row["compile_s"] = engine.compile_seconds.get(key)
         total = row.get("total", {}).get("median_ms") or (t_vis["median_ms"] + t_pre["median_ms"] + t_den["median_ms"])
         row["total_ms"], row["hz"], row["samples_per_s"] = total, 1e3 / total, 1e3 * batch / total
@@ -175,15 +180,21 @@ def bench_engine(engine: Engine, args, batch: int) -> list[dict]:
     return rows
 
 
-def bench_reference(config: Pi0Config, params: dict, args, batch: int, steps: int) -> dict:
+def bench_reference(engine: Engine, params: dict, args, batch: int, steps: int) -> dict:
+    """Time the reference model, and check the engine's fused output against it on the same inputs."""
+    config = engine.config
     sets = [make_inputs(config, batch, args.cameras, args.prompt_tokens, args.seed + i) for i in range(args.input_sets)]
     fn = jax.jit(functools.partial(pi0.sample_actions, config, num_steps=steps))
     start = time.perf_counter()
     fn.lower(params, *sets[0]).compile()
     compile_s = time.perf_counter() - start
     t = time_calls(lambda o, n: fn(params, o, n), sets, args.iters, args.warmup)
+    ref = np.asarray(fn(params, *sets[0]), np.float64)
+    got = np.asarray(engine.sample_actions(sets[0][0], jnp.copy(sets[0][1]), steps), np.float64)
     return {"impl": "reference (pi0_jax.pi0, openpi structure)", "dtype": config.dtype, "batch": batch,
-            "steps": steps, "total": t, "compile_s": compile_s}
+            "steps": steps, "total": t, "compile_s": compile_s,
+            "engine_vs_reference": {"rel_l2": float(np.linalg.norm(got - ref) / np.linalg.norm(ref)),
+                                    "max_abs": float(np.abs(got - ref).max())}}
 
 
 _WARM_CHILD = """
@@ -277,16 +288,17 @@ def run(args: argparse.Namespace) -> dict:
             config = get_config(args.preset, dtype=dtype)
             params = random_params(config, args.seed)
         engine = Engine(config, params, unroll=not args.no_unroll, unroll_steps=args.unroll_steps,
-                        cache_dir=cache_dir)
+                        attention=args.attention, cache_dir=cache_dir)
         for batch in args.batch:
             results["rows"] += bench_engine(engine, args, batch)
             if args.reference:
-                ref = bench_reference(config, params, args, batch, max(args.steps))
+                ref = bench_reference(engine, params, args, batch, max(args.steps))
                 mine = next(r for r in results["rows"] if (r["dtype"], r["batch"], r["steps"]) ==
                             (dtype, batch, max(args.steps)))
                 ref["ratio"] = ref["total"]["median_ms"] / mine["total_ms"]
                 results["peers"].append(ref)
-                print(f"reference B={batch}: {ref['total']['median_ms']:.2f} ms ({ref['ratio']:.2f}x)", flush=True)
+                print(f"reference B={batch}: {ref['total']['median_ms']:.2f} ms ({ref['ratio']:.2f}x); engine vs "
+                      f"reference: {ref['engine_vs_reference']}", flush=True)
         cold = {k: v for k, v in engine.compile_seconds.items() if k[0] == "infer"}
         results["compile"][dtype] = {"cold_compile_s_fused": {f"B{k[1]}_S{k[2]}": round(v, 2) for k, v in cold.items()},
                                      "peak_device_bytes": _peak_bytes()}

@@ -24,6 +24,26 @@ for phase in "$@"; do
                --fused-steps 1,10 --reference --iters 50 --out "$OUT/pi05_table.json" ;;
     fp32) python3 -m pi0_jax.cli benchmark --preset pi0_base --dtype float32 --steps 1,10 --batch 1,8 \
                --fused-steps 1,10 --iters 30 --out "$OUT/pi0_fp32.json" ;;
+    cudnn_b1) python3 -m pi0_jax.cli benchmark --preset pi05_base --steps 1,10 --batch 1 --attention cudnn \
+               --reference --iters 50 --out "$OUT/pi05_cudnn.json" ;;
+    cmdbuf_b1) XLA_FLAGS="--xla_gpu_enable_command_buffer=FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,WHILE,CONDITIONAL \
+               --xla_gpu_graph_min_graph_size=1" python3 -m pi0_jax.cli benchmark --preset pi05_base --steps 1,10 \
+               --batch 1 --iters 50 --out "$OUT/pi05_cmdbuf.json" ;;
+    cmdbuf_cudnn_b1) XLA_FLAGS="--xla_gpu_enable_command_buffer=FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,WHILE,CONDITIONAL \
+               --xla_gpu_graph_min_graph_size=1" python3 -m pi0_jax.cli benchmark --preset pi05_base --steps 1,10 \
+               --batch 1 --attention cudnn --iters 50 --out "$OUT/pi05_cmdbuf_cudnn.json" ;;
+    dump_hlo) python3 - <<'PY'
+import os
+from pi0_jax import benchmark
+from pi0_jax.config import get_config
+from pi0_jax.engine import Engine
+cfg = get_config("pi05_base")
+e = Engine(cfg, benchmark.random_params(cfg, 0), cache_dir=False)
+obs, _ = benchmark.make_inputs(cfg, 1, 3, 20, 0)
+for stage in ("encode_images", "denoise"):
+    open(os.path.join(os.environ["OUT"], f"{stage}.hlo.txt"), "w").write(e.executable(stage, 1, 1, *e.plan(obs)).as_text())
+PY
+    ;;
   esac
   echo "=== $phase took $(( $(date +%s) - start )) s"
 done

@@ -67,15 +67,37 @@ def prefix_layer(cfg: GemmaConfig, w, x, positions, mask):
     return x + _mlp(h, w), k, v
 
 
-def suffix_layer(cfg: GemmaConfig, w, x, positions, cache_k, cache_v, prefix_mask, suffix_mask, mods=None):
+def _attend_cudnn(q, k, v, cache_k, cache_v, kv_len, suffix_mask):
+    """cuDNN fused attention over keys [suffix | prefix]: putting the suffix first makes every element's invalid
+    prefix tokens a tail, cut off by `kv_len` = S + valid prefix tokens (requires a contiguous valid prefix).
+    suffix_mask (B,S,S) is applied only where it masks something (π0's state token), as a boolean mask."""
+    b, s = q.shape[:2]
+    q = einops.rearrange(q, "B T K G H -> B T (K G) H")
+    keys, values = jnp.concatenate([k, cache_k], axis=1), jnp.concatenate([v, cache_v], axis=1)
+    mask = None
+    if suffix_mask is not None:
+        full = jnp.ones((b, s, keys.shape[1]), bool).at[:, :, :s].set(suffix_mask)
+        mask = full[:, None]
+    out = jax.nn.dot_product_attention(q, keys, values, mask=mask, scale=1.0, key_value_seq_lengths=kv_len,
+                                       implementation="cudnn")
+    return einops.rearrange(out, "B T N H -> B T (N H)")
+
+
+def suffix_layer(cfg: GemmaConfig, w, x, positions, cache_k, cache_v, prefix_mask, suffix_mask, mods=None,
+                 kv_len=None):
     """One action-expert layer over the suffix, attending to [cached prefix | suffix].
 
     cache_k/v (B,P,K,H); prefix_mask (B,S,P); suffix_mask (B,S,S); mods: None (π0) or (attn, ffw) adaRMS outputs.
+    kv_len: None for XLA attention, else (B,) key lengths for the cuDNN kernel (see `_attend_cudnn`).
     """
     mod_attn, mod_ffw = mods if mods is not None else (None, None)
     h, gate = rms_norm(x, w.get("pre_attn"), mod_attn)
     q, k, v = _qkv(h, w["qkv"], cfg, positions)
-    y = _attend(q, [cache_k, k], [cache_v, v], [prefix_mask, suffix_mask], x.dtype) @ w["attn_out"]
+    if kv_len is None:
+        y = _attend(q, [cache_k, k], [cache_v, v], [prefix_mask, suffix_mask], x.dtype)
+    else:
+        y = _attend_cudnn(q, k, v, cache_k, cache_v, kv_len, suffix_mask)
+    y = y @ w["attn_out"]
     x = x + (y if gate is None else y * gate)
     h, gate = rms_norm(x, w.get("pre_ffw"), mod_ffw)
     y = _mlp(h, w)

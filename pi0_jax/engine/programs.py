@@ -61,7 +61,7 @@ def _dense(p, x):
 
 
 def velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, cache: PrefixCache, state, x_t, *,
-             unroll: bool) -> jax.Array:
+             unroll: bool, attention: str = "xla") -> jax.Array:
     """v(x_t, t_step) over the cache. `sched` is `weights.precompute_schedule` output, indexed by the step number."""
     dtype = jnp.dtype(config.dtype)
     top, horizon = weights["top"], config.action_horizon
@@ -85,9 +85,15 @@ def velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, cac
     prefix_mask = jnp.broadcast_to(cache.mask[:, None, :], (b, s, cache.mask.shape[1]))
     positions = jnp.sum(cache.mask, axis=-1, keepdims=True) + jnp.arange(s)[None, :]
 
+    kv_len = None
+    if attention == "cudnn":
+        kv_len = (s + jnp.sum(cache.mask, axis=-1)).astype(jnp.int32)
+        suffix_mask = None if config.pi05 else suffix_mask  # π0.5's suffix attends everywhere
+
     def layer(w, x, k, v, *mod):
         m = None if mods is None else (mod[0][None], mod[1][None])
-        return (layers.suffix_layer(config.action_expert, w, x, positions, k, v, prefix_mask, suffix_mask, m),)
+        return (layers.suffix_layer(config.action_expert, w, x, positions, k, v, prefix_mask, suffix_mask, m,
+                                    kv_len),)
 
     per_layer = [cache.k, cache.v]
     if mods is not None:
@@ -105,21 +111,21 @@ def _by_layer(x, unroll):
 
 
 def denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixCache, state, noise, *, num_steps: int,
-            unroll: bool, unroll_steps: bool) -> jax.Array:
+            unroll: bool, unroll_steps: bool, attention: str = "xla") -> jax.Array:
     """num_steps Euler steps from noise (t = 1) to actions (t = 0); the loop has a fixed trip count."""
     dt = -1.0 / num_steps
 
     def step(i, x_t):
-        v = velocity(config, weights, sched, i, cache, state, x_t, unroll=unroll)
+        v = velocity(config, weights, sched, i, cache, state, x_t, unroll=unroll, attention=attention)
         return x_t + dt * v  # dt * v in v's dtype, then promoted to f32: as the reference
 
     return jax.lax.fori_loop(0, num_steps, step, noise.astype(jnp.float32), unroll=unroll_steps)
 
 
 def infer(config: Pi0Config, weights: dict, sched: dict, images, image_masks, tokens, token_mask, state, noise, *,
-          num_steps: int, unroll: bool, unroll_steps: bool) -> jax.Array:
+          num_steps: int, unroll: bool, unroll_steps: bool, attention: str = "xla") -> jax.Array:
     """The fused program: vision -> prefix cache -> denoise, one XLA executable, no host round trip."""
     image_tokens = encode_images(config, weights, images)
     cache = fill_prefix_cache(config, weights, image_tokens, image_masks, tokens, token_mask, unroll=unroll)
     return denoise(config, weights, sched, cache, state, noise, num_steps=num_steps, unroll=unroll,
-                   unroll_steps=unroll_steps)
+                   unroll_steps=unroll_steps, attention=attention)

@@ -54,11 +54,15 @@ class Engine:
     >>> actions = engine.sample_actions(observation, noise, num_steps=10)   # picks cameras / bucket, compiles once
 
     unroll: layers unrolled (separate per-layer weight buffers) instead of `lax.scan`; unroll_steps: the denoise
-    loop unrolled. Both change the schedule only, never the numbers.
+    loop unrolled; attention: "xla" or "cudnn" (the denoise attention as one cuDNN kernel; GPU only, and used only
+    when every element's valid prefix is contiguous, else the call falls back to "xla").
     """
 
     def __init__(self, config: Pi0Config, params: dict, *, unroll: bool = True, unroll_steps: bool = False,
-                 cache_dir: str | os.PathLike | None | bool = None):
+                 attention: str = "xla", cache_dir: str | os.PathLike | None | bool = None):
+        if attention not in ("xla", "cudnn"):
+            raise ValueError(f"attention must be 'xla' or 'cudnn', got {attention!r}")
+        self.attention = attention
         if cache_dir is not False:
             self.cache_dir = enable_compilation_cache(None if cache_dir in (None, True) else cache_dir)
         self.config = config
@@ -86,22 +90,24 @@ class Engine:
     def num_compiled(self) -> int:
         return len(self._executables)
 
-    def executable(self, stage: str, batch: int, num_steps: int, cameras: Sequence[str], prompt_len: int):
+    def executable(self, stage: str, batch: int, num_steps: int, cameras: Sequence[str], prompt_len: int,
+                   attention: str | None = None):
         """The compiled program for a stage and static shape (compiled on first use, then kept)."""
         cameras = tuple(cameras)
+        attention = attention or self.attention
         if stage in ("encode_images", "fill_prefix_cache"):
-            num_steps = 0  # these programs do not depend on the step count
+            num_steps, attention = 0, "xla"  # these programs do not depend on the step count
         if stage == "encode_images":
             prompt_len = 0
-        key = (stage, batch, num_steps, cameras, prompt_len)
+        key = (stage, batch, num_steps, cameras, prompt_len, attention)
         if key not in self._executables:
             start = time.perf_counter()
-            fn, args, donate = self._stage(stage, batch, num_steps, cameras, prompt_len)
+            fn, args, donate = self._stage(stage, batch, num_steps, cameras, prompt_len, attention)
             self._executables[key] = jax.jit(fn, donate_argnums=donate).lower(*args).compile()
             self.compile_seconds[key] = time.perf_counter() - start
         return self._executables[key]
 
-    def _stage(self, stage, batch, num_steps, cameras, prompt_len):
+    def _stage(self, stage, batch, num_steps, cameras, prompt_len, attention):
         cfg, s = self.config, self.config.image_size
         f32, dtype = jnp.float32, jnp.dtype(cfg.dtype)
         spec = jax.ShapeDtypeStruct
@@ -114,7 +120,7 @@ class Engine:
         w = jax.tree.map(lambda x: spec(x.shape, x.dtype), self.weights)
         sched = jax.tree.map(lambda x: spec(x.shape, x.dtype), self.schedule(num_steps)) if num_steps else None
         kw = {"unroll": self.unroll}
-        denoise_kw = {**kw, "num_steps": num_steps, "unroll_steps": self.unroll_steps}
+        denoise_kw = {**kw, "num_steps": num_steps, "unroll_steps": self.unroll_steps, "attention": attention}
         if stage == "encode_images":
             return functools.partial(programs.encode_images, cfg), (w, images), ()
         image_tokens = spec((batch, c * cfg.siglip.num_patches, cfg.paligemma.width), dtype)
@@ -139,6 +145,16 @@ class Engine:
         valid = int(np.asarray(obs.tokenized_prompt_mask).sum(axis=1).max(initial=0))
         return cameras, prompt_bucket(valid, obs.tokenized_prompt.shape[1])
 
+    def attention_for(self, obs: pi0.Observation, cameras: Sequence[str]) -> str:
+        """The engine's attention, or "xla" where cuDNN's length-based masking cannot express the prefix mask
+        (an active camera masked for some element, or a prompt mask that is not a right-padded run)."""
+        if self.attention == "xla":
+            return "xla"
+        mask = np.asarray(obs.tokenized_prompt_mask)
+        right_padded = (np.diff(mask.astype(np.int8), axis=1) <= 0).all()
+        cams_full = all(np.asarray(obs.image_masks[k]).all() for k in cameras)
+        return self.attention if right_padded and cams_full else "xla"
+
     def pack(self, obs: pi0.Observation, cameras: Sequence[str], prompt_len: int):
         """pi0.Observation -> the arrays the programs take (cameras stacked, prompt cut to its bucket)."""
         mask = np.asarray(obs.tokenized_prompt_mask)
@@ -154,7 +170,7 @@ class Engine:
         """The fused program. The noise buffer is donated (do not reuse it after the call)."""
         cameras, prompt_len = self.plan(obs)
         images, image_masks, tokens, token_mask, state = self.pack(obs, cameras, prompt_len)
-        exe = self.executable("infer", noise.shape[0], num_steps, cameras, prompt_len)
+        exe = self.executable("infer", noise.shape[0], num_steps, cameras, prompt_len, self.attention_for(obs, cameras))
         return exe(self.weights, self.schedule(num_steps), images, image_masks, tokens, token_mask, state,
                    jnp.asarray(noise, jnp.float32))
 
@@ -166,6 +182,6 @@ class Engine:
         image_tokens = self.executable("encode_images", b, num_steps, cameras, prompt_len)(self.weights, images)
         cache = self.executable("fill_prefix_cache", b, num_steps, cameras, prompt_len)(
             self.weights, image_tokens, image_masks, tokens, token_mask)
-        actions = self.executable("denoise", b, num_steps, cameras, prompt_len)(
+        actions = self.executable("denoise", b, num_steps, cameras, prompt_len, self.attention_for(obs, cameras))(
             self.weights, self.schedule(num_steps), cache, state, jnp.asarray(noise, jnp.float32))
         return image_tokens, cache, actions
