@@ -97,7 +97,7 @@ def benchmark(config: Pi0Config, args) -> list[dict]:
                          torch.compile(model.sample_actions, mode=args.torch_compile_mode)))
     rows = []
     for name, fn in variants:
-        for batch in args.batch:
+        for batch in [b for b in args.batch if b in args.peer_batch]:
             sets = [_inputs(config, batch, args.cameras, args.prompt_tokens, args.seed + i, device)
                     for i in range(args.input_sets)]
             start = time.perf_counter()

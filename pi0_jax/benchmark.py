@@ -63,6 +63,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--compare", choices=["lerobot"], default=None,
                    help="also time LeRobot's PyTorch policy of the same preset (random weights) on the same device")
     p.add_argument("--torch-compile", action="store_true", help="with --compare: also time torch.compile")
+    p.add_argument("--peer-batch", type=_ints, default=[1, 8], help="batch sizes for peers (default: 1,8)")
     p.add_argument("--peer-iters", type=int, default=10, help="timed iterations for peers (default: %(default)s)")
     p.add_argument("--torch-compile-mode", default="max-autotune",
                    help="torch.compile mode for --torch-compile (default: LeRobot's own, %(default)s)")

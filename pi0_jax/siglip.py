@@ -49,15 +49,24 @@ class Encoder1DBlock(nn.Module):
 
 
 class Encoder(nn.Module):
+    """scan=True: one `encoderblock` with params stacked on a leading depth axis (openpi's layout);
+    scan=False: `encoderblock_{i}` per layer (the engine's unrolled layout, see `unstack_blocks`)."""
+
     cfg: SiglipConfig
     dtype_mm: jnp.dtype
+    scan: bool = True
 
     @nn.compact
     def __call__(self, x):
-        blocks = nn.scan(
-            Encoder1DBlock, variable_axes={"params": 0}, split_rngs={"params": True}, length=self.cfg.depth,
-        )(mlp_dim=self.cfg.mlp_dim, num_heads=self.cfg.num_heads, dtype_mm=self.dtype_mm, name="encoderblock")
-        x, _ = blocks(x, None)
+        kw = {"mlp_dim": self.cfg.mlp_dim, "num_heads": self.cfg.num_heads, "dtype_mm": self.dtype_mm}
+        if self.scan:
+            blocks = nn.scan(
+                Encoder1DBlock, variable_axes={"params": 0}, split_rngs={"params": True}, length=self.cfg.depth,
+            )(**kw, name="encoderblock")
+            x, _ = blocks(x, None)
+        else:
+            for i in range(self.cfg.depth):
+                x, _ = Encoder1DBlock(**kw, name=f"encoderblock_{i}")(x, None)
         return nn.LayerNorm(name="encoder_norm", dtype=self.dtype_mm)(x)
 
 
@@ -70,6 +79,7 @@ class Siglip(nn.Module):
     cfg: SiglipConfig
     out_dim: int
     dtype_mm: jnp.dtype = jnp.bfloat16
+    scan: bool = True
 
     @nn.compact
     def __call__(self, image):
@@ -83,12 +93,16 @@ class Siglip(nn.Module):
         x = x + pos
         stem = x
         x = x.astype(self.dtype_mm)
-        encoded = Encoder(self.cfg, self.dtype_mm, name="Transformer")(x)
+        encoded = Encoder(self.cfg, self.dtype_mm, self.scan, name="Transformer")(x)
         # Image tokens are *not* scaled by sqrt(width) (spec §3.8).
         tokens = nn.Dense(self.out_dim, dtype=self.dtype_mm, kernel_init=nn.initializers.zeros, name="head")(encoded)
         return tokens, {"stem": stem, "encoded": encoded}
 
 
-def encode_images(module: Siglip, params, images: jax.Array) -> jax.Array:
-    """Convenience: run a bound-free Siglip on (B, H, W, 3) images and drop intermediates."""
-    return module.apply({"params": params}, images)[0]
+def unstack_blocks(params: dict, depth: int) -> dict:
+    """openpi's stacked `Transformer/encoderblock` -> `Transformer/encoderblock_{i}` for `Siglip(scan=False)`."""
+    tr = dict(params["Transformer"])
+    stacked = tr.pop("encoderblock")
+    for i in range(depth):
+        tr[f"encoderblock_{i}"] = jax.tree.map(lambda x, i=i: x[i], stacked)
+    return {**params, "Transformer": tr}

@@ -27,10 +27,12 @@ class PrefixCache:
     mask: jax.Array
 
 
-def encode_images(config: Pi0Config, weights: dict, images: jax.Array) -> jax.Array:
-    """images (C, B, H, W, 3) f32 in [-1, 1] for the C active cameras -> (B, C * 256, VLM width), camera-major."""
+def encode_images(config: Pi0Config, weights: dict, images: jax.Array, *, unroll: bool = False) -> jax.Array:
+    """images (C, B, H, W, 3) f32 in [-1, 1] for the C active cameras -> (B, C * 256, VLM width), camera-major.
+    unroll: the weights' SigLIP blocks are per layer (`siglip.unstack_blocks`), and so are the layers."""
     c, b = images.shape[:2]
-    module = siglip.Siglip(config.siglip, out_dim=config.paligemma.width, dtype_mm=jnp.dtype(config.dtype))
+    module = siglip.Siglip(config.siglip, out_dim=config.paligemma.width, dtype_mm=jnp.dtype(config.dtype),
+                           scan=not unroll)
     tokens = module.apply({"params": weights["img"]}, images.reshape(c * b, *images.shape[2:]))[0]
     return tokens.reshape(c, b, *tokens.shape[1:]).transpose(1, 0, 2, 3).reshape(b, -1, tokens.shape[-1])
 
@@ -125,7 +127,7 @@ def denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixCache, s
 def infer(config: Pi0Config, weights: dict, sched: dict, images, image_masks, tokens, token_mask, state, noise, *,
           num_steps: int, unroll: bool, unroll_steps: bool, attention: str = "xla") -> jax.Array:
     """The fused program: vision -> prefix cache -> denoise, one XLA executable, no host round trip."""
-    image_tokens = encode_images(config, weights, images)
+    image_tokens = encode_images(config, weights, images, unroll=unroll)
     cache = fill_prefix_cache(config, weights, image_tokens, image_masks, tokens, token_mask, unroll=unroll)
     return denoise(config, weights, sched, cache, state, noise, num_steps=num_steps, unroll=unroll,
                    unroll_steps=unroll_steps, attention=attention)

@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pi0_jax import pi0
+from pi0_jax import pi0, siglip
 from pi0_jax.config import IMAGE_KEYS, Pi0Config
 from pi0_jax.engine import programs, weights as weights_lib
 
@@ -74,6 +74,7 @@ class Engine:
             depth = config.paligemma.depth
             w["vlm"] = weights_lib.unstack(w["vlm"], depth)
             w["expert"] = weights_lib.unstack(w["expert"], depth)
+            w["img"] = siglip.unstack_blocks(w["img"], config.siglip.depth)
         self.weights = w
         self._schedules: dict[int, dict] = {}
         self._executables: dict[tuple, jax.stages.Compiled] = {}
@@ -122,7 +123,7 @@ class Engine:
         kw = {"unroll": self.unroll}
         denoise_kw = {**kw, "num_steps": num_steps, "unroll_steps": self.unroll_steps, "attention": attention}
         if stage == "encode_images":
-            return functools.partial(programs.encode_images, cfg), (w, images), ()
+            return functools.partial(programs.encode_images, cfg, **kw), (w, images), ()
         image_tokens = spec((batch, c * cfg.siglip.num_patches, cfg.paligemma.width), dtype)
         if stage == "fill_prefix_cache":
             fn = functools.partial(programs.fill_prefix_cache, cfg, **kw)
