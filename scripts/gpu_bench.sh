@@ -21,9 +21,9 @@ for phase in "$@"; do
     pi0_table) python3 -m pi0_jax.cli benchmark --preset pi0_base --steps 1,2,3,5,10 --batch 1,8,64 \
                --fused-steps 1,10 --reference --compare lerobot --warm-start --iters 50 --out "$OUT/pi0_table.json" ;;
     pi05_table) python3 -m pi0_jax.cli benchmark --preset pi05_base --steps 1,2,3,5,10 --batch 1,8,64 \
-               --fused-steps 1,10 --reference --compare lerobot --warm-start --iters 50 --out "$OUT/pi05_table.json" ;;
-    fp32) python3 -m pi0_jax.cli benchmark --preset pi0_base --dtype float32 --steps 1,10 --batch 1,8 \
-               --fused-steps 1,10 --iters 30 --out "$OUT/pi0_fp32.json" ;;
+               --fused-steps 1,10 --reference --compare lerobot --peer-batch 1 --iters 50 --out "$OUT/pi05_table.json" ;;
+    fp32) python3 -m pi0_jax.cli benchmark --preset pi0_base --dtype float32 --steps 1,10 --batch 1 \
+               --reference --iters 30 --out "$OUT/pi0_fp32.json" ;;
     cudnn_b1) python3 -m pi0_jax.cli benchmark --preset pi05_base --steps 1,10 --batch 1 --attention cudnn \
                --reference --iters 50 --out "$OUT/pi05_cudnn.json" ;;
     cmdbuf_b1) XLA_FLAGS="--xla_gpu_enable_command_buffer=FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,WHILE,CONDITIONAL \
