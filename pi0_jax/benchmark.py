@@ -137,6 +137,8 @@ def environment() -> dict:
 
 
 def _git_commit() -> str | None:
+    if os.environ.get("PI0_JAX_COMMIT"):  # a copied tree without .git (e.g. a remote GPU machine)
+        return os.environ["PI0_JAX_COMMIT"]
     try:
         return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                               cwd=Path(__file__).parent, check=True).stdout.strip()

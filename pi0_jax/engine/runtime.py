@@ -68,7 +68,7 @@ class Engine:
         self.config = config
         self.unroll = unroll
         self.unroll_steps = unroll_steps
-        self._params = params
+        self._schedule_params = weights_lib.schedule_params(config, params)  # not the whole tree: it is 6 GB
         w = jax.jit(functools.partial(weights_lib.prepare, config))(params)
         if unroll:
             depth = config.paligemma.depth
@@ -84,7 +84,7 @@ class Engine:
     def schedule(self, num_steps: int) -> dict:
         if num_steps not in self._schedules:
             fn = jax.jit(functools.partial(weights_lib.precompute_schedule, self.config), static_argnums=1)
-            self._schedules[num_steps] = fn(self._params, num_steps)
+            self._schedules[num_steps] = fn(self._schedule_params, num_steps)
         return self._schedules[num_steps]
 
     @property

@@ -105,6 +105,16 @@ def precompute_schedule(config: Pi0Config, params: dict, num_steps: int) -> dict
     return {"time_in": emb @ kernel[width:] + w["bias"].astype(jnp.float32)}
 
 
+def schedule_params(config: Pi0Config, params: dict) -> dict:
+    """The part of the param tree `precompute_schedule` reads (time MLPs, adaRMS Dense layers)."""
+    if not config.pi05:
+        return {"action_time_mlp_in": params["action_time_mlp_in"]}
+    llm = params["PaliGemma"]["llm"]
+    layers = {k: llm["layers"][k] for k in ("pre_attention_norm_1", "pre_ffw_norm_1")}
+    return {"time_mlp_in": params["time_mlp_in"], "time_mlp_out": params["time_mlp_out"],
+            "PaliGemma": {"llm": {"layers": layers, "final_norm_1": llm["final_norm_1"]}}}
+
+
 def unstack(tree: dict, depth: int) -> list[dict]:
     """Stacked (L, ...) leaves -> one dict per layer with separate buffers (for unrolled layers)."""
     return [jax.tree.map(lambda x, i=i: x[i], tree) for i in range(depth)]
