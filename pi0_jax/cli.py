@@ -101,6 +101,7 @@ def _benchmark_parser(subparsers) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     from converters.cli import add_convert_parser
+    from pi0_jax.sim.cli import add_eval_parser
 
     parser = argparse.ArgumentParser(prog="pi0-jax", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -108,6 +109,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_convert_parser(sub)
     _demo_parser(sub)
     _benchmark_parser(sub)
+    add_eval_parser(sub)
     return parser
 
 

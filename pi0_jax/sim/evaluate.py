@@ -1,0 +1,280 @@
+"""Batched, sharded evaluation: N environments vmapped, sharded over every device (all hosts), scanned on device.
+
+Layout of one evaluation:
+  episodes   K per task, ordered init-major (episode e = task e % T, initial state (e // T) % 50), so each batch
+             mixes tasks; padded to a multiple of the batch with masked dummies. Episode e's randomness (policy
+             noise) comes from fold_in(key(seed), e) only, so results do not depend on batch size or device count.
+  batch      N environments as one global jax.Array per field, sharded on a 1-D mesh ("batch") over jax.devices():
+             the same code runs on one CPU, k GPUs, or several hosts (jax.distributed), with no collectives inside
+             the rollout (every environment is independent).
+  segment    one jitted call: `segment_replans` x [policy.plan on the current observation, then lax.scan of
+             `replan_steps` x (policy.act, env.step)]. The host loops over segments until every episode of the batch
+             is done (first success or step limit), updating the progress bar in between.
+  videos     the first `videos` environments of the first batch also render both cameras after every step;
+             agent view and wrist view are written side by side as MP4 (20 fps).
+
+Results (eval_info.json) follow LeRobot's eval_info: per_episode, per_task, per_group (family), aggregated
+{pc_success, eval_s, eval_ep_s, ...}, video_paths; plus the config and timings (compile vs rollout).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
+
+from pi0_jax.sim import tasks as _tasks
+from pi0_jax.sim.env import Env
+from pi0_jax.sim.policies import SimPolicy, make_policy
+from pi0_jax.sim.render import RenderConfig
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalConfig:
+    suite: str = "all"
+    episodes_per_task: int = 10
+    batch: int = 32
+    replan_steps: int = 5
+    max_steps: int | None = None      # None: each task's own limit (LIBERO's 220 / 280 / 300)
+    resolution: int = 224
+    seed: int = 0
+    videos: int = 4
+    segment_replans: int = 8
+    num_steps: int = 10               # flow-matching steps of a checkpoint policy
+
+
+@struct.dataclass
+class Carry:
+    state: object                     # env State, batched
+    pstate: object
+    keys: jax.Array                   # (N,) per-episode PRNG keys
+
+
+def _fetch(x) -> np.ndarray:
+    """A global array's full value on every process."""
+    if jax.process_count() == 1:
+        return np.asarray(x)
+    from jax.experimental import multihost_utils
+    return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+
+
+def auto_ray_chunk(height: int, width: int, local_batch: int, budget: int = 1 << 22) -> int:
+    """Rays per renderer chunk so that local_batch x chunk stays under `budget` rays in flight (0 = no chunking)."""
+    rays = height * width
+    target = max(1, budget // max(local_batch, 1))
+    if target >= rays:
+        return 0
+    return max(d for d in range(1, target + 1) if rays % d == 0)
+
+
+def episode_plan(names: tuple[str, ...], episodes_per_task: int, num_init: int) -> tuple[np.ndarray, np.ndarray]:
+    """(task index, initial-state index) per episode, init-major so batches mix tasks."""
+    e = np.arange(len(names) * episodes_per_task)
+    return (e % len(names)).astype(np.int32), ((e // len(names)) % num_init).astype(np.int32)
+
+
+def make_segment(env: Env, policy: SimPolicy, cfg: EvalConfig, n_video: int):
+    """A jitted (params, carry) -> (carry, frames, frame_done) running cfg.segment_replans plans."""
+    r = cfg.replan_steps
+
+    def observe(state, images: bool):
+        if images:
+            return jax.vmap(env.observe)(state)
+        return {"state": jax.vmap(lambda s: env.robot_state(s.data))(state)}
+
+    def replan(params, carry: Carry, _):
+        split = jax.vmap(jax.random.split)(carry.keys)
+        keys, sub = split[:, 0], split[:, 1]
+        ps = policy.plan(params, carry.pstate, observe(carry.state, policy.needs_images), carry.state, sub)
+
+        def inner(c, k):
+            state, ps = c
+            action, ps = policy.act(ps, state, k)
+            state = jax.vmap(env.step)(state, action)
+            frames = done = None
+            if n_video:
+                head = jax.tree.map(lambda x: x[:n_video], state)
+                obs = jax.vmap(env.observe)(head)
+                frames, done = jnp.concatenate([obs["agentview"], obs["wrist"]], axis=2), head.done
+            return (state, ps), (frames, done)
+
+        (state, ps), out = jax.lax.scan(inner, (carry.state, ps), jnp.arange(r))
+        return Carry(state=state, pstate=ps, keys=keys), out
+
+    def segment(params, carry):
+        carry, (frames, done) = jax.lax.scan(lambda c, x: replan(params, c, x), carry, None,
+                                             length=cfg.segment_replans)
+        if n_video:   # (replans, r, V, ...) -> (steps, V, ...)
+            frames, done = (x.reshape((-1,) + x.shape[2:]) for x in (frames, done))
+        return carry, frames, done
+
+    return jax.jit(segment, donate_argnums=1)
+
+
+def write_video(path: Path, frames: np.ndarray, fps: int = 20) -> None:
+    """(T, H, W, 3) uint8 -> H.264 MP4 through imageio-ffmpeg's bundled ffmpeg binary."""
+    import warnings
+
+    import imageio.v2 as imageio
+
+    with warnings.catch_warnings():   # ffmpeg runs as fork + exec, which JAX's fork warning does not distinguish
+        warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
+        with imageio.get_writer(path, fps=fps, codec="libx264", quality=7, macro_block_size=16) as w:
+            for f in frames:
+                w.append_data(f)
+
+
+def evaluate(policy_spec: str, cfg: EvalConfig, output_dir: str | Path | None = None, *, progress: bool = True,
+             policy_kwargs: dict | None = None, log=print) -> dict:
+    """Run the evaluation; returns eval_info (also written to output_dir/eval_info.json with videos)."""
+    t_start = time.perf_counter()
+    names = _tasks.suite_tasks(cfg.suite)
+    names = tuple(t.name for t in names)
+    devices = jax.devices()
+    n_dev, n_local = len(devices), len(jax.local_devices())
+    batch = math.ceil(cfg.batch / n_dev) * n_dev                       # a multiple of the device count
+    mesh = Mesh(np.array(devices), ("batch",))
+    shard, repl = NamedSharding(mesh, P("batch")), NamedSharding(mesh, P())
+    render_cfg = RenderConfig(cfg.resolution, cfg.resolution,
+                              auto_ray_chunk(cfg.resolution, cfg.resolution, batch // n_dev))
+    env = Env(names, render_cfg, max_steps=cfg.max_steps)
+    kw = {} if policy_spec in ("expert", "random") else {"num_steps": cfg.num_steps, **(policy_kwargs or {})}
+    policy = make_policy(policy_spec, env, cfg.replan_steps, **kw)
+    if policy.horizon is not None and cfg.replan_steps > policy.horizon:
+        raise ValueError(f"replan_steps {cfg.replan_steps} > the policy's action horizon {policy.horizon}")
+    n_video = min(cfg.videos, batch) if output_dir is not None else 0
+
+    task_of, init_of = episode_plan(names, cfg.episodes_per_task, env.num_init_states)
+    n_ep = len(task_of)
+    n_batches = math.ceil(n_ep / batch)
+    pad = n_batches * batch - n_ep
+    task_of_p, init_of_p = np.pad(task_of, (0, pad)), np.pad(init_of, (0, pad))
+    valid = np.arange(n_batches * batch) < n_ep
+    max_steps = int(env.max_steps.max())
+    steps_per_segment = cfg.segment_replans * cfg.replan_steps
+    base_key = jax.random.key(cfg.seed)
+
+    def global_array(host, sharding=shard):
+        """Every process holds the same host value; each device takes its slice (works across hosts too)."""
+        host = np.asarray(host)
+        return jax.make_array_from_callback(host.shape, sharding, lambda idx: host[idx])
+
+    reset = jax.jit(lambda keys, t, i: jax.vmap(env.reset)(keys, t, i), out_shardings=shard)
+    params = jax.tree.map(lambda x: global_array(x, repl), policy.params)
+    init_pstate = jax.jit(lambda: policy.init(batch), out_shardings=shard)
+    segment = make_segment(env, policy, cfg, n_video)
+    ep_keys = jax.jit(lambda e: jax.vmap(lambda i: jax.random.fold_in(base_key, i))(e), out_shardings=shard)
+
+    success, length = np.zeros(n_ep, bool), np.zeros(n_ep, np.int32)
+    video_frames, video_done = [], []
+    compile_s, done_count, succ_count = 0.0, 0, 0
+    bar = None
+    if progress and jax.process_index() == 0:
+        from tqdm import tqdm
+        bar = tqdm(total=n_ep, unit="ep", desc=f"eval {cfg.suite}", dynamic_ncols=True)
+    t_roll = time.perf_counter()
+    for b in range(n_batches):
+        sl = slice(b * batch, (b + 1) * batch)
+        t_ids, i_ids = global_array(task_of_p[sl]), global_array(init_of_p[sl])
+        keys = ep_keys(global_array(np.arange(b * batch, (b + 1) * batch, dtype=np.int32)))
+        state = reset(keys, t_ids, i_ids)
+        carry = Carry(state=state, pstate=init_pstate(), keys=keys)
+        prev_done = 0
+        for s in range(math.ceil(max_steps / steps_per_segment)):
+            t0 = time.perf_counter()
+            carry, frames, fdone = segment(params, carry)
+            done = _fetch(carry.state.done)
+            if b == 0 and s == 0:
+                compile_s = time.perf_counter() - t0
+            if b == 0 and n_video:
+                video_frames.append(_fetch(frames))
+                video_done.append(_fetch(fdone))
+            ok = _fetch(carry.state.success)
+            vmask = valid[sl]
+            n_done = int((done & vmask).sum())
+            if bar is not None:
+                bar.update(n_done - prev_done)
+                tot_done = done_count + n_done
+                rate = (succ_count + int((ok & done & vmask).sum())) / max(tot_done, 1)
+                bar.set_postfix_str(f"success {100 * rate:.1f}% of {tot_done}")
+            prev_done = n_done
+            if (done | ~vmask).all():
+                break
+        n = min(batch, n_ep - b * batch)
+        success[b * batch: b * batch + n] = _fetch(carry.state.success)[:n]
+        length[b * batch: b * batch + n] = _fetch(carry.state.length)[:n]
+        done_count += n
+        succ_count += int(success[b * batch: b * batch + n].sum())
+    if bar is not None:
+        bar.close()
+    rollout_s = time.perf_counter() - t_roll
+    eval_s = time.perf_counter() - t_start
+
+    info = _eval_info(env, cfg, policy, task_of, init_of, success, length, eval_s, rollout_s, compile_s, batch,
+                      n_dev, n_local)
+    if output_dir is not None and jax.process_index() == 0:
+        out = Path(output_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        paths = []
+        if n_video:
+            frames, fdone = np.concatenate(video_frames), np.concatenate(video_done)
+            (out / "videos").mkdir(exist_ok=True)
+            for v in range(min(n_video, n_ep)):
+                stop = int(np.argmax(fdone[:, v])) + 1 if fdone[:, v].any() else len(frames)
+                p = out / "videos" / f"episode_{v:04d}_{names[task_of[v]].replace('/', '__')}.mp4"
+                write_video(p, frames[: min(stop + 10, len(frames)), v])   # 0.5 s past the end
+                paths.append(str(p))
+        info["video_paths"] = paths
+        (out / "eval_info.json").write_text(json.dumps(info, indent=2) + "\n")
+    return info
+
+
+def _eval_info(env, cfg, policy, task_of, init_of, success, length, eval_s, rollout_s, compile_s, batch, n_dev,
+               n_local) -> dict:
+    tasks = env.tasks
+    per_episode = [{"episode_ix": int(e), "task": tasks[t].name, "task_index": int(t), "family": tasks[t].family,
+                    "init_state": int(i), "success": bool(s), "sum_reward": float(s), "max_reward": float(s),
+                    "length": int(n), "max_steps": int(env.max_steps[t]), "seed": cfg.seed}
+                   for e, (t, i, s, n) in enumerate(zip(task_of, init_of, success, length))]
+
+    def summary(mask) -> dict:
+        n = int(mask.sum())
+        return {"n_episodes": n, "n_success": int(success[mask].sum()),
+                "pc_success": float(100 * success[mask].mean()) if n else float("nan"),
+                "avg_length": float(length[mask].mean()) if n else float("nan")}
+
+    per_task = [{"task": t.name, "family": t.family, "prompt": t.prompt, **summary(task_of == k)}
+                for k, t in enumerate(tasks)]
+    families = sorted({t.family for t in tasks}, key=[t.family for t in tasks].index)
+    fam_of = np.array([tasks[t].family for t in task_of])
+    per_group = [{"group": f, **summary(fam_of == f)} for f in families]
+    n_ep = len(task_of)
+    return {
+        "per_episode": per_episode, "per_task": per_task, "per_group": per_group,
+        "aggregated": {**summary(np.ones(n_ep, bool)), "eval_s": eval_s, "eval_ep_s": eval_s / max(n_ep, 1),
+                       "rollout_s": rollout_s, "first_segment_s": compile_s,
+                       "env_steps": int(length.sum())},
+        "config": {**dataclasses.asdict(cfg), "policy": policy.name, "policy_info": policy.info,
+                   "batch_rounded": batch, "suite_version": _tasks.SUITE_VERSION,
+                   "devices": n_dev, "local_devices": n_local, "processes": jax.process_count(),
+                   "backend": jax.default_backend()},
+    }
+
+
+def format_table(info: dict) -> str:
+    """Per-task, per-family and overall success as a markdown table."""
+    rows = ["| task | family | episodes | success |", "|---|---|---:|---:|"]
+    rows += [f"| {t['task']} | {t['family']} | {t['n_episodes']} | {t['pc_success']:.1f}% |" for t in info["per_task"]]
+    rows += [f"| **{g['group']}** | | {g['n_episodes']} | {g['pc_success']:.1f}% |" for g in info["per_group"]]
+    a = info["aggregated"]
+    rows.append(f"| **overall** | | {a['n_episodes']} | {a['pc_success']:.1f}% |")
+    return "\n".join(rows)
