@@ -64,9 +64,11 @@ class Env:
                           else np.full(len(self.tasks), max_steps, np.int32))
         self.render_cfg, self.scene_cfg = render_cfg, scene_cfg
         self.mj_model, self.index = scene.build(scene_cfg)
-        self.model = mjx.put_model(self.mj_model)
+        # on this process's first device: under jax.distributed, jax.devices()[0] may belong to another host
+        device = jax.local_devices()[0]
+        self.model = mjx.put_model(self.mj_model, device=device)
         self.render_scene = Scene.from_model(self.mj_model)
-        self._data0 = mjx.make_data(self.model)
+        self._data0 = mjx.make_data(self.model, device=device)
         self._mjx = mjx
         self.num_init_states = num_init_states
         self.q_home = jnp.asarray(scene.home_qpos(), jnp.float32)
@@ -102,13 +104,19 @@ class Env:
         task = jax.random.randint(k1, (), 0, len(self.tasks)) if task is None else jnp.asarray(task, jnp.int32)
         init = jax.random.randint(k2, (), 0, self.num_init_states) if init is None else jnp.asarray(init, jnp.int32)
         qpos, mocap, ctrl = self._layout_qpos(task, init)
-        data = self._data0.replace(qpos=qpos, mocap_pos=mocap, ctrl=ctrl)
-        data = self._mjx.forward(self.model, data)
+        data = self._refresh(self._data0.replace(qpos=qpos, mocap_pos=mocap, ctrl=ctrl))
         z = jnp.zeros((), jnp.int32)
         return State(data=data, task=task, init=init, t=z, success=jnp.zeros((), bool), done=jnp.zeros((), bool),
                      length=z)
 
     # --- dynamics ---------------------------------------------------------------------------------------------------
+
+    def _refresh(self, d):
+        """Positions (bodies, geoms, sites, cameras) and the Jacobian's inputs for the current qpos. mj_step leaves
+        them at the start of its last substep, and a reset needs nothing more (the next step runs the full
+        pipeline, contacts included), so this is all that a state ever needs between steps."""
+        mjx, m = self._mjx, self.model
+        return mjx.camlight(m, mjx.com_pos(m, mjx.kinematics(m, d)))
 
     def tcp_jacobian(self, data) -> jax.Array:
         """(6, 7) geometric Jacobian of the tool centre point w.r.t. the arm joints: rows [linear; angular]."""
@@ -123,8 +131,7 @@ class Env:
         grip = controller.gripper_target(action, scene.FINGER_OPEN)
         d = d.replace(ctrl=jnp.concatenate([q_target, jnp.stack([grip, grip])]))
         d = jax.lax.fori_loop(0, self.scene_cfg.substeps, lambda _, x: mjx.step(m, x), d)
-        # mj_step leaves positions at the start of its last substep: refresh them (and the Jacobian's inputs)
-        d = mjx.camlight(m, mjx.com_pos(m, mjx.kinematics(m, d)))
+        d = self._refresh(d)
         t = state.t + 1
         ok = state.success | (~state.done & self.success(state.task, d))
         limit = jnp.asarray(self.max_steps)[state.task]

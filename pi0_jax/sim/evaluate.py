@@ -67,6 +67,20 @@ def _fetch(x) -> np.ndarray:
     return np.asarray(multihost_utils.process_allgather(x, tiled=True))
 
 
+def _barrier(name: str, timeout_s: int = 3600) -> None:
+    """Wait for every process (jax.distributed's coordination service, no device collective). The first gather
+    creates the CPU backend's gloo context, which gives up after 30 s; processes that finish compiling at different
+    times meet here first."""
+    if jax.process_count() == 1:
+        return
+    try:
+        from jax._src import distributed
+        distributed.global_state.client.wait_at_barrier(name, timeout_in_ms=timeout_s * 1000)
+    except (ImportError, AttributeError):   # private API moved: a device-level barrier instead
+        from jax.experimental import multihost_utils
+        multihost_utils.sync_global_devices(name)
+
+
 def auto_ray_chunk(height: int, width: int, local_batch: int, budget: int = 1 << 22) -> int:
     """Rays per renderer chunk so that local_batch x chunk stays under `budget` rays in flight (0 = no chunking)."""
     rays = height * width
@@ -82,9 +96,14 @@ def episode_plan(names: tuple[str, ...], episodes_per_task: int, num_init: int) 
     return (e % len(names)).astype(np.int32), ((e // len(names)) % num_init).astype(np.int32)
 
 
+def segment_replans(cfg: EvalConfig, env: Env) -> int:
+    """Plans per segment: cfg.segment_replans, but no more than the longest episode needs."""
+    return max(1, min(cfg.segment_replans, math.ceil(int(env.max_steps.max()) / cfg.replan_steps)))
+
+
 def make_segment(env: Env, policy: SimPolicy, cfg: EvalConfig, n_video: int):
-    """A jitted (params, carry) -> (carry, frames, frame_done) running cfg.segment_replans plans."""
-    r = cfg.replan_steps
+    """A jitted (params, carry) -> (carry, frames, frame_done) running `segment_replans(cfg, env)` plans."""
+    r, n_replans = cfg.replan_steps, segment_replans(cfg, env)
 
     def observe(state, images: bool):
         if images:
@@ -111,8 +130,7 @@ def make_segment(env: Env, policy: SimPolicy, cfg: EvalConfig, n_video: int):
         return Carry(state=state, pstate=ps, keys=keys), out
 
     def segment(params, carry):
-        carry, (frames, done) = jax.lax.scan(lambda c, x: replan(params, c, x), carry, None,
-                                             length=cfg.segment_replans)
+        carry, (frames, done) = jax.lax.scan(lambda c, x: replan(params, c, x), carry, None, length=n_replans)
         if n_video:   # (replans, r, V, ...) -> (steps, V, ...)
             frames, done = (x.reshape((-1,) + x.shape[2:]) for x in (frames, done))
         return carry, frames, done
@@ -160,7 +178,7 @@ def evaluate(policy_spec: str, cfg: EvalConfig, output_dir: str | Path | None = 
     task_of_p, init_of_p = np.pad(task_of, (0, pad)), np.pad(init_of, (0, pad))
     valid = np.arange(n_batches * batch) < n_ep
     max_steps = int(env.max_steps.max())
-    steps_per_segment = cfg.segment_replans * cfg.replan_steps
+    steps_per_segment = segment_replans(cfg, env) * cfg.replan_steps
     base_key = jax.random.key(cfg.seed)
 
     def global_array(host, sharding=shard):
@@ -192,6 +210,8 @@ def evaluate(policy_spec: str, cfg: EvalConfig, output_dir: str | Path | None = 
         for s in range(math.ceil(max_steps / steps_per_segment)):
             t0 = time.perf_counter()
             carry, frames, fdone = segment(params, carry)
+            if b == 0 and s == 0:
+                _barrier("pi0_jax.sim.evaluate: compiled")
             done = _fetch(carry.state.done)
             if b == 0 and s == 0:
                 compile_s = time.perf_counter() - t0

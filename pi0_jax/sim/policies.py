@@ -113,8 +113,15 @@ def checkpoint_policy(path: str | os.PathLike, env, *, tokenizer_path=None, num_
     tokens, masks = map(np.stack, zip(*(tok.tokenize(p) for p in prompts)))   # (T, L) each, once per task
     in_prompt = config.pi05 and config.discrete_state_input
 
-    def host_tokenize(task, state):                 # π0.5 with discrete state: per plan, on the host
-        out = [tok.tokenize(prompts[int(t)], np.asarray(s, np.float64)) for t, s in zip(task, state)]
+    # π0.5 with the state in the prompt: tokenised per plan on the host. As pi0_jax.policy: LeRobot pads the state
+    # to action_dim before discretising it (32 numbers in the prompt), openpi does not.
+    pad_state = normalizer.convention is nz.Convention.LEROBOT
+
+    def host_tokenize(task, state):
+        state = np.asarray(state, np.float64)
+        if pad_state:
+            state = np.pad(state, ((0, 0), (0, adim - state.shape[1])))
+        out = [tok.tokenize(prompts[int(t)], s) for t, s in zip(task, state)]
         return np.stack([o[0] for o in out]), np.stack([o[1] for o in out])
 
     def image(x):
