@@ -1,69 +1,51 @@
-"""The MJX environment: a smoke test over every registered task, and the scripted expert through `pi0-jax eval`.
+"""The MJX environment end to end, kept small for CPU CI (MJX compiles slowly: 32 x 32 cameras, few environments).
 
-Small on purpose (CPU CI: MJX compiles slowly): 32 x 32 cameras, one environment per task, a few steps; the compiled
-functions are shared through module-scoped fixtures.
+* Smoke test over every registered task, through the demonstration writer: one expert episode per task, jitted
+  reset / step / observe every step, observation shapes and dtypes, no NaN, the expert succeeds, npz layout.
+* The scripted expert through `pi0-jax eval`: two episodes of every task, eval_info.json, videos, the table.
 """
 
 import json
 
 import pi0_jax.sim  # noqa: F401  (XLA flags first)
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from pi0_jax import cli
-from pi0_jax.sim import tasks
-from pi0_jax.sim.env import Env
-from pi0_jax.sim.render import RenderConfig
+from pi0_jax.sim import demos, tasks
 
 RES = 32
 
 
 @pytest.fixture(scope="module")
-def rollout():
-    """Every task's initial state 0, stepped 4 times with small random actions, observed before and after."""
-    env = Env(tasks.SUITES["all"], RenderConfig(RES, RES))
-    n = len(env.tasks)
-
-    @jax.jit
-    def run(actions):
-        s0 = jax.vmap(env.reset)(jax.random.split(jax.random.key(0), n), jnp.arange(n), jnp.zeros(n, jnp.int32))
-        s = jax.lax.fori_loop(0, actions.shape[0], lambda i, s: jax.vmap(env.step)(s, actions[i]), s0)
-        return s0, s, jax.vmap(env.observe)(s0), jax.vmap(env.observe)(s)
-
-    actions = np.random.default_rng(0).uniform(-0.3, 0.3, (4, n, 7)).astype(np.float32)
-    actions[..., 6] = -1.0
-    still = np.zeros_like(actions)
-    still[..., 6] = -1.0
-    return env, jax.device_get(run(actions)), jax.device_get(run(still))
+def demo_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demos")
+    n = len(tasks.TASKS)
+    demos.write_demos(out, "all", episodes_per_task=1, batch=n, resolution=RES, keep_failures=True, log=lambda _: 0)
+    return out
 
 
-def test_every_task_resets_steps_and_renders(rollout):
-    env, (s0, s, o0, o), _ = rollout
-    n = len(env.tasks)
-    for obs in (o0, o):
-        assert obs["agentview"].shape == obs["wrist"].shape == (n, RES, RES, 3)
-        assert obs["agentview"].dtype == np.uint8
-        assert obs["state"].shape == (n, 8) and np.isfinite(obs["state"]).all()
-        assert (obs["agentview"].reshape(n, -1).std(1) > 5).all()        # not a blank frame
-    assert np.isfinite(s.data.qpos).all() and np.isfinite(s.data.qvel).all()
-    assert (s.t == 4).all() and not s0.success.any() and not s.done.any()
-    # the 8-D state: tool centre point, axis-angle (pointing down: angle ~ pi), fingers open (+0.04, -0.04)
-    np.testing.assert_allclose(o0["state"][:, 6:], np.tile([0.04, -0.04], (n, 1)), atol=1e-6)
-    np.testing.assert_allclose(np.linalg.norm(o0["state"][:, 3:6], axis=1), np.pi, atol=0.1)
-    blocks = np.asarray(s0.data.xpos)[:, np.asarray(env.index.block_body)]
-    np.testing.assert_allclose(blocks, env.table.block[np.arange(n), 0, :, :3], atol=1e-6)
-
-
-def test_zero_action_holds_the_arm_still(rollout):
-    env, _, (s0, s, o0, o) = rollout
-    drift = np.linalg.norm(o["state"][:, :3] - o0["state"][:, :3], axis=1)
-    assert drift.max() < 2e-3, drift                                  # gravity-compensated servos hold the pose
-    blocks0 = np.asarray(s0.data.xpos)[:, np.asarray(env.index.block_body)]
-    blocks = np.asarray(s.data.xpos)[:, np.asarray(env.index.block_body)]
-    assert np.abs(blocks - blocks0).max() < 1e-3                      # objects rest on the table
+def test_every_task_steps_renders_and_the_expert_solves_it(demo_dir):
+    meta = json.loads((demo_dir / "meta.json").read_text())
+    assert meta["fps"] == 20 and meta["suite_version"] == tasks.SUITE_VERSION
+    assert sorted(e["task"] for e in meta["episodes"]) == sorted(tasks.SUITES["all"])
+    for row in meta["episodes"]:
+        ep = np.load(demo_dir / row["file"])
+        t = int(ep["length"])
+        assert row["success"] and bool(ep["success"]), row
+        assert 0 < t < tasks.get_task(row["task"]).max_steps
+        assert str(ep["prompt"]) == tasks.get_task(row["task"]).prompt == row["prompt"]
+        assert ep["agentview"].shape == ep["wrist"].shape == (t, RES, RES, 3) and ep["agentview"].dtype == np.uint8
+        assert ep["state"].shape == (t, 8) and ep["actions"].shape == (t, 7)
+        assert np.isfinite(ep["state"]).all() and np.isfinite(ep["actions"]).all()
+        assert np.abs(ep["actions"]).max() <= 1.0
+        assert ep["agentview"][0].std() > 5 and ep["wrist"][0].std() > 5          # not blank frames
+        # LIBERO's 8-D state at the start: gripper open (+0.04, -0.04), pointing down (axis-angle norm ~ pi)
+        np.testing.assert_allclose(ep["state"][0, 6:], [0.04, -0.04], atol=1e-6)
+        assert abs(np.linalg.norm(ep["state"][0, 3:6]) - np.pi) < 0.1
+        assert (ep["actions"][:, 6] > 0).any()                                     # it closed the gripper
+        assert not np.array_equal(ep["agentview"][0], ep["agentview"][-1])         # the scene changed
 
 
 def test_expert_succeeds_via_eval_cli(tmp_path, capsys):

@@ -1,0 +1,95 @@
+"""Demonstrations from the scripted expert: one compressed npz per episode, for training or fine-tuning a policy.
+
+Layout of OUT/:
+  meta.json                      suite version, fps, resolution, tasks and prompts, one row per episode file
+  episode_000000.npz ...         per step t (observation before action t, as LeRobot datasets pair them):
+      agentview (T, H, W, 3) uint8    agent-view camera           (LIBERO `image`, model slot base_0_rgb)
+      wrist     (T, H, W, 3) uint8    wrist camera                (LIBERO `wrist_image`, left_wrist_0_rgb)
+      state     (T, 8) float32        eef position, axis-angle, gripper (LIBERO's 8-D state)
+      actions   (T, 7) float32        EE delta (pos 3, axis-angle 3) + gripper, in [-1, 1]
+      prompt    () str                the task's instruction (the same at every step)
+      task, init_state, success, length   scalars
+Episodes stop at the first success (the success step is the last one kept). Failed episodes are dropped unless
+`keep_failures`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from pi0_jax.sim import expert as _expert
+from pi0_jax.sim import tasks as _tasks
+from pi0_jax.sim.env import Env
+from pi0_jax.sim.evaluate import episode_plan
+from pi0_jax.sim.render import RenderConfig
+
+FPS = 20
+
+
+def _segment(env: Env, steps: int):
+    """Jitted (state, expert state) -> next carry and per-step records of `steps` steps, batched."""
+    def one(carry, _):
+        state, es = carry
+        obs = jax.vmap(env.observe)(state)
+        action, es = jax.vmap(lambda s, e: _expert.act(env, s, e))(state, es)
+        nxt = jax.vmap(env.step)(state, action)
+        rec = {"agentview": obs["agentview"], "wrist": obs["wrist"], "state": obs["state"], "actions": action}
+        return (nxt, es), rec
+
+    return jax.jit(lambda state, es: jax.lax.scan(one, (state, es), None, length=steps))
+
+
+def write_demos(out_dir: str | Path, suite: str = "all", episodes_per_task: int = 50, batch: int = 32,
+                resolution: int = 224, keep_failures: bool = False, segment_steps: int = 40, log=print) -> dict:
+    """Roll the expert out on `episodes_per_task` initial states of every task of `suite`; returns meta.json."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    names = tuple(t.name for t in _tasks.suite_tasks(suite))
+    env = Env(names, RenderConfig(resolution, resolution))
+    task_of, init_of = episode_plan(names, episodes_per_task, env.num_init_states)
+    reset = jax.jit(jax.vmap(env.reset))
+    segment = _segment(env, segment_steps)
+    rows, n_written = [], 0
+    for start in range(0, len(task_of), batch):
+        t_ids, i_ids = task_of[start:start + batch], init_of[start:start + batch]
+        n = len(t_ids)
+        t_pad, i_pad = np.pad(t_ids, (0, batch - n)), np.pad(i_ids, (0, batch - n))   # one compiled shape
+        # (task, init) fix the episode; the expert and the physics are deterministic, so the key is unused
+        state = reset(jax.random.split(jax.random.key(0), batch), jnp.asarray(t_pad), jnp.asarray(i_pad))
+        carry = (state, jax.tree.map(lambda x: jnp.broadcast_to(x, (batch,) + x.shape), _expert.init()))
+        recs = []
+        for _ in range(math.ceil(int(env.max_steps.max()) / segment_steps)):
+            carry, rec = segment(*carry)
+            recs.append(jax.device_get(rec))
+            if bool(np.asarray(carry[0].done)[:n].all()):
+                break
+        rec = {k: np.concatenate([r[k] for r in recs]) for k in recs[0]}      # (T, batch, ...)
+        success, length = np.asarray(carry[0].success), np.asarray(carry[0].length)
+        for j in range(n):
+            if not (success[j] or keep_failures):
+                continue
+            t = int(length[j])
+            task = env.tasks[t_ids[j]]
+            path = out / f"episode_{n_written:06d}.npz"
+            np.savez_compressed(path, agentview=rec["agentview"][:t, j], wrist=rec["wrist"][:t, j],
+                                state=rec["state"][:t, j].astype(np.float32),
+                                actions=rec["actions"][:t, j].astype(np.float32), prompt=np.array(task.prompt),
+                                task=np.array(task.name), init_state=np.int32(i_ids[j]),
+                                success=np.bool_(success[j]), length=np.int32(t))
+            rows.append({"file": path.name, "task": task.name, "prompt": task.prompt, "init_state": int(i_ids[j]),
+                         "success": bool(success[j]), "length": t})
+            n_written += 1
+        log(f"{min(start + batch, len(task_of))}/{len(task_of)} episodes rolled out, {n_written} written")
+    meta = {"format": "pi0_jax.sim demos v1", "suite": suite, "suite_version": _tasks.SUITE_VERSION, "fps": FPS,
+            "resolution": resolution, "state": "eef pos (3), axis-angle (3), gripper (left, -right)",
+            "actions": "EE delta pos (3) x 0.05 m, axis-angle (3) x 0.5 rad, gripper (-1 open, +1 closed)",
+            "tasks": [{"task": t.name, "family": t.family, "prompt": t.prompt} for t in env.tasks],
+            "episodes": rows}
+    (out / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
+    return meta
