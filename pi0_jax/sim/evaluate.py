@@ -151,9 +151,11 @@ def write_video(path: Path, frames: np.ndarray, fps: int = 20) -> None:
                 w.append_data(f)
 
 
-def evaluate(policy_spec: str, cfg: EvalConfig, output_dir: str | Path | None = None, *, progress: bool = True,
-             policy_kwargs: dict | None = None, log=print) -> dict:
-    """Run the evaluation; returns eval_info (also written to output_dir/eval_info.json with videos)."""
+def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None, *, progress: bool = True,
+             policy_kwargs: dict | None = None) -> dict:
+    """Run the evaluation; returns eval_info (also written to output_dir/eval_info.json with videos).
+
+    policy_spec: 'expert', 'random', a checkpoint directory, or a callable env -> SimPolicy."""
     t_start = time.perf_counter()
     names = _tasks.suite_tasks(cfg.suite)
     names = tuple(t.name for t in names)
@@ -165,8 +167,11 @@ def evaluate(policy_spec: str, cfg: EvalConfig, output_dir: str | Path | None = 
     render_cfg = RenderConfig(cfg.resolution, cfg.resolution,
                               auto_ray_chunk(cfg.resolution, cfg.resolution, batch // n_dev))
     env = Env(names, render_cfg, max_steps=cfg.max_steps)
-    kw = {} if policy_spec in ("expert", "random") else {"num_steps": cfg.num_steps, **(policy_kwargs or {})}
-    policy = make_policy(policy_spec, env, cfg.replan_steps, **kw)
+    if callable(policy_spec):
+        policy = policy_spec(env)
+    else:
+        kw = {} if policy_spec in ("expert", "random") else {"num_steps": cfg.num_steps, **(policy_kwargs or {})}
+        policy = make_policy(policy_spec, env, cfg.replan_steps, **kw)
     if policy.horizon is not None and cfg.replan_steps > policy.horizon:
         raise ValueError(f"replan_steps {cfg.replan_steps} > the policy's action horizon {policy.horizon}")
     n_video = min(cfg.videos, batch) if output_dir is not None else 0

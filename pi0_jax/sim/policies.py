@@ -83,10 +83,8 @@ def _find_tokenizer(ckpt: Path, explicit) -> Path:
 def checkpoint_policy(path: str | os.PathLike, env, *, tokenizer_path=None, num_steps: int = 10,
                       norm_stats: str | os.PathLike | None = None, dtype: str | None = None) -> SimPolicy:
     """A pi0-jax checkpoint directory (`pi0-jax convert` output) as a batched in-jit policy for `env`'s tasks."""
-    from pi0_jax import checkpoint, pi0
+    from pi0_jax import checkpoint
     from pi0_jax import normalize as nz
-    from pi0_jax.config import IMAGE_KEYS
-    from pi0_jax.preprocess import _resize_with_pad
     from pi0_jax.tokenizer import PaligemmaTokenizer
 
     path = Path(path)
@@ -96,9 +94,19 @@ def checkpoint_policy(path: str | os.PathLike, env, *, tokenizer_path=None, num_
         normalizer = nz.Normalizer.identity()
     else:
         normalizer = nz.load_normalizer(path if norm_stats is None else norm_stats, use_quantiles=config.pi05)
+    return model_policy(config, params, tok, normalizer, env, num_steps=num_steps, name=str(path))
+
+
+def model_policy(config, params, tok, normalizer, env, *, num_steps: int = 10, name: str = "model") -> SimPolicy:
+    """A π0 / π0.5 (pi0_jax.pi0) with its tokenizer and normaliser as a batched in-jit policy for `env`'s tasks."""
+    from pi0_jax import normalize as nz
+    from pi0_jax import pi0
+    from pi0_jax.config import IMAGE_KEYS
+    from pi0_jax.preprocess import _resize_with_pad
+
     action_dims = normalizer.dim(nz.ACTIONS) or 7
     if action_dims != 7:
-        raise ValueError(f"{path}: the model's actions have {action_dims} dims; this suite needs LIBERO's 7")
+        raise ValueError(f"{name}: the model's actions have {action_dims} dims; this suite needs LIBERO's 7")
     reads_state = not config.pi05 or config.discrete_state_input
     try:
         s_scale, s_offset = _affine(lambda x: normalizer.normalize(nz.STATE, x), 8)
@@ -147,7 +155,7 @@ def checkpoint_policy(path: str | os.PathLike, env, *, tokenizer_path=None, num_
         actions = pi0.sample_actions(config, params, observation, noise, num_steps=num_steps)
         return actions[..., :action_dims].astype(jnp.float32) * a_scale + a_offset
 
-    return SimPolicy(name=str(path), init=lambda b: jnp.zeros((b, horizon, action_dims)), plan=plan,
+    return SimPolicy(name=name, init=lambda b: jnp.zeros((b, horizon, action_dims)), plan=plan,
                      act=lambda ps, es, k: (ps[:, k], ps), params=params, needs_images=True, horizon=horizon,
                      info={"model": config.name, "pi05": config.pi05, "dtype": config.dtype, "num_steps": num_steps,
                            "action_horizon": horizon, "normalization": normalizer.convention.value})
