@@ -46,6 +46,7 @@ class Args:
     num_steps: int
     skip_policy: bool
     skip_env: bool
+    no_physics_only: bool
     json: Path | None
 
 
@@ -61,6 +62,7 @@ def parse(argv=None) -> Args:
     p.add_argument("--num-steps", type=int, default=10, help="flow-matching steps per policy call")
     p.add_argument("--skip-policy", action="store_true", help="environment throughput only")
     p.add_argument("--skip-env", action="store_true", help="policy-in-the-loop throughput only")
+    p.add_argument("--no-physics-only", action="store_true", help="skip the physics-only (no cameras) runs")
     p.add_argument("--json", type=Path, default=None, help="also write the JSON here")
     a = p.parse_args(argv)
     return Args(**{**vars(a), "sizes": tuple(a.sizes)})
@@ -212,13 +214,15 @@ def main(argv=None) -> int:
     for n in () if args.skip_env else args.sizes:
         n = math.ceil(n / len(devices)) * len(devices)
         env = Env(tasks.SUITES["all"], RenderConfig(res, res, evaluate.auto_ray_chunk(res, res, n // len(devices))))
-        for render in (True, False):
+        for render in (True,) if args.no_physics_only else (True, False):
             r = env_throughput(env, n, args.steps, render, sharding)
             result["env"].append(r)
             print(f"N={n:5d} render={render!s:5}: {r['env_steps_per_s']:10.0f} env-steps/s "
                   f"(compile {r['compile_s']:.0f} s)", flush=True)
+            _save(args, result)
     if not args.skip_policy:
         result["policy"] = policy_throughput(args, sharding)
+        _save(args, result)
 
     print(f"\n{result['device']} ({result['backend']}), jax {result['jax']}, mujoco {result['mujoco']}, "
           f"commit {commit}, {result['date']}\n`{result['command']}`\n")
@@ -227,8 +231,8 @@ def main(argv=None) -> int:
         print("|---:|---:|---:|---:|")
     for n in sorted({r["n"] for r in result["env"]}):
         ren = next(r for r in result["env"] if r["n"] == n and r["render"])
-        phy = next(r for r in result["env"] if r["n"] == n and not r["render"])
-        print(f"| {n} | {ren['env_steps_per_s']:.0f} | {phy['env_steps_per_s']:.0f} | {ren['compile_s']:.0f} |")
+        phy = next((r["env_steps_per_s"] for r in result["env"] if r["n"] == n and not r["render"]), float("nan"))
+        print(f"| {n} | {ren['env_steps_per_s']:.0f} | {phy:.0f} | {ren['compile_s']:.0f} |")
     if (p := result["policy"]) is not None:
         print(f"\n| policy in the loop | batch | steps/episode | plan calls/episode | policy call (ms) | "
               f"episodes/min | LIBERO 2000-episode protocol (min, est.) |")
@@ -236,11 +240,15 @@ def main(argv=None) -> int:
         print(f"| {p['model']} ({p['params'] / 1e9:.2f} B params, {p['dtype']}, {p['num_steps']} steps) | "
               f"{p['batch']} | {p['episode_steps']} | {p['plan_calls_per_episode']} | {p['plan_ms']:.1f} | "
               f"{p['episodes_per_min']:.1f} | {p['libero_2000_protocol_min_estimate']:.1f} |")
-    line = json.dumps(result)
-    print("\n" + line)
+    print("\n" + json.dumps(result))
+    _save(args, result)
+    return 0
+
+
+def _save(args: Args, result: dict) -> None:
+    """Write the JSON so far (a run cut short still leaves its finished measurements)."""
     if args.json is not None:
         args.json.write_text(json.dumps(result, indent=2) + "\n")
-    return 0
 
 
 if __name__ == "__main__":

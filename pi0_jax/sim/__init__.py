@@ -33,10 +33,28 @@ def _backends_started() -> bool:
         return True
 
 
-_missing = [f for f in _CPU_FLAGS if f not in os.environ.get("XLA_FLAGS", "")]
+def _known_to_xla(flags) -> list[str]:
+    """The flags this jaxlib's XLA defines: an unknown name in XLA_FLAGS is fatal, and XLA:CPU flags come and go
+    between releases (jax 0.11 dropped --xla_cpu_use_fusion_emitters). XLA registers each flag under its name, so
+    the name is a string in jaxlib's largest shared library; look it up there (memory-mapped, no jax import)."""
+    import importlib.util
+    import mmap
+
+    spec = importlib.util.find_spec("jaxlib")
+    if spec is None or not spec.submodule_search_locations:
+        return []
+    root = spec.submodule_search_locations[0]
+    libs = [os.path.join(root, f) for f in os.listdir(root) if f.endswith(".so")]
+    if not libs:
+        return []
+    with open(max(libs, key=os.path.getsize), "rb") as fh, mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as mm:
+        return [f for f in flags if mm.find(f[2:].split("=")[0].encode() + b"\0") >= 0]
+
+
+_missing = [f for f in _CPU_FLAGS if f.split("=")[0] not in os.environ.get("XLA_FLAGS", "")]
 if _missing:
     if _backends_started():
         warnings.warn(f"pi0_jax.sim imported after a JAX backend started: on CPU, set XLA_FLAGS='{' '.join(_CPU_FLAGS)}' "
                       "before JAX starts, or MJX steps are much slower", stacklevel=2)
-    else:
-        os.environ["XLA_FLAGS"] = " ".join([os.environ.get("XLA_FLAGS", ""), *_missing]).strip()
+    elif _known := _known_to_xla(_missing):
+        os.environ["XLA_FLAGS"] = " ".join([os.environ.get("XLA_FLAGS", ""), *_known]).strip()
