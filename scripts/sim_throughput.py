@@ -12,7 +12,8 @@
    `--policy-batch` environments through the evaluation's own segment program (pi0_jax.sim.evaluate): plan
    (SigLIP on 3 slots, prefix, `--num-steps` Euler steps) every `--replan-steps` steps. Random weights never
    succeed, so every episode runs `--policy-episode-steps` steps: the worst case. Reports episodes/min and the
-   estimated time of LIBERO's 2000-episode protocol at the same per-step cost (its step limits average 330; every episode runs to its limit).
+   estimated time of LIBERO's 2000-episode protocol at the same per-step cost (its step limits average 330;
+   every episode runs to its limit).
 
 Prints a markdown table and a JSON line (also written to --json). State is sharded over every local device.
 """
@@ -114,8 +115,8 @@ def policy_throughput(args: Args, sharding) -> dict:
     import jax
     import jax.numpy as jnp
 
-    from pi0_jax import pi0
     from pi0_jax import normalize as nz
+    from pi0_jax import pi0
     from pi0_jax.config import get_config
     from pi0_jax.sim import evaluate, policies, tasks
     from pi0_jax.sim.env import Env
@@ -234,8 +235,8 @@ def main(argv=None) -> int:
         phy = next((r["env_steps_per_s"] for r in result["env"] if r["n"] == n and not r["render"]), float("nan"))
         print(f"| {n} | {ren['env_steps_per_s']:.0f} | {phy:.0f} | {ren['compile_s']:.0f} |")
     if (p := result["policy"]) is not None:
-        print(f"\n| policy in the loop | batch | steps/episode | plan calls/episode | policy call (ms) | "
-              f"episodes/min | LIBERO 2000-episode protocol (min, est.) |")
+        print("\n| policy in the loop | batch | steps/episode | plan calls/episode | policy call (ms) | "
+              "episodes/min | LIBERO 2000-episode protocol (min, est.) |")
         print("|---|---:|---:|---:|---:|---:|---:|")
         print(f"| {p['model']} ({p['params'] / 1e9:.2f} B params, {p['dtype']}, {p['num_steps']} steps) | "
               f"{p['batch']} | {p['episode_steps']} | {p['plan_calls_per_episode']} | {p['plan_ms']:.1f} | "

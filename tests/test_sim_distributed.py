@@ -10,8 +10,6 @@ import socket
 import subprocess
 import sys
 
-import pi0_jax.sim  # noqa: F401  (XLA flags first)
-
 from pi0_jax.sim.evaluate import EvalConfig, evaluate
 
 ARGS = ["--policy", "expert", "--suite", "goal", "--episodes-per-task", "1", "--batch", "4", "--steps", "30",

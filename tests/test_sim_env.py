@@ -7,8 +7,6 @@
 
 import json
 
-import pi0_jax.sim  # noqa: F401  (XLA flags first)
-
 import numpy as np
 import pytest
 

@@ -10,8 +10,6 @@ state written into the prompt), converted with `pi0-jax convert`.
 import json
 from importlib import resources
 
-import pi0_jax.sim  # noqa: F401  (XLA flags first)
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -70,3 +68,11 @@ def test_eval_cli_with_checkpoint(demo_ckpt, tmp_path):
     assert all(e["length"] == 10 or e["success"] for e in info["per_episode"])
     assert info["config"]["policy_info"]["model"] == "dummy_pi05"
     assert len(info["video_paths"]) == 1
+
+
+def test_random_policy_chunks():
+    pol = policies.random_policy(5)
+    chunk = np.asarray(pol.plan(None, pol.init(3), None, None, jax.random.split(jax.random.key(0), 3)))
+    assert chunk.shape == (3, 5, 7) and np.abs(chunk).max() <= 1.0 and chunk.std() > 0.3
+    action, _ = pol.act(jnp.asarray(chunk), None, 2)
+    np.testing.assert_array_equal(np.asarray(action), chunk[:, 2])

@@ -12,8 +12,6 @@ import os
 import subprocess
 import sys
 
-import pi0_jax.sim  # noqa: F401  (XLA flags first)
-
 import jax
 import mujoco
 import numpy as np

@@ -2,8 +2,6 @@
 
 import itertools
 
-import pi0_jax.sim  # noqa: F401  (XLA flags first)
-
 import jax
 import jax.numpy as jnp
 import mujoco

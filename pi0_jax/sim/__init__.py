@@ -54,7 +54,8 @@ def _known_to_xla(flags) -> list[str]:
 _missing = [f for f in _CPU_FLAGS if f.split("=")[0] not in os.environ.get("XLA_FLAGS", "")]
 if _missing:
     if _backends_started():
-        warnings.warn(f"pi0_jax.sim imported after a JAX backend started: on CPU, set XLA_FLAGS='{' '.join(_CPU_FLAGS)}' "
-                      "before JAX starts, or MJX steps are much slower", stacklevel=2)
+        warnings.warn("pi0_jax.sim imported after a JAX backend started: on CPU, set "
+                      f"XLA_FLAGS='{' '.join(_CPU_FLAGS)}' before JAX starts, or MJX steps are much slower",
+                      stacklevel=2)
     elif _known := _known_to_xla(_missing):
         os.environ["XLA_FLAGS"] = " ".join([os.environ.get("XLA_FLAGS", ""), *_known]).strip()

@@ -25,7 +25,7 @@ without it MJX steps are ~100x slower.
 
 def add_eval_parser(subparsers) -> argparse.ArgumentParser:
     """Add the `eval` subcommand to an argparse subparsers object; returns its parser (func=run)."""
-    from pi0_jax.sim.tasks import SUITES, TASKS   # light: no jax import
+    from pi0_jax.sim.tasks import SUITES, TASKS  # light: no jax import
 
     p = subparsers.add_parser("eval", help="evaluate a policy (checkpoint, expert, random) in the MJX task suite",
                               description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -76,9 +76,7 @@ def add_eval_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    import pi0_jax.sim  # noqa: F401  (sets the XLA:CPU flag before jax initialises)
-
-    import jax
+    import jax  # this module's package, pi0_jax.sim, has set the XLA:CPU flags already
 
     if args.coordinator:
         # gloo: cross-process collectives for the CPU backend (results are gathered); GPU backends ignore it

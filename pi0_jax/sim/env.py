@@ -3,7 +3,7 @@
     env = Env(tasks.SUITES["all"], RenderConfig(224, 224))
     state = jax.vmap(env.reset)(jax.random.split(rng, n), task_ids, init_ids)
     state = jax.vmap(env.step)(state, actions)                  # actions (n, 7)
-    obs = jax.vmap(env.observe)(state)                          # {"agentview", "wrist": (n, H, W, 3) u8, "state": (n, 8)}
+    obs = jax.vmap(env.observe)(state)          # {"agentview", "wrist": (n, H, W, 3) uint8, "state": (n, 8)}
 
 One control step is 50 ms (20 Hz): the controller turns the 7-D action into servo targets once, then MJX integrates
 `substeps` physics steps. After them the kinematics are refreshed, so positions in the state, the observation and the

@@ -68,7 +68,8 @@ class Scene:
         return cls(geom_ids={t: v for t, v in ids.items() if len(v)},
                    size={t: model.geom_size[v].astype(np.float32) for t, v in ids.items() if len(v)},
                    rgba=rgba.astype(np.float32), types=model.geom_type.astype(np.int32),
-                   sizes=model.geom_size.astype(np.float32), light_dir=(light / np.linalg.norm(light)).astype(np.float32),
+                   sizes=model.geom_size.astype(np.float32),
+                   light_dir=(light / np.linalg.norm(light)).astype(np.float32),
                    cam_fovy=model.cam_fovy.astype(np.float32))
 
 
