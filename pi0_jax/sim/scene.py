@@ -181,7 +181,7 @@ def _objects_xml() -> str:
 
 def build_mjcf(cfg: SceneConfig = SceneConfig()) -> str:
     """The scene's MJCF text (deterministic in `cfg`)."""
-    agent_pos, agent_target = (1.05, 0.0, 0.62), (0.45, 0.0, 0.05)
+    agent_pos, agent_target = (0.92, 0.0, 0.52), (0.44, 0.0, 0.0)
     xml = f"""<mujoco model="pi0jax_tabletop">
   <compiler angle="radian" autolimits="true"/>
   <option timestep="{cfg.timestep}" iterations="{cfg.solver_iterations}" ls_iterations="{cfg.ls_iterations}"
