@@ -16,8 +16,6 @@ latches. Steps after `done` still simulate (batched rollouts keep a fixed shape)
 
 from __future__ import annotations
 
-import dataclasses
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -167,10 +165,3 @@ class Env:
             obs.update(depth=out["depth"], segmentation=out["segmentation"])
         return obs
 
-
-def with_resolution(env: Env, height: int, width: int) -> Env:
-    """A copy of `env` rendering at another resolution (shares the compiled model)."""
-    new = object.__new__(Env)
-    new.__dict__.update(env.__dict__)
-    new.render_cfg = dataclasses.replace(env.render_cfg, height=height, width=width)
-    return new
