@@ -7,6 +7,8 @@ import io
 import pytest
 import sentencepiece
 
+import pi0_jax.sim  # noqa: F401  (sets XLA:CPU flags for MJX before any test initialises a JAX backend)
+
 _SENTENCES = [
     "pick up the black bowl between the plate and the ramekin and place it on the plate",
     "put both the alphabet soup and the tomato sauce in the basket",
