@@ -46,11 +46,15 @@ GEMMA_VARIANTS: dict[str, GemmaConfig] = {
     # as in the real model (2048 vs 1024).
     "dummy": GemmaConfig(width=64, depth=3, mlp_dim=160, num_heads=4, num_kv_heads=1, head_dim=16),
     "dummy_expert": GemmaConfig(width=48, depth=3, mlp_dim=96, num_heads=4, num_kv_heads=1, head_dim=16),
+    # The small model trained in the MJX suite (pi0_small): the expert at half the VLM's width, as 1024 vs 2048.
+    "gemma_small": GemmaConfig(width=256, depth=4, mlp_dim=1024, num_heads=4, num_kv_heads=1, head_dim=64),
+    "gemma_small_expert": GemmaConfig(width=128, depth=4, mlp_dim=512, num_heads=4, num_kv_heads=1, head_dim=64),
 }
 
 SIGLIP_VARIANTS: dict[str, SiglipConfig] = {
     "So400m/14": SiglipConfig(width=1152, depth=27, mlp_dim=4304, num_heads=16),
     "dummy": SiglipConfig(width=40, depth=2, mlp_dim=88, num_heads=2),
+    "small/14-112": SiglipConfig(width=256, depth=4, mlp_dim=768, num_heads=4, image_size=112),
 }
 
 
@@ -138,6 +142,12 @@ PRESETS: dict[str, Pi0Config] = {
     # openpi's pi05_libero: horizon 10, the state is not written into the prompt (the model never sees it).
     "pi05_libero": Pi0Config(name="pi05_libero", pi05=True, action_horizon=10, max_token_len=200,
                              discrete_state_input=False),
+    # ~7.6 M params: trained on the MJX suite's expert demos (pi0_jax/train), embedded as the demo model.
+    # Two cameras (agent view, wrist) at 112 px -> 2 x 64 image tokens; action_dim 8 holds the 8-D state and 7-D
+    # actions; the vocabulary is a small SentencePiece model trained on the suite's instructions.
+    "pi0_small": Pi0Config(name="pi0_small", pi05=False, paligemma_variant="gemma_small",
+                           action_expert_variant="gemma_small_expert", siglip_variant="small/14-112", vocab_size=128,
+                           action_dim=8, action_horizon=10, max_token_len=32, num_cameras=2),
     "dummy": Pi0Config(name="dummy", pi05=False, paligemma_variant="dummy", action_expert_variant="dummy_expert",
                        siglip_variant="dummy", vocab_size=1024, action_horizon=10, dtype="float32"),
     "dummy_pi05": Pi0Config(name="dummy_pi05", pi05=True, paligemma_variant="dummy",
