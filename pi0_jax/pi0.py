@@ -217,7 +217,8 @@ def denoise_step(config: Pi0Config, params: dict, cache: KVCache, x_t: jax.Array
 def sample_actions(config: Pi0Config, params: dict, obs: Observation, noise: jax.Array, num_steps: int = 10):
     """Euler flow-matching sampler: noise (B, H, action_dim) at t = 1 -> actions at t = 0.
 
-    Runs exactly num_steps steps at t = 1, 1 - 1/n, ..., 1/n (fixed trip count, so the loop is static).
+    Runs exactly num_steps steps at t = 1, 1 - 1/n, ..., 1/n: a fixed trip count for a Python int, a while loop
+    for a traced int32 (same arithmetic: dt = -1/n rounded to f32 once).
     """
     cache = fill_prefix_cache(config, params, obs)
     dt = -1.0 / num_steps

@@ -49,14 +49,17 @@ def add_eval_parser(subparsers) -> argparse.ArgumentParser:
                         "(LIBERO's 220 spatial, 280 object, 300 goal)")
     p.add_argument("--output-dir", type=Path, default=None, metavar="DIR",
                    help="where to write eval_info.json and videos/ (default: print only)")
-    p.add_argument("--resolution", type=int, default=224, metavar="PX",
-                   help="camera images are PX x PX (default: %(default)s; a checkpoint policy resizes them to its "
-                        "224 with openpi's resize-with-pad)")
+    p.add_argument("--resolution", type=int, default=None, metavar="PX",
+                   help="camera images are PX x PX (default: a checkpoint's own image size, e.g. 224 for π0 / π0.5 "
+                        "and 112 for pi0_small; 224 for expert and random); a checkpoint policy resizes other sizes "
+                        "to its own with openpi's resize-with-pad")
     p.add_argument("--videos", type=int, default=4, metavar="V",
                    help="record MP4s of the first V episodes (default: %(default)s; 0 for none)")
     p.add_argument("--seed", type=int, default=0, help="base PRNG seed of the policy's noise (default: 0)")
     p.add_argument("--num-steps", type=int, default=10,
                    help="flow-matching Euler steps of a checkpoint policy (default: %(default)s)")
+    p.add_argument("--dtype", choices=("float32", "bfloat16"), default=None,
+                   help="param and compute dtype of a checkpoint policy (default: the checkpoint's own)")
     p.add_argument("--tokenizer", type=Path, default=None, metavar="FILE",
                    help="SentencePiece model for a checkpoint policy (default: CKPT/tokenizer.model or "
                         "CKPT/assets/tokenizer.model)")
@@ -75,6 +78,16 @@ def add_eval_parser(subparsers) -> argparse.ArgumentParser:
     return p
 
 
+def default_resolution(policy: str) -> int:
+    """The image size a checkpoint was built for (config.json's model), else 224."""
+    if policy in ("expert", "random") or not Path(policy).is_dir():
+        return 224
+    from pi0_jax.checkpoint import read_meta
+    from pi0_jax.config import Pi0Config
+
+    return Pi0Config.from_json(read_meta(policy)["model"]).image_size
+
+
 def run(args: argparse.Namespace) -> int:
     import jax  # this module's package, pi0_jax.sim, has set the XLA:CPU flags already
 
@@ -86,10 +99,11 @@ def run(args: argparse.Namespace) -> int:
     from pi0_jax.sim.evaluate import EvalConfig, evaluate, format_table
 
     cfg = EvalConfig(suite=args.suite, episodes_per_task=args.episodes_per_task, batch=args.batch,
-                     replan_steps=args.replan_steps, max_steps=args.steps, resolution=args.resolution,
+                     replan_steps=args.replan_steps, max_steps=args.steps,
+                     resolution=args.resolution or default_resolution(args.policy),
                      seed=args.seed, videos=args.videos, segment_replans=args.segment_replans,
                      num_steps=args.num_steps)
-    kw = {"tokenizer_path": args.tokenizer, "norm_stats": args.norm_stats}
+    kw = {"tokenizer_path": args.tokenizer, "norm_stats": args.norm_stats, "dtype": args.dtype}
     info = evaluate(args.policy, cfg, args.output_dir, progress=not args.no_progress, policy_kwargs=kw)
     if jax.process_index() == 0:
         a = info["aggregated"]

@@ -43,6 +43,7 @@ class SimPolicy:
     params: Any = None
     needs_images: bool = False
     horizon: int | None = None                      # longest usable chunk; None: any replan_steps
+    observation: Callable | None = None             # model policies: (obs, env_state) -> pi0.Observation
     info: dict = dataclasses.field(default_factory=dict)
 
 
@@ -89,6 +90,8 @@ def checkpoint_policy(path: str | os.PathLike, env, *, tokenizer_path=None, num_
 
     path = Path(path)
     config, params = checkpoint.load_checkpoint(path, dtype=dtype)
+    if dtype is not None:   # params and compute: bf16 on CPU is emulated and slower than f32
+        config = config.replace(dtype=dtype)
     tok = PaligemmaTokenizer(_find_tokenizer(path, tokenizer_path), config.max_token_len)
     if norm_stats == "identity":
         normalizer = nz.Normalizer.identity()
@@ -97,8 +100,12 @@ def checkpoint_policy(path: str | os.PathLike, env, *, tokenizer_path=None, num_
     return model_policy(config, params, tok, normalizer, env, num_steps=num_steps, name=str(path))
 
 
-def model_policy(config, params, tok, normalizer, env, *, num_steps: int = 10, name: str = "model") -> SimPolicy:
-    """A π0 / π0.5 (pi0_jax.pi0) with its tokenizer and normaliser as a batched in-jit policy for `env`'s tasks."""
+def model_policy(config, params, tok, normalizer, env, *, num_steps: int = 10, dynamic_steps: bool = False,
+                 name: str = "model") -> SimPolicy:
+    """A π0 / π0.5 (pi0_jax.pi0) with its tokenizer and normaliser as a batched in-jit policy for `env`'s tasks.
+
+    dynamic_steps: the flow-step count travels in the policy's params ({"model": params, "num_steps": int32}) instead
+    of the program, so one compiled rollout serves every step count (same numerics: dt = -1/n in f32 either way)."""
     from pi0_jax import normalize as nz
     from pi0_jax import pi0
     from pi0_jax.config import IMAGE_KEYS
@@ -136,7 +143,7 @@ def model_policy(config, params, tok, normalizer, env, *, num_steps: int = 10, n
         x = x.astype(jnp.float32) / 255.0 * 2.0 - 1.0
         return x if x.shape[1:3] == (size, size) else _resize_with_pad(x, size, size, True)
 
-    def plan(params, ps, obs, es, rng):
+    def observation(obs, es):
         b = obs["state"].shape[0]
         cams = {"base_0_rgb": image(obs["agentview"]), "left_wrist_0_rgb": image(obs["wrist"])}
         images = {k: cams.get(k, jnp.full((b, size, size, 3), -1.0)) for k in slots}
@@ -148,15 +155,22 @@ def model_policy(config, params, tok, normalizer, env, *, num_steps: int = 10, n
             tk, tm = jax.pure_callback(host_tokenize, shapes, es.task, state, vmap_method="expand_dims")
         else:
             tk, tm = jnp.asarray(tokens)[es.task], jnp.asarray(masks)[es.task]
-        observation = pi0.Observation(images=images, image_masks=image_masks,
-                                      state=jnp.pad(state, ((0, 0), (0, adim - state.shape[1]))),
-                                      tokenized_prompt=tk, tokenized_prompt_mask=tm)
+        return pi0.Observation(images=images, image_masks=image_masks,
+                               state=jnp.pad(state, ((0, 0), (0, adim - state.shape[1]))),
+                               tokenized_prompt=tk, tokenized_prompt_mask=tm)
+
+    def plan(params, ps, obs, es, rng):
         noise = jax.vmap(lambda k: jax.random.normal(k, (horizon, adim)))(rng)
-        actions = pi0.sample_actions(config, params, observation, noise, num_steps=num_steps)
+        if dynamic_steps:
+            params, steps = params["model"], params["num_steps"]
+        else:
+            steps = num_steps
+        actions = pi0.sample_actions(config, params, observation(obs, es), noise, num_steps=steps)
         return actions[..., :action_dims].astype(jnp.float32) * a_scale + a_offset
 
     return SimPolicy(name=name, init=lambda b: jnp.zeros((b, horizon, action_dims)), plan=plan,
-                     act=lambda ps, es, k: (ps[:, k], ps), params=params, needs_images=True, horizon=horizon,
+                     act=lambda ps, es, k: (ps[:, k], ps), needs_images=True, horizon=horizon, observation=observation,
+                     params={"model": params, "num_steps": np.int32(num_steps)} if dynamic_steps else params,
                      info={"model": config.name, "pi05": config.pi05, "dtype": config.dtype, "num_steps": num_steps,
                            "action_horizon": horizon, "normalization": normalizer.convention.value})
 
