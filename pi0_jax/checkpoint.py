@@ -89,15 +89,19 @@ def restore_params(path: str | os.PathLike, *, dtype: str | None = None) -> dict
     return traverse_util.unflatten_dict(flat)
 
 
+def _shape(x) -> tuple:
+    return tuple(x.shape) if hasattr(x, "shape") else np.shape(x)  # also a quantised leaf (quant.QArray)
+
+
 def check_params(config: Pi0Config, params: Mapping) -> None:
     """Raise a ValueError naming every missing, unexpected or mis-shaped leaf."""
     want = traverse_util.flatten_dict(pi0.param_shapes(config), sep="/")
     have = traverse_util.flatten_dict(dict(params), sep="/")
     problems = [f"missing {k} {want[k].shape}" for k in sorted(set(want) - set(have))]
-    problems += [f"unexpected {k} {np.shape(have[k])}" for k in sorted(set(have) - set(want))]
+    problems += [f"unexpected {k} {_shape(have[k])}" for k in sorted(set(have) - set(want))]
     problems += [
-        f"shape of {k}: {np.shape(have[k])}, expected {want[k].shape}"
-        for k in sorted(set(want) & set(have)) if tuple(np.shape(have[k])) != tuple(want[k].shape)
+        f"shape of {k}: {_shape(have[k])}, expected {want[k].shape}"
+        for k in sorted(set(want) & set(have)) if tuple(_shape(have[k])) != tuple(want[k].shape)
     ]
     if problems:
         raise ValueError(f"params do not match preset {config.name!r}:\n  " + "\n  ".join(problems))
@@ -113,9 +117,16 @@ def save_checkpoint(
     overwrite: bool = False,
 ) -> Path:
     """Write a pi0-jax checkpoint atomically. `assets` maps relative paths under assets/ (or `tokenizer.model`)
-    to file contents (bytes) or source files."""
+    to file contents (bytes) or source files. Quantised leaves (`pi0_jax.quant.QArray`) are stored as their
+    fields, described under the metadata's "quant" key."""
+    from pi0_jax.quant import schemes as quant_schemes
+
     check_params(config, params)
-    dtypes = sorted({str(np.dtype(x.dtype)) for x in jax.tree.leaves(params)})
+    leaves = jax.tree.leaves(dict(params), is_leaf=lambda x: isinstance(x, quant_schemes.QArray))
+    dtypes = sorted({str(np.dtype(x.dtype)) for x in leaves if not isinstance(x, quant_schemes.QArray)})
+    params, qleaves = quant_schemes.to_storage(dict(params))
+    if qleaves:
+        extra_meta = {**(extra_meta or {}), "quant": {**dict((extra_meta or {}).get("quant", {})), "leaves": qleaves}}
     meta = {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
@@ -153,7 +164,18 @@ def load_checkpoint(path: str | os.PathLike, *, dtype: str | None = None) -> tup
     """Load (config, params) from a pi0-jax checkpoint directory; `dtype` casts the params on read."""
     meta = read_meta(path)
     config = Pi0Config.from_json(meta["model"])
-    params = restore_params(Path(path) / "params", dtype=dtype)
+    if "quant" not in meta:
+        params = restore_params(Path(path) / "params", dtype=dtype)
+    else:  # quantised leaves keep their storage dtypes; the rest is cast
+        from pi0_jax.quant import schemes as quant_schemes
+
+        params = restore_params(Path(path) / "params")
+        if dtype is not None:
+            qpaths = tuple(meta["quant"]["leaves"])
+            flat = traverse_util.flatten_dict(params, sep="/")
+            params = traverse_util.unflatten_dict(
+                {k: v if k.rsplit("/", 1)[0] in qpaths else v.astype(dtype) for k, v in flat.items()}, sep="/")
+        params = quant_schemes.from_storage(params, meta["quant"]["leaves"])
     check_params(config, params)
     return config, params
 

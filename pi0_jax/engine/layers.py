@@ -17,6 +17,7 @@ import jax.numpy as jnp
 
 from pi0_jax.config import GemmaConfig
 from pi0_jax.gemma import _BIG_NEG, apply_rope
+from pi0_jax.quant import hooks as quant_hooks
 
 
 def rms_norm(x, scale=None, mod=None):
@@ -30,8 +31,13 @@ def rms_norm(x, scale=None, mod=None):
     return (normed * (1 + s) + shift).astype(dtype), gate
 
 
+def _mm(x, w):
+    """x @ w; a quantised weight (`pi0_jax.quant`) takes its own op (FP8 GEMM on Hopper)."""
+    return quant_hooks.matmul("...D,DF->...F", x, w) if quant_hooks.is_quant(w) else x @ w
+
+
 def _qkv(h, w, cfg: GemmaConfig, positions):
-    qkv = h @ w
+    qkv = _mm(h, w)
     nq = cfg.num_heads * cfg.head_dim
     q = einops.rearrange(qkv[..., :nq], "B T (N H) -> B T N H", H=cfg.head_dim)
     k, v = einops.rearrange(qkv[..., nq:], "B T (two K H) -> two B T K H", two=2, H=cfg.head_dim)
@@ -42,8 +48,8 @@ def _qkv(h, w, cfg: GemmaConfig, positions):
 
 
 def _mlp(h, w):
-    gate, up = jnp.split(h @ w["gate_up"], 2, axis=-1)
-    return (jax.nn.gelu(gate, approximate=True) * up) @ w["down"]
+    gate, up = jnp.split(_mm(h, w["gate_up"]), 2, axis=-1)
+    return _mm(jax.nn.gelu(gate, approximate=True) * up, w["down"])
 
 
 def _attend(q, ks, vs, masks, dtype):
@@ -62,7 +68,7 @@ def prefix_layer(cfg: GemmaConfig, w, x, positions, mask):
     """One VLM layer over the prefix. x (B,P,D); mask (B,P,P). Returns (x, k, v) with k, v (B,P,K,H) post-RoPE."""
     h, _ = rms_norm(x, w["pre_attn"])
     q, k, v = _qkv(h, w["qkv"], cfg, positions)
-    x = x + _attend(q, [k], [v], [mask], x.dtype) @ w["attn_out"]
+    x = x + _mm(_attend(q, [k], [v], [mask], x.dtype), w["attn_out"])
     h, _ = rms_norm(x, w["pre_ffw"])
     return x + _mlp(h, w), k, v
 
@@ -97,7 +103,7 @@ def suffix_layer(cfg: GemmaConfig, w, x, positions, cache_k, cache_v, prefix_mas
         y = _attend(q, [cache_k, k], [cache_v, v], [prefix_mask, suffix_mask], x.dtype)
     else:
         y = _attend_cudnn(q, k, v, cache_k, cache_v, kv_len, suffix_mask)
-    y = y @ w["attn_out"]
+    y = _mm(y, w["attn_out"])
     x = x + (y if gate is None else y * gate)
     h, gate = rms_norm(x, w.get("pre_ffw"), mod_ffw)
     y = _mlp(h, w)

@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pi0_jax import pi0
+from pi0_jax import pi0, quant
 from pi0_jax.config import Pi0Config
 
 
@@ -33,16 +33,30 @@ def step_times(num_steps: int) -> np.ndarray:
     return np.asarray(out, np.float32)
 
 
+def _rearrange(w, pattern: str, dtype):
+    """Quantised weights (`pi0_jax.quant.QArray`) keep their storage dtype and scales; fused after quantising, so
+    their scales are per output channel of the fused matrix."""
+    if isinstance(w, quant.QArray):
+        return quant.rearrange(w, pattern)
+    return einops.rearrange(w, pattern).astype(dtype)
+
+
 def _expert_weights(attn: dict, mlp: dict, suffix: str, dtype) -> dict:
     q = attn[f"q_einsum{suffix}"]["w"]  # (L, N, D, H)
     kv = attn[f"kv_einsum{suffix}"]["w"]  # (L, 2, K, D, H)
-    qkv = jnp.concatenate(
-        [einops.rearrange(q, "L N D H -> L D (N H)"), einops.rearrange(kv, "L two K D H -> L D (two K H)")], axis=-1)
+    if isinstance(q, quant.QArray):
+        qkv = quant.concat([_rearrange(q, "L N D H -> L D (N H)", dtype),
+                            _rearrange(kv, "L two K D H -> L D (two K H)", dtype)])
+    else:
+        qkv = jnp.concatenate(
+            [einops.rearrange(q, "L N D H -> L D (N H)"), einops.rearrange(kv, "L two K D H -> L D (two K H)")],
+            axis=-1).astype(dtype)
+    down = mlp["linear"]
     return {
-        "qkv": qkv.astype(dtype),
-        "attn_out": einops.rearrange(attn[f"attn_vec_einsum{suffix}"]["w"], "L N H D -> L (N H) D").astype(dtype),
-        "gate_up": einops.rearrange(mlp["gating_einsum"], "L two D F -> L D (two F)").astype(dtype),
-        "down": mlp["linear"].astype(dtype),
+        "qkv": qkv,
+        "attn_out": _rearrange(attn[f"attn_vec_einsum{suffix}"]["w"], "L N H D -> L (N H) D", dtype),
+        "gate_up": _rearrange(mlp["gating_einsum"], "L two D F -> L D (two F)", dtype),
+        "down": down if isinstance(down, quant.QArray) else down.astype(dtype),
     }
 
 

@@ -1,0 +1,190 @@
+"""Low-precision number formats: FP8 (e4m3) weights and activations, FP4 (e2m1) weights with block scales.
+
+Conventions:
+- A quantised weight is a `QArray` pytree node that sits in the param tree in place of the array. `q` has the
+  weight's shape (so Flax's param shape check and `nn.scan` slicing see the original shape); `scale` has the same
+  rank with size 1 on the contracting axes (per output channel) or on every axis but a leading layer axis (per
+  tensor); `act_scale` is the static per-tensor scale of the GEMM's input (None: weight-only).
+- Every stacked leaf carries the layer axis first, act_scale included, so scans and `x[i]` slice all fields alike.
+- real value = q * scale. Scales are amax / format max, so the largest magnitude maps to the format's largest
+  finite value (e4m3fn: 448, e2m1: 6); values are clipped first (e4m3fn has no inf: overflow would be NaN).
+- `qmatmul` writes the pattern XLA's GPU GEMM rewriter turns into a cuBLASLt FP8 GEMM when both operands are FP8:
+  convert(fp8) -> multiply by a scalar -> dot. Per-channel weight scales are applied to the GEMM output.
+"""
+
+from __future__ import annotations
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+E4M3 = jnp.float8_e4m3fn
+E2M1 = jnp.float4_e2m1fn
+E8M0 = jnp.float8_e8m0fnu
+E4M3_MAX = 448.0
+E2M1_MAX = 6.0
+FP4_BLOCK = {"nvfp4": 16, "mxfp4": 32}
+
+
+@flax.struct.dataclass
+class QArray:
+    """An FP8 weight. q: e4m3 (weight shape); scale: f32 (see module doc); act_scale: f32 () or (L,) or None.
+
+    contract: the contracting axes of the weight (negative, static), used for per-channel scales and re-layouts.
+    """
+
+    q: jax.Array
+    scale: jax.Array
+    act_scale: jax.Array | None = None
+    contract: tuple[int, ...] = flax.struct.field(pytree_node=False, default=(-2,))
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return tuple(self.q.shape)
+
+    @property
+    def dtype(self):
+        return self.q.dtype
+
+    @property
+    def ndim(self) -> int:
+        return self.q.ndim
+
+    def __getitem__(self, i):
+        """Index the leading axis (FeedForward's gate/up split of one layer's `gating_einsum`)."""
+        scale = self.scale[i] if self.scale.shape[0] == self.q.shape[0] else self.scale[0]
+        contract = tuple(c for c in self.contract if c != -self.q.ndim)
+        return QArray(self.q[i], scale, self.act_scale, contract)
+
+    def dequantize(self, dtype=jnp.float32) -> jax.Array:
+        return (self.q.astype(jnp.float32) * self.scale).astype(dtype)
+
+
+def _safe_scale(amax, fmt_max):
+    return jnp.where(amax > 0, amax / fmt_max, 1.0).astype(jnp.float32)
+
+
+def quantize_fp8(w: jax.Array, *, contract=(-2,), per_channel: bool = True, stacked: bool = False,
+                 act_scale=None) -> QArray:
+    """Weight -> e4m3 with amax scales: per output channel (reduce over `contract`) or per tensor (per layer when
+    `stacked`, i.e. the leading axis is layers)."""
+    w = jnp.asarray(w, jnp.float32)
+    contract = tuple(a if a < 0 else a - w.ndim for a in contract)
+    if per_channel:
+        axes = tuple(a % w.ndim for a in contract)
+    else:
+        axes = tuple(range(1 if stacked else 0, w.ndim))
+    scale = _safe_scale(jnp.max(jnp.abs(w), axis=axes, keepdims=True), E4M3_MAX)
+    q = jnp.clip(w / scale, -E4M3_MAX, E4M3_MAX).astype(E4M3)
+    act = None if act_scale is None else jnp.asarray(act_scale, jnp.float32)
+    return QArray(q, scale, act, contract)
+
+
+def act_scale_from_amax(amax) -> np.ndarray:
+    """Static activation scale for e4m3 from a calibrated magnitude (amax or a percentile)."""
+    amax = np.asarray(amax, np.float32)
+    return np.where(amax > 0, amax / E4M3_MAX, 1.0).astype(np.float32)
+
+
+def qdq_fp8(x: jax.Array, scale: jax.Array) -> jax.Array:
+    """Quantise x to e4m3 with a static scalar scale and dequantise back to x.dtype (saturating)."""
+    xq = jnp.clip(x.astype(jnp.float32) / scale, -E4M3_MAX, E4M3_MAX).astype(E4M3)
+    return xq.astype(x.dtype) * scale.astype(x.dtype)
+
+
+def _labels(eqn: str):
+    lhs, out = eqn.replace(" ", "").split("->")
+    _, rhs = lhs.split(",")
+    return rhs, out
+
+
+def _output_scale(eqn: str, w: QArray, dtype) -> jax.Array:
+    """The per-channel weight scale laid out to broadcast against the einsum output."""
+    rhs, out = _labels(eqn)
+    out_labels = out.replace("...", "")
+    keep = [i for i, c in enumerate(rhs) if c in out_labels]
+    s = w.scale.reshape([w.scale.shape[i] for i in keep])
+    kept = [rhs[i] for i in keep]
+    order = sorted(range(len(kept)), key=lambda i: out_labels.index(kept[i]))
+    s = jnp.transpose(s, order)
+    shape = [s.shape[order.index(kept.index(c))] if c in kept else 1 for c in out_labels]
+    return s.reshape(shape).astype(dtype)
+
+
+def qmatmul(eqn: str, x: jax.Array, w: QArray) -> jax.Array:
+    """einsum(eqn, x, w) with an FP8 weight: x quantised with the static act_scale (if any), the weight dequantised
+    by a scalar, the per-channel scale applied after the GEMM. Output in x.dtype."""
+    dtype = x.dtype
+    if w.act_scale is not None:
+        x = qdq_fp8(x, w.act_scale)
+    wq = w.q.astype(dtype)
+    if w.scale.size == 1:
+        return jnp.einsum(eqn, x, wq * w.scale.reshape(()).astype(dtype))
+    return jnp.einsum(eqn, x, wq) * _output_scale(eqn, w, dtype)
+
+
+def rearrange(w: QArray, pattern: str, contract=(-2,), **sizes) -> QArray:
+    """einops.rearrange of a QArray (q and scale alike); per-tensor scales are broadcast to per-channel first so
+    that re-laid-out weights can be concatenated."""
+    import einops
+
+    shape = [1 if (i - w.q.ndim) in w.contract else n for i, n in enumerate(w.q.shape)]
+    scale = jnp.broadcast_to(w.scale, shape)
+    return QArray(einops.rearrange(w.q, pattern, **sizes), einops.rearrange(scale, pattern, **sizes), w.act_scale,
+                  tuple(contract))
+
+
+def concat(ws, axis: int = -1) -> QArray:
+    """Concatenate QArrays along an output axis (fused q/k/v): the inputs share the GEMM input, so one act_scale."""
+    acts = [w.act_scale for w in ws]
+    act = None if acts[0] is None else jnp.max(jnp.stack(acts), axis=0)
+    return QArray(jnp.concatenate([w.q for w in ws], axis), jnp.concatenate([w.scale for w in ws], axis), act,
+                  ws[0].contract)
+
+
+# -- FP4 (emulation only: dequantise, then matmul) -------------------------------------------------------------------
+def quantize_fp4(w: jax.Array, fmt: str, axis: int = -2):
+    """Weight -> (q e2m1, block scales, tensor scale) with blocks of FP4_BLOCK[fmt] along the contracting `axis`.
+
+    nvfp4: block scales e4m3 of (block amax / 6) / tensor_scale, tensor_scale f32 = amax / (6 * 448).
+    mxfp4: block scales e8m0 (powers of two), the OCP MX rule 2^(floor(log2(block amax)) - 2) (2 = e2m1's emax),
+    so values up to 8x the scale can clip to 6: MX trades that saturation for a free (shift-only) scale.
+    Block scales have `axis` of size ceil(n / block); a partial last block is zero-padded (zeros leave amax as is).
+    """
+    if fmt not in FP4_BLOCK:
+        raise ValueError(f"unknown FP4 format {fmt!r}; formats: {sorted(FP4_BLOCK)}")
+    bs = FP4_BLOCK[fmt]
+    w = jnp.moveaxis(jnp.asarray(w, jnp.float32), axis, -1)
+    n = w.shape[-1]
+    w = jnp.pad(w, [(0, 0)] * (w.ndim - 1) + [(0, -n % bs)])
+    blocks = w.reshape(*w.shape[:-1], -1, bs)
+    bmax = jnp.max(jnp.abs(blocks), axis=-1, keepdims=True)
+    if fmt == "nvfp4":
+        tensor_scale = _safe_scale(jnp.max(bmax), E2M1_MAX * E4M3_MAX)
+        bscale = jnp.clip(bmax / E2M1_MAX / tensor_scale, 0, E4M3_MAX).astype(E4M3)
+        eff = bscale.astype(jnp.float32) * tensor_scale
+    else:  # mxfp4
+        tensor_scale = jnp.float32(1.0)
+        exp = jnp.floor(jnp.log2(jnp.where(bmax > 0, bmax, 1.0))) - 2
+        bscale = jnp.exp2(jnp.clip(exp, -127, 127)).astype(E8M0)
+        eff = bscale.astype(jnp.float32)
+    eff = jnp.where(eff > 0, eff, 1.0)
+    q = jnp.clip(blocks / eff, -E2M1_MAX, E2M1_MAX).astype(E2M1)
+    q = jnp.moveaxis(q.reshape(w.shape)[..., :n], -1, axis)
+    return q, jnp.moveaxis(bscale[..., 0], -1, axis), tensor_scale
+
+
+def dequantize_fp4(q, block_scale, tensor_scale, fmt: str, axis: int = -2, dtype=jnp.float32) -> jax.Array:
+    bs = FP4_BLOCK[fmt]
+    qm = jnp.moveaxis(q.astype(jnp.float32), axis, -1)
+    n = qm.shape[-1]
+    qm = jnp.pad(qm, [(0, 0)] * (qm.ndim - 1) + [(0, -n % bs)])
+    sm = jnp.moveaxis(block_scale.astype(jnp.float32), axis, -1) * tensor_scale
+    out = (qm.reshape(*qm.shape[:-1], -1, bs) * sm[..., None]).reshape(qm.shape)[..., :n]
+    return jnp.moveaxis(out, -1, axis).astype(dtype)
+
+
+def fake_quant_fp4(w: jax.Array, fmt: str, axis: int = -2) -> jax.Array:
+    """Quantise-dequantise (the emulated FP4 weight), in w's dtype."""
+    return dequantize_fp4(*quantize_fp4(w, fmt, axis), fmt, axis, dtype=w.dtype)

@@ -1,0 +1,112 @@
+"""Where quantised weights meet the model: the matmul dispatch, SigLIP's Dense layers, and calibration taps.
+
+`matmul` handles a `QArray` (FP8) or a `Tap` (a plain weight that records the magnitude of its GEMM input while
+`recording()` is active, for calibration). Plain arrays never come here: the model code keeps its own op for them,
+so unquantised numerics are untouched.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import string
+
+import flax.linen as nn
+import flax.struct
+import jax
+import jax.numpy as jnp
+
+from pi0_jax.quant.formats import QArray, qmatmul
+
+_RECORDER: dict | None = None
+
+
+@flax.struct.dataclass
+class Tap:
+    """A plain weight with a name: its GEMM input is recorded while `recording()` is active."""
+
+    w: jax.Array
+    key: str = flax.struct.field(pytree_node=False)
+
+    @property
+    def shape(self):
+        return tuple(self.w.shape)
+
+
+@contextlib.contextmanager
+def recording(percentile: float | None = None):
+    """Collect (key, amax, percentile-of-|x|) for every Tap matmul run inside the block. Under jit, trace and run
+    inside the block (the percentile is baked into the trace)."""
+    global _RECORDER
+    prev, _RECORDER = _RECORDER, {"percentile": percentile, "rows": []}
+    try:
+        yield _RECORDER
+    finally:
+        _RECORDER = prev
+
+
+def _append(key, amax, pct):
+    if _RECORDER is not None:
+        _RECORDER["rows"].append((key, float(amax), None if _RECORDER["percentile"] is None else float(pct)))
+
+
+def _record(key: str, x: jax.Array) -> None:
+    """Statistics on device, one host callback per call (works eagerly and under jit; the recorder must be active
+    when the program runs, so block on its outputs inside `recording()`)."""
+    if _RECORDER is None:
+        return
+    a = jnp.abs(x.astype(jnp.float32))
+    p = _RECORDER["percentile"]
+    pct = jnp.percentile(a, p) if p is not None else jnp.float32(0)
+    jax.debug.callback(functools.partial(_append, key), jnp.max(a), pct)
+
+
+def is_quant(w) -> bool:
+    return isinstance(w, (QArray, Tap))
+
+
+def matmul(eqn: str, x: jax.Array, w) -> jax.Array:
+    if isinstance(w, QArray):
+        return qmatmul(eqn, x, w)
+    if isinstance(w, Tap):
+        _record(w.key, x)
+        return jnp.einsum(eqn, x, w.w.astype(x.dtype))
+    return jnp.einsum(eqn, x, w.astype(x.dtype))
+
+
+def _dense(module, x):
+    """Flax Dense / DenseGeneral (last-axes contraction) with a QArray or Tap kernel, as Flax computes it."""
+    kernel = module.get_variable("params", "kernel")
+    features = module.features if isinstance(module.features, tuple) else (module.features,)
+    axis = getattr(module, "axis", -1)
+    n_in = len(axis) if isinstance(axis, tuple) else 1
+    letters = string.ascii_letters[: n_in + len(features)]
+    ins, outs = letters[:n_in], letters[n_in:]
+    dtype = module.dtype or x.dtype
+    y = matmul(f"...{ins},{ins}{outs}->...{outs}", x.astype(dtype), kernel)
+    if module.use_bias:
+        y = y + module.get_variable("params", "bias").astype(dtype)
+    return y
+
+
+def dense_interceptor(next_fun, args, kwargs, context):
+    """`nn.intercept_methods` hook: Dense / DenseGeneral calls whose kernel is quantised (or tapped) go through
+    `matmul`; everything else runs unchanged."""
+    module = context.module
+    if context.method_name == "__call__" and isinstance(module, (nn.Dense, nn.DenseGeneral)):
+        if module.has_variable("params", "kernel") and is_quant(module.get_variable("params", "kernel")):
+            return _dense(module, args[0])
+    return next_fun(*args, **kwargs)
+
+
+def summarize(rec: dict, method: str) -> dict[str, float]:
+    """Per tap key: the calibrated magnitude over every recorded call (calibration batch), by `amax` (max |x|) or
+    `percentile` (the largest per-call percentile of |x|: one outlier token cannot stretch the scale)."""
+    if method not in ("amax", "percentile"):
+        raise ValueError(f"calibration method must be 'amax' or 'percentile', got {method!r}")
+    if method == "percentile" and rec["percentile"] is None:
+        raise ValueError("percentile calibration needs recording(percentile=...)")
+    out: dict[str, float] = {}
+    for key, amax, pct in rec["rows"]:
+        out[key] = max(out.get(key, 0.0), amax if method == "amax" else pct)
+    return out

@@ -1,0 +1,228 @@
+"""Quantisation schemes over the openpi param tree, calibration of static activation scales, checkpoint storage.
+
+A scheme is a set of GEMM groups; each group is a list of weight leaves (path in the openpi tree, contracting axes,
+the engine GEMM whose input calibrates it). Activations are quantised (FP8 x FP8 GEMMs) in every group but the
+action expert's, which is weight-only: its denoise step is bandwidth-bound at small batch and runs at M = horizon.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import traverse_util
+
+from pi0_jax import siglip
+from pi0_jax.config import IMAGE_KEYS, Pi0Config
+from pi0_jax.quant import hooks
+from pi0_jax.quant.formats import (QArray, act_scale_from_amax, fake_quant_fp4, quantize_fp8)
+
+_LLM = ("PaliGemma", "llm", "layers")
+_IMG = ("PaliGemma", "img", "Transformer", "encoderblock")
+_MHA = "MultiHeadDotProductAttention_0"
+
+# group -> [(path, contracting axes, engine calibration key)]; keys: "vlm/<name>" per layer, "img/<sub>" per block.
+GROUPS: dict[str, list[tuple[tuple[str, ...], tuple[int, ...], str | None]]] = {
+    "prefix-mlp": [(_LLM + ("mlp", "gating_einsum"), (-2,), "vlm/gate_up"),
+                   (_LLM + ("mlp", "linear"), (-2,), "vlm/down")],
+    "prefix-attn": [(_LLM + ("attn", "q_einsum", "w"), (-2,), "vlm/qkv"),
+                    (_LLM + ("attn", "kv_einsum", "w"), (-2,), "vlm/qkv"),
+                    (_LLM + ("attn", "attn_vec_einsum", "w"), (-3, -2), "vlm/attn_out")],
+    "vision": [(_IMG + (_MHA, n, "kernel"), (-3,), f"img/{_MHA}/{n}") for n in ("query", "key", "value")]
+    + [(_IMG + (_MHA, "out", "kernel"), (-3, -2), f"img/{_MHA}/out")]
+    + [(_IMG + ("MlpBlock_0", n, "kernel"), (-2,), f"img/MlpBlock_0/{n}") for n in ("Dense_0", "Dense_1")]
+    + [(("PaliGemma", "img", "head", "kernel"), (-2,), "img/head")],
+    "expert": [(_LLM + ("attn", n, "w"), c, None) for n, c in
+               (("q_einsum_1", (-2,)), ("kv_einsum_1", (-2,)), ("attn_vec_einsum_1", (-3, -2)))]
+    + [(_LLM + ("mlp_1", "gating_einsum"), (-2,), None), (_LLM + ("mlp_1", "linear"), (-2,), None)],
+}
+WEIGHT_ONLY = {"expert"}
+SCHEMES: dict[str, tuple[str, ...]] = {
+    "prefix-mlp": ("prefix-mlp",),
+    "prefix-all": ("prefix-mlp", "prefix-attn"),
+    "vision": ("vision",),
+    "expert-weights": ("expert",),
+    "all": ("prefix-mlp", "prefix-attn", "vision", "expert"),
+}
+
+
+def _leaves(scheme: str):
+    if scheme not in SCHEMES:
+        raise ValueError(f"unknown scheme {scheme!r}; schemes: {sorted(SCHEMES)}")
+    return [(group, *leaf) for group in SCHEMES[scheme] for leaf in GROUPS[group]]
+
+
+def _get(tree, path):
+    for p in path:
+        tree = tree[p]
+    return tree
+
+
+def _set(tree, path, value):
+    """Copy-on-write set of a nested-dict leaf (the input tree is not modified)."""
+    if not path:
+        return value
+    out = dict(tree)
+    out[path[0]] = _set(tree[path[0]], path[1:], value)
+    return out
+
+
+# -- calibration ----------------------------------------------------------------------------------------------------
+def sample_observations(config: Pi0Config, n: int, seed: int = 0, batch: int = 1, tokenizer=None):
+    """Realistic calibration / evaluation inputs: smooth natural-image-like images in [-1, 1] (a coarse random
+    field upsampled and squashed), LIBERO-style prompts tokenised with `tokenizer` (else random ids), normal state.
+    Returns a list of n `pi0.Observation` of `batch` elements each."""
+    from pi0_jax import pi0
+
+    rng = np.random.default_rng(seed)
+    prompts = ["pick up the black bowl and place it on the plate", "open the top drawer of the cabinet",
+               "put the cream cheese in the bowl", "turn on the stove", "push the plate to the front of the stove",
+               "put the wine bottle on top of the cabinet", "stack the left bowl on the right bowl"]
+    s, L = config.image_size, config.max_token_len
+    out = []
+    for _ in range(n):
+        images = {}
+        for k in IMAGE_KEYS[: config.num_cameras]:
+            coarse = rng.normal(size=(batch, 8, 8, 3)) + rng.normal(size=(batch, 1, 1, 3))
+            fine = jax.image.resize(jnp.asarray(coarse, jnp.float32), (batch, s, s, 3), "cubic")
+            fine = fine + 0.05 * jnp.asarray(rng.normal(size=(batch, s, s, 3)), jnp.float32)
+            images[k] = jnp.tanh(fine)
+        tokens, mask = np.zeros((batch, L), np.int32), np.zeros((batch, L), bool)
+        for b in range(batch):
+            if tokenizer is not None:
+                ids, m = tokenizer.tokenize(prompts[rng.integers(len(prompts))])
+                ids, m = np.asarray(ids), np.asarray(m, bool)
+                ids = np.where(ids < config.vocab_size, ids, 1)
+            else:
+                m = np.arange(L) < rng.integers(8, min(24, L) + 1)
+                ids = np.where(m, rng.integers(2, config.vocab_size, L), 0)
+            tokens[b], mask[b] = ids[:L], m[:L]
+        out.append(pi0.Observation(
+            images=images, image_masks={k: jnp.ones((batch,), bool) for k in images},
+            state=jnp.asarray(rng.normal(size=(batch, config.action_dim)), jnp.float32),
+            tokenized_prompt=jnp.asarray(tokens), tokenized_prompt_mask=jnp.asarray(mask)))
+    return out
+
+
+def calibrate(config: Pi0Config, params: dict, observations, scheme: str, *, method: str = "amax",
+              percentile: float = 99.99) -> dict[str, np.ndarray]:
+    """Static activation magnitudes per calibration key, (L,) per layer (or () for the SigLIP head).
+
+    Runs the engine's vision and prefix stages (one jit) over `observations` with every activation-quantised GEMM's
+    weight tapped. Deterministic: fixed inputs, no sampling; amax is a max, percentile a max of per-call values."""
+    from pi0_jax.engine import programs, weights as weights_lib
+
+    keys = {key for group, _, _, key in _leaves(scheme) if group not in WEIGHT_ONLY}
+    w = weights_lib.prepare(config, params)
+    depth, vdepth = config.paligemma.depth, config.siglip.depth
+    w["vlm"] = weights_lib.unstack(w["vlm"], depth)
+    w["img"] = siglip.unstack_blocks(w["img"], vdepth)
+    for i, layer in enumerate(w["vlm"]):
+        for name in ("qkv", "attn_out", "gate_up", "down"):
+            if f"vlm/{name}" in keys:
+                layer[name] = hooks.Tap(layer[name], f"vlm/{name}/{i}")
+    img = w["img"]
+    for key in keys:
+        if not key.startswith("img/"):
+            continue
+        sub = tuple(key.split("/")[1:])
+        if sub == ("head",):
+            img = _set(img, ("head", "kernel"), hooks.Tap(img["head"]["kernel"], "img/head"))
+            continue
+        for i in range(vdepth):
+            path = ("Transformer", f"encoderblock_{i}", *sub, "kernel")
+            img = _set(img, path, hooks.Tap(_get(img, path), f"{key}/{i}"))
+    w["img"] = img
+
+    def stages(w, images, image_masks, tokens, token_mask):
+        image_tokens = programs.encode_images(config, w, images, unroll=True)
+        return programs.fill_prefix_cache(config, w, image_tokens, image_masks, tokens, token_mask, unroll=True).k
+
+    with hooks.recording(percentile if method == "percentile" else None) as rec:
+        run = jax.jit(stages)  # traced inside the recording: the taps' callbacks are in the program
+        for obs in observations:
+            cams = IMAGE_KEYS[: config.num_cameras]
+            images = jnp.stack([jnp.asarray(obs.images[k], jnp.float32) for k in cams])
+            image_masks = jnp.stack([jnp.asarray(obs.image_masks[k], bool) for k in cams])
+            jax.block_until_ready(run(w, images, image_masks, jnp.asarray(obs.tokenized_prompt),
+                                      jnp.asarray(obs.tokenized_prompt_mask)))
+        jax.effects_barrier()
+    per_call = hooks.summarize(rec, method)
+    out = {}
+    for key in keys:
+        n = 0 if key == "img/head" else (vdepth if key.startswith("img/") else depth)
+        if n == 0:
+            out[key] = np.asarray(per_call[key], np.float32)
+        else:
+            out[key] = np.asarray([per_call[f"{key}/{i}"] for i in range(n)], np.float32)
+    return out
+
+
+# -- params transforms ----------------------------------------------------------------------------------------------
+def quantize_params(config: Pi0Config, params: dict, scheme: str, amax: dict | None, *,
+                    per_channel: bool = True) -> dict:
+    """params with the scheme's weights replaced by FP8 `QArray`s; `amax` (from `calibrate`) gives the static
+    activation scales of the activation-quantised groups."""
+    for group, path, contract, key in _leaves(scheme):
+        w = _get(params, path)
+        act = None
+        if group not in WEIGHT_ONLY:
+            if amax is None or key not in amax:
+                raise ValueError(f"scheme {scheme!r} quantises activations: calibrate it first (missing {key})")
+            act = act_scale_from_amax(amax[key])
+        stacked = path[:len(_IMG)] == _IMG or path[:len(_LLM)] == _LLM
+        params = _set(params, path, _quantize_fp8_jit(w, act, contract=contract, per_channel=per_channel,
+                                                      stacked=stacked))
+    return params
+
+
+@functools.partial(jax.jit, static_argnames=("contract", "per_channel", "stacked"))
+def _quantize_fp8_jit(w, act, *, contract, per_channel, stacked):
+    return quantize_fp8(w, contract=contract, per_channel=per_channel, stacked=stacked, act_scale=act)
+
+
+def fake_quant_fp4_params(params: dict, fmt: str, scheme: str = "all") -> dict:
+    """FP4 emulation: the scheme's weights quantised to `fmt` (nvfp4 / mxfp4) and dequantised back to their dtype,
+    blocks along the (merged) contracting axes."""
+    for _, path, contract, _ in _leaves(scheme):
+        w = jnp.asarray(_get(params, path))
+        lo, hi = w.ndim + contract[0], w.ndim + contract[-1]
+        merged = w.reshape(*w.shape[:lo], -1, *w.shape[hi + 1:])
+        fq = jax.jit(fake_quant_fp4, static_argnums=(1, 2))(merged, fmt, lo - merged.ndim)
+        params = _set(params, path, fq.reshape(w.shape))
+    return params
+
+
+def quantized_paths(params: dict) -> list[str]:
+    flat = traverse_util.flatten_dict(params, sep="/", is_leaf=lambda _, v: not isinstance(v, dict))
+    return sorted(k for k, v in flat.items() if isinstance(v, QArray))
+
+
+# -- checkpoint storage ---------------------------------------------------------------------------------------------
+def to_storage(params: dict) -> tuple[dict, dict]:
+    """QArray leaves -> plain dicts {q (uint8 bits), scale, act_scale?}; returns (tree, per-leaf metadata)."""
+    meta = {}
+    for path in quantized_paths(params):
+        keys = tuple(path.split("/"))
+        qa = _get(params, keys)
+        leaf = {"q": np.asarray(qa.q).view(np.uint8), "scale": np.asarray(qa.scale, np.float32)}
+        if qa.act_scale is not None:
+            leaf["act_scale"] = np.asarray(qa.act_scale, np.float32)
+        meta[path] = {"dtype": str(np.asarray(qa.q).dtype), "contract": list(qa.contract)}
+        params = _set(params, keys, leaf)
+    return params, meta
+
+
+def from_storage(tree: dict, meta: dict) -> dict:
+    import ml_dtypes
+
+    for path, m in meta.items():
+        keys = tuple(path.split("/"))
+        leaf = _get(tree, keys)
+        q = np.asarray(leaf["q"]).view(getattr(ml_dtypes, m["dtype"]))
+        act = leaf.get("act_scale")
+        tree = _set(tree, keys, QArray(q, np.asarray(leaf["scale"], np.float32),
+                                       None if act is None else np.asarray(act, np.float32), tuple(m["contract"])))
+    return tree
