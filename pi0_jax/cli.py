@@ -3,6 +3,7 @@
   pi0-jax convert SRC DST   PyTorch (openpi / LeRobot) checkpoint -> pi0-jax checkpoint
   pi0-jax demo              convert the embedded tiny model, run the policy on a synthetic observation, print timings
   pi0-jax benchmark         per-stage latency of the compiled engine over steps x batch x dtype
+  pi0-jax train             train a π0 on expert demonstrations (pi0_jax/train)
 """
 
 from __future__ import annotations
@@ -102,6 +103,7 @@ def _benchmark_parser(subparsers) -> None:
 def build_parser() -> argparse.ArgumentParser:
     from converters.cli import add_convert_parser
     from pi0_jax.sim.cli import add_eval_parser
+    from pi0_jax.train.cli import add_train_parser
 
     parser = argparse.ArgumentParser(prog="pi0-jax", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -110,6 +112,7 @@ def build_parser() -> argparse.ArgumentParser:
     _demo_parser(sub)
     _benchmark_parser(sub)
     add_eval_parser(sub)
+    add_train_parser(sub)
     return parser
 
 

@@ -55,6 +55,8 @@ SIGLIP_VARIANTS: dict[str, SiglipConfig] = {
     "So400m/14": SiglipConfig(width=1152, depth=27, mlp_dim=4304, num_heads=16),
     "dummy": SiglipConfig(width=40, depth=2, mlp_dim=88, num_heads=2),
     "small/14-112": SiglipConfig(width=256, depth=4, mlp_dim=768, num_heads=4, image_size=112),
+    # Training tests on CPU (pi0_jax/train "dummy_smoke"): the dummy tower at 56 px, 16 patches per camera.
+    "dummy/14-56": SiglipConfig(width=40, depth=2, mlp_dim=88, num_heads=2, image_size=56),
 }
 
 

@@ -1,4 +1,4 @@
-"""Demonstrations from the scripted expert: one compressed npz per episode, for training or fine-tuning a policy.
+"""Demonstrations from the scripted expert: one npz per episode, for training or fine-tuning a policy.
 
 Layout of OUT/:
   meta.json                      suite version, fps, resolution, tasks and prompts, one row per episode file
@@ -10,7 +10,8 @@ Layout of OUT/:
       prompt    () str                the task's instruction (the same at every step)
       task, init_state, success, length   scalars
 Episodes stop at the first success (the success step is the last one kept). Failed episodes are dropped unless
-`keep_failures`.
+`keep_failures`. Episode k of a task starts from its initial state first_init + k, so training demos can avoid the
+evaluation's states 0..49 (first_init=50); tasks.init_states makes state i the same whatever their number.
 """
 
 from __future__ import annotations
@@ -46,13 +47,20 @@ def _segment(env: Env, steps: int):
 
 
 def write_demos(out_dir: str | Path, suite: str = "all", episodes_per_task: int = 50, batch: int = 32,
-                resolution: int = 224, keep_failures: bool = False, segment_steps: int = 40, log=print) -> dict:
-    """Roll the expert out on `episodes_per_task` initial states of every task of `suite`; returns meta.json."""
+                resolution: int = 224, keep_failures: bool = False, segment_steps: int = 40, log=print,
+                first_init: int = 0, compress: bool = True) -> dict:
+    """Roll the expert out on initial states first_init .. first_init + episodes_per_task - 1 of every task of
+    `suite`; returns meta.json. compress=False writes plain npz (np.savez): compressing gigabytes of frames takes
+    longer than rendering them on a GPU."""
+    if first_init < 0 or episodes_per_task <= 0:
+        raise ValueError(f"need first_init >= 0 and episodes_per_task > 0, got {first_init}, {episodes_per_task}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     names = tuple(t.name for t in _tasks.suite_tasks(suite))
-    env = Env(names, RenderConfig(resolution, resolution))
-    task_of, init_of = episode_plan(names, episodes_per_task, env.num_init_states)
+    env = Env(names, RenderConfig(resolution, resolution), num_init_states=first_init + episodes_per_task)
+    task_of, init_of = episode_plan(names, episodes_per_task, episodes_per_task)
+    init_of = init_of + np.int32(first_init)
+    save = np.savez_compressed if compress else np.savez
     reset = jax.jit(jax.vmap(env.reset))
     segment = _segment(env, segment_steps)
     rows, n_written = [], 0
@@ -77,17 +85,17 @@ def write_demos(out_dir: str | Path, suite: str = "all", episodes_per_task: int 
             t = int(length[j])
             task = env.tasks[t_ids[j]]
             path = out / f"episode_{n_written:06d}.npz"
-            np.savez_compressed(path, agentview=rec["agentview"][:t, j], wrist=rec["wrist"][:t, j],
-                                state=rec["state"][:t, j].astype(np.float32),
-                                actions=rec["actions"][:t, j].astype(np.float32), prompt=np.array(task.prompt),
-                                task=np.array(task.name), init_state=np.int32(i_ids[j]),
-                                success=np.bool_(success[j]), length=np.int32(t))
+            save(path, agentview=rec["agentview"][:t, j], wrist=rec["wrist"][:t, j],
+                 state=rec["state"][:t, j].astype(np.float32), actions=rec["actions"][:t, j].astype(np.float32),
+                 prompt=np.array(task.prompt), task=np.array(task.name), init_state=np.int32(i_ids[j]),
+                 success=np.bool_(success[j]), length=np.int32(t))
             rows.append({"file": path.name, "task": task.name, "prompt": task.prompt, "init_state": int(i_ids[j]),
                          "success": bool(success[j]), "length": t})
             n_written += 1
         log(f"{min(start + batch, len(task_of))}/{len(task_of)} episodes rolled out, {n_written} written")
     meta = {"format": "pi0_jax.sim demos v1", "suite": suite, "suite_version": _tasks.SUITE_VERSION, "fps": FPS,
-            "resolution": resolution, "state": "eef pos (3), axis-angle (3), gripper (left, -right)",
+            "resolution": resolution, "first_init": first_init,
+            "state": "eef pos (3), axis-angle (3), gripper (left, -right)",
             "actions": "EE delta pos (3) x 0.05 m, axis-angle (3) x 0.5 rad, gripper (-1 open, +1 closed)",
             "tasks": [{"task": t.name, "family": t.family, "prompt": t.prompt} for t in env.tasks],
             "episodes": rows}

@@ -1,0 +1,97 @@
+"""`pi0-jax train`: train a π0 on expert demonstrations. `add_train_parser(subparsers)` is what pi0_jax/cli.py wires
+in; importing this module does not import jax."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+DESCRIPTION = """\
+Train a π0 from scratch with the flow-matching loss on a demos directory written by scripts/sim_demos.py
+(meta.json + episode_*.npz). AdamW with warm-up + cosine decay, gradient clipping, an EMA of the weights, bf16
+compute over f32 master weights, data parallel over every local device (the global batch is split among them).
+The whole dataset is put on every device once (uint8 images: ~10 GB for the full suite at 112 px) and each batch is
+gathered, normalised and augmented inside the jitted step.
+
+Writes OUT/: tokenizer.model and norm_stats.json (computed from the demos), train_state/ (orbax, every
+--save-every steps), train_log.json, loss.png and, at the end, checkpoint/ (the EMA weights as a pi0-jax checkpoint
+with its tokenizer and norm stats; `pi0-jax eval --policy OUT/checkpoint` and Policy.from_checkpoint load it).
+Every batch and noise draw comes from (seed, step), so --resume continues bit-identically.
+
+Pipeline of the demo model (see pi0_jax/train/__init__.py and scripts/train_suite.sh):
+  python scripts/sim_demos.py DEMOS --episodes-per-task 50 --first-init 50 --resolution 112 --no-compress
+  pi0-jax train --config pi0_small_suite --demos DEMOS --out RUN
+  pi0-jax eval --policy RUN/checkpoint --resolution 112 --episodes-per-task 50
+"""
+
+
+def add_train_parser(subparsers) -> argparse.ArgumentParser:
+    from pi0_jax.train.config import PRESETS
+
+    p = subparsers.add_parser("train", help="train a π0 on expert demonstrations (flow matching, data parallel)",
+                              description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--config", required=True, choices=sorted(PRESETS), metavar="NAME",
+                   help=f"training preset: {', '.join(sorted(PRESETS))} (pi0_jax/train/config.py)")
+    p.add_argument("--demos", required=True, type=Path, metavar="DIR",
+                   help="demonstrations directory (meta.json + episode_*.npz, scripts/sim_demos.py)")
+    p.add_argument("--out", required=True, type=Path, metavar="DIR",
+                   help="run directory; must hold no train state unless --resume")
+    p.add_argument("--resume", action="store_true",
+                   help="continue from the newest OUT/train_state checkpoint (bit-identical to an uninterrupted run)")
+    p.add_argument("--steps", type=int, default=None, metavar="N",
+                   help="total optimizer steps (the cosine schedule ends here); default: the preset's")
+    p.add_argument("--batch", type=int, default=None, metavar="B",
+                   help="global batch size, a multiple of the local device count; default: the preset's")
+    p.add_argument("--lr", type=float, default=None, help="peak learning rate; default: the preset's")
+    p.add_argument("--warmup", type=int, default=None, metavar="N", help="linear warm-up steps; default: the preset's")
+    p.add_argument("--ema", type=float, default=None, metavar="DECAY",
+                   help="EMA decay of the exported weights; 0 disables the EMA (the raw weights are exported); "
+                        "default: the preset's")
+    p.add_argument("--no-augment", action="store_true",
+                   help="turn off the image augmentation (crop/resize/rotate on the agent view, colour jitter)")
+    p.add_argument("--seed", type=int, default=None, help="seed of the init, batches and noise; default: the preset's")
+    p.add_argument("--log-every", type=int, default=None, metavar="N",
+                   help="steps between loss fetches / log lines (the only host syncs); default: the preset's")
+    p.add_argument("--save-every", type=int, default=None, metavar="N",
+                   help="steps between train-state checkpoints; default: the preset's")
+    p.add_argument("--stop-at", type=int, default=None, metavar="N",
+                   help="save the train state after N steps and exit without exporting (the schedule still runs to "
+                        "--steps; continue with --resume)")
+    p.add_argument("--max-episodes", type=int, default=None, metavar="N",
+                   help="use only the first N episodes of the demos (smoke runs)")
+    p.set_defaults(func=run)
+    return p
+
+
+def config_from_args(args: argparse.Namespace):
+    from pi0_jax.train.config import get_train_config
+
+    over = {k: v for k, v in {"steps": args.steps, "batch_size": args.batch, "lr": args.lr,
+                              "warmup_steps": args.warmup, "seed": args.seed, "log_every": args.log_every,
+                              "save_every": args.save_every}.items() if v is not None}
+    if args.ema is not None:
+        over["ema_decay"] = args.ema or None
+    if args.no_augment:
+        over["augment"] = False
+    return get_train_config(args.config, **over)
+
+
+def run(args: argparse.Namespace) -> int:
+    from pi0_jax.train.trainer import train
+
+    cfg = config_from_args(args)
+    if args.resume:
+        saved = args.out / "train_config.json"
+        if saved.is_file():
+            prev = json.loads(saved.read_text())["train"]
+            mine = cfg.to_json()
+            # the schedule and the batch stream depend on these: changing them breaks the exact resume
+            changed = [k for k in ("model", "batch_size", "lr", "warmup_steps", "decay_lr", "seed", "augment",
+                                   "ema_decay") if prev.get(k) != mine.get(k)]
+            if changed:
+                print(f"warning: resuming with changed {changed}; the run will not match an uninterrupted one")
+    summary = train(cfg, args.demos, args.out, resume=args.resume, stop_at=args.stop_at,
+                    max_episodes=args.max_episodes)
+    print(json.dumps(summary, indent=2))
+    return 0
