@@ -53,6 +53,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="valid prompt tokens; the rest of max_token_len is padding (default: %(default)s)")
     p.add_argument("--fused-steps", type=_ints, default=None,
                    help="steps at which the fused program is also timed (default: all of --steps)")
+    p.add_argument("--quant", default=None, choices=["prefix-mlp", "prefix-all", "vision", "expert-weights", "all"],
+                   help="FP8 scheme applied to the random weights (calibrated on synthetic observations); a "
+                        "quantised --checkpoint is used as stored")
     p.add_argument("--no-unroll", action="store_true", help="scan over layers instead of unrolling them")
     p.add_argument("--unroll-steps", action="store_true", help="unroll the denoise loop as well")
     p.add_argument("--attention", choices=["xla", "cudnn"], default="xla",
@@ -290,6 +293,12 @@ def run(args: argparse.Namespace) -> dict:
         else:
             config = get_config(args.preset, dtype=dtype)
             params = random_params(config, args.seed)
+            if args.quant:
+                from pi0_jax.quant import schemes
+
+                stats = schemes.calibrate(config, params, schemes.sample_observations(config, 4, seed=args.seed),
+                                          "all", percentile=None)
+                params = schemes.quantize_params(config, params, args.quant, stats["amax"])
         engine = Engine(config, params, unroll=not args.no_unroll, unroll_steps=args.unroll_steps,
                         attention=args.attention, cache_dir=cache_dir)
         for batch in args.batch:

@@ -1,94 +1,75 @@
 """`pi0-jax`: the command-line front door. Subcommands are thin entry points over the package.
 
   pi0-jax convert SRC DST   PyTorch (openpi / LeRobot) checkpoint -> pi0-jax checkpoint
-  pi0-jax demo              convert the embedded tiny model, run the policy on a synthetic observation, print timings
+  pi0-jax demo              evaluate the embedded trained pi0_small in the MJX suite (success table, video)
   pi0-jax benchmark         per-stage latency of the compiled engine over steps x batch x dtype
+  pi0-jax quantize SRC DST  FP8 quantised checkpoint (calibrated static activation scales), accuracy report
   pi0-jax train             train a π0 on expert demonstrations (pi0_jax/train)
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
-import tempfile
-import time
 from importlib import resources
 from pathlib import Path
 
-DEMO_PROMPT = "pick up the black bowl between the plate and the ramekin and place it on the plate"
+EMBEDDED_MODEL = "pi0_small"   # pi0_jax/assets/pi0_small: trained in the MJX suite (scripts/train_suite.sh)
 
 
 def _demo_parser(subparsers) -> None:
     p = subparsers.add_parser(
-        "demo", help="convert the embedded tiny π0.5 and sample actions from it (CPU is enough)",
-        description="Convert the embedded demo checkpoint (a tiny random-weight π0.5 saved by LeRobot, with its "
-                    "normaliser files and a small tokenizer) with `pi0-jax convert`, load it as a Policy, run "
-                    "`infer` on a synthetic LIBERO-style observation and print compile and per-call timings. "
-                    "The weights are random, so the actions mean nothing; the pipeline is the real one.")
-    p.add_argument("--out-dir", type=Path, default=None,
-                   help="where to write the converted checkpoint and demo_result.json (default: a temp dir)")
-    p.add_argument("--steps", type=int, default=10, help="flow-matching Euler steps (default: %(default)s)")
-    p.add_argument("--iters", type=int, default=20, help="timed calls after the warm-up call (default: %(default)s)")
+        "demo", help="evaluate the embedded trained π0 (pi0_small) in the MJX task suite (CPU is enough)",
+        description="Evaluate the embedded model -- a small π0 (7.9 M params, pi0_small) trained with the "
+                    "flow-matching loss on the suite's expert demonstrations -- in the MJX table-top suite: "
+                    "K episodes per task from the fixed initial states, both cameras rendered at the model's "
+                    "112 px, action chunks of 10, 5 executed per call. Prints the success table and writes "
+                    "DIR/eval_info.json and DIR/videos/*.mp4. About 3-5 minutes on two CPU cores with the "
+                    "defaults (the first segment includes ~1 minute of compilation).",
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--output-dir", type=Path, default=Path("pi0-jax-demo"), metavar="DIR",
+                   help="where eval_info.json and videos/ go (default: %(default)s)")
+    p.add_argument("--episodes-per-task", type=int, default=2, metavar="K",
+                   help="episodes per task (11 tasks; default: %(default)s); the GPU protocol is 50")
+    p.add_argument("--suite", default="all", metavar="NAME",
+                   help="suite (all, spatial, object, goal) or one task name (default: %(default)s)")
+    p.add_argument("--batch", type=int, default=22, metavar="N",
+                   help="environments simulated at once (default: %(default)s)")
+    p.add_argument("--num-steps", type=int, default=10, help="flow-matching Euler steps (default: %(default)s)")
+    p.add_argument("--replan-steps", type=int, default=5, metavar="R",
+                   help="actions executed from each chunk of 10 before the next call (default: %(default)s)")
+    p.add_argument("--videos", type=int, default=2, metavar="V", help="MP4s of the first V episodes (default: 2)")
     p.add_argument("--dtype", choices=("float32", "bfloat16"), default="float32",
-                   help="param and compute dtype of the converted model (default: %(default)s; bf16 is slow on CPU)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the synthetic observation and noise")
+                   help="param and compute dtype (default: %(default)s; the model was trained and is evaluated "
+                        "on the GPU in bfloat16, which XLA:CPU only emulates)")
+    p.add_argument("--checkpoint", type=Path, default=None, metavar="DIR",
+                   help="evaluate this pi0-jax checkpoint instead of the embedded one")
+    p.add_argument("--seed", type=int, default=0, help="base PRNG seed of the policy's noise (default: 0)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_run_demo)
 
 
 def _run_demo(args: argparse.Namespace) -> int:
-    import numpy as np
+    from pi0_jax.checkpoint import read_meta
+    from pi0_jax.config import Pi0Config
+    from pi0_jax.sim.evaluate import EvalConfig, evaluate, format_table
 
-    from converters import convert
-    from pi0_jax.policy import Policy
-
-    out = args.out_dir or Path(tempfile.mkdtemp(prefix="pi0-jax-demo-"))
-    out.mkdir(parents=True, exist_ok=True)
-    with resources.as_file(resources.files("pi0_jax") / "assets" / "demo") as src:
-        t0 = time.perf_counter()
-        ckpt = convert(src, out / "demo_pi05", dtype=args.dtype, overwrite=True)
-        convert_s = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        policy = Policy.from_checkpoint(ckpt, tokenizer_path=src / "tokenizer.model", num_steps=args.steps,
-                                        seed=args.seed)
-        load_s = time.perf_counter() - t0
-
-    rng = np.random.default_rng(args.seed)
-    obs = {  # what openpi's LIBERO client sends; 256x256 frames exercise resize-with-pad
-        "observation/image": rng.integers(0, 256, (256, 256, 3), dtype=np.uint8),
-        "observation/wrist_image": rng.integers(0, 256, (256, 256, 3), dtype=np.uint8),
-        "observation/state": rng.normal(size=8),
-        "prompt": DEMO_PROMPT,
-    }
-    t0 = time.perf_counter()
-    first = policy.infer(obs)
-    compile_s = time.perf_counter() - t0
-    times = []
-    for _ in range(args.iters):
-        times.append(policy.infer(obs)["policy_timing"]["infer_ms"])
-    noise = rng.normal(size=(policy.config.action_horizon, policy.config.action_dim)).astype(np.float32)
-    same = np.array_equal(policy.infer(obs, noise=noise)["actions"], policy.infer(obs, noise=noise)["actions"])
-
-    cfg = policy.config
-    result = {
-        "model": cfg.name, "pi05": cfg.pi05, "dtype": cfg.dtype, "num_steps": args.steps,
-        "actions_shape": list(first["actions"].shape), "convert_s": convert_s, "load_s": load_s,
-        "first_call_s": compile_s, "infer_ms_median": float(np.median(times)),
-        "infer_ms_p90": float(np.percentile(times, 90)), "iters": args.iters, "noise_injection_reproducible": same,
-        "checkpoint": str(ckpt),
-    }
-    (out / "demo_result.json").write_text(json.dumps(result, indent=2) + "\n")
-    print(f"\nmodel {cfg.name} (π0.5 tiny, random weights), {cfg.dtype}, {args.steps} steps, "
-          f"horizon {cfg.action_horizon}, prefix {cfg.prefix_len} tokens")
-    print("| stage | time |\n|---|---|")
-    print(f"| convert (LeRobot safetensors -> orbax) | {convert_s:.2f} s |")
-    print(f"| load checkpoint + tokenizer + norm stats | {load_s:.2f} s |")
-    print(f"| first infer (includes jit compile) | {compile_s:.2f} s |")
-    print(f"| infer, median of {args.iters} | {result['infer_ms_median']:.1f} ms |")
-    print(f"| infer, p90 | {result['infer_ms_p90']:.1f} ms |")
-    print(f"\nactions {tuple(first['actions'].shape)}, first step: {np.array2string(first['actions'][0], precision=3)}")
-    print(f"injected noise reproducible: {same}\nwrote {out / 'demo_result.json'}")
-    return 0 if same else 1
+    with resources.as_file(resources.files("pi0_jax") / "assets" / EMBEDDED_MODEL) as embedded:
+        ckpt = args.checkpoint or embedded
+        config = Pi0Config.from_json(read_meta(ckpt)["model"])
+        cfg = EvalConfig(suite=args.suite, episodes_per_task=args.episodes_per_task, batch=args.batch,
+                         replan_steps=args.replan_steps, resolution=config.image_size, seed=args.seed,
+                         videos=args.videos, num_steps=args.num_steps)
+        info = evaluate(str(ckpt), cfg, args.output_dir, progress=not args.no_progress,
+                        policy_kwargs={"dtype": args.dtype})
+    a = info["aggregated"]
+    print(f"\n{config.name} ({'embedded' if args.checkpoint is None else ckpt}), {args.dtype}, "
+          f"{args.num_steps} flow steps, {cfg.replan_steps} of {config.action_horizon} actions per call")
+    print(format_table(info))
+    print(f"\n{a['n_episodes']} episodes in {a['eval_s']:.1f} s (first segment incl. compile "
+          f"{a['first_segment_s']:.1f} s) on {info['config']['devices']} {info['config']['backend']} device(s)")
+    print(f"wrote {args.output_dir / 'eval_info.json'}" + "".join(f"\n      {v}" for v in info["video_paths"]))
+    return 0
 
 
 def _benchmark_parser(subparsers) -> None:
@@ -98,6 +79,15 @@ def _benchmark_parser(subparsers) -> None:
                               description=benchmark.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     benchmark.add_arguments(p)
     p.set_defaults(func=benchmark.main)
+
+
+def _quantize_parser(subparsers) -> None:
+    from pi0_jax.quant import report
+
+    p = subparsers.add_parser("quantize", help="FP8 quantised checkpoint (calibrated) and accuracy report",
+                              description=report.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    report.add_arguments(p)
+    p.set_defaults(func=report.main)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -111,6 +101,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_convert_parser(sub)
     _demo_parser(sub)
     _benchmark_parser(sub)
+    _quantize_parser(sub)
     add_eval_parser(sub)
     add_train_parser(sub)
     return parser

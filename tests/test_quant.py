@@ -1,0 +1,152 @@
+"""FP8 / FP4 quantisation: formats against ml_dtypes' rounding, block layout, calibration, checkpoints, report."""
+
+import jax
+import jax.numpy as jnp
+import ml_dtypes
+import numpy as np
+import pytest
+
+from pi0_jax import benchmark, checkpoint, pi0
+from pi0_jax.config import get_config
+from pi0_jax.quant import formats, report, schemes
+
+
+@pytest.fixture(scope="module")
+def dummy():
+    config = get_config("dummy")
+    params = benchmark.random_params(config, 0)
+    calib = schemes.sample_observations(config, 2, seed=1)
+    return config, params, calib, schemes.calibrate(config, params, calib, "all", percentile=99.0)
+
+
+def test_e4m3_weights_round_like_ml_dtypes():
+    w = np.random.default_rng(0).normal(size=(3, 64, 32)).astype(np.float32) * np.logspace(-3, 1, 32)
+    qa = formats.quantize_fp8(w, contract=(-2,), per_channel=True, stacked=True)
+    scale = np.asarray(qa.scale)
+    assert scale.shape == (3, 1, 32)
+    np.testing.assert_array_equal(np.asarray(qa.q).view(np.uint8),
+                                  np.clip(w / scale, -448, 448).astype(ml_dtypes.float8_e4m3fn).view(np.uint8))
+    err = np.abs(np.asarray(qa.dequantize()) - w)
+    # e4m3: 3 mantissa bits -> half an ulp is 2^-4 relative (normals), 2^-10 * scale absolute (subnormals)
+    assert (err <= np.maximum(2.0**-4 * np.abs(w), 2.0**-10 * scale) * (1 + 1e-6)).all()
+    assert np.allclose(np.abs(np.asarray(qa.q, np.float32)).max(axis=1), 448)  # amax maps to the format max
+    per_tensor = formats.quantize_fp8(w, per_channel=False, stacked=True)
+    assert per_tensor.scale.shape == (3, 1, 1)
+
+
+def test_activation_qdq_saturates_and_rounds():
+    x = jnp.asarray([0.0, 1.0, -3.3, 1000.0], jnp.float32)
+    s = jnp.float32(0.5)
+    want = np.clip(np.asarray(x) / 0.5, -448, 448).astype(ml_dtypes.float8_e4m3fn).astype(np.float32) * 0.5
+    np.testing.assert_array_equal(np.asarray(formats.qdq_fp8(x, s)), want)
+    assert np.isfinite(np.asarray(formats.qdq_fp8(x, s))).all()
+
+
+@pytest.mark.parametrize("eqn,shape,contract", [("BSD,2KDH->2BSKH", (2, 3, 16, 8), (-2,)),
+                                                ("BTNH,NHD->BTD", (4, 8, 16), (-3, -2)),
+                                                ("BTD,NDH->BTNH", (4, 16, 8), (-2,))])
+def test_qmatmul_applies_per_channel_scales_to_the_right_outputs(eqn, shape, contract):
+    rng = np.random.default_rng(1)
+    w = rng.normal(size=shape).astype(np.float32) * rng.uniform(0.1, 10, shape[-1])
+    lhs = eqn.split(",")[0]
+    x = jnp.asarray(rng.normal(size=[{"B": 2, "T": 5, "S": 5}.get(c, None) or
+                                     dict(zip(eqn.split(",")[1].split("-")[0], shape))[c] for c in lhs]), jnp.float32)
+    qa = formats.quantize_fp8(w, contract=contract, act_scale=0.01)
+    got = formats.qmatmul(eqn, x, qa)
+    want = jnp.einsum(eqn, formats.qdq_fp8(x, jnp.float32(0.01)), qa.dequantize())
+    np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("fmt", ["nvfp4", "mxfp4"])
+def test_fp4_rounds_like_ml_dtypes_and_blocks_are_local(fmt):
+    bs = formats.FP4_BLOCK[fmt]
+    w = np.random.default_rng(2).normal(size=(4 * bs, 24)).astype(np.float32)
+    q, bscale, tscale = formats.quantize_fp4(w, fmt, axis=-2)
+    assert q.dtype == jnp.float4_e2m1fn and bscale.shape == (4, 24)
+    assert bscale.dtype == (jnp.float8_e4m3fn if fmt == "nvfp4" else jnp.float8_e8m0fnu)
+    eff = np.repeat(np.asarray(bscale, np.float32) * np.float32(tscale), bs, axis=0)
+    ratio = np.clip(w / eff, -6, 6)
+    want = ratio.astype(ml_dtypes.float4_e2m1fn).astype(np.float32)
+    # XLA may divide by a reciprocal and convert through a narrower float (double rounding): only values next to
+    # rounding ties (midpoints of the e2m1 grid) may round differently
+    off = np.asarray(q, np.float32) != want
+    midpoints = np.array([0.25, 0.75, 1.25, 1.75, 2.5, 3.5, 5.0])
+    near_tie = np.min(np.abs(np.abs(ratio)[..., None] - midpoints) / midpoints, axis=-1) < 1e-2
+    assert off.mean() < 0.01 and near_tie[off].all()
+    dq = np.asarray(formats.dequantize_fp4(q, bscale, tscale, fmt))
+    np.testing.assert_array_equal(dq, np.asarray(q, np.float32) * eff)
+    if fmt == "nvfp4":  # e2m1 grid {0, .5, 1, 1.5, 2, 3, 4, 6}: half a step is <= 1/4 of |x| above 0.5, 0.25 below
+        assert (np.abs(dq - w) <= np.maximum(0.25 * np.abs(w), 0.25 * eff) * 1.02 + 1e-6).all()
+    planted = w.copy()
+    planted[bs + 3, 5] = 100.0  # an outlier in block 1 of column 5
+    diff = np.asarray(formats.fake_quant_fp4(planted, fmt)) != np.asarray(formats.fake_quant_fp4(w, fmt))
+    diff[bs + 3, 5] = False
+    changed = np.argwhere(diff)
+    if fmt == "mxfp4":  # no tensor scale: only its own block may change
+        assert all(bs <= r < 2 * bs and c == 5 for r, c in changed)
+    else:  # the tensor scale moves every block a little; the outlier's block loses its resolution
+        own = np.abs(np.asarray(formats.fake_quant_fp4(planted, fmt)) - planted)[bs:2 * bs, 5]
+        other = np.abs(np.asarray(formats.fake_quant_fp4(planted, fmt)) - planted)[:bs, 5]
+        assert np.median(own) > 4 * np.median(other)
+
+
+def test_fp4_pads_partial_blocks():
+    w = np.random.default_rng(3).normal(size=(40, 6)).astype(np.float32)
+    q, bscale, _ = formats.quantize_fp4(w, "mxfp4")
+    assert q.shape == (40, 6) and bscale.shape == (2, 6)
+
+
+def test_calibration_is_deterministic_and_ordered(dummy):
+    config, params, calib, stats = dummy
+    again = schemes.calibrate(config, params, calib, "all", percentile=99.0)
+    for method in ("amax", "percentile"):
+        assert stats[method].keys() == again[method].keys()
+        for k in stats[method]:
+            np.testing.assert_array_equal(stats[method][k], again[method][k])
+    assert stats["amax"]["vlm/gate_up"].shape == (config.paligemma.depth,)
+    assert stats["amax"]["img/head"].shape == ()
+    for k in stats["amax"]:
+        assert (stats["percentile"][k] <= stats["amax"][k]).all() and (stats["amax"][k] > 0).all()
+
+
+def test_quantized_checkpoint_round_trips(dummy, tmp_path):
+    config, params, calib, stats = dummy
+    qp = schemes.quantize_params(config, params, "all", stats["amax"])
+    assert len(schemes.quantized_paths(qp)) == 17  # 2 + 3 VLM, 7 SigLIP, 5 expert
+    checkpoint.save_checkpoint(tmp_path / "q", qp, config, extra_meta={"quant": {"scheme": "all"}})
+    config2, loaded = checkpoint.load_checkpoint(tmp_path / "q")
+    for path in schemes.quantized_paths(qp):
+        a, b = schemes._get(qp, path.split("/")), schemes._get(loaded, path.split("/"))
+        assert a.contract == b.contract and b.q.dtype == jnp.float8_e4m3fn
+        np.testing.assert_array_equal(np.asarray(a.q).view(np.uint8), np.asarray(b.q).view(np.uint8))
+        np.testing.assert_array_equal(np.asarray(a.scale), np.asarray(b.scale))
+    sample = jax.jit(pi0.sample_actions, static_argnums=(0, 4))
+    noise = jnp.asarray(np.random.default_rng(0).normal(size=(1, config.action_horizon, config.action_dim)),
+                        jnp.float32)
+    on_the_fly = sample(config, qp, calib[0], noise, 2)
+    np.testing.assert_array_equal(np.asarray(sample(config2, loaded, calib[0], noise, 2)), np.asarray(on_the_fly))
+    plain = sample(config, params, calib[0], noise, 2)
+    assert not np.array_equal(np.asarray(plain), np.asarray(on_the_fly))  # the quantised weights are in use
+    with pytest.raises(FileExistsError):
+        checkpoint.save_checkpoint(tmp_path / "q", qp, config)
+
+
+def test_activation_schemes_need_calibration(dummy):
+    config, params, _, _ = dummy
+    with pytest.raises(ValueError, match="calibrate"):
+        schemes.quantize_params(config, params, "prefix-mlp", None)
+    assert schemes.quantized_paths(schemes.quantize_params(config, params, "expert-weights", None))
+
+
+def test_accuracy_report_runs_on_dummy(dummy):
+    config, params, _, stats = dummy
+    variants = report.Variants(config, params, stats)
+    data = report.eval_set(config, 1, 1, seed=5)
+    rows = report.accuracy(variants, data, 2, schemes=("prefix-mlp", "expert-weights"), fp4=("nvfp4",))
+    assert [(r["scheme"], r["format"]) for r in rows] == [
+        ("prefix-mlp", "fp8_e4m3"), ("expert-weights", "fp8_e4m3"), ("all (weights)", "nvfp4")]
+    mlp, expert, fp4 = rows
+    assert mlp["vision_cos"] == pytest.approx(1.0, abs=1e-12) and 0.99 < mlp["kv_cos_min"] < 1.0 and len(mlp["k_cos_per_layer"]) == 3
+    assert expert["kv_cos_min"] == pytest.approx(1.0, abs=1e-12) and 0.99 < expert["action_cos"] < 1.0 and expert["action_max_abs"] > 0
+    assert fp4["kv_cos_min"] < mlp["kv_cos_min"]
+    assert "prefix-mlp" in report.markdown(rows)
