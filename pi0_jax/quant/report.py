@@ -155,13 +155,12 @@ def eval_set(config: Pi0Config, n: int, batch: int, seed: int, tokenizer=None):
 
 
 def demo_tokenizer(config: Pi0Config):
-    """The packaged demo SentencePiece model: real prompt tokens (ids above the vocab are clipped by the caller)."""
-    from importlib import resources
-
+    """A SentencePiece model packaged under pi0_jax/assets (real prompt tokens; ids above the vocab are clipped by
+    the caller), or None: prompts are then random ids."""
     from pi0_jax.tokenizer import PaligemmaTokenizer
 
-    path = resources.files("pi0_jax") / "assets" / "demo" / "tokenizer.model"
-    return PaligemmaTokenizer(str(path), config.max_token_len) if path.is_file() else None
+    found = sorted((Path(__file__).parents[1] / "assets").rglob("tokenizer.model"))
+    return PaligemmaTokenizer(str(found[0]), config.max_token_len) if found else None
 
 
 TABLE_HEADER = ("| scheme | format | calib | vision cos | K/V cos min (layer) | K/V cos mean | action cos | "
