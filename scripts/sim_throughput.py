@@ -136,8 +136,8 @@ def policy_throughput(args: Args, sharding) -> dict:
     res = args.resolution
     env = Env(names, RenderConfig(res, res, evaluate.auto_ray_chunk(res, res, n // len(jax.local_devices()))),
               max_steps=args.policy_episode_steps)
-    # any SentencePiece model works for timing (the prompt's content does not change the cost): the demo's
-    tok_path = Path(pi0_jax.__file__).parent / "assets" / "demo" / "tokenizer.model"
+    # any SentencePiece model works for timing (the prompt's content does not change the cost): the embedded model's
+    tok_path = Path(pi0_jax.__file__).parent / "assets" / "pi0_small" / "tokenizer.model"
     tok = PaligemmaTokenizer(tok_path, config.max_token_len)
     policy = policies.model_policy(config, params, tok, nz.Normalizer.identity(), env, num_steps=args.num_steps,
                                    name=f"{args.policy_model} (random weights)")

@@ -1,5 +1,5 @@
-"""A pi0-jax checkpoint in the simulated loop: the embedded demo π0.5 (tiny, random weights, LeRobot normaliser,
-state written into the prompt), converted with `pi0-jax convert`.
+"""A pi0-jax checkpoint in the simulated loop: LeRobot's tiny random π0.5 parity fixture (LeRobot normaliser, state
+written into the prompt), converted with `pi0-jax convert`, with the suite's small tokenizer.
 
 * The batched in-jit policy (policies.checkpoint_policy) gives the same action chunks as the reference host-side
   `pi0_jax.policy.Policy.infer` on the same rendered observations and noise (camera slots, resize-with-pad,
@@ -8,7 +8,7 @@ state written into the prompt), converted with `pi0-jax convert`.
 """
 
 import json
-from importlib import resources
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -29,9 +29,13 @@ TASKS = ("goal/red_block_on_plate", "object/blue_block_in_bowl")
 @pytest.fixture(scope="module")
 def demo_ckpt(tmp_path_factory):
     from converters import convert
+    from pi0_jax.train.data import suite_prompts, train_tokenizer
 
-    with resources.as_file(resources.files("pi0_jax") / "assets" / "demo") as src:
-        return convert(src, tmp_path_factory.mktemp("ckpt") / "demo_pi05", dtype="float32"), src / "tokenizer.model"
+    root = tmp_path_factory.mktemp("ckpt")
+    tokenizer = root / "tokenizer.model"
+    tokenizer.write_bytes(train_tokenizer(suite_prompts()))
+    src = Path(__file__).parent / "fixtures" / "lerobot_pi05"
+    return convert(src, root / "demo_pi05", dtype="float32"), tokenizer
 
 
 def test_batched_policy_matches_policy_infer(demo_ckpt):

@@ -59,10 +59,11 @@ def restore_state(path: Path, template: step_lib.TrainState, sharding) -> step_l
     """Read a saved state into the structure (and check the shapes / dtypes) of `template`."""
     want, treedef = jax.tree.flatten(template)
     with ocp.PyTreeCheckpointer() as ckptr:
-        meta = ckptr.metadata(path / "state")
-        tree = meta.item_metadata.tree if hasattr(meta, "item_metadata") else meta
-        args = jax.tree.map(lambda _: ocp.RestoreArgs(restore_type=np.ndarray), dict(tree))
-        flat = ckptr.restore(path / "state", args=ocp.args.PyTreeRestore(item=dict(tree), restore_args=args))
+        # the item comes from the template (keys "00000".. in leaf order): metadata reading differs across orbax
+        # versions, and a count mismatch still fails in restore
+        item = {f"{i:05d}": np.zeros(w.shape, w.dtype) for i, w in enumerate(want)}
+        args = jax.tree.map(lambda _: ocp.RestoreArgs(restore_type=np.ndarray), item)
+        flat = ckptr.restore(path / "state", args=ocp.args.PyTreeRestore(item=item, restore_args=args))
     have = [flat[k] for k in sorted(flat)]
     if len(have) != len(want):
         raise ValueError(f"{path}: {len(have)} arrays, the config's train state has {len(want)}")
@@ -119,7 +120,7 @@ def train(cfg: TrainConfig, demos_dir: str | Path, out_dir: str | Path, *, resum
 
     stop_at: save the train state after this many steps and return without exporting (the schedule still runs to
     cfg.steps; continue with resume=True)."""
-    out, model = Path(out_dir), cfg.model_config
+    out, model = Path(out_dir).absolute(), cfg.model_config   # orbax wants absolute paths
     mesh = step_lib.make_mesh()
     n_dev = mesh.devices.size
     if cfg.batch_size % n_dev:
