@@ -1,18 +1,26 @@
-"""The README's first quick-start command, `pi0-jax demo`, end to end (reduced iterations)."""
+"""The README's first quick-start command, `pi0-jax demo`: the embedded trained pi0_small evaluated in the MJX suite
+on the CPU, on a reduced episode count (one episode per task, initial state 0)."""
 
 import json
 
 from pi0_jax import cli
 
+# The embedded model scores 38.7 % over 550 episodes on the GPU in bf16 (docs/RESULTS.md); this CPU run (f32, 11
+# episodes) scored 3/11 when the model was embedded. The floor (2/11) only has to catch a broken model or pipeline,
+# which scores 0 (a random policy never succeeds in this suite).
+SUCCESS_FLOOR = 2
 
-def test_demo_runs_and_writes_result(tmp_path, capsys):
-    assert cli.main(["demo", "--out-dir", str(tmp_path), "--iters", "2", "--steps", "2"]) == 0
-    result = json.loads((tmp_path / "demo_result.json").read_text())
-    assert result["actions_shape"] == [10, 7]  # horizon 10, LeRobot's 7-D action feature
-    assert result["noise_injection_reproducible"]
-    assert (tmp_path / "demo_pi05" / "params").is_dir()
-    out = capsys.readouterr().out
-    assert "| infer, median of 2 |" in out
+
+def test_demo_evaluates_the_embedded_model(tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert cli.main(["demo", "--output-dir", str(out), "--episodes-per-task", "1", "--batch", "11", "--videos", "1",
+                     "--no-progress"]) == 0
+    info = json.loads((out / "eval_info.json").read_text())
+    agg = info["aggregated"]
+    assert agg["n_episodes"] == 11 and info["config"]["policy_info"]["model"] == "pi0_small"
+    assert agg["n_success"] >= SUCCESS_FLOOR, f"embedded model: {agg['n_success']}/11 successes"
+    assert len(info["video_paths"]) == 1
+    assert "| **overall** |" in capsys.readouterr().out
 
 
 def test_help_lists_every_subcommand(capsys):
@@ -21,4 +29,5 @@ def test_help_lists_every_subcommand(capsys):
     except SystemExit as e:
         assert e.code == 0
     out = capsys.readouterr().out
-    assert "convert" in out and "demo" in out
+    for cmd in ("convert", "demo", "benchmark", "eval", "train", "quantize"):
+        assert cmd in out
