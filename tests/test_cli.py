@@ -6,8 +6,8 @@ import json
 from pi0_jax import cli
 
 # The embedded model scores 38.7 % over 550 episodes on the GPU in bf16 (docs/RESULTS.md); this CPU run (f32, 11
-# episodes) scored 6/11 (127 s on 2 cores) when the model was embedded. The floor (2/11) only has to catch a broken model or pipeline,
-# which scores 0 (a random policy never succeeds in this suite).
+# episodes) scored 6/11 (127 s on 2 cores) when the model was embedded. The floor (2/11) only has to catch a broken
+# model or pipeline, which scores 0 (a random policy never succeeds in this suite).
 SUCCESS_FLOOR = 2
 
 
