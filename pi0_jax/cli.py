@@ -14,7 +14,7 @@ import sys
 from importlib import resources
 from pathlib import Path
 
-EMBEDDED_MODEL = "pi0_small"   # pi0_jax/assets/pi0_small: trained in the MJX suite (scripts/train_suite.sh)
+EMBEDDED_MODEL = "pi0_small"   # pi0_jax/assets/pi0_small: trained in the MJX suite (scripts/gpu_suite.sh)
 
 
 def _demo_parser(subparsers) -> None:

@@ -1,16 +1,16 @@
 #!/usr/bin/env bash
 # The GPU runs behind docs/RESULTS.md, in phases (device machines are lent per call; runs/ persists while warm):
 #
-#   bash scripts/gpu_suite.sh demos train            # expert demos, then train pi0_small (--stop-at STOP_AT)
-#   bash scripts/gpu_suite.sh resume eval export     # finish training, evaluate, pack the checkpoint into $OUT
+#   bash scripts/gpu_suite.sh demos train export eval   # the embedded model's recipe in one call (~9 min, H100)
+#   STOP_AT=5000 bash scripts/gpu_suite.sh demos train  # or split: stop early, then `resume export eval`
 #
 # Needs the mujoco / mujoco-mjx wheels in .simwhl (see docs/BENCHMARKS.md); writes into $OUT (or ./out).
 set -uo pipefail
 OUT=${OUT:-out}
 W=${WORK:-runs/gpu}
 EPISODES=${EPISODES:-100}   # demos per task, initial states 50.. (the evaluation uses 0..49)
-STEPS=${STEPS:-14000}
-STOP_AT=${STOP_AT:-10000}
+STEPS=${STEPS:-10000}
+STOP_AT=${STOP_AT:-$STEPS}
 mkdir -p "$OUT" "$W"
 python3 -c "import mujoco.mjx" 2>/dev/null ||
   python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .simwhl/*.whl

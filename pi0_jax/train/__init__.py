@@ -7,10 +7,10 @@
   trainer.py  the loop: logging, train-state checkpoints, exact resume, export of a pi0-jax checkpoint
   cli.py      `pi0-jax train`
 
-The full pipeline for the demo model (one GPU; scripts/train_suite.sh runs it):
+The full pipeline for the demo model (one GPU; scripts/gpu_suite.sh runs it):
 
-  python scripts/sim_demos.py DEMOS --suite all --episodes-per-task 50 --first-init 50 --resolution 112 \\
-      --no-compress --batch 128                            # expert demos on initial states 50..99 (eval uses 0..49)
+  python scripts/sim_demos.py DEMOS --suite all --episodes-per-task 100 --first-init 50 --resolution 112 \\
+      --no-compress --batch 256                            # expert demos on initial states 50..149 (eval: 0..49)
   pi0-jax train --config pi0_small_suite --demos DEMOS --out RUN
   pi0-jax eval --policy RUN/checkpoint --resolution 112 --episodes-per-task 50
 """

@@ -19,7 +19,7 @@ Writes OUT/: tokenizer.model and norm_stats.json (computed from the demos), trai
 with its tokenizer and norm stats; `pi0-jax eval --policy OUT/checkpoint` and Policy.from_checkpoint load it).
 Every batch and noise draw comes from (seed, step), so --resume continues bit-identically.
 
-Pipeline of the demo model (see pi0_jax/train/__init__.py and scripts/train_suite.sh):
+Pipeline of the demo model (see pi0_jax/train/__init__.py and scripts/gpu_suite.sh):
   python scripts/sim_demos.py DEMOS --episodes-per-task 50 --first-init 50 --resolution 112 --no-compress
   pi0-jax train --config pi0_small_suite --demos DEMOS --out RUN
   pi0-jax eval --policy RUN/checkpoint --resolution 112 --episodes-per-task 50

@@ -49,10 +49,9 @@ class TrainConfig:
 
 
 PRESETS: dict[str, TrainConfig] = {
-    # The demo model: pi0_small from scratch on the MJX suite's expert demos at 112 px. On one H100 the step runs
-    # at ~9k samples/s at batch 256 (~8k at 128; measured on synthetic 112 px data, augmentation on): 15k steps
-    # (~3.8 M samples, ~35 passes over 50 demos per task) take ~7 minutes plus ~30 s of compilation.
-    "pi0_small_suite": TrainConfig(name="pi0_small_suite", model="pi0_small", steps=15_000, batch_size=256, lr=5e-4,
+    # The embedded demo model: pi0_small from scratch on 100 expert demos per task at 112 px. On one H100: 8,845
+    # samples/s at batch 256, so 10k steps (2.56 M samples, ~32 passes) take ~5 minutes plus ~35 s of compilation.
+    "pi0_small_suite": TrainConfig(name="pi0_small_suite", model="pi0_small", steps=10_000, batch_size=256, lr=5e-4,
                                    warmup_steps=500, decay_lr=2.5e-5, log_every=100, save_every=2500),
     # CPU smoke / tests: the dummy model shaped like pi0_small (2 cameras, 8-D actions, 32 tokens) at 56 px.
     "dummy_smoke": TrainConfig(name="dummy_smoke", model="dummy", steps=20, batch_size=8, lr=3e-3, warmup_steps=2,
