@@ -3,6 +3,8 @@
     python scripts/sim_demos.py OUT --suite all --episodes-per-task 50 --batch 64 --resolution 224
     # training data for pi0_small (pi0_jax/train): states 50..99, disjoint from the evaluation's 0..49
     python scripts/sim_demos.py OUT --episodes-per-task 50 --first-init 50 --resolution 112 --no-compress
+    # with DART noise injection (recovery data): noisy execution, clean expert labels
+    python scripts/sim_demos.py OUT --episodes-per-task 50 --first-init 50 --resolution 112 --action-noise 0.3
 
 Layout and fields: pi0_jax/sim/demos.py. On a GPU the whole suite (550 episodes at 224 x 224) takes minutes; on a
 CPU use a small resolution.
@@ -28,6 +30,7 @@ class Args:
     keep_failures: bool
     first_init: int
     no_compress: bool
+    action_noise: float
 
 
 def parse(argv=None) -> Args:
@@ -43,6 +46,9 @@ def parse(argv=None) -> Args:
     p.add_argument("--keep-failures", action="store_true", help="also write episodes the expert failed")
     p.add_argument("--no-compress", action="store_true",
                    help="write plain npz (np.savez): much faster for large datasets, ~3x the disk")
+    p.add_argument("--action-noise", type=float, default=0.0, metavar="SIGMA",
+                   help="DART noise injection: execute the expert's action plus N(0, s^2) on the motion dims, s drawn "
+                        "per episode uniform in [0, SIGMA], and record the clean action (default 0: no noise)")
     return Args(**vars(p.parse_args(argv)))
 
 
@@ -51,7 +57,7 @@ def main(argv=None) -> int:
 
     a = parse(argv)
     meta = write_demos(a.out, a.suite, a.episodes_per_task, a.batch, a.resolution, a.keep_failures,
-                       first_init=a.first_init, compress=not a.no_compress)
+                       first_init=a.first_init, compress=not a.no_compress, action_noise=a.action_noise)
     ok = sum(e["success"] for e in meta["episodes"])
     print(f"{len(meta['episodes'])} episodes written to {a.out} ({ok} successful)")
     return 0
