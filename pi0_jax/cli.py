@@ -5,6 +5,7 @@
   pi0-jax benchmark         per-stage latency of the compiled engine over steps x batch x dtype
   pi0-jax quantize SRC DST  FP8 quantised checkpoint (calibrated static activation scales), accuracy report
   pi0-jax train             train a π0 on expert demonstrations (pi0_jax/train)
+  pi0-jax distill           distil a trained π0 into a 1-2 flow-step (optionally shallower) student
 """
 
 from __future__ import annotations
@@ -35,7 +36,9 @@ def _demo_parser(subparsers) -> None:
                    help="suite (all, spatial, object, goal) or one task name (default: %(default)s)")
     p.add_argument("--batch", type=int, default=22, metavar="N",
                    help="environments simulated at once (default: %(default)s)")
-    p.add_argument("--num-steps", type=int, default=10, help="flow-matching Euler steps (default: %(default)s)")
+    p.add_argument("--num-steps", type=int, default=None,
+                   help="flow-matching Euler steps (default: the checkpoint's num_steps, e.g. a distilled student's, "
+                        "else 10)")
     p.add_argument("--replan-steps", type=int, default=5, metavar="R",
                    help="actions executed from each chunk of 10 before the next call (default: %(default)s)")
     p.add_argument("--videos", type=int, default=2, metavar="V", help="MP4s of the first V episodes (default: 2)")
@@ -56,15 +59,17 @@ def _run_demo(args: argparse.Namespace) -> int:
 
     with resources.as_file(resources.files("pi0_jax") / "assets" / EMBEDDED_MODEL) as embedded:
         ckpt = args.checkpoint or embedded
-        config = Pi0Config.from_json(read_meta(ckpt)["model"])
+        meta = read_meta(ckpt)
+        config = Pi0Config.from_json(meta["model"])
         cfg = EvalConfig(suite=args.suite, episodes_per_task=args.episodes_per_task, batch=args.batch,
                          replan_steps=args.replan_steps, resolution=config.image_size, seed=args.seed,
-                         videos=args.videos, num_steps=args.num_steps)
+                         videos=args.videos,
+                         num_steps=meta.get("num_steps", 10) if args.num_steps is None else args.num_steps)
         info = evaluate(str(ckpt), cfg, args.output_dir, progress=not args.no_progress,
                         policy_kwargs={"dtype": args.dtype})
     a = info["aggregated"]
     print(f"\n{config.name} ({'embedded' if args.checkpoint is None else ckpt}), {args.dtype}, "
-          f"{args.num_steps} flow steps, {cfg.replan_steps} of {config.action_horizon} actions per call")
+          f"{cfg.num_steps} flow steps, {cfg.replan_steps} of {config.action_horizon} actions per call")
     print(format_table(info))
     print(f"\n{a['n_episodes']} episodes in {a['eval_s']:.1f} s (first segment incl. compile "
           f"{a['first_segment_s']:.1f} s) on {info['config']['devices']} {info['config']['backend']} device(s)")
@@ -93,7 +98,7 @@ def _quantize_parser(subparsers) -> None:
 def build_parser() -> argparse.ArgumentParser:
     from converters.cli import add_convert_parser
     from pi0_jax.sim.cli import add_eval_parser
-    from pi0_jax.train.cli import add_train_parser
+    from pi0_jax.train.cli import add_distill_parser, add_train_parser
 
     parser = argparse.ArgumentParser(prog="pi0-jax", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -104,6 +109,7 @@ def build_parser() -> argparse.ArgumentParser:
     _quantize_parser(sub)
     add_eval_parser(sub)
     add_train_parser(sub)
+    add_distill_parser(sub)
     return parser
 
 

@@ -29,5 +29,5 @@ def test_help_lists_every_subcommand(capsys):
     except SystemExit as e:
         assert e.code == 0
     out = capsys.readouterr().out
-    for cmd in ("convert", "demo", "benchmark", "eval", "train", "quantize"):
+    for cmd in ("convert", "demo", "benchmark", "eval", "train", "distill", "quantize"):
         assert cmd in out

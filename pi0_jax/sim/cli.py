@@ -56,8 +56,9 @@ def add_eval_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--videos", type=int, default=4, metavar="V",
                    help="record MP4s of the first V episodes (default: %(default)s; 0 for none)")
     p.add_argument("--seed", type=int, default=0, help="base PRNG seed of the policy's noise (default: 0)")
-    p.add_argument("--num-steps", type=int, default=10,
-                   help="flow-matching Euler steps of a checkpoint policy (default: %(default)s)")
+    p.add_argument("--num-steps", type=int, default=None,
+                   help="flow-matching Euler steps of a checkpoint policy (default: the checkpoint's num_steps, "
+                        "which a distilled student records, else 10)")
     p.add_argument("--dtype", choices=("float32", "bfloat16"), default=None,
                    help="param and compute dtype of a checkpoint policy (default: the checkpoint's own)")
     p.add_argument("--tokenizer", type=Path, default=None, metavar="FILE",
@@ -88,6 +89,15 @@ def default_resolution(policy: str) -> int:
     return Pi0Config.from_json(read_meta(policy)["model"]).image_size
 
 
+def default_num_steps(policy: str) -> int:
+    """The flow-step count a checkpoint records (config.json's num_steps: `pi0-jax distill` writes it), else 10."""
+    if policy in ("expert", "random") or not Path(policy).is_dir():
+        return 10
+    from pi0_jax.checkpoint import read_meta
+
+    return int(read_meta(policy).get("num_steps", 10))
+
+
 def run(args: argparse.Namespace) -> int:
     import jax  # this module's package, pi0_jax.sim, has set the XLA:CPU flags already
 
@@ -102,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
                      replan_steps=args.replan_steps, max_steps=args.steps,
                      resolution=args.resolution or default_resolution(args.policy),
                      seed=args.seed, videos=args.videos, segment_replans=args.segment_replans,
-                     num_steps=args.num_steps)
+                     num_steps=default_num_steps(args.policy) if args.num_steps is None else args.num_steps)
     kw = {"tokenizer_path": args.tokenizer, "norm_stats": args.norm_stats, "dtype": args.dtype}
     info = evaluate(args.policy, cfg, args.output_dir, progress=not args.no_progress, policy_kwargs=kw)
     if jax.process_index() == 0:

@@ -5,7 +5,8 @@
   augment.py  spec §5.1 training augmentation (crop / resize / rotate, colour jitter) in JAX
   step.py     the jitted, data-parallel train step: batch on device, loss, AdamW, EMA
   trainer.py  the loop: logging, train-state checkpoints, exact resume, export of a pi0-jax checkpoint
-  cli.py      `pi0-jax train`
+  distill.py  flow-step distillation of a trained checkpoint into a 1-2 step (optionally shallower) student
+  cli.py      `pi0-jax train`, `pi0-jax distill`
 
 The full pipeline for the demo model (one GPU; scripts/gpu_suite.sh runs it):
 

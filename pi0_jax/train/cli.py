@@ -1,5 +1,6 @@
-"""`pi0-jax train`: train a π0 on expert demonstrations. `add_train_parser(subparsers)` is what pi0_jax/cli.py wires
-in; importing this module does not import jax."""
+"""`pi0-jax train`: train a π0 on expert demonstrations; `pi0-jax distill`: distil a trained one into a 1-2 flow-step
+student. `add_train_parser` / `add_distill_parser(subparsers)` are what pi0_jax/cli.py wires in; importing this module
+does not import jax."""
 
 from __future__ import annotations
 
@@ -37,8 +38,13 @@ def add_train_parser(subparsers) -> argparse.ArgumentParser:
                    help="demonstrations directory (meta.json + episode_*.npz, scripts/sim_demos.py)")
     p.add_argument("--out", required=True, type=Path, metavar="DIR",
                    help="run directory; must hold no train state unless --resume")
-    p.add_argument("--resume", action="store_true",
-                   help="continue from the newest OUT/train_state checkpoint (bit-identical to an uninterrupted run)")
+    _add_run_flags(p)
+    p.set_defaults(func=run)
+    return p
+
+
+def _add_run_flags(p: argparse.ArgumentParser) -> None:
+    """The optimiser, logging and run flags that `train` and `distill` share (None: the preset's)."""
     p.add_argument("--steps", type=int, default=None, metavar="N",
                    help="total optimizer steps (the cosine schedule ends here); default: the preset's")
     p.add_argument("--batch", type=int, default=None, metavar="B",
@@ -50,23 +56,22 @@ def add_train_parser(subparsers) -> argparse.ArgumentParser:
                         "default: the preset's")
     p.add_argument("--no-augment", action="store_true",
                    help="turn off the image augmentation (crop/resize/rotate on the agent view, colour jitter)")
-    p.add_argument("--seed", type=int, default=None, help="seed of the init, batches and noise; default: the preset's")
+    p.add_argument("--seed", type=int, default=None,
+                   help="seed of the batches and noise (and of train's init); default: the preset's")
     p.add_argument("--log-every", type=int, default=None, metavar="N",
                    help="steps between loss fetches / log lines (the only host syncs); default: the preset's")
     p.add_argument("--save-every", type=int, default=None, metavar="N",
                    help="steps between train-state checkpoints; default: the preset's")
+    p.add_argument("--resume", action="store_true",
+                   help="continue from the newest OUT/train_state checkpoint (bit-identical to an uninterrupted run)")
     p.add_argument("--stop-at", type=int, default=None, metavar="N",
                    help="save the train state after N steps and exit without exporting (the schedule still runs to "
                         "--steps; continue with --resume)")
     p.add_argument("--max-episodes", type=int, default=None, metavar="N",
                    help="use only the first N episodes of the demos (smoke runs)")
-    p.set_defaults(func=run)
-    return p
 
 
-def config_from_args(args: argparse.Namespace):
-    from pi0_jax.train.config import get_train_config
-
+def _overrides(args: argparse.Namespace) -> dict:
     over = {k: v for k, v in {"steps": args.steps, "batch_size": args.batch, "lr": args.lr,
                               "warmup_steps": args.warmup, "seed": args.seed, "log_every": args.log_every,
                               "save_every": args.save_every}.items() if v is not None}
@@ -74,7 +79,28 @@ def config_from_args(args: argparse.Namespace):
         over["ema_decay"] = args.ema or None
     if args.no_augment:
         over["augment"] = False
-    return get_train_config(args.config, **over)
+    return over
+
+
+def config_from_args(args: argparse.Namespace):
+    from pi0_jax.train.config import get_train_config
+
+    return get_train_config(args.config, **_overrides(args))
+
+
+# the schedule and the batch stream depend on these: changing them on --resume breaks the exact resume
+_RESUME_KEYS = ("model", "batch_size", "lr", "warmup_steps", "decay_lr", "seed", "augment", "ema_decay")
+
+
+def _warn_if_changed(out: Path, mine: dict, keys: tuple[str, ...]) -> None:
+    """Warn if OUT/train_config.json differs from `mine` at `keys` or at the TrainConfig's _RESUME_KEYS."""
+    saved = out / "train_config.json"
+    if saved.is_file():
+        prev = json.loads(saved.read_text())
+        changed = [k for k in keys if prev.get(k) != mine.get(k)]
+        changed += [k for k in _RESUME_KEYS if prev["train"].get(k) != mine["train"].get(k)]
+        if changed:
+            print(f"warning: resuming with changed {changed}; the run will not match an uninterrupted one")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -82,16 +108,72 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = config_from_args(args)
     if args.resume:
-        saved = args.out / "train_config.json"
-        if saved.is_file():
-            prev = json.loads(saved.read_text())["train"]
-            mine = cfg.to_json()
-            # the schedule and the batch stream depend on these: changing them breaks the exact resume
-            changed = [k for k in ("model", "batch_size", "lr", "warmup_steps", "decay_lr", "seed", "augment",
-                                   "ema_decay") if prev.get(k) != mine.get(k)]
-            if changed:
-                print(f"warning: resuming with changed {changed}; the run will not match an uninterrupted one")
+        _warn_if_changed(args.out, {"train": cfg.to_json()}, ())
     summary = train(cfg, args.demos, args.out, resume=args.resume, stop_at=args.stop_at,
                     max_episodes=args.max_episodes)
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
+DISTILL_DESCRIPTION = """\
+Distil a trained π0 (the teacher, a checkpoint that `pi0-jax train` exported) into a student that samples with 1 or
+2 Euler flow steps, optionally with fewer transformer layers (--layers: kept in both the PaliGemma and the
+action-expert towers, evenly spaced, the first and the last always kept; SigLIP whole). The student starts as the
+teacher's weights. Each step draws a batch of observations from the demos as training does (augmented unless
+--no-augment: teacher and student see the same augmented view), one noise draw, and fits the student's
+--student-steps sample to the teacher's --teacher-steps sample from the same noise (mean squared error in normalised
+action space over the demos' real action dims), with the trainer's AdamW, schedule, clipping, EMA, bf16-over-f32
+compute and data parallelism (pi0_jax/train/distill.py).
+
+Writes OUT/ as `pi0-jax train` does (train_log.json, loss.png, train_state/, checkpoint/) with the teacher's
+tokenizer.model and norm stats; checkpoint/config.json records the teacher, its steps, the student's and the kept
+layers, and num_steps, with which `pi0-jax eval --policy OUT/checkpoint` samples unless --num-steps is given.
+
+  pi0-jax distill --teacher RUN/checkpoint --demos DEMOS --out DISTILL --student-steps 1
+  pi0-jax eval --policy DISTILL/checkpoint --resolution 112 --episodes-per-task 50
+"""
+
+
+def add_distill_parser(subparsers) -> argparse.ArgumentParser:
+    from pi0_jax.train.config import DISTILL_PRESETS
+
+    p = subparsers.add_parser("distill", help="distil a trained π0 into a 1-2 flow-step (and optionally shallower) "
+                                              "student", description=DISTILL_DESCRIPTION,
+                              formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--teacher", required=True, type=Path, metavar="CKPT",
+                   help="the teacher: a pi0-jax checkpoint with tokenizer.model and assets/mjx_suite/norm_stats.json "
+                        "(`pi0-jax train`'s OUT/checkpoint)")
+    p.add_argument("--demos", required=True, type=Path, metavar="DIR",
+                   help="demonstrations directory whose observations are distilled on (scripts/sim_demos.py)")
+    p.add_argument("--out", required=True, type=Path, metavar="DIR",
+                   help="run directory; must hold no train state unless --resume")
+    p.add_argument("--config", default="pi0_small_distill", choices=sorted(DISTILL_PRESETS), metavar="NAME",
+                   help=f"distillation preset: {', '.join(sorted(DISTILL_PRESETS))} (pi0_jax/train/config.py; "
+                        "default: %(default)s)")
+    p.add_argument("--student-steps", type=int, default=None, metavar="N",
+                   help="Euler steps the student samples with, and is exported to sample with (1 or 2); "
+                        "default: the preset's (1)")
+    p.add_argument("--teacher-steps", type=int, default=None, metavar="N",
+                   help="Euler steps of the teacher's target samples; default: the preset's (10)")
+    p.add_argument("--layers", type=int, default=None, metavar="N",
+                   help="transformer layers of the student (both experts), at least 2 and at most the teacher's; "
+                        "needs the `<variant>_<N>l` variants in pi0_jax/config.py; default: the teacher's depth")
+    _add_run_flags(p)
+    p.set_defaults(func=run_distill)
+    return p
+
+
+def run_distill(args: argparse.Namespace) -> int:
+    from pi0_jax.train.config import get_distill_config
+    from pi0_jax.train.distill import distill
+
+    over = {k: v for k, v in {"student_steps": args.student_steps, "teacher_steps": args.teacher_steps,
+                              "layers": args.layers}.items() if v is not None}
+    cfg = get_distill_config(args.config, **over, **_overrides(args))
+    if args.resume:
+        _warn_if_changed(args.out, {**cfg.to_json(), "teacher": str(args.teacher.absolute())},
+                         ("student_steps", "teacher_steps", "layers", "teacher"))
+    summary = distill(cfg, args.teacher, args.demos, args.out, resume=args.resume, stop_at=args.stop_at,
+                      max_episodes=args.max_episodes)
     print(json.dumps(summary, indent=2))
     return 0

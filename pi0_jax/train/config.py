@@ -1,4 +1,5 @@
-"""Training configs: a frozen dataclass and its named presets. Data and output directories come from the command line."""
+"""Training configs: frozen dataclasses and their named presets. Data and output directories come from the command
+line; a distillation's teacher checkpoint too."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ from pi0_jax.config import Pi0Config, get_config
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
     name: str
-    model: str                          # a pi0_jax.config preset
+    model: str | None                   # a pi0_jax.config preset; None where a checkpoint brings it (distillation)
     steps: int
     batch_size: int                     # global: split over the local devices, so a multiple of their number
     lr: float                           # peak learning rate
@@ -37,6 +38,8 @@ class TrainConfig:
 
     @property
     def model_config(self) -> Pi0Config:
+        if self.model is None:
+            raise ValueError(f"train config {self.name!r} names no model (a distillation config: its teacher does)")
         return get_config(self.model, **dict(self.model_overrides))
 
     def replace(self, **kw: Any) -> TrainConfig:
@@ -65,3 +68,57 @@ def get_train_config(name: str, **overrides: Any) -> TrainConfig:
     if name not in PRESETS:
         raise ValueError(f"unknown train config {name!r}; known: {sorted(PRESETS)}")
     return PRESETS[name].replace(**overrides)
+
+
+@dataclasses.dataclass(frozen=True)
+class DistillConfig:
+    """Flow-step distillation (pi0_jax/train/distill.py): the optimiser, batch and EMA settings of `train` (model
+    None: the student's architecture is the teacher checkpoint's, `layers` deep), the teacher's Euler step count
+    (its targets) and the student's (what it is trained, and exported, to sample with)."""
+
+    train: TrainConfig
+    student_steps: int = 1
+    teacher_steps: int = 10
+    layers: int | None = None           # transformer layers kept in both experts; None: the teacher's depth
+
+    def __post_init__(self):
+        if self.train.model is not None:
+            raise ValueError(f"a distillation's train config names no model (the teacher's), got {self.train.model!r}")
+        for f in ("student_steps", "teacher_steps"):
+            if getattr(self, f) <= 0:
+                raise ValueError(f"{f} must be positive, got {getattr(self, f)}")
+        if self.layers is not None and self.layers < 2:
+            raise ValueError(f"layers must be >= 2 (the first and the last are always kept), got {self.layers}")
+
+    @property
+    def name(self) -> str:
+        return self.train.name
+
+    def replace(self, **kw: Any) -> DistillConfig:
+        """Fields of DistillConfig or, by name, of its TrainConfig (`steps=..., layers=...`)."""
+        own = {f.name for f in dataclasses.fields(self)} - {"train"}
+        train = self.train.replace(**{k: v for k, v in kw.items() if k not in own})
+        return dataclasses.replace(self, train=train, **{k: v for k, v in kw.items() if k in own})
+
+    def to_json(self) -> dict[str, Any]:
+        return {"train": self.train.to_json(), "student_steps": self.student_steps,
+                "teacher_steps": self.teacher_steps, "layers": self.layers}
+
+
+DISTILL_PRESETS: dict[str, DistillConfig] = {
+    # pi0_small_suite's model -> 1 Euler step: the student starts at the teacher, so a lower peak lr and a short
+    # warm-up; each step also runs the teacher's 10-step sampler (forward only) on the batch.
+    "pi0_small_distill": DistillConfig(TrainConfig(name="pi0_small_distill", model=None, steps=2000, batch_size=256,
+                                                   lr=1e-4, warmup_steps=100, decay_lr=1e-5, log_every=50,
+                                                   save_every=500)),
+    # CPU tests: a dummy_smoke teacher.
+    "dummy_distill": DistillConfig(TrainConfig(name="dummy_distill", model=None, steps=10, batch_size=8, lr=1e-3,
+                                               warmup_steps=1, decay_lr=1e-4, ema_decay=0.9, log_every=2,
+                                               save_every=5)),
+}
+
+
+def get_distill_config(name: str, **overrides: Any) -> DistillConfig:
+    if name not in DISTILL_PRESETS:
+        raise ValueError(f"unknown distillation config {name!r}; known: {sorted(DISTILL_PRESETS)}")
+    return DISTILL_PRESETS[name].replace(**overrides)

@@ -64,10 +64,25 @@ def optimizer(cfg: TrainConfig) -> optax.GradientTransformation:
                        optax.adamw(schedule(cfg), b1=0.9, b2=cfg.b2, eps=1e-8, weight_decay=cfg.weight_decay))
 
 
-def init_state(cfg: TrainConfig, model: Pi0Config) -> TrainState:
-    params = pi0.init_params(model, jax.random.fold_in(jax.random.key(cfg.seed), _INIT_SALT))
+def state_from_params(cfg: TrainConfig, params) -> TrainState:
+    """A step-0 state over f32 `params` (the EMA, when on, starts equal to them)."""
     ema = jax.tree.map(jnp.copy, params) if cfg.ema_decay is not None else None
     return TrainState(step=jnp.zeros((), jnp.int32), params=params, opt_state=optimizer(cfg).init(params), ema=ema)
+
+
+def init_state(cfg: TrainConfig, model: Pi0Config) -> TrainState:
+    return state_from_params(cfg, pi0.init_params(model, jax.random.fold_in(jax.random.key(cfg.seed), _INIT_SALT)))
+
+
+def step_key(cfg: TrainConfig, step: jax.Array) -> jax.Array:
+    """The key of everything step `step` draws (batch, noise, t): a run is a pure function of (seed, data, step)."""
+    return jax.random.fold_in(jax.random.key(cfg.seed), step)
+
+
+def batch_sharder(mesh: Mesh):
+    """x -> x constrained to be split along its leading (batch) axis over the mesh."""
+    sharding = NamedSharding(mesh, P(DATA_AXIS))
+    return lambda x: jax.lax.with_sharding_constraint(x, sharding)
 
 
 def device_data(ds: Dataset, stats: dict, mesh: Mesh) -> dict[str, jax.Array]:
@@ -107,18 +122,9 @@ def make_batch(cfg: TrainConfig, model: Pi0Config, data: dict, rng: jax.Array, s
     return obs, shard(pad(actions))
 
 
-def train_step(cfg: TrainConfig, model: Pi0Config, mesh: Mesh, state: TrainState, data: dict):
-    """One AdamW step on one batch. -> (new state, {"loss", "grad_norm", "lr"} as device scalars)."""
-    batch_sharding = NamedSharding(mesh, P(DATA_AXIS))
-    shard = lambda x: jax.lax.with_sharding_constraint(x, batch_sharding)
-    k_batch, k_noise, k_time = jax.random.split(jax.random.fold_in(jax.random.key(cfg.seed), state.step), 3)
-    obs, actions = make_batch(cfg, model, data, k_batch, shard)
-    noise = shard(jax.random.normal(k_noise, actions.shape, jnp.float32))
-    t = shard(pi0.sample_time(k_time, cfg.batch_size))
-
-    def loss_fn(params):
-        return jnp.mean(pi0.compute_loss(model, params, obs, actions, noise, t))
-
+def optimizer_step(cfg: TrainConfig, state: TrainState, loss_fn) -> tuple[TrainState, dict]:
+    """One AdamW step on `loss_fn(params) -> scalar` at state.params, then the EMA update.
+    -> (new state, {"loss", "grad_norm", "lr"} as device scalars)."""
     loss, grads = jax.value_and_grad(loss_fn)(state.params)
     updates, opt_state = optimizer(cfg).update(grads, state.opt_state, state.params)
     params = optax.apply_updates(state.params, updates)
@@ -129,6 +135,16 @@ def train_step(cfg: TrainConfig, model: Pi0Config, mesh: Mesh, state: TrainState
         ema = jax.tree.map(lambda e, p: d * e + (1 - d) * p, ema, params)
     metrics = {"loss": loss, "grad_norm": optax.tree.norm(grads), "lr": schedule(cfg)(state.step)}
     return TrainState(step=state.step + 1, params=params, opt_state=opt_state, ema=ema), metrics
+
+
+def train_step(cfg: TrainConfig, model: Pi0Config, mesh: Mesh, state: TrainState, data: dict):
+    """One flow-matching AdamW step on one batch. -> (new state, {"loss", "grad_norm", "lr"} as device scalars)."""
+    shard = batch_sharder(mesh)
+    k_batch, k_noise, k_time = jax.random.split(step_key(cfg, state.step), 3)
+    obs, actions = make_batch(cfg, model, data, k_batch, shard)
+    noise = shard(jax.random.normal(k_noise, actions.shape, jnp.float32))
+    t = shard(pi0.sample_time(k_time, cfg.batch_size))
+    return optimizer_step(cfg, state, lambda params: jnp.mean(pi0.compute_loss(model, params, obs, actions, noise, t)))
 
 
 def batch_loss(cfg: TrainConfig, model: Pi0Config, params, data: dict, rng: jax.Array) -> jax.Array:

@@ -1,6 +1,6 @@
 """The training loop: data -> device, jitted steps, logging, train-state checkpoints, resume, export.
 
-Layout of OUT/ (`train(cfg, demos, out)`):
+Layout of OUT/ (`train(cfg, demos, out)`; distill.py writes the same through the same loop):
   tokenizer.model        SentencePiece model trained on the suite's prompts (kept on resume)
   norm_stats.json        openpi norm stats of the demos' state and actions (kept on resume)
   train_config.json      the TrainConfig and the model config
@@ -21,14 +21,17 @@ import json
 import shutil
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import jax
 import numpy as np
 import orbax.checkpoint as ocp
+from jax.sharding import Mesh
 
 from pi0_jax import checkpoint as ckpt_lib
 from pi0_jax import normalize as nz
+from pi0_jax.config import Pi0Config
 from pi0_jax.train import data as data_lib
 from pi0_jax.train import step as step_lib
 from pi0_jax.train.config import TrainConfig
@@ -77,7 +80,7 @@ def restore_state(path: Path, template: step_lib.TrainState, sharding) -> step_l
 # Logs.
 
 
-def plot_loss(log: list[dict], path: Path, title: str) -> None:
+def plot_loss(log: list[dict], path: Path, title: str, ylabel: str) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -88,7 +91,7 @@ def plot_loss(log: list[dict], path: Path, title: str) -> None:
     ax.plot(steps, [r["loss"] for r in log], label="loss")
     ax.set_yscale("log")
     ax.set_xlabel("step")
-    ax.set_ylabel("flow-matching loss (window mean)")
+    ax.set_ylabel(ylabel)
     ax.grid(True, which="both", alpha=0.3)
     lr_ax = ax.twinx()
     lr_ax.plot(steps, [r["lr"] for r in log], color="tab:orange", alpha=0.6, label="lr")
@@ -99,73 +102,64 @@ def plot_loss(log: list[dict], path: Path, title: str) -> None:
     plt.close(fig)
 
 
-# ---------------------------------------------------------------------------------------------------------------------
-
-
-def export(cfg: TrainConfig, state: step_lib.TrainState, out: Path) -> Path:
-    """OUT/checkpoint: the EMA (else the raw) weights in the model's dtype, with the tokenizer and norm stats."""
-    model = cfg.model_config
+def export_model(model: Pi0Config, state: step_lib.TrainState, out: Path, meta: dict) -> Path:
+    """OUT/checkpoint: the EMA (else the raw) weights in the model's dtype, with OUT/tokenizer.model and
+    OUT/norm_stats.json, and `meta` (plus the step and which weights) in its config.json."""
     params = state.ema if state.ema is not None else state.params
     params = jax.device_get(jax.tree.map(lambda x: x.astype(model.dtype), params))
     return ckpt_lib.save_checkpoint(
         out / "checkpoint", params, model, overwrite=True,
         assets={"tokenizer.model": out / "tokenizer.model", f"{ASSET_ID}/norm_stats.json": out / "norm_stats.json"},
-        extra_meta={"trained_by": "pi0_jax.train", "train_config": cfg.to_json(), "step": int(state.step),
-                    "weights": "ema" if state.ema is not None else "params"})
+        extra_meta={**meta, "step": int(state.step), "weights": "ema" if state.ema is not None else "params"})
 
 
-def train(cfg: TrainConfig, demos_dir: str | Path, out_dir: str | Path, *, resume: bool = False,
-          stop_at: int | None = None, max_episodes: int | None = None, log=print) -> dict:
-    """Train `cfg` on the demos, writing OUT/ as the module docstring says. -> summary dict.
+def export(cfg: TrainConfig, state: step_lib.TrainState, out: Path) -> Path:
+    return export_model(cfg.model_config, state, out, {"trained_by": "pi0_jax.train", "train_config": cfg.to_json()})
 
-    stop_at: save the train state after this many steps and return without exporting (the schedule still runs to
-    cfg.steps; continue with resume=True)."""
-    out, model = Path(out_dir).absolute(), cfg.model_config   # orbax wants absolute paths
+
+# ---------------------------------------------------------------------------------------------------------------------
+# The run: shared by `train` and pi0_jax.train.distill.
+
+
+def open_run(cfg: TrainConfig, out_dir: str | Path, resume: bool) -> tuple[Path, Mesh]:
+    """Check the batch against the devices and OUT/train_state against `resume`; make OUT. -> (absolute OUT, mesh)"""
+    out = Path(out_dir).absolute()    # orbax wants absolute paths
     mesh = step_lib.make_mesh()
-    n_dev = mesh.devices.size
-    if cfg.batch_size % n_dev:
-        raise ValueError(f"batch size {cfg.batch_size} is not a multiple of the {n_dev} local devices")
-    state_root = out / "train_state"
-    saved = _state_dirs(state_root)
+    if cfg.batch_size % mesh.devices.size:
+        raise ValueError(f"batch size {cfg.batch_size} is not a multiple of the {mesh.devices.size} local devices")
+    saved = _state_dirs(out / "train_state")
     if saved and not resume:
-        raise FileExistsError(f"{state_root} holds checkpoints; pass --resume to continue, or use a new --out")
+        raise FileExistsError(f"{out / 'train_state'} holds checkpoints; pass --resume to continue, or use a new --out")
     if resume and not saved:
-        raise FileNotFoundError(f"--resume: no train state under {state_root}")
+        raise FileNotFoundError(f"--resume: no train state under {out / 'train_state'}")
     out.mkdir(parents=True, exist_ok=True)
+    return out, mesh
 
-    # Tokenizer and norm stats are computed once and kept, so a resumed run sees exactly the same inputs.
-    tok_path, stats_path = out / "tokenizer.model", out / "norm_stats.json"
-    prompts = data_lib.suite_prompts()
-    if not (resume and tok_path.is_file()):
-        tok_path.write_bytes(data_lib.train_tokenizer(prompts, min(model.vocab_size, 128)))
-    t0 = time.perf_counter()
-    ds = data_lib.load_demos(demos_dir, prompts, tok_path, model.max_token_len, max_episodes=max_episodes, log=log)
-    if resume and stats_path.is_file():
-        stats = nz.load_openpi_norm_stats(stats_path)
-    else:
-        stats = data_lib.norm_stats(ds)
-        nz.save_openpi_norm_stats(stats_path, stats)
-    (out / "train_config.json").write_text(json.dumps({"train": cfg.to_json(), "model": model.to_json(),
-                                                       "demos": str(demos_dir)}, indent=2) + "\n")
-    data = step_lib.device_data(ds, stats, mesh)
+
+def log_data(ds: data_lib.Dataset, mesh: Mesh, cfg: TrainConfig, seconds: float, log) -> None:
     log(f"data: {ds.num_episodes} episodes, {ds.num_frames} frames at {ds.resolution} px "
-        f"({ds.images.nbytes / 2**30:.2f} GiB of images) in {time.perf_counter() - t0:.1f} s; "
-        f"{n_dev} device(s) {mesh.devices.flat[0].platform}, global batch {cfg.batch_size}")
-    del ds
+        f"({ds.images.nbytes / 2**30:.2f} GiB of images) in {seconds:.1f} s; "
+        f"{mesh.devices.size} device(s) {mesh.devices.flat[0].platform}, global batch {cfg.batch_size}")
 
+
+def run_steps(cfg: TrainConfig, out: Path, mesh: Mesh, init: Callable[[], step_lib.TrainState], step_fn, *,
+              resume: bool, stop_at: int | None, log) -> tuple[step_lib.TrainState, list[dict], int, int, float | None]:
+    """Start from `init()` (or, with resume, from the newest OUT/train_state in its structure) and apply
+    `step_fn(state) -> (state, {"loss", "grad_norm", "lr"})` up to cfg.steps (or stop_at): log every log_every
+    steps to OUT/train_log.json, save the train state every save_every steps and at the end.
+    -> (state, log rows, first step, last step, seconds of the first (compiling) step)"""
     rep = step_lib.replicated(mesh)
     if resume:
-        template = jax.eval_shape(lambda: step_lib.init_state(cfg, model))
-        state = restore_state(saved[-1], template, rep)
-        log(f"resumed from {saved[-1]} (step {int(state.step)})")
+        saved = _state_dirs(out / "train_state")[-1]
+        state = restore_state(saved, jax.eval_shape(init), rep)
+        log(f"resumed from {saved} (step {int(state.step)})")
     else:
-        state = jax.device_put(step_lib.init_state(cfg, model), rep)
+        state = jax.device_put(init(), rep)
     start = int(state.step)
     log_path = out / "train_log.json"
     history = json.loads(log_path.read_text())["log"] if resume and log_path.is_file() else []
     history = [r for r in history if r["step"] <= start]
 
-    step_fn = step_lib.jitted_step(cfg, model, mesh)
     tty = sys.stderr.isatty()
     from tqdm import tqdm
 
@@ -173,7 +167,7 @@ def train(cfg: TrainConfig, demos_dir: str | Path, out_dir: str | Path, *, resum
     pending, t_window, compile_s, paused, n_window_start = [], time.perf_counter(), None, 0.0, start
     end = cfg.steps if stop_at is None else min(stop_at, cfg.steps)
     for step in range(start, end):
-        state, metrics = step_fn(state, data)
+        state, metrics = step_fn(state)
         pending.append(metrics)
         if compile_s is None:          # the first call compiles: time it apart from the throughput windows
             jax.block_until_ready(metrics)
@@ -201,20 +195,61 @@ def train(cfg: TrainConfig, demos_dir: str | Path, out_dir: str | Path, *, resum
         if done % cfg.save_every == 0 or done == end:
             jax.block_until_ready(state)
             t_save = time.perf_counter()
-            save_state(state_root, state, cfg.keep)
+            save_state(out / "train_state", state, cfg.keep)
             log_path.write_text(json.dumps({"config": cfg.name, "log": history}, indent=1) + "\n")
             paused += time.perf_counter() - t_save      # checkpoint time is not training throughput
     bar.close()
     log_path.write_text(json.dumps({"config": cfg.name, "log": history}, indent=1) + "\n")
+    return state, history, start, end, compile_s
+
+
+def finish(cfg: TrainConfig, out: Path, mesh: Mesh, state: step_lib.TrainState, history: list[dict], start: int,
+           end: int, compile_s: float | None, export_fn: Callable[[], Path], title: str, ylabel: str, log) -> dict:
+    """After run_steps: at cfg.steps plot OUT/loss.png and `export_fn()`. -> summary dict."""
     if end < cfg.steps:
         log(f"stopped at step {end} of {cfg.steps}; continue with --resume")
         return {"steps": cfg.steps, "start_step": start, "stopped_at": end, "compile_s": compile_s}
     if history:
-        plot_loss(history, out / "loss.png", f"{cfg.name} ({model.name}, batch {cfg.batch_size})")
-    ckpt = export(cfg, state, out)
+        plot_loss(history, out / "loss.png", title, ylabel)
+    ckpt = export_fn()
     rates = [r["samples_per_s"] for r in history[len(history) // 2:] if r["samples_per_s"]]
     summary = {"steps": cfg.steps, "start_step": start, "final_loss": history[-1]["loss"] if history else None,
                "compile_s": compile_s, "samples_per_s": float(np.median(rates)) if rates else None,
-               "checkpoint": str(ckpt), "devices": n_dev}
-    log(f"exported {ckpt} (step {cfg.steps}); final loss {summary['final_loss']}")
+               "checkpoint": str(ckpt), "devices": mesh.devices.size}
+    log(f"exported {ckpt} (step {int(state.step)}); final loss {summary['final_loss']}")
     return summary
+
+
+def train(cfg: TrainConfig, demos_dir: str | Path, out_dir: str | Path, *, resume: bool = False,
+          stop_at: int | None = None, max_episodes: int | None = None, log=print) -> dict:
+    """Train `cfg` on the demos, writing OUT/ as the module docstring says. -> summary dict.
+
+    stop_at: save the train state after this many steps and return without exporting (the schedule still runs to
+    cfg.steps; continue with resume=True)."""
+    model = cfg.model_config
+    out, mesh = open_run(cfg, out_dir, resume)
+
+    # Tokenizer and norm stats are computed once and kept, so a resumed run sees exactly the same inputs.
+    tok_path, stats_path = out / "tokenizer.model", out / "norm_stats.json"
+    prompts = data_lib.suite_prompts()
+    if not (resume and tok_path.is_file()):
+        tok_path.write_bytes(data_lib.train_tokenizer(prompts, min(model.vocab_size, 128)))
+    t0 = time.perf_counter()
+    ds = data_lib.load_demos(demos_dir, prompts, tok_path, model.max_token_len, max_episodes=max_episodes, log=log)
+    if resume and stats_path.is_file():
+        stats = nz.load_openpi_norm_stats(stats_path)
+    else:
+        stats = data_lib.norm_stats(ds)
+        nz.save_openpi_norm_stats(stats_path, stats)
+    (out / "train_config.json").write_text(json.dumps({"train": cfg.to_json(), "model": model.to_json(),
+                                                       "demos": str(demos_dir)}, indent=2) + "\n")
+    data = step_lib.device_data(ds, stats, mesh)
+    log_data(ds, mesh, cfg, time.perf_counter() - t0, log)
+    del ds
+
+    jitted = step_lib.jitted_step(cfg, model, mesh)
+    state, history, start, end, compile_s = run_steps(
+        cfg, out, mesh, lambda: step_lib.init_state(cfg, model), lambda s: jitted(s, data),
+        resume=resume, stop_at=stop_at, log=log)
+    return finish(cfg, out, mesh, state, history, start, end, compile_s, lambda: export(cfg, state, out),
+                  f"{cfg.name} ({model.name}, batch {cfg.batch_size})", "flow-matching loss (window mean)", log)
