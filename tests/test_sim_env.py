@@ -1,7 +1,8 @@
 """The MJX environment end to end, kept small for CPU CI (MJX compiles slowly: 32 x 32 cameras, few environments).
 
 * Smoke test over every registered task, through the demonstration writer: one expert episode per task, jitted
-  reset / step / observe every step, observation shapes and dtypes, no NaN, the expert succeeds, npz layout.
+  reset / step / observe every step, observation shapes and dtypes, no NaN, the expert succeeds (under DART action
+  noise), npz layout, and the recorded actions are the expert's clean ones.
 * The scripted expert through `pi0-jax eval`: two episodes of every task, eval_info.json, videos, the table.
 """
 
@@ -11,22 +12,26 @@ import numpy as np
 import pytest
 
 from pi0_jax import cli
-from pi0_jax.sim import demos, tasks
+from pi0_jax.sim import demos, expert, tasks
 
 RES = 32
+NOISE = 0.1
 
 
 @pytest.fixture(scope="module")
 def demo_dir(tmp_path_factory):
     out = tmp_path_factory.mktemp("demos")
     n = len(tasks.TASKS)
-    demos.write_demos(out, "all", episodes_per_task=1, batch=n, resolution=RES, keep_failures=True, log=lambda _: 0)
+    demos.write_demos(out, "all", episodes_per_task=1, batch=n, resolution=RES, keep_failures=True, log=lambda _: 0,
+                      action_noise=NOISE)
     return out
 
 
 def test_every_task_steps_renders_and_the_expert_solves_it(demo_dir):
     meta = json.loads((demo_dir / "meta.json").read_text())
-    assert meta["fps"] == 20 and meta["suite_version"] == tasks.SUITE_VERSION
+    assert meta["fps"] == 20 and meta["suite_version"] == tasks.SUITE_VERSION and meta["action_noise"] == NOISE
+    noise = [row["noise"] for row in meta["episodes"]]
+    assert all(0 <= s <= NOISE for s in noise) and max(noise) > NOISE / 4, noise   # per-episode scales, recorded
     assert sorted(e["task"] for e in meta["episodes"]) == sorted(tasks.SUITES["all"])
     for row in meta["episodes"]:
         ep = np.load(demo_dir / row["file"])
@@ -38,6 +43,9 @@ def test_every_task_steps_renders_and_the_expert_solves_it(demo_dir):
         assert ep["state"].shape == (t, 8) and ep["actions"].shape == (t, 7)
         assert np.isfinite(ep["state"]).all() and np.isfinite(ep["actions"]).all()
         assert np.abs(ep["actions"]).max() <= 1.0
+        # the labels are the expert's clean actions (it clips motion at MAX_ACTION); the executed ones were noisy
+        assert np.abs(ep["actions"][:, :6]).max() <= expert.MAX_ACTION + 1e-6
+        assert abs(float(ep["noise"]) - row["noise"]) < 1e-4        # meta.json rounds to 4 decimals
         assert ep["agentview"][0].std() > 5 and ep["wrist"][0].std() > 5          # not blank frames
         # LIBERO's 8-D state at the start: gripper open (+0.04, -0.04), pointing down (axis-angle norm ~ pi)
         np.testing.assert_allclose(ep["state"][0, 6:], [0.04, -0.04], atol=1e-6)
