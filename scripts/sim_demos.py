@@ -4,7 +4,7 @@
     # training data for pi0_small (pi0_jax/train): states 50..99, disjoint from the evaluation's 0..49
     python scripts/sim_demos.py OUT --episodes-per-task 50 --first-init 50 --resolution 112 --no-compress
     # with DART noise injection (recovery data): noisy execution, clean expert labels
-    python scripts/sim_demos.py OUT --episodes-per-task 50 --first-init 50 --resolution 112 --action-noise 0.3
+    python scripts/sim_demos.py OUT --episodes-per-task 50 --first-init 50 --resolution 112 --action-noise 0.2
 
 Layout and fields: pi0_jax/sim/demos.py. On a GPU the whole suite (550 episodes at 224 x 224) takes minutes; on a
 CPU use a small resolution.

@@ -8,17 +8,17 @@ Layout of OUT/:
       state     (T, 8) float32        eef position, axis-angle, gripper (LIBERO's 8-D state)
       actions   (T, 7) float32        EE delta (pos 3, axis-angle 3) + gripper, in [-1, 1]
       prompt    () str                the task's instruction (the same at every step)
-      task, init_state, success, length   scalars
+      task, init_state, success, length, noise   scalars (noise: the episode's action-noise scale, below)
 Episodes stop at the first success (the success step is the last one kept). Failed episodes are dropped unless
-`keep_failures`.
+`keep_failures`. Episode k of a task starts from its initial state first_init + k, so training demos can avoid the
+evaluation's states 0..49 (first_init=50); tasks.init_states makes state i the same whatever their number.
 
 Noise injection (DART, Laskey et al. 2017; `action_noise` > 0): the environment executes the expert's action plus
 Gaussian noise on the six motion dims (not the gripper), while the file records the expert's clean action. The
 demonstrations then visit states off the expert's own path, labelled with the expert's correction, which is what a
 cloned policy needs once its own small errors compound. The noise scale is drawn per episode, uniform in
 [0, action_noise], from the episode's (task, initial state) alone, so clean and noisy episodes are mixed and the
-files are reproducible; it is stored per episode (`noise`). Episode k of a task starts from its initial state first_init + k, so training demos can avoid the
-evaluation's states 0..49 (first_init=50); tasks.init_states makes state i the same whatever their number.
+files are reproducible; it is stored per episode (`noise`, in the npz and in meta.json).
 """
 
 from __future__ import annotations

@@ -10,8 +10,8 @@
 
 The full pipeline for the demo model (one GPU; scripts/gpu_suite.sh runs it):
 
-  python scripts/sim_demos.py DEMOS --suite all --episodes-per-task 100 --first-init 50 --resolution 112 \\
-      --no-compress --batch 256                            # expert demos on initial states 50..149 (eval: 0..49)
+  python scripts/sim_demos.py DEMOS --suite all --episodes-per-task 400 --first-init 50 --resolution 112 \\
+      --no-compress --batch 550 --action-noise 0.2        # DART demos on initial states 50..449 (eval: 0..49)
   pi0-jax train --config pi0_small_suite --demos DEMOS --out RUN
   pi0-jax eval --policy RUN/checkpoint --resolution 112 --episodes-per-task 50
 """

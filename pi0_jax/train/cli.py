@@ -12,8 +12,8 @@ DESCRIPTION = """\
 Train a π0 from scratch with the flow-matching loss on a demos directory written by scripts/sim_demos.py
 (meta.json + episode_*.npz). AdamW with warm-up + cosine decay, gradient clipping, an EMA of the weights, bf16
 compute over f32 master weights, data parallel over every local device (the global batch is split among them).
-The whole dataset is put on every device once (uint8 images: ~10 GB for the full suite at 112 px) and each batch is
-gathered, normalised and augmented inside the jitted step.
+The whole dataset is put on every device once (uint8 images: ~18 GB for the embedded model's 4,400 demos at
+112 px) and each batch is gathered, normalised and augmented inside the jitted step.
 
 Writes OUT/: tokenizer.model and norm_stats.json (computed from the demos), train_state/ (orbax, every
 --save-every steps), train_log.json, loss.png and, at the end, checkpoint/ (the EMA weights as a pi0-jax checkpoint
@@ -21,7 +21,8 @@ with its tokenizer and norm stats; `pi0-jax eval --policy OUT/checkpoint` and Po
 Every batch and noise draw comes from (seed, step), so --resume continues bit-identically.
 
 Pipeline of the demo model (see pi0_jax/train/__init__.py and scripts/gpu_suite.sh):
-  python scripts/sim_demos.py DEMOS --episodes-per-task 50 --first-init 50 --resolution 112 --no-compress
+  python scripts/sim_demos.py DEMOS --episodes-per-task 400 --first-init 50 --resolution 112 --no-compress \
+      --action-noise 0.2
   pi0-jax train --config pi0_small_suite --demos DEMOS --out RUN
   pi0-jax eval --policy RUN/checkpoint --resolution 112 --episodes-per-task 50
 """

@@ -52,9 +52,10 @@ class TrainConfig:
 
 
 PRESETS: dict[str, TrainConfig] = {
-    # The embedded demo model: pi0_small from scratch on 100 expert demos per task at 112 px. On one H100: 8,845
-    # samples/s at batch 256, so 10k steps (2.56 M samples, ~32 passes) take ~5 minutes plus ~35 s of compilation.
-    "pi0_small_suite": TrainConfig(name="pi0_small_suite", model="pi0_small", steps=10_000, batch_size=256, lr=5e-4,
+    # The embedded demo model: pi0_small from scratch on 400 DART expert demos per task at 112 px (~254 k frames).
+    # On one H100: 8,780 samples/s at batch 256, so 22k steps (5.6 M samples, ~22 passes) take ~11 minutes plus
+    # ~40 s of compilation.
+    "pi0_small_suite": TrainConfig(name="pi0_small_suite", model="pi0_small", steps=22_000, batch_size=256, lr=5e-4,
                                    warmup_steps=500, decay_lr=2.5e-5, log_every=100, save_every=2500),
     # CPU smoke / tests: the dummy model shaped like pi0_small (2 cameras, 8-D actions, 32 tokens) at 56 px.
     "dummy_smoke": TrainConfig(name="dummy_smoke", model="dummy", steps=20, batch_size=8, lr=3e-3, warmup_steps=2,
@@ -107,8 +108,9 @@ class DistillConfig:
 
 DISTILL_PRESETS: dict[str, DistillConfig] = {
     # pi0_small_suite's model -> 1 Euler step: the student starts at the teacher, so a lower peak lr and a short
-    # warm-up; each step also runs the teacher's 10-step sampler (forward only) on the batch.
-    "pi0_small_distill": DistillConfig(TrainConfig(name="pi0_small_distill", model=None, steps=2000, batch_size=256,
+    # warm-up; each step also runs the teacher's 10-step sampler (forward only) on the batch. docs/RESULTS.md ran
+    # 3,000 steps (~2 minutes on one H100).
+    "pi0_small_distill": DistillConfig(TrainConfig(name="pi0_small_distill", model=None, steps=3000, batch_size=256,
                                                    lr=1e-4, warmup_steps=100, decay_lr=1e-5, log_every=50,
                                                    save_every=500)),
     # CPU tests: a dummy_smoke teacher.
