@@ -55,16 +55,16 @@ def _demo_parser(subparsers) -> None:
 def _run_demo(args: argparse.Namespace) -> int:
     from pi0_jax.checkpoint import read_meta
     from pi0_jax.config import Pi0Config
+    from pi0_jax.sim.cli import default_num_steps
     from pi0_jax.sim.evaluate import EvalConfig, evaluate, format_table
 
     with resources.as_file(resources.files("pi0_jax") / "assets" / EMBEDDED_MODEL) as embedded:
         ckpt = args.checkpoint or embedded
-        meta = read_meta(ckpt)
-        config = Pi0Config.from_json(meta["model"])
+        config = Pi0Config.from_json(read_meta(ckpt)["model"])
         cfg = EvalConfig(suite=args.suite, episodes_per_task=args.episodes_per_task, batch=args.batch,
                          replan_steps=args.replan_steps, resolution=config.image_size, seed=args.seed,
                          videos=args.videos,
-                         num_steps=meta.get("num_steps", 10) if args.num_steps is None else args.num_steps)
+                         num_steps=default_num_steps(str(ckpt)) if args.num_steps is None else args.num_steps)
         info = evaluate(str(ckpt), cfg, args.output_dir, progress=not args.no_progress,
                         policy_kwargs={"dtype": args.dtype})
     a = info["aggregated"]
