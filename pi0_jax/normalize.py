@@ -205,6 +205,13 @@ class Normalizer:
             return np.asarray(x, np.float64)
         return unnormalize(x, stats, mode, self.convention, eps=self.eps, key=key)
 
+    def affine(self, key: str, dim: int, *, inverse: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """The (un)normalisation of `dim` dims as float32 (scale, offset), y = x * scale + offset, for use on device.
+        Every mode is affine per dimension, so the exact float64 formulas are evaluated once, at x = 0 and x = 1."""
+        fn = self.unnormalize if inverse else self.normalize
+        zero, one = fn(key, np.zeros(dim)), fn(key, np.ones(dim))
+        return (one - zero).astype(np.float32), zero.astype(np.float32)
+
     def dim(self, key: str) -> int | None:
         """The stats' dim for a key (the dataset's action dim for "actions"), or None without stats."""
         return self.stats[key].dim if key in self.stats else None

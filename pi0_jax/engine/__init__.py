@@ -1,5 +1,5 @@
 """Compiled static-shape inference: vision encoder, prefix KV-cache fill, fixed-step denoise, and one fused program."""
 
-from pi0_jax.engine.runtime import Engine, enable_compilation_cache, prompt_bucket
+from pi0_jax.engine.runtime import Engine, enable_compilation_cache, engine_weights, prompt_bucket
 
-__all__ = ["Engine", "enable_compilation_cache", "prompt_bucket"]
+__all__ = ["Engine", "enable_compilation_cache", "engine_weights", "prompt_bucket"]

@@ -114,8 +114,11 @@ def _by_layer(x, unroll):
 
 def denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixCache, state, noise, *, num_steps: int,
             unroll: bool, unroll_steps: bool, attention: str = "xla") -> jax.Array:
-    """num_steps Euler steps from noise (t = 1) to actions (t = 0); the loop has a fixed trip count."""
+    """num_steps Euler steps from noise (t = 1) to actions (t = 0): a fixed trip count for a Python int, a while
+    loop for a traced int32 (then `sched` must hold at least num_steps entries)."""
     dt = -1.0 / num_steps
+    if not isinstance(num_steps, int):
+        dt, unroll_steps = jnp.asarray(dt, jnp.float32), None   # f32 as the reference's traced dt
 
     def step(i, x_t):
         v = velocity(config, weights, sched, i, cache, state, x_t, unroll=unroll, attention=attention)

@@ -47,6 +47,17 @@ def prompt_bucket(valid_len: int, max_len: int) -> int:
     return max_len
 
 
+def engine_weights(config: Pi0Config, params: dict, *, unroll: bool = True) -> dict:
+    """The programs' weights (`weights.prepare`, on device); unroll: per-layer buffers for unrolled layers."""
+    w = jax.jit(functools.partial(weights_lib.prepare, config))(params)
+    if unroll:
+        depth = config.paligemma.depth
+        w["vlm"] = weights_lib.unstack(w["vlm"], depth)
+        w["expert"] = weights_lib.unstack(w["expert"], depth)
+        w["img"] = siglip.unstack_blocks(w["img"], config.siglip.depth)
+    return w
+
+
 class Engine:
     """Compiled inference for one model.
 
@@ -69,13 +80,7 @@ class Engine:
         self.unroll = unroll
         self.unroll_steps = unroll_steps
         self._schedule_params = weights_lib.schedule_params(config, params)  # not the whole tree: it is 6 GB
-        w = jax.jit(functools.partial(weights_lib.prepare, config))(params)
-        if unroll:
-            depth = config.paligemma.depth
-            w["vlm"] = weights_lib.unstack(w["vlm"], depth)
-            w["expert"] = weights_lib.unstack(w["expert"], depth)
-            w["img"] = siglip.unstack_blocks(w["img"], config.siglip.depth)
-        self.weights = w
+        self.weights = engine_weights(config, params, unroll=unroll)
         self._schedules: dict[int, dict] = {}
         self._executables: dict[tuple, jax.stages.Compiled] = {}
         self.compile_seconds: dict[tuple, float] = {}

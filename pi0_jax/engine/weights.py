@@ -23,14 +23,21 @@ from pi0_jax import pi0, quant
 from pi0_jax.config import Pi0Config
 
 
-def step_times(num_steps: int) -> np.ndarray:
-    """t_k at which the velocity is evaluated, accumulated in f32 exactly as the reference sampler does."""
-    dt = np.float32(-1.0 / num_steps)
-    t, out = np.float32(1.0), []
-    for _ in range(num_steps):
-        out.append(t)
-        t = np.float32(t + dt)
-    return np.asarray(out, np.float32)
+def step_times(num_steps, length: int | None = None):
+    """t_k at which the velocity is evaluated, accumulated in f32 exactly as the reference sampler does.
+
+    num_steps: a Python int (numpy result), or a traced int32 with a static `length` >= it (the first num_steps
+    entries are the times; the rest continue the same arithmetic and are never read)."""
+    if length is None:
+        dt = np.float32(-1.0 / num_steps)
+        t, out = np.float32(1.0), []
+        for _ in range(num_steps):
+            out.append(t)
+            t = np.float32(t + dt)
+        return np.asarray(out, np.float32)
+    dt = (-1.0 / jnp.asarray(num_steps, jnp.float32)).astype(jnp.float32)
+    _, times = jax.lax.scan(lambda t, _: (t + dt, t), jnp.float32(1.0), None, length=length)
+    return times
 
 
 def _rearrange(w, pattern: str, dtype):
@@ -85,8 +92,9 @@ def prepare(config: Pi0Config, params: dict) -> dict:
     return out
 
 
-def precompute_schedule(config: Pi0Config, params: dict, num_steps: int) -> dict:
-    """Everything that depends only on the step times. Pure; jit it to run on device.
+def precompute_schedule(config: Pi0Config, params: dict, num_steps, length: int | None = None) -> dict:
+    """Everything that depends only on the step times. Pure; jit it to run on device. A traced num_steps needs a
+    static `length` (the schedule's leading axis; see `step_times`).
 
     π0.5: `mods_attn`, `mods_ffw` (T, L, 3 D) and `mods_final` (T, 3 D): the adaRMS Dense outputs, computed in the
     activation dtype as the reference does (cond cast to it, then Dense). π0: `time_in` (T, D) = the time half of
@@ -94,7 +102,7 @@ def precompute_schedule(config: Pi0Config, params: dict, num_steps: int) -> dict
     """
     dtype = jnp.dtype(config.dtype)
     width = config.action_expert.width
-    t = jnp.asarray(step_times(num_steps))
+    t = jnp.asarray(step_times(num_steps, length))
     emb = pi0.posemb_sincos(t, width)  # (T, D) f32
     if config.pi05:
         def dense(p, x):
