@@ -1,27 +1,19 @@
-"""`Policy.infer(obs) -> {"actions", "policy_timing"}`, like openpi's `Policy.infer` with its LIBERO transforms.
+"""`Policy.infer(obs) -> {"actions", "policy_timing"}`, like openpi's `Policy.infer` with its LIBERO transforms, on
+the compiled engine.
 
-Pipeline (openpi `create_trained_policy` order, spec §13):
-  cameras -> slots (`camera_map`) -> images to (1, 224, 224, 3) in [-1, 1], missing slots black with mask False
-  state -> normalise (un-padded) -> [π0.5 `discrete_state_input`: write it into the prompt] -> zero-pad to action_dim
-  prompt -> tokenize -> jitted `pi0.sample_actions` -> slice to the dataset's action dim -> un-normalise.
-(openpi un-normalises all 32 dims and then slices; per-dim stats make that the same, and it is what LeRobot does.)
+One pipeline serves every caller (`Policy.infer` / `infer_batch`, the policy server, the simulator's rollout):
 
-Observation keys (one observation, no batch axis; a leading batch of 1 on images/state is tolerated):
+  host    `pi0_jax.observation.validate`: keys, cameras, dtypes, shapes and finiteness checked, the prompt tokenised
+          (cached per prompt string; π0.5 with the state in the prompt tokenises per call);
+  device  `PolicyCore.program`, one compiled program per shape bucket (batch, camera shapes, prompt bucket):
+          uint8 -> [-1, 1] and resize-with-pad to the model's size, state normalised and zero-padded, the engine's
+          vision -> prefix cache -> denoise (masked cameras not encoded, the prompt cut to its bucket), actions
+          sliced to the dataset's dims and un-normalised.
 
-| what   | openpi LIBERO            | LeRobot                               | model slot / meaning        |
-|--------|--------------------------|---------------------------------------|-----------------------------|
-| camera | `observation/image`      | `observation.images.image`,           | `base_0_rgb`                |
-|        |                          | `observation.images.base_0_rgb`       |                             |
-| camera | `observation/wrist_image`| `observation.images.wrist_image`,     | `left_wrist_0_rgb`          |
-|        |                          | `observation.images.image2`,          |                             |
-|        |                          | `observation.images.left_wrist_0_rgb` |                             |
-| camera |                          | `observation.images.right_wrist_0_rgb`| `right_wrist_0_rgb`         |
-| state  | `observation/state`      | `observation.state`                   | (also plain `state`)        |
-| prompt | `prompt`                 | `task`                                |                             |
-
-Bare slot names (`base_0_rgb`, ...) are accepted too. `camera_map` entries extend / override this table; map a key
-to None to ignore it. Any other key that looks like a camera (`observation.images.*`, `observation/*image*`) raises,
-so a mis-named camera is never silently dropped. Image value/layout rules: `pi0_jax.preprocess`.
+Normalisation runs on device as x * scale + offset (`Normalizer.affine`): every mode is affine per dimension, and
+the scale/offset come from the exact float64 formulas (openpi un-normalises all 32 dims and then slices; per-dim
+stats make that the same, and it is what LeRobot does). `sampler="reference"` runs `pi0.sample_actions` (openpi's
+structure) inside the same pipeline instead of the engine: the parity path.
 
 Conventions follow where the stats came from: openpi `norm_stats.json` -> openpi eps, quantiles for π0.5 and
 z-score for π0, and the state prompt lists the un-padded state; LeRobot processor files -> LeRobot eps and the modes
@@ -30,9 +22,12 @@ they name, and the state prompt lists the state zero-padded to action_dim (LeRob
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import os
+import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -43,84 +38,210 @@ import numpy as np
 from pi0_jax import normalize as _norm
 from pi0_jax import pi0
 from pi0_jax.config import IMAGE_KEYS, Pi0Config
-from pi0_jax.preprocess import pad_to_dim, preprocess_image
+from pi0_jax.engine import engine_weights, enable_compilation_cache, prompt_bucket
+from pi0_jax.engine import programs
+from pi0_jax.engine import weights as weights_lib
+from pi0_jax.observation import (DEFAULT_OPTIONAL_CAMERAS, ObservationError, Prepared, Validator)
+from pi0_jax.preprocess import _resize_with_pad
 from pi0_jax.tokenizer import PaligemmaTokenizer
 
-DEFAULT_CAMERA_MAP: dict[str, str] = {
-    # openpi LIBERO client (examples/libero/main.py).
-    "observation/image": "base_0_rgb",
-    "observation/wrist_image": "left_wrist_0_rgb",
-    # LeRobot LIBERO datasets / env.
-    "observation.images.image": "base_0_rgb",
-    "observation.images.wrist_image": "left_wrist_0_rgb",
-    "observation.images.image2": "left_wrist_0_rgb",
-    # LeRobot features already named after the slots, and the bare slot names.
-    **{f"observation.images.{k}": k for k in IMAGE_KEYS},
-    **{k: k for k in IMAGE_KEYS},
-}
-STATE_KEYS = ("observation/state", "observation.state", "state")
-PROMPT_KEYS = ("prompt", "task")
+__all__ = ["ObservationError", "Policy", "PolicyCore", "Prepared", "find_tokenizer"]
+
 TOKENIZER_FILE = "tokenizer.model"
+SAMPLERS = ("engine", "reference")
 
 
-def _looks_like_camera(key: str) -> bool:
-    return key.startswith("observation.images.") or (key.startswith("observation/") and "image" in key)
+def batch_buckets(max_batch: int) -> tuple[int, ...]:
+    """Batch sizes compiled for up to max_batch requests: powers of two, then max_batch itself."""
+    out, b = [], 1
+    while b < max_batch:
+        out.append(b)
+        b *= 2
+    return (*out, max_batch)
 
 
-def _first(obs: Mapping[str, Any], keys: tuple[str, ...]) -> tuple[str | None, Any]:
-    present = [k for k in keys if k in obs]
-    if len(present) > 1:
-        raise ValueError(f"observation has several of {present}; send one")
-    return (present[0], obs[present[0]]) if present else (None, None)
+class PolicyCore:
+    """A model plus its transforms as pure device functions, independent of where the inputs come from.
 
+    `model` (engine weights and step schedule, or the reference params) and `norm` (affine (un)normalisation) are
+    pytrees passed to every program as arguments, never baked in as constants.
+    """
 
-class Policy:
-    """A loaded model plus its transforms. `infer` takes one observation dict and returns an action chunk."""
-
-    def __init__(self, config: Pi0Config, params, tokenizer: PaligemmaTokenizer, normalizer: _norm.Normalizer, *,
-                 num_steps: int = 10, camera_map: Mapping[str, str | None] | None = None,
-                 action_dims: int | None = None, seed: int = 0, default_prompt: str | None = None):
+    def __init__(self, config: Pi0Config, params: dict | None, tokenizer: PaligemmaTokenizer,
+                 normalizer: _norm.Normalizer, *, num_steps: int = 10, action_dims: int | None = None, sampler: str = "engine",
+                 unroll: bool = True):
         if tokenizer.max_len != config.max_token_len:
             raise ValueError(f"tokenizer max_len {tokenizer.max_len} != config.max_token_len {config.max_token_len}")
-        self.config = config
-        self.tokenizer = tokenizer
-        self.normalizer = normalizer
-        self.num_steps = int(num_steps)
-        self.camera_map = {**DEFAULT_CAMERA_MAP, **(camera_map or {})}
-        self.slots = IMAGE_KEYS[: config.num_cameras]
-        for key, slot in self.camera_map.items():
-            if slot is not None and slot not in IMAGE_KEYS:
-                raise ValueError(f"camera_map[{key!r}] = {slot!r} is not a camera slot {IMAGE_KEYS}")
+        if sampler not in SAMPLERS:
+            raise ValueError(f"sampler must be one of {SAMPLERS}, got {sampler!r}")
         if action_dims is None:
             action_dims = normalizer.dim(_norm.ACTIONS) or config.action_dim
         if not 0 < action_dims <= config.action_dim:
             raise ValueError(f"action_dims must be in [1, {config.action_dim}], got {action_dims}")
-        self.action_dims = int(action_dims)
-        self.default_prompt = default_prompt
-        self._params = jax.device_put(params)
-        self._rng = jax.random.key(seed)
-        # One compiled program per Policy: config and num_steps are closed over (static), the rest are arguments.
-        self._sample = jax.jit(
-            lambda params, obs, noise: pi0.sample_actions(config, params, obs, noise, num_steps=self.num_steps))
+        self.config, self.tokenizer, self.normalizer = config, tokenizer, normalizer
+        self.num_steps, self.action_dims, self.sampler, self.unroll = int(num_steps), int(action_dims), sampler, unroll
+        self.slots = IMAGE_KEYS[: config.num_cameras]
+        # The state's dims as the stats know them (None: no stats, so only <= action_dim can be checked).
+        self.state_dim = normalizer.dim(_norm.STATE)
+        self.reads_state = not config.pi05 or config.discrete_state_input
+        self.norm = self._norm_arrays()
+        if params is None:   # the transforms alone (`preprocess`, tokenisation)
+            self.model = None
+        elif sampler == "engine":
+            self._sched_params = weights_lib.schedule_params(config, params)
+            self.model = {"weights": engine_weights(config, params, unroll=unroll),
+                          "sched": jax.jit(weights_lib.precompute_schedule, static_argnums=(0, 2))(
+                              config, self._sched_params, self.num_steps)}
+        else:
+            self.model = {"params": jax.device_put(params)}
+
+    def dynamic_model(self) -> dict:
+        """`model` for programs whose step count is traced (one compile for every count up to max_dynamic_steps):
+        the engine's schedule is then computed inside the program from the time-MLP / adaRMS params."""
+        if self.sampler != "engine":
+            return self.model
+        return {"weights": self.model["weights"], "sched_params": self._sched_params}
+
+    def _norm_arrays(self) -> dict:
+        cfg, n = self.config, self.state_dim
+        if self.reads_state and n is not None:
+            scale, offset = self.normalizer.affine(_norm.STATE, n)
+        elif self.reads_state:
+            scale, offset = self.normalizer.affine(_norm.STATE, cfg.action_dim)   # identity: nothing to slice
+            n = cfg.action_dim
+        else:
+            scale, offset, n = np.zeros(0, np.float32), np.zeros(0, np.float32), 0   # π0.5 never reads it
+        pad = cfg.action_dim - n   # padded dims stay exactly 0, as zero-padding after normalising
+        a_scale, a_offset = self.normalizer.affine(_norm.ACTIONS, self.action_dims, inverse=True)
+        return {"state_scale": np.pad(scale, (0, pad)), "state_offset": np.pad(offset, (0, pad)),
+                "action_scale": a_scale, "action_offset": a_offset}
+
+    # -- host side ------------------------------------------------------------------------------------------------
+    @functools.lru_cache(maxsize=1024)
+    def tokenize_prompt(self, prompt: str) -> tuple[np.ndarray, np.ndarray]:
+        """(tokens (L,) int32, mask (L,) bool) of a prompt without state, cached per string (read-only arrays)."""
+        tokens, mask = self.tokenizer.tokenize(prompt)
+        tokens.flags.writeable = mask.flags.writeable = False
+        return tokens, mask
+
+    def tokenize(self, prompt: str, normalized_state: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """The prompt's tokens; π0.5 with `discrete_state_input` writes the normalised state into it."""
+        cfg = self.config
+        if not (cfg.pi05 and cfg.discrete_state_input):
+            return self.tokenize_prompt(prompt)
+        # openpi tokenizes before padding; LeRobot pads to max_state_dim first, so its prompt lists 32 numbers.
+        state = normalized_state
+        if self.normalizer.convention is _norm.Convention.LEROBOT:
+            state = np.pad(state, (0, cfg.action_dim - state.shape[0]))
+        return self.tokenizer.tokenize(prompt, state)
+
+    max_dynamic_steps = 16
+
+    def _schedule(self, model: dict, num_steps) -> dict:
+        if "sched" in model:
+            if num_steps != self.num_steps:
+                raise ValueError(f"this model's schedule is for {self.num_steps} steps, not {num_steps}; "
+                                 "use dynamic_model()")
+            return model["sched"]
+        length = None if isinstance(num_steps, int) else self.max_dynamic_steps
+        return weights_lib.precompute_schedule(self.config, model["sched_params"], num_steps, length)
+
+    # -- device side ----------------------------------------------------------------------------------------------
+    def preprocess(self, norm, images: Sequence[jax.Array], state: jax.Array) -> tuple[list[jax.Array], jax.Array]:
+        """The input transforms on device: images -> (B, size, size, 3) f32 in [-1, 1]; raw state -> normalised."""
+        size, pixels = self.config.image_size, []
+        for x in images:
+            x = x.astype(jnp.float32) / 255.0 * 2.0 - 1.0 if x.dtype == jnp.uint8 else x.astype(jnp.float32)
+            pixels.append(x if x.shape[1:3] == (size, size) else _resize_with_pad(x, size, size, True))
+        return pixels, state.astype(jnp.float32) * norm["state_scale"] + norm["state_offset"]
+
+    def program(self, model, norm, images: Sequence[jax.Array], cameras: Sequence[str], image_masks, tokens,
+                token_mask, state, noise, *, num_steps=None) -> jax.Array:
+        """The whole policy on device. Pure and traceable (jit it, or call it inside a larger jitted program).
+
+        images: one (B, h, w, 3) array per camera in `cameras` (static), uint8 or float32 already in [-1, 1], any
+        size (resized with padding to the model's); image_masks (C, B) bool; tokens / token_mask (B, L), L a prompt
+        bucket; state (B, action_dim) raw, zero-padded; noise (B, H, action_dim) f32 at t = 1.
+        num_steps: None (the core's); another int or a traced int32 <= `max_dynamic_steps` needs `dynamic_model()`.
+        Returns (B, H, action_dims) f32 actions, un-normalised.
+        """
+        cfg, size = self.config, self.config.image_size
+        num_steps = self.num_steps if num_steps is None else num_steps
+        pixels, state = self.preprocess(norm, images, state)
+        noise = noise.astype(jnp.float32)
+        if self.sampler == "engine":
+            actions = programs.infer(cfg, model["weights"], self._schedule(model, num_steps), jnp.stack(pixels),
+                                     image_masks, tokens, token_mask, state, noise, num_steps=num_steps,
+                                     unroll=self.unroll, unroll_steps=False)
+        else:
+            b = noise.shape[0]
+            black = jnp.full((b, size, size, 3), -1.0, jnp.float32)
+            by_slot = dict(zip(cameras, pixels))
+            masks = dict(zip(cameras, image_masks))
+            obs = pi0.Observation(images={k: by_slot.get(k, black) for k in self.slots},
+                                  image_masks={k: masks.get(k, jnp.zeros((b,), bool)) for k in self.slots},
+                                  state=state, tokenized_prompt=tokens, tokenized_prompt_mask=token_mask)
+            actions = pi0.sample_actions(cfg, model["params"], obs, noise, num_steps=num_steps)
+        actions = actions[..., : self.action_dims].astype(jnp.float32)
+        return actions * norm["action_scale"] + norm["action_offset"]
+
+
+class Policy:
+    """A loaded model plus its transforms. `infer` takes one observation dict and returns an action chunk.
+
+    strict: unknown observation keys are an error (False: ignored). optional_cameras: camera slots that may be
+    missing (masked, as LIBERO's absent right wrist); default `observation.DEFAULT_OPTIONAL_CAMERAS`. max_batch: the
+    largest batch one device call takes (`infer_batch` and the server split larger ones).
+    """
+
+    def __init__(self, config: Pi0Config, params, tokenizer: PaligemmaTokenizer, normalizer: _norm.Normalizer, *,
+                 num_steps: int = 10, camera_map: Mapping[str, str | None] | None = None,
+                 action_dims: int | None = None, seed: int = 0, default_prompt: str | None = None,
+                 sampler: str = "engine", strict: bool = True, optional_cameras: Sequence[str] | None = None,
+                 ignore_keys: Sequence[str] = (), max_batch: int = 8,
+                 cache_dir: str | os.PathLike | None | bool = None):
+        if cache_dir is not False:
+            enable_compilation_cache(None if cache_dir in (None, True) else cache_dir)
+        self.core = PolicyCore(config, params, tokenizer, normalizer, num_steps=num_steps, action_dims=action_dims,
+                               sampler=sampler)
+        self.validator = Validator(self.core, camera_map=camera_map, default_prompt=default_prompt, strict=strict,
+                                   optional_cameras=DEFAULT_OPTIONAL_CAMERAS if optional_cameras is None
+                                   else optional_cameras, ignore_keys=ignore_keys)
+        self.batch_buckets = batch_buckets(int(max_batch))
+        self._norm = jax.device_put(self.core.norm)
+        self._noise_rng = np.random.default_rng(seed)
+        self._executables: dict[tuple, jax.stages.Compiled] = {}
+        self.compile_seconds: dict[tuple, float] = {}
+        self._lock = threading.Lock()
+
+    config = property(lambda self: self.core.config)
+    normalizer = property(lambda self: self.core.normalizer)
+    tokenizer = property(lambda self: self.core.tokenizer)
+    num_steps = property(lambda self: self.core.num_steps)
+    action_dims = property(lambda self: self.core.action_dims)
 
     # -----------------------------------------------------------------------------------------------------------------
     @classmethod
     def from_checkpoint(cls, path: str | os.PathLike, *, tokenizer_path: str | os.PathLike | None = None,
                         norm_stats: _norm.Normalizer | Mapping[str, _norm.NormStats] | str | os.PathLike | None = None,
-                        num_steps: int = 10, camera_map: Mapping[str, str | None] | None = None,
-                        action_dims: int | None = None, seed: int = 0,
-                        default_prompt: str | None = None) -> Policy:
+                        dtype: str | None = None, num_steps: int | None = None, **kw) -> Policy:
         """Load a converted checkpoint dir (`checkpoint.load_checkpoint`) with its assets.
 
         tokenizer_path: default `<path>/tokenizer.model`, then `<path>/assets/tokenizer.model`.
         norm_stats: None -> found under `<path>/assets` (`normalize.find_norm_stats`); a Normalizer; a {key:
           NormStats} dict (openpi convention); a norm_stats.json file or LeRobot processor dir; or "identity".
+        dtype: param and compute dtype (default: the checkpoint's). num_steps: default the checkpoint's recorded
+          `num_steps` (a distilled student's), else 10. Other keywords: `Policy(...)`.
         """
         from pi0_jax import checkpoint
 
         path = Path(path)
-        config, params = checkpoint.load_checkpoint(path)
-        tokenizer = PaligemmaTokenizer(_find_tokenizer(path, tokenizer_path), config.max_token_len)
+        config, params = checkpoint.load_checkpoint(path, dtype=dtype)
+        if dtype is not None:
+            config = config.replace(dtype=dtype)
+        if num_steps is None:
+            num_steps = int(checkpoint.read_meta(path).get("num_steps", 10))
+        tokenizer = PaligemmaTokenizer(find_tokenizer(path, tokenizer_path), config.max_token_len)
         use_quantiles = config.pi05  # openpi: quantiles for every model type but PI0
         if isinstance(norm_stats, _norm.Normalizer):
             normalizer = norm_stats
@@ -130,108 +251,131 @@ class Policy:
             normalizer = _norm.Normalizer.openpi(norm_stats, use_quantiles=use_quantiles)
         else:
             normalizer = _norm.load_normalizer(path if norm_stats is None else norm_stats, use_quantiles=use_quantiles)
-        return cls(config, params, tokenizer, normalizer, num_steps=num_steps, camera_map=camera_map,
-                   action_dims=action_dims, seed=seed, default_prompt=default_prompt)
+        return cls(config, params, tokenizer, normalizer, num_steps=num_steps, **kw)
 
     # -----------------------------------------------------------------------------------------------------------------
-    def make_observation(self, obs: Mapping[str, Any]) -> pi0.Observation:
-        """The transforms alone: one observation dict -> a batch-1 `pi0.Observation` (numpy leaves)."""
+    def prepare(self, obs: Mapping[str, Any], noise=None) -> Prepared:
+        """Validate one observation and tokenise its prompt (host only). Raises `ObservationError` naming the key.
+
+        noise: (H, action_dim) or (1, H, action_dim) at t = 1; None draws it from the policy's seeded generator, so
+        the order of `prepare` calls fixes which request gets which noise."""
         cfg = self.config
-        size = cfg.image_size
-        images, masks = {}, {}
-        for key, value in obs.items():
-            slot = self.camera_map.get(key, "unmapped")
-            if slot == "unmapped":
-                if _looks_like_camera(key):
-                    raise ValueError(f"camera {key!r} has no slot; add it to camera_map (slot or None to ignore); "
-                                     f"known: {sorted(k for k, v in self.camera_map.items() if v)}")
-                continue
-            if slot is None or slot not in self.slots:
-                continue
-            if slot in images:
-                raise ValueError(f"two observation keys map to camera slot {slot!r}")
-            img = preprocess_image(value, size=size)
-            if img.shape[0] != 1:
-                raise ValueError(f"{key!r}: one observation expected, got a batch of {img.shape[0]}")
-            images[slot], masks[slot] = img, np.ones((1,), bool)
-        if not images:
-            raise ValueError(f"no camera found in observation keys {sorted(obs)}; see camera_map")
-        for slot in self.slots:
-            if slot not in images:  # LIBERO's right wrist: a black frame (uint8 zeros) that attention never sees
-                images[slot] = np.full((1, size, size, 3), -1.0, np.float32)
-                masks[slot] = np.zeros((1,), bool)
+        shape = (cfg.action_horizon, cfg.action_dim)
+        if noise is None:
+            with self._lock:
+                noise = self._noise_rng.standard_normal(shape, np.float32)
+        return self.validator.validate(obs, noise)
 
-        state_key, state = _first(obs, STATE_KEYS)
-        model_reads_state = not cfg.pi05 or cfg.discrete_state_input
-        if state is None:
-            if model_reads_state:
-                raise KeyError(f"observation has no state (one of {STATE_KEYS})")
-            state = np.zeros((0,), np.float64)  # π0.5 without state input never reads it
-        state = np.asarray(state, np.float64)
-        if state.ndim == 2 and state.shape[0] == 1:
-            state = state[0]
-        if state.ndim != 1:
-            raise ValueError(f"{state_key!r}: expected a 1-D state, got shape {state.shape}")
-        if state.shape[0] > cfg.action_dim:
-            raise ValueError(f"{state_key!r} has {state.shape[0]} dims, more than the model's {cfg.action_dim}")
-        if state.shape[0]:
-            state = self.normalizer.normalize(_norm.STATE, state)
+    def make_observation(self, obs: Mapping[str, Any]) -> pi0.Observation:
+        """The host transforms alone, as the reference model's batch-1 `pi0.Observation` (images at the model's
+        size in [-1, 1], state normalised and padded); for inspection and tests."""
+        p = self.prepare(obs, np.zeros((self.config.action_horizon, self.config.action_dim), np.float32))
+        core, size = self.core, self.config.image_size
+        images = {k: np.full((1, size, size, 3), -1.0, np.float32) for k in core.slots}
+        for slot, x in p.images.items():
+            x = x.astype(np.float32) / 255.0 * 2.0 - 1.0 if x.dtype == np.uint8 else x
+            images[slot] = np.asarray(_resize_with_pad(jnp.asarray(x[None]), size, size, True)
+                                      if x.shape[:2] != (size, size) else x[None])
+        state = p.state * core.norm["state_scale"] + core.norm["state_offset"]
+        return pi0.Observation(images=images, image_masks={k: np.array([k in p.images]) for k in core.slots},
+                               state=state[None], tokenized_prompt=p.tokens[None],
+                               tokenized_prompt_mask=p.token_mask[None])
 
-        _, prompt = _first(obs, PROMPT_KEYS)
-        if prompt is None:
-            if self.default_prompt is None:
-                raise KeyError(f"observation has no prompt (one of {PROMPT_KEYS}) and no default_prompt is set")
-            prompt = self.default_prompt
-        prompt_state = None
-        if cfg.pi05 and cfg.discrete_state_input:
-            # openpi tokenizes before padding; LeRobot pads to max_state_dim first, so its prompt lists 32 numbers.
-            prompt_state = (pad_to_dim(state, cfg.action_dim)
-                            if self.normalizer.convention is _norm.Convention.LEROBOT else state)
-        tokens, token_mask = self.tokenizer.tokenize(prompt, prompt_state)
-        if tokens.max(initial=0) >= cfg.vocab_size:
-            raise ValueError(f"token id {int(tokens.max())} >= the model's vocab_size {cfg.vocab_size}")
-
-        return pi0.Observation(
-            images={k: images[k] for k in self.slots},
-            image_masks={k: masks[k] for k in self.slots},
-            state=pad_to_dim(state, cfg.action_dim).astype(np.float32)[None],
-            tokenized_prompt=tokens[None],
-            tokenized_prompt_mask=token_mask[None],
-        )
+    def run(self, prepared: Sequence[Prepared]) -> list[dict[str, Any]]:
+        """Prepared requests -> their outputs, in order: one device call per group of requests with the same camera
+        shapes (at most max_batch each, padded up to a compiled batch bucket). Each element's actions depend only on
+        its own inputs and noise (to float rounding across batch sizes)."""
+        outs: list[dict | None] = [None] * len(prepared)
+        groups: dict[tuple, list[int]] = {}
+        for i, p in enumerate(prepared):
+            groups.setdefault(p.signature, []).append(i)
+        top = self.batch_buckets[-1]
+        for members in groups.values():
+            for start in range(0, len(members), top):
+                chunk = members[start: start + top]
+                actions, ms = self._run_group([prepared[i] for i in chunk])
+                for j, i in enumerate(chunk):
+                    outs[i] = {"actions": actions[j],
+                               "policy_timing": {"infer_ms": ms, "batch_size": len(chunk)}}
+        return outs
 
     def infer(self, obs: Mapping[str, Any], noise=None) -> dict[str, Any]:
-        """One observation -> {"actions": (H, action_dims) float32, "policy_timing": {"infer_ms": float}}.
+        """One observation -> {"actions": (H, action_dims) float32, "policy_timing": {"infer_ms", "batch_size"}}.
 
-        noise: (H, action_dim) or (1, H, action_dim) at t = 1; None draws it from the policy's seeded PRNG (the
-        same sequence of chunks for the same seed and inputs). infer_ms times the model call including the
-        device-to-host copy, as openpi does.
-        """
-        cfg = self.config
-        observation = self.make_observation(obs)
-        shape = (1, cfg.action_horizon, cfg.action_dim)
-        if noise is None:
-            self._rng, key = jax.random.split(self._rng)
-            noise = jax.random.normal(key, shape, jnp.float32)
-        else:
-            noise = jnp.asarray(noise, jnp.float32)
-            if noise.ndim == 2:
-                noise = noise[None]
-            if noise.shape != shape:
-                raise ValueError(f"noise must be {shape[1:]} or {shape}, got {noise.shape}")
+        noise: see `prepare`. infer_ms times the device call including the host-to-device and device-to-host
+        copies, as openpi does."""
+        return self.run([self.prepare(obs, noise)])[0]
+
+    def infer_batch(self, observations: Sequence[Mapping[str, Any]], noise=None) -> list[dict[str, Any]]:
+        """Several observations in as few device calls as their shapes allow; noise: None or one entry per
+        observation (each None or an array). Element i equals `infer(observations[i], noise[i])`."""
+        noise = [None] * len(observations) if noise is None else list(noise)
+        if len(noise) != len(observations):
+            raise ValueError(f"{len(observations)} observations but {len(noise)} noise entries")
+        return self.run([self.prepare(o, n) for o, n in zip(observations, noise)])
+
+    # -----------------------------------------------------------------------------------------------------------------
+    def _run_group(self, group: Sequence[Prepared]) -> tuple[np.ndarray, float]:
+        cfg, n = self.config, len(group)
+        batch = next(b for b in self.batch_buckets if b >= n)
+        rows = list(group) + [group[0]] * (batch - n)    # padding rows repeat the first request, then are dropped
+        cameras = group[0].cameras
+        prompt_len = prompt_bucket(max(p.valid_tokens for p in group), cfg.max_token_len)
+        host = (tuple(np.stack([p.images[c] for p in rows]) for c in cameras),
+                np.ones((len(cameras), batch), bool),
+                np.stack([p.tokens[:prompt_len] for p in rows]), np.stack([p.token_mask[:prompt_len] for p in rows]),
+                np.stack([p.state for p in rows]), np.stack([p.noise for p in rows]))
+        exe = self.executable(host, cameras)
         start = time.perf_counter()
-        actions = np.asarray(self._sample(self._params, observation, noise))[0]
-        infer_ms = (time.perf_counter() - start) * 1000.0
-        actions = self.normalizer.unnormalize(_norm.ACTIONS, actions[:, : self.action_dims])
-        return {"actions": actions.astype(np.float32), "policy_timing": {"infer_ms": infer_ms}}
+        actions = np.asarray(exe(self.core.model, self._norm, *jax.device_put(host)))
+        return actions[:n], (time.perf_counter() - start) * 1000.0
+
+    def executable(self, host_args: tuple, cameras: tuple[str, ...]) -> jax.stages.Compiled:
+        """The compiled program for these input shapes (compiled ahead of time on first use, then kept)."""
+        spec = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), host_args)
+        key = (cameras, tuple((x.shape, x.dtype.str) for x in jax.tree.leaves(host_args)))
+        with self._lock:
+            if key not in self._executables:
+                start = time.perf_counter()
+                core = self.core
+
+                def fn(model, norm, images, image_masks, tokens, token_mask, state, noise):
+                    return core.program(model, norm, images, cameras, image_masks, tokens, token_mask, state, noise)
+
+                self._executables[key] = jax.jit(fn).lower(core.model, self._norm, *spec).compile()
+                self.compile_seconds[key] = time.perf_counter() - start
+            return self._executables[key]
+
+    @property
+    def num_compiled(self) -> int:
+        return len(self._executables)
+
+    def warmup(self, batch_sizes: Sequence[int] | None = None, example: Mapping[str, Any] | None = None) -> float:
+        """Compile the programs for `example`'s shapes at these batch sizes (default: every bucket). -> seconds."""
+        start = time.perf_counter()
+        p = self.prepare(example if example is not None else self.example_observation(),
+                         np.zeros((self.config.action_horizon, self.config.action_dim), np.float32))
+        for b in batch_sizes or self.batch_buckets:
+            self._run_group([p] * min(b, self.batch_buckets[-1]))
+        return time.perf_counter() - start
+
+    def example_observation(self, seed: int = 0) -> dict[str, Any]:
+        """A valid observation for this policy (random uint8 frames at the model's size, a random state)."""
+        return self.validator.example(seed)
 
     @property
     def metadata(self) -> dict[str, Any]:
         cfg = self.config
-        return {"name": cfg.name, "action_horizon": cfg.action_horizon, "action_dims": self.action_dims,
-                "num_steps": self.num_steps, "normalization": self.normalizer.convention.value}
+        return {"name": cfg.name, "pi05": cfg.pi05, "action_horizon": cfg.action_horizon,
+                "action_dims": self.action_dims, "num_steps": self.num_steps, "dtype": cfg.dtype,
+                "normalization": self.normalizer.convention.value, "sampler": self.core.sampler,
+                "image_size": cfg.image_size, "state_dim": self.core.state_dim, "max_batch": self.batch_buckets[-1],
+                **self.validator.describe()}
 
 
-def _find_tokenizer(ckpt: Path, explicit: str | os.PathLike | None) -> Path:
+def find_tokenizer(ckpt: str | os.PathLike, explicit: str | os.PathLike | None = None) -> Path:
+    """The checkpoint's SentencePiece model: `explicit`, else <ckpt>/tokenizer.model or <ckpt>/assets/tokenizer.model."""
+    ckpt = Path(ckpt)
     candidates = [Path(explicit)] if explicit is not None else [ckpt / TOKENIZER_FILE, ckpt / "assets" / TOKENIZER_FILE]
     for c in candidates:
         if c.is_file():

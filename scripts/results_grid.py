@@ -25,6 +25,7 @@ import pi0_jax.sim  # noqa: F401  (sets the XLA:CPU flags MJX needs before the b
 from pi0_jax import checkpoint
 from pi0_jax import normalize as nz
 from pi0_jax.sim import policies
+from pi0_jax.policy import find_tokenizer
 from pi0_jax.sim.evaluate import EvalConfig, evaluate
 from pi0_jax.tokenizer import PaligemmaTokenizer
 
@@ -75,7 +76,7 @@ def main() -> int:
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
 
     config, params = checkpoint.load_checkpoint(args.checkpoint)
-    tok = PaligemmaTokenizer(policies._find_tokenizer(args.checkpoint, None), config.max_token_len)
+    tok = PaligemmaTokenizer(find_tokenizer(args.checkpoint), config.max_token_len)
     normalizer = nz.load_normalizer(args.checkpoint, use_quantiles=config.pi05)
     steps = [int(s) for s in args.steps.split(",") if s]
     rows = []

@@ -6,7 +6,7 @@ import jax
 
 from pi0_jax import checkpoint, normalize as N, pi0
 from pi0_jax.config import get_config
-from pi0_jax.policy import Policy
+from pi0_jax.policy import ObservationError, Policy
 from pi0_jax.tokenizer import PaligemmaTokenizer
 
 RNG = np.random.default_rng(0)
@@ -43,7 +43,7 @@ def pi0_ckpt(tmp_path_factory, sp_model_path):
 
 @pytest.fixture(scope="module")
 def pi0_policy(pi0_ckpt):
-    return Policy.from_checkpoint(pi0_ckpt[0])
+    return Policy.from_checkpoint(pi0_ckpt[0], cache_dir=False)
 
 
 def test_pi0_matches_hand_built_reference(pi0_ckpt, pi0_policy, sp_model_path):
@@ -79,7 +79,7 @@ def test_noise_shapes_and_seeded_rng(pi0_ckpt, pi0_policy):
     np.testing.assert_array_equal(pi0_policy.infer(libero_obs(), noise=noise[None])["actions"], a)
     with pytest.raises(ValueError, match="noise"):
         pi0_policy.infer(libero_obs(), noise=noise[:, :7])
-    p1, p2 = Policy.from_checkpoint(pi0_ckpt[0], seed=3), Policy.from_checkpoint(pi0_ckpt[0], seed=3)
+    p1, p2 = Policy.from_checkpoint(pi0_ckpt[0], seed=3, cache_dir=False), Policy.from_checkpoint(pi0_ckpt[0], seed=3, cache_dir=False)
     first = p1.infer(libero_obs())["actions"]
     np.testing.assert_array_equal(p2.infer(libero_obs())["actions"], first)
     assert not np.array_equal(p1.infer(libero_obs())["actions"], first)  # the PRNG advances per call
@@ -95,17 +95,106 @@ def test_lerobot_keys_give_the_same_actions(pi0_ckpt, pi0_policy):
     np.testing.assert_allclose(pi0_policy.infer(obs, noise=noise)["actions"], ref, atol=1e-4)
 
 
-def test_observation_errors(pi0_ckpt, pi0_policy):
-    bad = {**libero_obs(), "observation/top_image": IMAGE}
-    with pytest.raises(ValueError, match="observation/top_image"):
-        pi0_policy.make_observation(bad)
-    p = Policy.from_checkpoint(pi0_ckpt[0], camera_map={"observation/top_image": None}, default_prompt="do it")
-    obs = {k: v for k, v in bad.items() if k != "prompt"}
-    assert p.make_observation(obs).image_masks["right_wrist_0_rgb"].tolist() == [False]
-    with pytest.raises(KeyError, match="prompt"):
-        pi0_policy.make_observation({k: v for k, v in libero_obs().items() if k != "prompt"})
-    with pytest.raises(KeyError, match="state"):
-        pi0_policy.make_observation({k: v for k, v in libero_obs().items() if k != "observation/state"})
+def test_engine_equals_reference_sampler_f32(pi0_ckpt, pi0_policy):
+    _, config, _ = pi0_ckpt
+    ref = Policy.from_checkpoint(pi0_ckpt[0], sampler="reference", cache_dir=False)
+    noise = RNG.normal(size=(config.action_horizon, config.action_dim)).astype(np.float32)
+    got = pi0_policy.infer(libero_obs(), noise=noise)["actions"]
+    want = ref.infer(libero_obs(), noise=noise)["actions"]
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)
+    assert pi0_policy.metadata["sampler"] == "engine" and ref.metadata["sampler"] == "reference"
+
+
+def test_engine_equals_reference_sampler_bf16(pi0_ckpt):
+    _, config, _ = pi0_ckpt
+    eng = Policy.from_checkpoint(pi0_ckpt[0], dtype="bfloat16", cache_dir=False)
+    ref = Policy.from_checkpoint(pi0_ckpt[0], dtype="bfloat16", sampler="reference", cache_dir=False)
+    noise = RNG.normal(size=(config.action_horizon, config.action_dim)).astype(np.float32)
+    got, want = (p.infer(libero_obs(), noise=noise)["actions"] for p in (eng, ref))
+    assert np.linalg.norm(got - want) / np.linalg.norm(want) < 1e-2
+
+
+def test_infer_batch_equals_lone_calls_and_compiles_once_per_bucket(pi0_ckpt, pi0_policy):
+    _, config, _ = pi0_ckpt
+    shape = (config.action_horizon, config.action_dim)
+    obs = [libero_obs(), {**libero_obs(), "prompt": "open the top drawer and put the bowl inside"},
+           {**libero_obs(), "observation/state": -STATE}, {**libero_obs(), "observation/image": WRIST}]
+    noise = [RNG.normal(size=shape).astype(np.float32) for _ in obs]
+    lone = [pi0_policy.infer(o, noise=n)["actions"] for o, n in zip(obs, noise)]
+    n_compiled = pi0_policy.num_compiled
+    outs = pi0_policy.infer_batch(obs, noise=noise)
+    assert [o["policy_timing"]["batch_size"] for o in outs] == [4] * 4
+    for got, want in zip(outs, lone):
+        np.testing.assert_allclose(got["actions"], want, rtol=1e-5, atol=1e-5)
+    assert pi0_policy.num_compiled == n_compiled + 1          # one program for the batch of 4
+    pi0_policy.infer_batch(obs[::-1], noise=noise[::-1])       # new values, same shapes: no new program
+    pi0_policy.infer({**libero_obs(), "observation/state": STATE * 0.5})
+    assert pi0_policy.num_compiled == n_compiled + 1
+    # a 5th element with another camera shape runs as its own group, still in input order
+    odd = {**libero_obs(), "observation/image": IMAGE[:100]}
+    outs = pi0_policy.infer_batch(obs[:2] + [odd], noise=noise[:2] + [noise[0]])
+    np.testing.assert_allclose(outs[1]["actions"], lone[1], rtol=1e-5, atol=1e-5)
+    assert [o["policy_timing"]["batch_size"] for o in outs] == [2, 2, 1]
+
+
+def _without(obs, key):
+    return {k: v for k, v in obs.items() if k != key}
+
+
+BAD_INPUTS = [
+    ("NaN state", {"observation/state": np.where(np.arange(8) == 3, np.nan, STATE)}, "observation/state.*NaN"),
+    ("short state", {"observation/state": STATE[:3]}, r"observation/state.*3 dims.*expect 8"),
+    ("2-D state", {"observation/state": np.stack([STATE, STATE])}, "observation/state.*1-D"),
+    ("string state", {"observation/state": np.array(["a"] * 8)}, "observation/state.*real numbers"),
+    ("mistyped camera", {"observation/wrist_imag": WRIST}, r"observation/wrist_imag.*accepted keys"),
+    ("unknown key", {"gripper": 1.0}, r"'gripper'.*accepted keys"),
+    ("int32 image", {"observation/image": IMAGE.astype(np.int32)}, r"observation/image.*uint8.*float"),
+    ("float image 0-255", {"observation/image": IMAGE.astype(np.float32)}, r"observation/image.*outside.*range"),
+    ("NaN image", {"observation/image": np.full((224, 224, 3), np.nan, np.float32)}, "observation/image.*NaN"),
+    ("2-D image", {"observation/image": IMAGE[..., 0]}, r"observation/image.*\(H, W, 3\)"),
+    ("4-channel image", {"observation/image": np.zeros((224, 224, 4), np.uint8)}, "observation/image.*3-channel"),
+    ("prompt not a string", {"prompt": 3}, "prompt.*string"),
+]
+
+
+@pytest.mark.parametrize("name,change,match", BAD_INPUTS, ids=[b[0] for b in BAD_INPUTS])
+def test_bad_inputs_raise_naming_the_culprit(pi0_policy, name, change, match):
+    with pytest.raises(ObservationError, match=match):
+        pi0_policy.infer({**libero_obs(), **change})
+
+
+def test_missing_inputs_and_opt_outs(pi0_ckpt, pi0_policy):
+    _, config, _ = pi0_ckpt
+    with pytest.raises(ObservationError, match=r"left_wrist_0_rgb.*missing.*observation/wrist_image"):
+        pi0_policy.infer(_without(libero_obs(), "observation/wrist_image"))
+    with pytest.raises(ObservationError, match="prompt"):
+        pi0_policy.infer(_without(libero_obs(), "prompt"))
+    with pytest.raises(ObservationError, match="state"):
+        pi0_policy.infer(_without(libero_obs(), "observation/state"))
+    shape = (config.action_horizon, config.action_dim)
+    with pytest.raises(ObservationError, match="noise.*NaN"):
+        pi0_policy.infer(libero_obs(), noise=np.full(shape, np.nan, np.float32))
+    # opt-outs: extra keys ignored, a camera allowed to be masked, a key mapped to None, a default prompt
+    lax = Policy.from_checkpoint(pi0_ckpt[0], strict=False, optional_cameras=("left_wrist_0_rgb", "right_wrist_0_rgb"),
+                                 camera_map={"observation/top_image": None}, default_prompt="do it", cache_dir=False)
+    obs = {**_without(_without(libero_obs(), "observation/wrist_image"), "prompt"), "gripper": 1.0,
+           "observation/top_image": IMAGE}
+    assert lax.make_observation(obs).image_masks["left_wrist_0_rgb"].tolist() == [False]
+    out = lax.infer(obs)["actions"]
+    assert out.shape == (config.action_horizon, 7) and np.isfinite(out).all()
+    # dataset bookkeeping keys are ignored even when strict
+    pi0_policy.infer({**libero_obs(), "timestamp": np.float32(0.1), "robot_type": "panda"})
+
+
+def test_pi0_small_refuses_a_third_camera():
+    from importlib import resources
+
+    with resources.as_file(resources.files("pi0_jax") / "assets" / "pi0_small") as ckpt:
+        policy = Policy.from_checkpoint(ckpt, dtype="float32", cache_dir=False)
+    obs = {**policy.example_observation(), "observation.images.right_wrist_0_rgb": IMAGE}
+    with pytest.raises(ObservationError, match=r"right_wrist_0_rgb.*only.*base_0_rgb"):
+        policy.infer(obs)
+    assert policy.infer(policy.example_observation())["actions"].shape == (10, 7)
 
 
 def test_missing_assets(tmp_path, pi0_ckpt):
@@ -122,7 +211,7 @@ def pi05_ckpt(tmp_path_factory, sp_model_path):
 
 def test_pi05_discrete_state_prompt(pi05_ckpt, sp_model_path):
     dst, config, _ = pi05_ckpt
-    policy = Policy.from_checkpoint(dst)
+    policy = Policy.from_checkpoint(dst, cache_dir=False)
     assert policy.normalizer.modes["state"] is N.Mode.QUANTILES  # openpi: quantiles for π0.5
     obs = policy.make_observation(libero_obs())
     tok = PaligemmaTokenizer(sp_model_path, config.max_token_len)
@@ -137,7 +226,7 @@ def test_pi05_discrete_state_prompt(pi05_ckpt, sp_model_path):
     # LeRobot convention: the state is zero-padded to action_dim before it is written into the prompt.
     lr = N.Normalizer(stats={"state": STATE_STATS, "actions": ACTION_STATS},
                       modes={"state": "QUANTILES", "actions": "QUANTILES"}, convention="lerobot")
-    policy = Policy.from_checkpoint(dst, norm_stats=lr)
+    policy = Policy.from_checkpoint(dst, norm_stats=lr, cache_dir=False)
     obs = policy.make_observation(libero_obs())
     n = int(obs.tokenized_prompt_mask.sum())
     listed = tok.decode(obs.tokenized_prompt[0, 1:n]).split("State: ")[1].split(";")[0].split()

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from pi0_jax import normalize as nz
-from pi0_jax.sim import controller, policies, scene, tasks
+from pi0_jax.sim import controller, scene, tasks
 
 # sha256 prefixes of every task's 50 initial states (suite version 1). A change here means the generator changed:
 # bump tasks.SUITE_VERSION, since published success rates refer to these exact states.
@@ -124,8 +124,9 @@ def test_affine_normalisation_equals_numpy_formulas(convention, mode):
     lo, hi = rng.normal(size=7) - 2, rng.normal(size=7) + 2
     stats = nz.NormStats(mean=rng.normal(size=7), std=rng.uniform(0.1, 2, 7), q01=lo, q99=hi, min=lo, max=hi)
     x = rng.normal(size=(16, 7))
-    for fn in (nz.normalize, nz.unnormalize):
-        scale, offset = policies._affine(lambda v: fn(v, stats, mode, convention), 7)
+    normalizer = nz.Normalizer(stats={"state": stats}, modes={"state": mode}, convention=convention)
+    for inverse, fn in ((False, nz.normalize), (True, nz.unnormalize)):
+        scale, offset = normalizer.affine("state", 7, inverse=inverse)
         np.testing.assert_allclose(np.asarray(jnp.asarray(x, jnp.float32) * scale + offset),
                                    fn(x, stats, mode, convention), rtol=1e-5, atol=1e-5)
 

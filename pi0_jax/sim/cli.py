@@ -61,6 +61,9 @@ def add_eval_parser(subparsers) -> argparse.ArgumentParser:
                         "which a distilled student records, else 10)")
     p.add_argument("--dtype", choices=("float32", "bfloat16"), default=None,
                    help="param and compute dtype of a checkpoint policy (default: the checkpoint's own)")
+    p.add_argument("--sampler", choices=("engine", "reference"), default="engine",
+                   help="how a checkpoint policy samples: the compiled engine's programs (default), or openpi's "
+                        "reference structure (pi0.sample_actions; the parity path, slower)")
     p.add_argument("--tokenizer", type=Path, default=None, metavar="FILE",
                    help="SentencePiece model for a checkpoint policy (default: CKPT/tokenizer.model or "
                         "CKPT/assets/tokenizer.model)")
@@ -113,7 +116,8 @@ def run(args: argparse.Namespace) -> int:
                      resolution=args.resolution or default_resolution(args.policy),
                      seed=args.seed, videos=args.videos, segment_replans=args.segment_replans,
                      num_steps=default_num_steps(args.policy) if args.num_steps is None else args.num_steps)
-    kw = {"tokenizer_path": args.tokenizer, "norm_stats": args.norm_stats, "dtype": args.dtype}
+    kw = {"tokenizer_path": args.tokenizer, "norm_stats": args.norm_stats, "dtype": args.dtype,
+          "sampler": args.sampler}
     info = evaluate(args.policy, cfg, args.output_dir, progress=not args.no_progress, policy_kwargs=kw)
     if jax.process_index() == 0:
         a = info["aggregated"]

@@ -11,12 +11,10 @@ batched observation ({"agentview", "wrist": (B, H, W, 3) uint8, "state": (B, 8)}
 look at images (`needs_images` False: the rollout then skips rendering). The expert acts from privileged state
 every step, so it ignores replanning; chunked policies return chunk[:, k].
 
-The pi0-jax policy reproduces `pi0_jax.policy.Policy`'s LIBERO transforms inside jit: agent view -> `base_0_rgb`,
-wrist -> `left_wrist_0_rgb`, `right_wrist_0_rgb` black and masked (as openpi's LIBERO example); uint8 -> [-1, 1],
-resize-with-pad to the model's 224 when the env renders at another size; state normalised and zero-padded; the
-task's prompt tokenised once on the host (or, for π0.5 with the state in the prompt, by a host callback per plan);
-actions sliced to the dataset's dims and un-normalised. Every normalisation mode of `pi0_jax.normalize` is affine
-per dimension, so its exact numpy formulas are evaluated once at x = 0 and x = 1 and applied as x * scale + offset.
+The pi0-jax policy runs `pi0_jax.policy.PolicyCore.program` inside the rollout's jit, the same pipeline as
+`Policy.infer` and the server: agent view -> `base_0_rgb`, wrist -> `left_wrist_0_rgb` (a right wrist slot is not
+encoded at all, as openpi's LIBERO example masks it); the task's prompt tokenised once on the host (or, for π0.5
+with the state in the prompt, by a host callback per plan), cut to its prompt bucket; the engine's stages.
 """
 
 from __future__ import annotations
@@ -65,114 +63,94 @@ def random_policy(replan_steps: int) -> SimPolicy:
                      act=lambda ps, es, k: (ps[:, k], ps), horizon=replan_steps)
 
 
-def _affine(fn: Callable[[np.ndarray], np.ndarray], dim: int) -> tuple[np.ndarray, np.ndarray]:
-    """An affine per-dim map (every pi0_jax.normalize mode is one) as (scale, offset), from its value at 0 and 1."""
-    zero, one = np.asarray(fn(np.zeros(dim)), np.float64), np.asarray(fn(np.ones(dim)), np.float64)
-    return (one - zero).astype(np.float32), zero.astype(np.float32)
-
-
-def _find_tokenizer(ckpt: Path, explicit) -> Path:
-    from pi0_jax.policy import TOKENIZER_FILE
-
-    candidates = [Path(explicit)] if explicit else [ckpt / TOKENIZER_FILE, ckpt / "assets" / TOKENIZER_FILE]
-    for c in candidates:
-        if c.is_file():
-            return c
-    raise FileNotFoundError(f"tokenizer model not found (tried {[str(c) for c in candidates]}); pass --tokenizer")
-
-
 def checkpoint_policy(path: str | os.PathLike, env, *, tokenizer_path=None, num_steps: int = 10,
-                      norm_stats: str | os.PathLike | None = None, dtype: str | None = None) -> SimPolicy:
+                      norm_stats: str | os.PathLike | None = None, dtype: str | None = None,
+                      sampler: str = "engine") -> SimPolicy:
     """A pi0-jax checkpoint directory (`pi0-jax convert` output) as a batched in-jit policy for `env`'s tasks."""
     from pi0_jax import checkpoint
     from pi0_jax import normalize as nz
+    from pi0_jax.policy import find_tokenizer
     from pi0_jax.tokenizer import PaligemmaTokenizer
 
     path = Path(path)
     config, params = checkpoint.load_checkpoint(path, dtype=dtype)
     if dtype is not None:   # params and compute: bf16 on CPU is emulated and slower than f32
         config = config.replace(dtype=dtype)
-    tok = PaligemmaTokenizer(_find_tokenizer(path, tokenizer_path), config.max_token_len)
+    tok = PaligemmaTokenizer(find_tokenizer(path, tokenizer_path), config.max_token_len)
     if norm_stats == "identity":
         normalizer = nz.Normalizer.identity()
     else:
         normalizer = nz.load_normalizer(path if norm_stats is None else norm_stats, use_quantiles=config.pi05)
-    return model_policy(config, params, tok, normalizer, env, num_steps=num_steps, name=str(path))
+    return model_policy(config, params, tok, normalizer, env, num_steps=num_steps, name=str(path), sampler=sampler)
 
 
 def model_policy(config, params, tok, normalizer, env, *, num_steps: int = 10, dynamic_steps: bool = False,
-                 name: str = "model") -> SimPolicy:
-    """A π0 / π0.5 (pi0_jax.pi0) with its tokenizer and normaliser as a batched in-jit policy for `env`'s tasks.
+                 name: str = "model", sampler: str = "engine") -> SimPolicy:
+    """A π0 / π0.5 with its tokenizer and normaliser as a batched in-jit policy for `env`'s tasks, through the one
+    policy pipeline (`pi0_jax.policy.PolicyCore.program`: the engine, or the reference sampler when asked).
 
-    dynamic_steps: the flow-step count travels in the policy's params ({"model": params, "num_steps": int32}) instead
-    of the program, so one compiled rollout serves every step count (same numerics: dt = -1/n in f32 either way)."""
-    from pi0_jax import normalize as nz
+    dynamic_steps: the flow-step count travels in the policy's params ({..., "num_steps": int32}) instead of the
+    program, so one compiled rollout serves every step count up to `PolicyCore.max_dynamic_steps` (same numerics).
+    params None: the transforms only (`observation`), e.g. for calibration batches."""
     from pi0_jax import pi0
-    from pi0_jax.config import IMAGE_KEYS
-    from pi0_jax.preprocess import _resize_with_pad
+    from pi0_jax.engine import prompt_bucket
+    from pi0_jax.policy import PolicyCore
 
-    action_dims = normalizer.dim(nz.ACTIONS) or 7
-    if action_dims != 7:
-        raise ValueError(f"{name}: the model's actions have {action_dims} dims; this suite needs LIBERO's 7")
-    reads_state = not config.pi05 or config.discrete_state_input
-    try:
-        s_scale, s_offset = _affine(lambda x: normalizer.normalize(nz.STATE, x), 8)
-    except KeyError:
-        if reads_state:
-            raise
-        s_scale, s_offset = np.zeros(8, np.float32), np.zeros(8, np.float32)   # the model never reads it
-    a_scale, a_offset = _affine(lambda x: normalizer.unnormalize(nz.ACTIONS, x), action_dims)
-    slots = IMAGE_KEYS[: config.num_cameras]
-    size, horizon, adim = config.image_size, config.action_horizon, config.action_dim
+    core = PolicyCore(config, params, tok, normalizer, num_steps=num_steps, sampler=sampler)
+    if core.action_dims != 7:
+        raise ValueError(f"{name}: the model's actions have {core.action_dims} dims; this suite needs LIBERO's 7")
+    if core.reads_state and core.state_dim not in (None, 8):
+        raise ValueError(f"{name}: the norm stats' state has {core.state_dim} dims; this suite's state has 8")
+    # agent view -> base_0_rgb, wrist -> left_wrist_0_rgb; a right wrist slot is absent, so never encoded
+    cameras = tuple(k for k in ("base_0_rgb", "left_wrist_0_rgb") if k in core.slots)
+    horizon, adim = config.action_horizon, config.action_dim
     prompts = env.prompts
-    tokens, masks = map(np.stack, zip(*(tok.tokenize(p) for p in prompts)))   # (T, L) each, once per task
     in_prompt = config.pi05 and config.discrete_state_input
+    tokens, masks = map(np.stack, zip(*(core.tokenize_prompt(p) for p in prompts)))   # (T, L), once per task
+    bucket = config.max_token_len if in_prompt else prompt_bucket(int(masks.sum(1).max()), config.max_token_len)
+    tokens, masks = tokens[:, :bucket], masks[:, :bucket]
 
-    # π0.5 with the state in the prompt: tokenised per plan on the host. As pi0_jax.policy: LeRobot pads the state
-    # to action_dim before discretising it (32 numbers in the prompt), openpi does not.
-    pad_state = normalizer.convention is nz.Convention.LEROBOT
-
-    def host_tokenize(task, state):
-        state = np.asarray(state, np.float64)
-        if pad_state:
-            state = np.pad(state, ((0, 0), (0, adim - state.shape[1])))
-        out = [tok.tokenize(prompts[int(t)], s) for t, s in zip(task, state)]
+    def host_tokenize(task, state):   # π0.5 with the state in the prompt: the normalised state, per plan
+        out = [core.tokenize(prompts[int(t)], np.asarray(s[:8], np.float64)) for t, s in zip(task, state)]
         return np.stack([o[0] for o in out]), np.stack([o[1] for o in out])
 
-    def image(x):
-        x = x.astype(jnp.float32) / 255.0 * 2.0 - 1.0
-        return x if x.shape[1:3] == (size, size) else _resize_with_pad(x, size, size, True)
-
-    def observation(obs, es):
+    def inputs(norm, obs, es):
         b = obs["state"].shape[0]
-        cams = {"base_0_rgb": image(obs["agentview"]), "left_wrist_0_rgb": image(obs["wrist"])}
-        images = {k: cams.get(k, jnp.full((b, size, size, 3), -1.0)) for k in slots}
-        image_masks = {k: jnp.full((b,), k in cams) for k in slots}
-        state = obs["state"] * s_scale + s_offset
+        images = (obs["agentview"], obs["wrist"])[: len(cameras)]
+        state = jnp.pad(obs["state"], ((0, 0), (0, adim - obs["state"].shape[1])))
         if in_prompt:
-            shapes = (jax.ShapeDtypeStruct((b, config.max_token_len), jnp.int32),
-                      jax.ShapeDtypeStruct((b, config.max_token_len), jnp.bool_))
-            tk, tm = jax.pure_callback(host_tokenize, shapes, es.task, state, vmap_method="expand_dims")
+            _, normalised = core.preprocess(norm, (), state)
+            shapes = (jax.ShapeDtypeStruct((b, bucket), jnp.int32), jax.ShapeDtypeStruct((b, bucket), jnp.bool_))
+            tk, tm = jax.pure_callback(host_tokenize, shapes, es.task, normalised, vmap_method="expand_dims")
         else:
             tk, tm = jnp.asarray(tokens)[es.task], jnp.asarray(masks)[es.task]
-        return pi0.Observation(images=images, image_masks=image_masks,
-                               state=jnp.pad(state, ((0, 0), (0, adim - state.shape[1]))),
+        return images, jnp.ones((len(cameras), b), bool), tk, tm, state
+
+    def observation(obs, es):
+        """The reference model's pi0.Observation of a batch (calibration)."""
+        images, image_masks, tk, tm, state = inputs(core.norm, obs, es)
+        pixels, state = core.preprocess(core.norm, images, state)
+        b, size = state.shape[0], config.image_size
+        by_slot = dict(zip(cameras, pixels))
+        return pi0.Observation(images={k: by_slot.get(k, jnp.full((b, size, size, 3), -1.0)) for k in core.slots},
+                               image_masks={k: jnp.full((b,), k in by_slot) for k in core.slots}, state=state,
                                tokenized_prompt=tk, tokenized_prompt_mask=tm)
 
     def plan(params, ps, obs, es, rng):
         noise = jax.vmap(lambda k: jax.random.normal(k, (horizon, adim)))(rng)
-        if dynamic_steps:
-            params, steps = params["model"], params["num_steps"]
-        else:
-            steps = num_steps
-        actions = pi0.sample_actions(config, params, observation(obs, es), noise, num_steps=steps)
-        return actions[..., :action_dims].astype(jnp.float32) * a_scale + a_offset
+        images, image_masks, tk, tm, state = inputs(params["norm"], obs, es)
+        return core.program(params["model"], params["norm"], images, cameras, image_masks, tk, tm, state, noise,
+                            num_steps=params.get("num_steps"))
 
-    return SimPolicy(name=name, init=lambda b: jnp.zeros((b, horizon, action_dims)), plan=plan,
+    pparams = {"model": core.dynamic_model() if dynamic_steps else core.model, "norm": core.norm}
+    if dynamic_steps:
+        pparams["num_steps"] = np.int32(num_steps)
+    return SimPolicy(name=name, init=lambda b: jnp.zeros((b, horizon, core.action_dims)), plan=plan,
                      act=lambda ps, es, k: (ps[:, k], ps), needs_images=True, horizon=horizon, observation=observation,
-                     params={"model": params, "num_steps": np.int32(num_steps)} if dynamic_steps else params,
+                     params=pparams,
                      info={"model": config.name, "pi05": config.pi05, "dtype": config.dtype, "num_steps": num_steps,
-                           "action_horizon": horizon, "normalization": normalizer.convention.value})
+                           "action_horizon": horizon, "normalization": normalizer.convention.value,
+                           "sampler": core.sampler})
 
 
 def make_policy(spec: str, env, replan_steps: int, **kw) -> SimPolicy:

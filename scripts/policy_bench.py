@@ -1,0 +1,132 @@
+"""What a caller pays on top of the engine: `Policy.infer` from host numpy against the engine's fused program alone
+(device-resident inputs), in the same process, on the same weights' shapes and inputs.
+
+Engine alone: `Engine.executable("infer", ...)` on already packed, device-resident inputs (the benchmark's `total`).
+Policy.infer: one observation dict of uint8 HWC frames, a float state and a prompt string -> un-normalised actions
+as numpy (validation, cached tokenisation, one host-to-device transfer, the compiled pipeline, the device-to-host
+copy). infer_batch: B observations through one batched call.
+
+    python scripts/policy_bench.py --preset pi0_base --out policy_bench.json          # random full-size weights
+    python scripts/policy_bench.py --embedded --dtype float32 --out cpu.json          # the embedded pi0_small
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from importlib import resources
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from pi0_jax import benchmark, checkpoint
+from pi0_jax import normalize as nz
+from pi0_jax.config import IMAGE_KEYS, get_config
+from pi0_jax.engine import Engine
+from pi0_jax.policy import Policy, find_tokenizer
+from pi0_jax.tokenizer import PaligemmaTokenizer
+
+EMBEDDED = resources.files("pi0_jax") / "assets" / "pi0_small"
+
+
+def timed(fn, iters: int, warmup: int) -> dict:
+    for _ in range(warmup):
+        jax.block_until_ready(fn())
+    times = []
+    for _ in range(iters):
+        start = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append((time.perf_counter() - start) * 1e3)
+    return {"median_ms": float(np.median(times)), "p90_ms": float(np.percentile(times, 90)),
+            "min_ms": float(np.min(times))}
+
+
+def observations(policy: Policy, n: int, cameras: int) -> list[dict]:
+    """n distinct observations with `cameras` cameras at the model's size (openpi's LIBERO keys + bare slots)."""
+    out = []
+    size = policy.config.image_size
+    for i in range(n):
+        rng = np.random.default_rng(i)
+        obs = policy.example_observation(seed=i)
+        for slot in IMAGE_KEYS[len([k for k in obs if "image" in k]): cameras]:
+            obs[slot] = rng.integers(0, 256, (size, size, 3), dtype=np.uint8)
+        out.append(obs)
+    return out
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--preset", default="pi0_base", help="random weights of this preset (default: %(default)s)")
+    p.add_argument("--embedded", action="store_true", help="the embedded trained pi0_small instead of --preset")
+    p.add_argument("--dtype", default="bfloat16", help="bfloat16 or float32 (default: %(default)s)")
+    p.add_argument("--steps", type=int, default=10, help="flow steps (default: %(default)s)")
+    p.add_argument("--cameras", type=int, default=3, help="cameras sent (default: 3, as many as the model has)")
+    p.add_argument("--batch", type=int, default=8, help="also time infer_batch of this many (default: 8; 0: skip)")
+    p.add_argument("--iters", type=int, default=50, help="timed calls per measurement (default: %(default)s)")
+    p.add_argument("--warmup", type=int, default=3, help="untimed calls first (default: %(default)s)")
+    p.add_argument("--out", type=Path, default=Path("policy_bench.json"), help="JSON results (default: %(default)s)")
+    args = p.parse_args()
+
+    if args.embedded:
+        config, params = checkpoint.load_checkpoint(EMBEDDED, dtype=args.dtype)
+        config = config.replace(dtype=args.dtype)
+        normalizer = nz.load_normalizer(EMBEDDED, use_quantiles=config.pi05)
+        name = "pi0_small (embedded)"
+    else:
+        config = get_config(args.preset, dtype=args.dtype)
+        params = benchmark.random_params(config, 0)
+        normalizer = nz.Normalizer.identity()
+        name = f"{args.preset} (random weights)"
+    # any SentencePiece model works for timing: the embedded model's, at the config's prompt length
+    tokenizer = PaligemmaTokenizer(find_tokenizer(EMBEDDED), config.max_token_len)
+    cameras = min(args.cameras, config.num_cameras)
+    policy = Policy(config, params, tokenizer, normalizer, num_steps=args.steps, cache_dir=False,
+                    max_batch=max(args.batch, 1))
+    obs = observations(policy, 4, cameras)
+    prepared = policy.prepare(obs[0])
+    t0 = time.perf_counter()
+    policy.warmup([1] + ([args.batch] if args.batch else []), obs[0])
+    warmup_s = time.perf_counter() - t0
+
+    # the engine alone on the same inputs, device-resident (Policy's transforms done once, outside the clock)
+    engine = Engine(config, params, cache_dir=False)
+    ref_obs = policy.make_observation(obs[0])
+    cams, bucket = engine.plan(ref_obs)
+    packed = engine.pack(ref_obs, cams, bucket)
+    exe = engine.executable("infer", 1, args.steps, cams, bucket)
+    sched = engine.schedule(args.steps)
+    noise = jnp.asarray(prepared.noise[None])
+    engine_t = timed(lambda: exe(engine.weights, sched, *packed, jnp.copy(noise)), args.iters, args.warmup)
+    engine_actions = np.asarray(exe(engine.weights, sched, *packed, jnp.copy(noise)))[0]
+
+    i = iter(range(10**9))
+    policy_t = timed(lambda: policy.infer(obs[next(i) % len(obs)])["actions"], args.iters, args.warmup)
+    got = policy.infer(obs[0], noise=prepared.noise)["actions"]
+    want = normalizer.unnormalize(nz.ACTIONS, engine_actions[:, : policy.action_dims]) if normalizer.stats else \
+        engine_actions[:, : policy.action_dims]
+    rel = float(np.linalg.norm(got - want) / np.linalg.norm(want))
+    rows = {"engine_alone": engine_t, "policy_infer": policy_t}
+    if args.batch:
+        batch_obs = [obs[k % len(obs)] for k in range(args.batch)]
+        rows[f"infer_batch_{args.batch}"] = timed(lambda: policy.infer_batch(batch_obs)[-1]["actions"], args.iters,
+                                                  args.warmup)
+    env = benchmark.environment()
+    result = {"model": name, "dtype": args.dtype, "steps": args.steps, "cameras": cameras,
+              "prompt_bucket": bucket, "env": env, "warmup_s": warmup_s, "rows": rows,
+              "overhead_ms": policy_t["median_ms"] - engine_t["median_ms"],
+              "policy_vs_engine_rel_l2": rel, "args": {k: str(v) for k, v in vars(args).items()}}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    print(f"{env['device']} · {name} · {args.dtype} · {args.steps} steps · {cameras} cameras · commit {env['commit']}")
+    print("| path | median ms | p90 ms | min ms |\n|---|---:|---:|---:|")
+    for k, r in rows.items():
+        print(f"| {k} | {r['median_ms']:.2f} | {r['p90_ms']:.2f} | {r['min_ms']:.2f} |")
+    print(f"Policy.infer - engine alone: {result['overhead_ms']:+.2f} ms; actions rel L2 vs engine: {rel:.1e}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
