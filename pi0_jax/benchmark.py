@@ -29,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from pi0_jax import pi0
+from pi0_jax.pi0 import random_params
 from pi0_jax.config import IMAGE_KEYS, PRESETS, Pi0Config, get_config
 from pi0_jax.engine import Engine
 
@@ -77,21 +78,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=Path("benchmark.json"), help="JSON results (default: %(default)s)")
     p.add_argument("--chart", type=Path, default=None, help="PNG chart (default: --out with .png)")
     p.add_argument("--seed", type=int, default=0, help="seed of weights and inputs")
-
-
-def random_params(config: Pi0Config, seed: int) -> dict:
-    """Random weights in the config's dtype, drawn on the device (norms and adaRMS made non-zero too)."""
-    shapes = pi0.param_shapes(config)
-    leaves, treedef = jax.tree.flatten(shapes)
-    keys = jax.random.split(jax.random.key(seed), len(leaves))
-    dtype = jnp.dtype(config.dtype)
-
-    @functools.partial(jax.jit, static_argnums=(1,))
-    def draw(key, shape):
-        std = 1.0 / np.sqrt(shape[-2]) if len(shape) >= 2 else 0.1
-        return (jax.random.normal(key, shape, jnp.float32) * std).astype(dtype)
-
-    return jax.tree.unflatten(treedef, [draw(k, tuple(x.shape)) for k, x in zip(keys, leaves)])
 
 
 def make_inputs(config: Pi0Config, batch: int, cameras: int, prompt_tokens: int, seed: int):

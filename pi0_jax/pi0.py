@@ -16,6 +16,7 @@ import flax.linen as nn
 import flax.struct
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from pi0_jax import gemma, siglip
 from pi0_jax.config import IMAGE_KEYS, Pi0Config
@@ -179,6 +180,21 @@ def init_params(config: Pi0Config, rng: jax.Array) -> dict:
     x = jnp.zeros((1, config.action_horizon, config.action_dim), jnp.float32)
     variables = Pi0(config).init(rng, obs, x, jnp.ones((1,), jnp.float32))
     return variables["params"]
+
+
+def random_params(config: Pi0Config, seed: int) -> dict:
+    """Random weights in the config's dtype, drawn on the device leaf by leaf (no f32 copy of the whole tree), with
+    norms and adaRMS made non-zero too: for timing full-size models and for throughput runs without a checkpoint."""
+    leaves, treedef = jax.tree.flatten(param_shapes(config))
+    keys = jax.random.split(jax.random.key(seed), len(leaves))
+    dtype = jnp.dtype(config.dtype)
+
+    @functools.partial(jax.jit, static_argnums=(1,))
+    def draw(key, shape):
+        std = 1.0 / np.sqrt(shape[-2]) if len(shape) >= 2 else 0.1
+        return (jax.random.normal(key, shape, jnp.float32) * std).astype(dtype)
+
+    return jax.tree.unflatten(treedef, [draw(k, tuple(x.shape)) for k, x in zip(keys, leaves)])
 
 
 @functools.lru_cache(maxsize=32)

@@ -59,6 +59,34 @@ def test_batched_policy_matches_policy_infer(demo_ckpt):
         np.testing.assert_allclose(chunk[i], out["actions"], rtol=1e-4, atol=1e-4)
 
 
+def test_engine_reference_and_dynamic_steps_plan_the_same(demo_ckpt):
+    """The sim policy's three ways to sample (the engine, the reference sampler, the engine with the step count
+    traced, as results_grid compiles it once for every count) give the same chunks for the same noise."""
+    from pi0_jax import checkpoint
+    from pi0_jax import normalize as nz
+    from pi0_jax.tokenizer import PaligemmaTokenizer
+
+    ckpt, tokenizer = demo_ckpt
+    config, params = checkpoint.load_checkpoint(ckpt)
+    tok = PaligemmaTokenizer(tokenizer, config.max_token_len)
+    normalizer = nz.load_normalizer(ckpt, use_quantiles=config.pi05)
+    env = Env(TASKS, RenderConfig(RES, RES))
+    n = len(TASKS)
+    state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.key(1), n), jnp.arange(n), jnp.array([0, 7]))
+    obs = jax.jit(jax.vmap(env.observe))(state)
+    keys = jax.random.split(jax.random.key(3), n)
+    chunks = {}
+    for name, kw in (("engine", {}), ("reference", {"sampler": "reference"}), ("dynamic", {"dynamic_steps": True})):
+        pol = policies.model_policy(config, params, tok, normalizer, env, num_steps=NUM_STEPS, **kw)
+        chunks[name] = np.asarray(jax.jit(pol.plan)(pol.params, pol.init(n), obs, state, keys))
+    np.testing.assert_allclose(chunks["engine"], chunks["reference"], rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(chunks["dynamic"], chunks["engine"], rtol=1e-5, atol=1e-5)
+    pol = policies.model_policy(config, params, tok, normalizer, env, num_steps=NUM_STEPS, dynamic_steps=True)
+    other = np.asarray(jax.jit(pol.plan)({**pol.params, "num_steps": np.int32(NUM_STEPS + 2)}, pol.init(n), obs,
+                                         state, keys))
+    assert np.abs(other - chunks["dynamic"]).max() > 1e-3      # the traced count is really used
+
+
 def test_eval_cli_with_checkpoint(demo_ckpt, tmp_path):
     ckpt, tokenizer = demo_ckpt
     out = tmp_path / "eval"
@@ -80,3 +108,20 @@ def test_random_policy_chunks():
     assert chunk.shape == (3, 5, 7) and np.abs(chunk).max() <= 1.0 and chunk.std() > 0.3
     action, _ = pol.act(jnp.asarray(chunk), None, 2)
     np.testing.assert_array_equal(np.asarray(action), chunk[:, 2])
+
+
+def test_eval_preset_policy_with_timing_and_profile(tmp_path):
+    """`--policy preset:NAME` (random weights, the protocol's timing without a checkpoint) runs, and eval_info.json
+    says where the time went."""
+    out = tmp_path / "eval"
+    assert cli.main(["eval", "--policy", "preset:dummy", "--suite", "goal", "--episodes-per-task", "1", "--batch", "4",
+                     "--steps", "5", "--replan-steps", "5", "--num-steps", "2", "--resolution", str(RES),
+                     "--videos", "0", "--output-dir", str(out), "--no-progress", "--profile"]) == 0
+    info = json.loads((out / "eval_info.json").read_text())
+    t = info["timing"]
+    assert info["config"]["policy"] == "preset:dummy (random weights)"
+    assert info["config"]["policy_info"]["sampler"] == "engine"
+    assert t["episodes_per_min"] > 0 and t["rollout_s"] >= t["first_segment_s"] > 0
+    assert {"physics_ms", "render_ms", "policy_ms"} <= set(t["phases"]) and all(
+        t["phases"][k] > 0 for k in ("physics_ms", "render_ms", "policy_ms"))
+    assert abs(sum(t["phases"]["share"].values()) - 1) < 1e-6

@@ -29,9 +29,11 @@ def add_eval_parser(subparsers) -> argparse.ArgumentParser:
 
     p = subparsers.add_parser("eval", help="evaluate a policy (checkpoint, expert, random) in the MJX task suite",
                               description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--policy", required=True, metavar="PATH|expert|random",
+    p.add_argument("--policy", required=True, metavar="PATH|expert|random|preset:NAME",
                    help="a pi0-jax checkpoint directory (`pi0-jax convert` output), 'expert' (the scripted expert, "
-                        "privileged state) or 'random' (uniform actions in [-1, 1])")
+                        "privileged state), 'random' (uniform actions in [-1, 1]) or 'preset:NAME' (random weights "
+                        "of a pi0_jax.config preset, e.g. preset:pi05_base: the protocol's timing without a "
+                        "trained checkpoint)")
     p.add_argument("--suite", default="all", metavar="NAME",
                    help=f"task suite: {', '.join(SUITES)} ({len(TASKS)} tasks in all), or one task name such as "
                         f"{TASKS[0].name!r} (default: %(default)s)")
@@ -72,6 +74,9 @@ def add_eval_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--segment-replans", type=int, default=8, metavar="M",
                    help="policy calls per jitted segment; the progress bar updates and finished batches stop "
                         "early between segments (default: %(default)s)")
+    p.add_argument("--profile", action="store_true",
+                   help="also time physics, rendering and the policy of one replan cycle apart (extra compiles), "
+                        "into eval_info.json's timing.phases")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     dist = p.add_argument_group("multi-host (jax.distributed)")
     dist.add_argument("--coordinator", default=None, metavar="HOST:PORT",
@@ -83,11 +88,14 @@ def add_eval_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def default_resolution(policy: str) -> int:
-    """The image size a checkpoint was built for (config.json's model), else 224."""
+    """The image size a checkpoint or preset was built for (config.json's model), else 224."""
+    from pi0_jax.config import Pi0Config, get_config
+
+    if policy.startswith("preset:"):
+        return get_config(policy.removeprefix("preset:")).image_size
     if policy in ("expert", "random") or not Path(policy).is_dir():
         return 224
     from pi0_jax.checkpoint import read_meta
-    from pi0_jax.config import Pi0Config
 
     return Pi0Config.from_json(read_meta(policy)["model"]).image_size
 
@@ -118,11 +126,15 @@ def run(args: argparse.Namespace) -> int:
                      num_steps=default_num_steps(args.policy) if args.num_steps is None else args.num_steps)
     kw = {"tokenizer_path": args.tokenizer, "norm_stats": args.norm_stats, "dtype": args.dtype,
           "sampler": args.sampler}
-    info = evaluate(args.policy, cfg, args.output_dir, progress=not args.no_progress, policy_kwargs=kw)
+    info = evaluate(args.policy, cfg, args.output_dir, progress=not args.no_progress, policy_kwargs=kw,
+                    profile=args.profile)
     if jax.process_index() == 0:
-        a = info["aggregated"]
+        a, t = info["aggregated"], info["timing"]
         print(format_table(info))
-        print(f"\n{a['n_episodes']} episodes in {a['eval_s']:.1f} s ({a['eval_ep_s']:.2f} s/episode; first segment "
+        print(f"\n{t['episodes_per_min']:.1f} episodes/min ({t['episodes_per_min_after_compile']:.1f} after the first "
+              f"segment); host {t['host_s']:.1f} s, device {t['device_wait_s']:.1f} s"
+              + "".join(f"; {k} {v:.1f} ms" for k, v in t.get("phases", {}).items() if k.endswith("_ms")))
+        print(f"{a['n_episodes']} episodes in {a['eval_s']:.1f} s ({a['eval_ep_s']:.2f} s/episode; first segment "
               f"incl. compile {a['first_segment_s']:.1f} s) on {info['config']['devices']} "
               f"{info['config']['backend']} device(s)")
         if args.output_dir is not None:

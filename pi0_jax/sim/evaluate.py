@@ -152,10 +152,11 @@ def write_video(path: Path, frames: np.ndarray, fps: int = 20) -> None:
 
 
 def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None, *, progress: bool = True,
-             policy_kwargs: dict | None = None) -> dict:
+             policy_kwargs: dict | None = None, profile: bool = False) -> dict:
     """Run the evaluation; returns eval_info (also written to output_dir/eval_info.json with videos).
 
-    policy_spec: 'expert', 'random', a checkpoint directory, or a callable env -> SimPolicy."""
+    policy_spec: 'expert', 'random', 'preset:NAME', a checkpoint directory, or a callable env -> SimPolicy.
+    profile: also time physics, rendering and the policy apart (`profile_phases`), into eval_info's timing."""
     t_start = time.perf_counter()
     names = _tasks.suite_tasks(cfg.suite)
     names = tuple(t.name for t in names)
@@ -200,7 +201,7 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
 
     success, length = np.zeros(n_ep, bool), np.zeros(n_ep, np.int32)
     video_frames, video_done = [], []
-    compile_s, done_count, succ_count = 0.0, 0, 0
+    compile_s, wait_s, done_count, succ_count = 0.0, 0.0, 0, 0
     bar = None
     if progress and jax.process_index() == 0:
         from tqdm import tqdm
@@ -221,6 +222,8 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
             done = _fetch(carry.state.done)
             if b == 0 and s == 0:
                 compile_s = time.perf_counter() - t0
+            else:
+                wait_s += time.perf_counter() - t0
             if b == 0 and n_video:
                 video_frames.append(_fetch(frames))
                 video_done.append(_fetch(fdone))
@@ -231,7 +234,8 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
                 bar.update(n_done - prev_done)
                 tot_done = done_count + n_done
                 rate = (succ_count + int((ok & done & vmask).sum())) / max(tot_done, 1)
-                bar.set_postfix_str(f"success {100 * rate:.1f}% of {tot_done}")
+                per_min = 60.0 * tot_done / max(time.perf_counter() - t_roll - compile_s, 1e-9)
+                bar.set_postfix_str(f"success {100 * rate:.1f}% of {tot_done}, {per_min:.0f} ep/min")
             prev_done = n_done
             if (done | ~vmask).all():
                 break
@@ -247,6 +251,10 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
 
     info = _eval_info(env, cfg, policy, task_of, init_of, success, length, eval_s, rollout_s, compile_s, batch,
                       n_dev, n_local)
+    info["timing"] = timing_section(info, rollout_s, compile_s, wait_s, n_batches, steps_per_segment, cfg)
+    if profile:
+        fresh = ep_keys(global_array(np.arange(batch, dtype=np.int32)))   # the rollout donated its keys
+        info["timing"]["phases"] = profile_phases(env, policy, cfg, params, reset(fresh, t_ids, i_ids), batch)
     if output_dir is not None and jax.process_index() == 0:
         out = Path(output_dir)
         out.mkdir(parents=True, exist_ok=True)
@@ -262,6 +270,55 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
         info["video_paths"] = paths
         (out / "eval_info.json").write_text(json.dumps(info, indent=2) + "\n")
     return info
+
+
+def timing_section(info, rollout_s, compile_s, wait_s, n_batches, steps_per_segment, cfg) -> dict:
+    """Where the wall time went. device_wait_s: the host blocked on segments after the first (whose time, compile
+    included, is first_segment_s); host_s: the rest of the rollout (resets, fetches, videos, the progress bar)."""
+    a = info["aggregated"]
+    run_s = max(rollout_s - compile_s, 1e-9)
+    return {"first_segment_s": compile_s, "rollout_s": rollout_s, "device_wait_s": wait_s,
+            "host_s": max(run_s - wait_s, 0.0), "episodes_per_min": 60.0 * a["n_episodes"] / max(rollout_s, 1e-9),
+            "episodes_per_min_after_compile": 60.0 * a["n_episodes"] / run_s,
+            "env_steps_per_s": a["env_steps"] / max(rollout_s, 1e-9), "batches": n_batches,
+            "steps_per_segment": steps_per_segment, "replan_steps": cfg.replan_steps}
+
+
+def profile_phases(env: Env, policy: SimPolicy, cfg: EvalConfig, params, state, batch: int, reps: int = 3) -> dict:
+    """Physics, rendering and the policy of one replan cycle, each jitted and timed apart on a batch of `batch`
+    environments (ms, median of `reps` after a warm-up): the sum approximates one cycle of the fused segment."""
+    r = cfg.replan_steps
+
+    def physics(state):
+        zero = jnp.zeros((state.done.shape[0], 7))
+        return jax.lax.scan(lambda st, _: (jax.vmap(env.step)(st, zero), None), state, None, length=r)[0]
+
+    def render(state):
+        return jax.vmap(env.observe)(state)
+
+    def plan(params, state, obs):
+        keys = jax.random.split(jax.random.key(0), batch)
+        return policy.plan(params, policy.init(batch), obs, state, keys)
+
+    def timed(fn, *args) -> float:
+        jax.block_until_ready(fn(*args))
+        times = []
+        for _ in range(reps):
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn(*args))
+            times.append(1e3 * (time.perf_counter() - t0))
+        return float(np.median(times))
+
+    out = {"batch": batch, "physics_ms": timed(jax.jit(physics), state)}
+    if policy.needs_images:
+        obs = jax.jit(render)(state)
+        out["render_ms"] = timed(jax.jit(render), state)
+    else:
+        obs = {"state": jax.vmap(lambda s: env.robot_state(s.data))(state)}
+    out["policy_ms"] = timed(jax.jit(plan), params, state, obs)
+    cycle = sum(v for k, v in out.items() if k.endswith("_ms"))
+    out["share"] = {k[:-3]: v / cycle for k, v in out.items() if k.endswith("_ms")} if cycle else {}
+    return out
 
 
 def _eval_info(env, cfg, policy, task_of, init_of, success, length, eval_s, rollout_s, compile_s, batch, n_dev,

@@ -85,7 +85,7 @@ def checkpoint_policy(path: str | os.PathLike, env, *, tokenizer_path=None, num_
 
 
 def model_policy(config, params, tok, normalizer, env, *, num_steps: int = 10, dynamic_steps: bool = False,
-                 name: str = "model", sampler: str = "engine") -> SimPolicy:
+                 name: str = "model", sampler: str = "engine", action_dims: int | None = None) -> SimPolicy:
     """A π0 / π0.5 with its tokenizer and normaliser as a batched in-jit policy for `env`'s tasks, through the one
     policy pipeline (`pi0_jax.policy.PolicyCore.program`: the engine, or the reference sampler when asked).
 
@@ -96,7 +96,10 @@ def model_policy(config, params, tok, normalizer, env, *, num_steps: int = 10, d
     from pi0_jax.engine import prompt_bucket
     from pi0_jax.policy import PolicyCore
 
-    core = PolicyCore(config, params, tok, normalizer, num_steps=num_steps, sampler=sampler)
+    from pi0_jax import normalize as nz
+
+    action_dims = action_dims or normalizer.dim(nz.ACTIONS) or 7    # no stats: LIBERO's 7
+    core = PolicyCore(config, params, tok, normalizer, num_steps=num_steps, sampler=sampler, action_dims=action_dims)
     if core.action_dims != 7:
         raise ValueError(f"{name}: the model's actions have {core.action_dims} dims; this suite needs LIBERO's 7")
     if core.reads_state and core.state_dim not in (None, 8):
@@ -153,12 +156,33 @@ def model_policy(config, params, tok, normalizer, env, *, num_steps: int = 10, d
                            "sampler": core.sampler})
 
 
+def preset_policy(name: str, env, *, num_steps: int = 10, dtype: str | None = None, seed: int = 0,
+                  sampler: str = "engine") -> SimPolicy:
+    """Random weights of a preset (`pi0_jax.config`), e.g. a full-size π0.5, with identity normalisation, the
+    embedded model's tokenizer and LIBERO's 7 action dims: the protocol's timing without a trained checkpoint
+    (the success rate is ~0)."""
+    from pi0_jax import normalize as nz
+    from pi0_jax import pi0
+    from pi0_jax.config import get_config
+    from pi0_jax.policy import find_tokenizer
+    from pi0_jax.tokenizer import PaligemmaTokenizer
+
+    config = get_config(name, **({"dtype": dtype} if dtype else {}))
+    tok = PaligemmaTokenizer(find_tokenizer(Path(__file__).parents[1] / "assets" / "pi0_small"),
+                             config.max_token_len)
+    return model_policy(config, pi0.random_params(config, seed), tok, nz.Normalizer.identity(), env,
+                        num_steps=num_steps, name=f"preset:{name} (random weights)", sampler=sampler)
+
+
 def make_policy(spec: str, env, replan_steps: int, **kw) -> SimPolicy:
-    """'expert' | 'random' | a checkpoint directory."""
+    """'expert' | 'random' | 'preset:NAME' (random weights) | a checkpoint directory."""
     if spec == "expert":
         return expert_policy(env)
     if spec == "random":
         return random_policy(replan_steps)
+    if spec.startswith("preset:"):
+        kw = {k: v for k, v in kw.items() if k in ("num_steps", "dtype", "sampler")}
+        return preset_policy(spec.removeprefix("preset:"), env, **kw)
     if not Path(spec).is_dir():
-        raise FileNotFoundError(f"--policy {spec!r}: not 'expert', 'random' or a checkpoint directory")
+        raise FileNotFoundError(f"--policy {spec!r}: not 'expert', 'random', 'preset:NAME' or a checkpoint directory")
     return checkpoint_policy(spec, env, **kw)
