@@ -212,7 +212,8 @@ class Policy:
         self._noise_rng = np.random.default_rng(seed)
         self._executables: dict[tuple, jax.stages.Compiled] = {}
         self.compile_seconds: dict[tuple, float] = {}
-        self._lock = threading.Lock()
+        self._lock = threading.Lock()         # compiles
+        self._noise_lock = threading.Lock()   # the noise stream, so validation never waits for a compile
 
     config = property(lambda self: self.core.config)
     normalizer = property(lambda self: self.core.normalizer)
@@ -262,7 +263,7 @@ class Policy:
         cfg = self.config
         shape = (cfg.action_horizon, cfg.action_dim)
         if noise is None:
-            with self._lock:
+            with self._noise_lock:
                 noise = self._noise_rng.standard_normal(shape, np.float32)
         return self.validator.validate(obs, noise)
 
