@@ -201,7 +201,8 @@ def run_clients(url: str, args: Args, observations: list[dict]) -> dict:
             "mean_ms": float(rtt.mean()), "requests_per_s": rtt.size / wall, "wall_s": wall,
             "mean_batch": float(np.mean([t["batch_size"] for t in timing])),
             "server_infer_p50_ms": float(np.median(infer)), "overhead_p50_ms": float(np.median(overhead)),
-            "queue_p50_ms": float(np.median([t["queue_ms"] for t in timing]))}
+            "queue_p50_ms": float(np.median([t["queue_ms"] for t in timing])),
+            "prepare_p50_ms": float(np.median([t["prepare_ms"] for t in timing]))}
 
 
 # -- main -------------------------------------------------------------------------------------------------------------

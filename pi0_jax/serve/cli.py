@@ -55,10 +55,11 @@ def add_serve_parser(subparsers) -> None:
                      help="most requests answered by one model call; a group is padded up to one of the policy's "
                           "batch buckets, each compiled ahead (default: %(default)s; 1 answers each request alone)")
     bat.add_argument("--batch-window-ms", type=float, default=2.0, metavar="MS",
-                     help="how long the oldest waiting request waits for others to share its call, and only "
-                          "while another client is connected (default: %(default)g). 0 never waits; requests that "
-                          "queued while the model was busy still share the next call (--max-batch 1 answers each "
-                          "request alone)")
+                     help="how long the oldest waiting request waits for other clients' requests to share its "
+                          "call, counted from its arrival or from the model becoming free, whichever is later, and "
+                          "only while another connected client has nothing queued (default: %(default)g). 0 never "
+                          "waits; requests that queued while the model was busy still share the next call "
+                          "(--max-batch 1 answers each request alone)")
     pol = p.add_argument_group("policy")
     pol.add_argument("--num-steps", type=int, default=None,
                      help="flow-matching Euler steps per request (default: the checkpoint's num_steps, e.g. a "

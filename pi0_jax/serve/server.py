@@ -19,12 +19,12 @@ model call) gets one text frame (the error on the first line, then the traceback
 1011, as openpi does; every other connection is unaffected. Frames above `max_frame_bytes` are refused by
 websockets itself (close 1009). `GET /healthz` answers 200 (no API key needed; 503 while shutting down).
 
-Batching: each request is decoded and `prepare`d as it arrives, in arrival order on one "prepare" thread (a bad one
-fails alone, before any batch). The batcher takes the oldest waiting request, waits until `batch_window_ms` after
-its arrival for company (up to `max_batch`; only while another open connection has nothing queued, so a lone
-client never waits), and hands the group to `policy.run` on the one worker thread. Requests that queued while the
-device was busy go into the next call without waiting again: a window of 0 never delays anyone but lets a backlog
-share a call; `max_batch=1` answers each request alone. If a batched call raises, its members are retried one by
+Batching: each request is decoded and `prepare`d as it arrives, on the event loop, in arrival order (a bad one
+fails alone, before any batch). The batcher takes the oldest waiting request, waits for company (up to
+`max_batch`) until `batch_window_ms` after that request arrived or after the device became free, whichever is
+later, and only while another open connection has nothing queued (a lone client never waits), then hands the group
+to `policy.run` on the one worker thread. A window of 0 never delays anyone but still lets requests that queued
+while the device was busy share the next call; `max_batch=1` answers each request alone. If a batched call raises, its members are retried one by
 one, so only the culprit fails. A request whose client has gone is dropped.
 
     handle = serve(policy, "127.0.0.1", 0)   # background thread; port 0 picks a free port: handle.port, handle.url
@@ -88,6 +88,7 @@ class Batcher:
         self._queue: collections.deque[_Request] = collections.deque()
         self._wakeup = asyncio.Event()
         self._executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="pi0-serve-run")
+        self._free_at = 0.0        # perf_counter when the last `policy.run` returned
 
     def submit(self, prepared) -> asyncio.Future:
         """Queue one prepared request; the future resolves to (output dict, server_timing dict)."""
@@ -100,9 +101,11 @@ class Batcher:
         while not self._queue:
             self._wakeup.clear()
             await self._wakeup.wait()
-        # Wait for company until `window` after the oldest request arrived (no wait if it waited that long already),
-        # and only while some open connection has no request queued: a lone robot never waits.
-        deadline = self._queue[0].queued_at + self.window_s
+        # Wait for company until `window` after the oldest request arrived or the device became free, whichever is
+        # later, and only while some open connection has no request queued: a lone robot never waits. Counting from
+        # the device's return lets the clients just answered rejoin the requests that queued meanwhile; counting
+        # from arrival alone splits N back-to-back clients into cohorts that alternate at half the batch for ever.
+        deadline = max(self._queue[0].queued_at, self._free_at) + self.window_s
         while (len(self._queue) < self.max_batch and (self._senders is None or self._senders() > len(self._queue))
                and (left := deadline - time.perf_counter()) > 0):
             self._wakeup.clear()
@@ -147,6 +150,7 @@ class Batcher:
             if not group:
                 continue
             results = await loop.run_in_executor(self._executor, self._run, [r.prepared for r in group])
+            self._free_at = time.perf_counter()
             for req, (out, err, start, wall, size) in zip(group, results):
                 if req.future.done():
                     continue
@@ -190,7 +194,6 @@ class PolicyServer:
         self._idle: asyncio.Event | None = None
         self._draining, self._busy, self._open = False, 0, 0   # _busy: requests between receipt and reply
         self._batcher: Batcher | None = None
-        self._prepare_pool: concurrent.futures.ThreadPoolExecutor | None = None
 
     # -- HTTP side of the handshake -----------------------------------------------------------------------------------
     def _process_request(self, connection: ServerConnection, request):
@@ -208,7 +211,9 @@ class PolicyServer:
 
     # -- one connection -----------------------------------------------------------------------------------------------
     def _decode_and_prepare(self, frame):
-        """The prepare thread: one frame -> `policy.prepare`'s result (FIFO, so noise follows arrival order)."""
+        """One frame -> `policy.prepare`'s result, on the event loop: in arrival order (so is the noise), and with no
+        thread hop on the latency path (decoding and validation take well under a millisecond; compiles happen in
+        `policy.run`, on the worker thread)."""
         if isinstance(frame, str):
             raise protocol.ProtocolError("got a text frame; send the observation as one binary msgpack frame")
         obs = protocol.unpackb(frame)
@@ -221,7 +226,7 @@ class PolicyServer:
     async def _answer(self, ws: ServerConnection, frame) -> dict | None:
         """One request -> the reply dict, or None when the client left before its answer was ready."""
         t0 = time.perf_counter()
-        prepared = await self._loop.run_in_executor(self._prepare_pool, self._decode_and_prepare, frame)
+        prepared = self._decode_and_prepare(frame)
         prepare_ms = _ms(time.perf_counter() - t0)
         fut = self._batcher.submit(prepared)
         closed = asyncio.ensure_future(ws.wait_closed())
@@ -303,9 +308,6 @@ class PolicyServer:
         self._idle.set()
         self._batcher = Batcher(self.policy, max_batch=self.max_batch, batch_window_ms=self.batch_window_ms,
                                 senders=lambda: self._open)
-        # Decoding and validation off the event loop (pings, handshakes and /healthz never wait on them), in one
-        # thread so that requests are prepared -- and draw their noise -- in arrival order.
-        self._prepare_pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="pi0-serve-prepare")
         if handle_signals:
             for sig in (signal.SIGINT, signal.SIGTERM):
                 self._loop.add_signal_handler(sig, self._on_signal, sig)
@@ -334,7 +336,6 @@ class PolicyServer:
             batch_task.cancel()
             await asyncio.gather(batch_task, return_exceptions=True)
             await self._batcher.close()
-            self._prepare_pool.shutdown(wait=False, cancel_futures=True)
             if handle_signals:
                 for sig in (signal.SIGINT, signal.SIGTERM):
                     self._loop.remove_signal_handler(sig)
