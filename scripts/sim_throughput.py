@@ -145,7 +145,7 @@ def policy_throughput(args: Args, sharding) -> dict:
                               resolution=res, videos=0, segment_replans=8, num_steps=args.num_steps)
     segment = evaluate.make_segment(env, policy, cfg, 0)
     replicated = jax.sharding.NamedSharding(sharding.mesh, jax.sharding.PartitionSpec())
-    params = _sharded(params, replicated)
+    params = _sharded(policy.params, replicated)     # the policy's own (engine weights, norm), not the raw tree
 
     def fresh_carry():
         t = len(names)
