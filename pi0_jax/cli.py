@@ -6,6 +6,7 @@
   pi0-jax quantize SRC DST  FP8 quantised checkpoint (calibrated static activation scales), accuracy report
   pi0-jax train             train a π0 on expert demonstrations (pi0_jax/train)
   pi0-jax distill           distil a trained π0 into a 1-2 flow-step (optionally shallower) student
+  pi0-jax prune SRC DST     drop transformer layers (both Gemma towers) from a checkpoint
   pi0-jax serve [CKPT]      serve a policy over openpi's websocket protocol (dynamic batching, /healthz)
 """
 
@@ -98,6 +99,7 @@ def _quantize_parser(subparsers) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     from converters.cli import add_convert_parser
+    from pi0_jax.prune import add_prune_parser
     from pi0_jax.serve.cli import add_serve_parser
     from pi0_jax.sim.cli import add_eval_parser
     from pi0_jax.train.cli import add_distill_parser, add_train_parser
@@ -112,6 +114,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_eval_parser(sub)
     add_train_parser(sub)
     add_distill_parser(sub)
+    add_prune_parser(sub)
     add_serve_parser(sub)
     return parser
 

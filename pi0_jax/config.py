@@ -39,7 +39,32 @@ class SiglipConfig:
         return (self.image_size // self.patch_size) ** 2
 
 
-GEMMA_VARIANTS: dict[str, GemmaConfig] = {
+class _GemmaVariants(dict):
+    """The Gemma size table. Besides its entries it knows `<variant>_<n>l` for every entry: the same tower with its
+    first n <= depth layers' shapes (layer-dropped checkpoints, `pi0-jax prune`, and shallower distillation students;
+    which layers were kept is the checkpoint's business, the shapes only need n)."""
+
+    def _derived(self, key):
+        base, _, n = key.rpartition("_")
+        if not (dict.__contains__(self, base) and n.endswith("l") and n[:-1].isdigit()):
+            return None
+        parent = dict.__getitem__(self, base)
+        return dataclasses.replace(parent, depth=int(n[:-1])) if 1 <= int(n[:-1]) <= parent.depth else None
+
+    def __missing__(self, key):
+        derived = self._derived(key) if isinstance(key, str) else None
+        if derived is None:
+            raise KeyError(key)
+        return derived
+
+    def __contains__(self, key) -> bool:
+        return dict.__contains__(self, key) or (isinstance(key, str) and self._derived(key) is not None)
+
+    def get(self, key, default=None):
+        return self[key] if key in self else default
+
+
+GEMMA_VARIANTS: dict[str, GemmaConfig] = _GemmaVariants({
     "gemma_2b": GemmaConfig(width=2048, depth=18, mlp_dim=16_384, num_heads=8, num_kv_heads=1, head_dim=256),
     "gemma_300m": GemmaConfig(width=1024, depth=18, mlp_dim=4096, num_heads=8, num_kv_heads=1, head_dim=256),
     # Test sizes: every dimension distinct, and the expert's attention width (4*16) differs from its width (48),
@@ -54,7 +79,7 @@ GEMMA_VARIANTS: dict[str, GemmaConfig] = {
     "gemma_small_expert_2l": GemmaConfig(width=128, depth=2, mlp_dim=512, num_heads=4, num_kv_heads=1, head_dim=64),
     "dummy_2l": GemmaConfig(width=64, depth=2, mlp_dim=160, num_heads=4, num_kv_heads=1, head_dim=16),
     "dummy_expert_2l": GemmaConfig(width=48, depth=2, mlp_dim=96, num_heads=4, num_kv_heads=1, head_dim=16),
-}
+})
 
 SIGLIP_VARIANTS: dict[str, SiglipConfig] = {
     "So400m/14": SiglipConfig(width=1152, depth=27, mlp_dim=4304, num_heads=16),
