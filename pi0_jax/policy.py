@@ -22,7 +22,6 @@ they name, and the state prompt lists the state zero-padded to action_dim (LeRob
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import os
 import threading
@@ -41,7 +40,7 @@ from pi0_jax.config import IMAGE_KEYS, Pi0Config
 from pi0_jax.engine import engine_weights, enable_compilation_cache, prompt_bucket
 from pi0_jax.engine import programs
 from pi0_jax.engine import weights as weights_lib
-from pi0_jax.observation import (DEFAULT_OPTIONAL_CAMERAS, ObservationError, Prepared, Validator)
+from pi0_jax.observation import DEFAULT_OPTIONAL_CAMERAS, ObservationError, Prepared, Validator
 from pi0_jax.preprocess import _resize_with_pad
 from pi0_jax.tokenizer import PaligemmaTokenizer
 
@@ -68,8 +67,8 @@ class PolicyCore:
     """
 
     def __init__(self, config: Pi0Config, params: dict | None, tokenizer: PaligemmaTokenizer,
-                 normalizer: _norm.Normalizer, *, num_steps: int = 10, action_dims: int | None = None, sampler: str = "engine",
-                 unroll: bool = True):
+                 normalizer: _norm.Normalizer, *, num_steps: int = 10, action_dims: int | None = None,
+                 sampler: str = "engine", unroll: bool = True):
         if tokenizer.max_len != config.max_token_len:
             raise ValueError(f"tokenizer max_len {tokenizer.max_len} != config.max_token_len {config.max_token_len}")
         if sampler not in SAMPLERS:
@@ -375,7 +374,8 @@ class Policy:
 
 
 def find_tokenizer(ckpt: str | os.PathLike, explicit: str | os.PathLike | None = None) -> Path:
-    """The checkpoint's SentencePiece model: `explicit`, else <ckpt>/tokenizer.model or <ckpt>/assets/tokenizer.model."""
+    """The checkpoint's SentencePiece model: `explicit`, else <ckpt>/tokenizer.model, else
+    <ckpt>/assets/tokenizer.model."""
     ckpt = Path(ckpt)
     candidates = [Path(explicit)] if explicit is not None else [ckpt / TOKENIZER_FILE, ckpt / "assets" / TOKENIZER_FILE]
     for c in candidates:

@@ -79,7 +79,7 @@ def test_noise_shapes_and_seeded_rng(pi0_ckpt, pi0_policy):
     np.testing.assert_array_equal(pi0_policy.infer(libero_obs(), noise=noise[None])["actions"], a)
     with pytest.raises(ValueError, match="noise"):
         pi0_policy.infer(libero_obs(), noise=noise[:, :7])
-    p1, p2 = Policy.from_checkpoint(pi0_ckpt[0], seed=3, cache_dir=False), Policy.from_checkpoint(pi0_ckpt[0], seed=3, cache_dir=False)
+    p1, p2 = (Policy.from_checkpoint(pi0_ckpt[0], seed=3, cache_dir=False) for _ in range(2))
     first = p1.infer(libero_obs())["actions"]
     np.testing.assert_array_equal(p2.infer(libero_obs())["actions"], first)
     assert not np.array_equal(p1.infer(libero_obs())["actions"], first)  # the PRNG advances per call

@@ -24,8 +24,8 @@ fails alone, before any batch). The batcher takes the oldest waiting request, wa
 `max_batch`) until `batch_window_ms` after that request arrived or after the device became free, whichever is
 later, and only while another open connection has nothing queued (a lone client never waits), then hands the group
 to `policy.run` on the one worker thread. A window of 0 never delays anyone but still lets requests that queued
-while the device was busy share the next call; `max_batch=1` answers each request alone. If a batched call raises, its members are retried one by
-one, so only the culprit fails. A request whose client has gone is dropped.
+while the device was busy share the next call; `max_batch=1` answers each request alone. If a batched call raises,
+its members are retried one by one, so only the culprit fails. A request whose client has gone is dropped.
 
     handle = serve(policy, "127.0.0.1", 0)   # background thread; port 0 picks a free port: handle.port, handle.url
     handle.stop()                             # stop accepting, finish in-flight requests, close, join
