@@ -134,3 +134,35 @@ def infer(config: Pi0Config, weights: dict, sched: dict, images, image_masks, to
     cache = fill_prefix_cache(config, weights, image_tokens, image_masks, tokens, token_mask, unroll=unroll)
     return denoise(config, weights, sched, cache, state, noise, num_steps=num_steps, unroll=unroll,
                    unroll_steps=unroll_steps, attention=attention)
+
+
+def guided_denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixCache, state, noise, target,
+                   weight, *, num_steps: int, beta: float = 5.0, unroll: bool, attention: str = "xla") -> jax.Array:
+    """Real-time chunking (Black, Galliker, Levine 2025, arXiv 2506.07339): `denoise` with ΠGDM-style inpainting
+    guidance towards `target` (B, H, action_dim), weighted per action and dim by `weight` (B, H, action_dim) in
+    [0, 1] (1: frozen, 0: free), in normalised model space.
+
+    Time runs as openpi's (t = 1 noise, t = 0 data), so the denoised estimate is x̂ = x_t - t v(x_t) and the paper's
+    update A += (1/n)(v_π + w g), with v_π = -v in its τ = 1 - t, becomes x += dt (v - w g), where
+    g = [(target - x̂) * weight]ᵀ ∂x̂/∂x_t (one vector-Jacobian product through `velocity`) and
+    w = min(beta, (t² + (1 - t)²) / (t (1 - t))), = beta at t = 1. weight = 0 everywhere gives `denoise` exactly
+    up to the VJP's extra arithmetic (g = 0)."""
+    dt = -1.0 / num_steps
+    if not isinstance(num_steps, int):
+        dt = jnp.asarray(dt, jnp.float32)
+    target, weight = target.astype(jnp.float32), weight.astype(jnp.float32)
+
+    def step(i, x_t):
+        t = 1.0 + i.astype(jnp.float32) * dt    # f32 as the schedule's step_times, to rounding
+
+        def denoised(x):
+            v = velocity(config, weights, sched, i, cache, state, x, unroll=unroll, attention=attention)
+            v = v.astype(jnp.float32)
+            return x - t * v, v
+
+        x_hat, vjp, v = jax.vjp(denoised, x_t, has_aux=True)
+        (g,) = vjp((target - x_hat) * weight)
+        w = jnp.minimum(beta, (t * t + (1.0 - t) ** 2) / jnp.maximum(t * (1.0 - t), 1e-12))
+        return x_t + dt * (v - w * g)
+
+    return jax.lax.fori_loop(0, num_steps, step, noise.astype(jnp.float32))

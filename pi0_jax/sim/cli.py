@@ -71,6 +71,28 @@ def add_eval_parser(subparsers) -> argparse.ArgumentParser:
                         "CKPT/assets/tokenizer.model)")
     p.add_argument("--norm-stats", default=None, metavar="PATH|identity",
                    help="norm stats for a checkpoint policy (default: found under CKPT/assets)")
+    rt = p.add_argument_group("latency, asynchronous execution, prefix reuse (model policies; pi0_jax/sim/realtime.py)")
+    rt.add_argument("--latency-steps", type=int, default=0, metavar="D",
+                    help="inference latency in control steps: a chunk planned from the observation at step t is "
+                         "first usable at t + D (one step is 50 ms at the suite's 20 Hz: D = 4 is 200 ms). Needs "
+                         "D <= --replan-steps and --replan-steps + D <= the action horizon (default: %(default)s)")
+    rt.add_argument("--execution", choices=("sync", "naive", "rtc"), default="sync",
+                    help="what the robot does while a chunk is computed: sync = the world waits (D has no effect; "
+                         "the usual protocol); naive = keep executing the previous chunk, switch to the new one at "
+                         "its index D (an episode's first D steps hold still: zero motion, gripper open); rtc = as "
+                         "naive, with the new chunk sampled by real-time chunking (first D actions frozen to the "
+                         "committed ones, the overlap guided with decaying weights, ΠGDM guidance clipped at 5). "
+                         "With D = 0 all three are the same policy (default: %(default)s)")
+    rt.add_argument("--reuse-prefix", default=None, metavar="K|auto:THRESH",
+                    help="recompute vision and the prefix KV cache only every K-th plan, otherwise denoise on the "
+                         "cached prefix (K = 1: every plan, through the reuse path). auto:THRESH recomputes an "
+                         "environment's prefix when its images changed more than THRESH since its cache's frame "
+                         "(mean absolute difference of 16x16 downsampled frames in [0, 1], the larger camera), "
+                         "selected per environment; the batch's vision + prefix run when any environment needs "
+                         "them. π0 keeps the state in the suffix, so the fresh state still enters; π0.5 with the "
+                         "state in the prompt uses the cached plan's (stale) state; π0.5 without state input has "
+                         "none. eval_info.json's realtime.prefix_recompute_fraction is recomputes / plans "
+                         "(default: recompute every plan, the fused program)")
     p.add_argument("--segment-replans", type=int, default=8, metavar="M",
                    help="policy calls per jitted segment; the progress bar updates and finished batches stop "
                         "early between segments (default: %(default)s)")
@@ -123,7 +145,8 @@ def run(args: argparse.Namespace) -> int:
                      replan_steps=args.replan_steps, max_steps=args.steps,
                      resolution=args.resolution or default_resolution(args.policy),
                      seed=args.seed, videos=args.videos, segment_replans=args.segment_replans,
-                     num_steps=default_num_steps(args.policy) if args.num_steps is None else args.num_steps)
+                     num_steps=default_num_steps(args.policy) if args.num_steps is None else args.num_steps,
+                     execution=args.execution, latency_steps=args.latency_steps, reuse_prefix=args.reuse_prefix)
     kw = {"tokenizer_path": args.tokenizer, "norm_stats": args.norm_stats, "dtype": args.dtype,
           "sampler": args.sampler}
     info = evaluate(args.policy, cfg, args.output_dir, progress=not args.no_progress, policy_kwargs=kw,
@@ -134,6 +157,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"\n{t['episodes_per_min']:.1f} episodes/min ({t['episodes_per_min_after_compile']:.1f} after the first "
               f"segment); host {t['host_s']:.1f} s, device {t['device_wait_s']:.1f} s"
               + "".join(f"; {k} {v:.1f} ms" for k, v in t.get("phases", {}).items() if k.endswith("_ms")))
+        r = info.get("realtime", {})
+        if r.get("execution", "sync") != "sync" or r.get("latency_steps") or r.get("reuse_prefix") is not None:
+            print(f"execution {r['execution']}, latency {r['latency_steps']} steps ({r['latency_ms']:.0f} ms at 20 Hz)"
+                  + (f", prefix recomputed at {100 * r['prefix_recompute_fraction']:.1f}% of plans"
+                     if r.get("reuse_prefix") is not None and "prefix_recompute_fraction" in r else ""))
         print(f"{a['n_episodes']} episodes in {a['eval_s']:.1f} s ({a['eval_ep_s']:.2f} s/episode; first segment "
               f"incl. compile {a['first_segment_s']:.1f} s) on {info['config']['devices']} "
               f"{info['config']['backend']} device(s)")

@@ -50,6 +50,11 @@ class EvalConfig:
     videos: int = 4
     segment_replans: int = 8
     num_steps: int = 10               # flow-matching steps of a checkpoint policy
+    # Model policies in time (pi0_jax/sim/realtime.py): sync | naive | rtc, the delay D in control steps (50 ms each),
+    # prefix reuse None | "K" | "auto:THRESH".
+    execution: str = "sync"
+    latency_steps: int = 0
+    reuse_prefix: str | None = None
 
 
 @struct.dataclass
@@ -169,10 +174,21 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
     render_cfg = RenderConfig(cfg.resolution, cfg.resolution,
                               auto_ray_chunk(cfg.resolution, cfg.resolution, batch // n_dev))
     env = Env(names, render_cfg, max_steps=cfg.max_steps)
+    from pi0_jax.sim.realtime import Realtime
+
+    realtime = Realtime(cfg.execution, cfg.latency_steps, cfg.reuse_prefix)
     if callable(policy_spec):
         policy = policy_spec(env)
+        have = policy.info.get("realtime", Realtime().describe())
+        if {k: have.get(k) for k in ("execution", "latency_steps", "reuse_prefix")} != {
+                k: getattr(realtime, k) for k in ("execution", "latency_steps", "reuse_prefix")}:
+            raise ValueError(f"the policy's realtime settings {have} differ from the EvalConfig's {realtime}")
+    elif policy_spec in ("expert", "random"):
+        if not realtime.is_default:
+            raise ValueError("--execution, --latency-steps and --reuse-prefix apply to model policies only")
+        policy = make_policy(policy_spec, env, cfg.replan_steps)
     else:
-        kw = {} if policy_spec in ("expert", "random") else {"num_steps": cfg.num_steps, **(policy_kwargs or {})}
+        kw = {"num_steps": cfg.num_steps, "realtime": realtime, **(policy_kwargs or {})}
         policy = make_policy(policy_spec, env, cfg.replan_steps, **kw)
     if policy.horizon is not None and cfg.replan_steps > policy.horizon:
         raise ValueError(f"replan_steps {cfg.replan_steps} > the policy's action horizon {policy.horizon}")
@@ -200,6 +216,7 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
     ep_keys = jax.jit(lambda e: jax.vmap(lambda i: jax.random.fold_in(base_key, i))(e), out_shardings=shard)
 
     success, length = np.zeros(n_ep, bool), np.zeros(n_ep, np.int32)
+    policy_stats: dict[str, int] = {}
     video_frames, video_done = [], []
     compile_s, wait_s, done_count, succ_count = 0.0, 0.0, 0, 0
     bar = None
@@ -244,6 +261,9 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
         length[b * batch: b * batch + n] = _fetch(carry.state.length)[:n]
         done_count += n
         succ_count += int(success[b * batch: b * batch + n].sum())
+        if policy.stats is not None:
+            for k, v in policy.stats(carry.pstate).items():
+                policy_stats[k] = policy_stats.get(k, 0) + int(_fetch(v)[:n].sum())
     if bar is not None:
         bar.close()
     rollout_s = time.perf_counter() - t_roll
@@ -252,6 +272,10 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
     info = _eval_info(env, cfg, policy, task_of, init_of, success, length, eval_s, rollout_s, compile_s, batch,
                       n_dev, n_local)
     info["timing"] = timing_section(info, rollout_s, compile_s, wait_s, n_batches, steps_per_segment, cfg)
+    if "realtime" in policy.info:
+        info["realtime"] = {**policy.info["realtime"], **policy_stats}
+        if policy_stats.get("plans"):
+            info["realtime"]["prefix_recompute_fraction"] = policy_stats["prefix_recomputed"] / policy_stats["plans"]
     if profile:
         fresh = ep_keys(global_array(np.arange(batch, dtype=np.int32)))   # the rollout donated its keys
         info["timing"]["phases"] = profile_phases(env, policy, cfg, params, reset(fresh, t_ids, i_ids), batch)

@@ -43,6 +43,7 @@ class SimPolicy:
     horizon: int | None = None                      # longest usable chunk; None: any replan_steps
     observation: Callable | None = None             # model policies: (obs, env_state) -> pi0.Observation
     info: dict = dataclasses.field(default_factory=dict)
+    stats: Callable | None = None                   # pstate -> {name: (B,) counts}, summed into eval_info
 
 
 def expert_policy(env) -> SimPolicy:
@@ -65,7 +66,7 @@ def random_policy(replan_steps: int) -> SimPolicy:
 
 def checkpoint_policy(path: str | os.PathLike, env, *, tokenizer_path=None, num_steps: int = 10,
                       norm_stats: str | os.PathLike | None = None, dtype: str | None = None,
-                      sampler: str = "engine") -> SimPolicy:
+                      sampler: str = "engine", realtime=None, replan_steps: int | None = None) -> SimPolicy:
     """A pi0-jax checkpoint directory (`pi0-jax convert` output) as a batched in-jit policy for `env`'s tasks."""
     from pi0_jax import checkpoint
     from pi0_jax import normalize as nz
@@ -81,17 +82,22 @@ def checkpoint_policy(path: str | os.PathLike, env, *, tokenizer_path=None, num_
         normalizer = nz.Normalizer.identity()
     else:
         normalizer = nz.load_normalizer(path if norm_stats is None else norm_stats, use_quantiles=config.pi05)
-    return model_policy(config, params, tok, normalizer, env, num_steps=num_steps, name=str(path), sampler=sampler)
+    return model_policy(config, params, tok, normalizer, env, num_steps=num_steps, name=str(path), sampler=sampler,
+                        realtime=realtime, replan_steps=replan_steps)
 
 
 def model_policy(config, params, tok, normalizer, env, *, num_steps: int = 10, dynamic_steps: bool = False,
-                 name: str = "model", sampler: str = "engine", action_dims: int | None = None) -> SimPolicy:
+                 name: str = "model", sampler: str = "engine", action_dims: int | None = None, realtime=None,
+                 replan_steps: int | None = None) -> SimPolicy:
     """A π0 / π0.5 with its tokenizer and normaliser as a batched in-jit policy for `env`'s tasks, through the one
     policy pipeline (`pi0_jax.policy.PolicyCore.program`: the engine, or the reference sampler when asked).
 
     dynamic_steps: the flow-step count travels in the policy's params ({..., "num_steps": int32}) instead of the
     program, so one compiled rollout serves every step count up to `PolicyCore.max_dynamic_steps` (same numerics).
-    params None: the transforms only (`observation`), e.g. for calibration batches."""
+    params None: the transforms only (`observation`), e.g. for calibration batches.
+    realtime: a `pi0_jax.sim.realtime.Realtime` (latency, sync / naive / rtc execution, prefix reuse; needs
+    replan_steps); the policy state is then a dict (chunk, previous chunk, cached prefix, counters) instead of the
+    chunk itself."""
     from pi0_jax import pi0
     from pi0_jax.engine import prompt_bucket
     from pi0_jax.policy import PolicyCore
@@ -148,16 +154,25 @@ def model_policy(config, params, tok, normalizer, env, *, num_steps: int = 10, d
     pparams = {"model": core.dynamic_model() if dynamic_steps else core.model, "norm": core.norm}
     if dynamic_steps:
         pparams["num_steps"] = np.int32(num_steps)
-    return SimPolicy(name=name, init=lambda b: jnp.zeros((b, horizon, core.action_dims)), plan=plan,
-                     act=lambda ps, es, k: (ps[:, k], ps), needs_images=True, horizon=horizon, observation=observation,
-                     params=pparams,
-                     info={"model": config.name, "pi05": config.pi05, "dtype": config.dtype, "num_steps": num_steps,
-                           "action_horizon": horizon, "normalization": normalizer.convention.value,
-                           "sampler": core.sampler})
+    info = {"model": config.name, "pi05": config.pi05, "dtype": config.dtype, "num_steps": num_steps,
+            "action_horizon": horizon, "normalization": normalizer.convention.value, "sampler": core.sampler}
+    init, act, stats = (lambda b: jnp.zeros((b, horizon, core.action_dims))), (lambda ps, es, k: (ps[:, k], ps)), None
+    if realtime is not None and not realtime.is_default:
+        from pi0_jax.sim import realtime as rt_lib
+
+        if replan_steps is None:
+            raise ValueError("a realtime policy needs replan_steps")
+        init, plan, act, stats = rt_lib.make_model_callbacks(core, realtime, replan_steps, inputs, cameras, bucket)
+    if realtime is not None:
+        info["realtime"] = realtime.describe()
+        if in_prompt and realtime.reuse_prefix is not None:
+            info["realtime"]["note"] = "π0.5 with the state in the prompt: reused prefixes hold a stale state"
+    return SimPolicy(name=name, init=init, plan=plan, act=act, needs_images=True, horizon=horizon,
+                     observation=observation, params=pparams, info=info, stats=stats)
 
 
 def preset_policy(name: str, env, *, num_steps: int = 10, dtype: str | None = None, seed: int = 0,
-                  sampler: str = "engine") -> SimPolicy:
+                  sampler: str = "engine", realtime=None, replan_steps: int | None = None) -> SimPolicy:
     """Random weights of a preset (`pi0_jax.config`), e.g. a full-size π0.5, with identity normalisation, the
     embedded model's tokenizer and LIBERO's 7 action dims: the protocol's timing without a trained checkpoint
     (the success rate is ~0)."""
@@ -171,7 +186,8 @@ def preset_policy(name: str, env, *, num_steps: int = 10, dtype: str | None = No
     tok = PaligemmaTokenizer(find_tokenizer(Path(__file__).parents[1] / "assets" / "pi0_small"),
                              config.max_token_len)
     return model_policy(config, pi0.random_params(config, seed), tok, nz.Normalizer.identity(), env,
-                        num_steps=num_steps, name=f"preset:{name} (random weights)", sampler=sampler)
+                        num_steps=num_steps, name=f"preset:{name} (random weights)", sampler=sampler,
+                        realtime=realtime, replan_steps=replan_steps)
 
 
 def make_policy(spec: str, env, replan_steps: int, **kw) -> SimPolicy:
@@ -181,8 +197,8 @@ def make_policy(spec: str, env, replan_steps: int, **kw) -> SimPolicy:
     if spec == "random":
         return random_policy(replan_steps)
     if spec.startswith("preset:"):
-        kw = {k: v for k, v in kw.items() if k in ("num_steps", "dtype", "sampler")}
-        return preset_policy(spec.removeprefix("preset:"), env, **kw)
+        kw = {k: v for k, v in kw.items() if k in ("num_steps", "dtype", "sampler", "realtime")}
+        return preset_policy(spec.removeprefix("preset:"), env, replan_steps=replan_steps, **kw)
     if not Path(spec).is_dir():
         raise FileNotFoundError(f"--policy {spec!r}: not 'expert', 'random', 'preset:NAME' or a checkpoint directory")
-    return checkpoint_policy(spec, env, **kw)
+    return checkpoint_policy(spec, env, replan_steps=replan_steps, **kw)
