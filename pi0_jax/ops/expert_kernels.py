@@ -44,7 +44,8 @@ class Blocks:
     mlp_cols: int = 64  # hidden columns (of gate and of up) per norm_geglu program
     q: int = 64  # attention queries per program
     kv: int = 64  # attention keys per loop step
-    num_warps: int = 4
+    num_warps: int = 4  # the GEMM kernels'
+    attention_warps: int = 8
     num_stages: int = 2
 
 
@@ -55,9 +56,10 @@ def _fit(block: int, n: int) -> int:
     return block
 
 
-def _call(kernel, grid, out_shape, blocks: Blocks, name: str):
+def _call(kernel, grid, out_shape, blocks: Blocks, name: str, num_warps: int | None = None):
     on_cpu = jax.default_backend() == "cpu"
-    params = None if on_cpu else plgpu.CompilerParams(num_warps=blocks.num_warps, num_stages=blocks.num_stages)
+    params = None if on_cpu else plgpu.CompilerParams(num_warps=num_warps or blocks.num_warps,
+                                                      num_stages=blocks.num_stages)
     return pl.pallas_call(kernel, grid=grid, out_shape=out_shape, interpret=on_cpu, compiler_params=params,
                           name=name)
 
@@ -179,7 +181,7 @@ def attention(qkv, cache_k, cache_v, prefix_mask, suffix_mask, *, batch: int, nu
     kernel = functools.partial(_attention_kernel, bq=bq, bkv=bkv, sp=sp, pp=pp, hd=hd, num_heads=num_heads,
                                num_kv_heads=num_kv_heads)
     out = jax.ShapeDtypeStruct((m, num_heads * hd), qkv.dtype)
-    return _call(kernel, (batch, num_heads, sp // bq), out, blocks, "expert_attention")(
+    return _call(kernel, (batch, num_heads, sp // bq), out, blocks, "expert_attention", blocks.attention_warps)(
         qkv, cache_k, cache_v, prefix_mask, suffix_mask)
 
 
