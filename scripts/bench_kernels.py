@@ -60,7 +60,7 @@ def stages(config, args, key):
     p = 768 + (200 if config.pi05 else 48)
     pp = -(-p // layout.KEY_PAD) * layout.KEY_PAD
     n, nk = cfg.num_heads, cfg.num_kv_heads
-    ks = iter(jax.random.split(key, 64))
+    ks = iter(jax.random.split(key, 256))
 
     def rnd(*shape, scale=1.0, dtype=dt):
         return (jax.random.normal(next(ks), shape, jnp.float32) * scale).astype(dtype)

@@ -85,6 +85,12 @@ def _normed(x_ref, mod_ref, rows, cols, inv, mod_row, adaptive, dtype):
     return h.astype(dtype)
 
 
+def _dot(a, b, trans_b: bool = False):
+    """a @ b (or a @ b.T) with an f32 accumulator; f32 operands multiply in full f32 (Triton's IEEE mode)."""
+    dims = (((1,), (1 if trans_b else 0,)), ((), ()))
+    return jax.lax.dot_general(a, b, dims, preferred_element_type=jnp.float32)
+
+
 def _round(acc, dtype):
     """A GEMM's f32 accumulator as XLA returns `x @ w`: rounded to the activation dtype (kept in f32 to compute)."""
     return acc.astype(dtype).astype(jnp.float32)
@@ -102,7 +108,7 @@ def _norm_qkv_rope_kernel(x_ref, mod_ref, w_ref, cos_ref, sin_ref, o_ref, *, bm,
     def body(kk, acc):
         ks = pl.ds(kk * bk, bk)
         h = _normed(x_ref, mod_ref, rows, ks, inv, mod_row, adaptive, dtype)
-        return (acc[0] + pl.dot(h, w_ref[ks, pl.ds(c1, bh)]), acc[1] + pl.dot(h, w_ref[ks, pl.ds(c2, bh)]))
+        return acc[0] + _dot(h, w_ref[ks, pl.ds(c1, bh)]), acc[1] + _dot(h, w_ref[ks, pl.ds(c2, bh)])
 
     zero = jnp.zeros((bm, bh), jnp.float32)
     a1, a2 = jax.lax.fori_loop(0, width // bk, body, (zero, zero))
@@ -140,18 +146,18 @@ def norm_qkv_rope(x, mods, mod_row: int, adaptive: bool, w_qkv, cos, sin, *, wid
 def _attention_kernel(qkv_ref, ck_ref, cv_ref, pmask_ref, smask_ref, o_ref, *, bq, bkv, sp, pp, hd, num_heads,
                       num_kv_heads):
     b, n, qi = pl.program_id(0), pl.program_id(1), pl.program_id(2)
-    kh = n // (num_heads // num_kv_heads)
+    kh = jax.lax.div(n, num_heads // num_kv_heads) if num_kv_heads > 1 else 0  # this query head's kv head
     rows = pl.ds(b * sp + qi * bq, bq)
     q = qkv_ref[rows, pl.ds(n * hd, hd)]
     dtype = q.dtype
 
     def update(carry, k, v, valid):
         o, m, l = carry
-        logits = jnp.where(valid, pl.dot(q, k, trans_b=True), BIG_NEG)  # f32
+        logits = jnp.where(valid, _dot(q, k, trans_b=True), BIG_NEG)  # f32
         m_new = jnp.maximum(m, jnp.max(logits, axis=1))
         corr = jnp.exp(m - m_new)
         p = jnp.exp(logits - m_new[:, None])
-        return o * corr[:, None] + pl.dot(p.astype(dtype), v), m_new, l * corr + jnp.sum(p, axis=1)
+        return o * corr[:, None] + _dot(p.astype(dtype), v), m_new, l * corr + jnp.sum(p, axis=1)
 
     def prefix_block(t, carry):
         keys = pl.ds(b * pp + t * bkv, bkv)
@@ -192,7 +198,7 @@ def _matmul_residual_kernel(y_ref, w_ref, x_ref, mod_ref, o_ref, *, bm, bn, bk, 
 
     def body(kk, acc):
         ks = pl.ds(kk * bk, bk)
-        return acc + pl.dot(y_ref[rows, ks], w_ref[ks, cols])
+        return acc + _dot(y_ref[rows, ks], w_ref[ks, cols])
 
     dtype = x_ref.dtype
     y = _round(jax.lax.fori_loop(0, depth // bk, body, jnp.zeros((bm, bn), jnp.float32)), dtype)
@@ -222,8 +228,8 @@ def _norm_geglu_kernel(x_ref, mod_ref, w_ref, o_ref, *, bm, bn, bk, width, n_tru
     def body(kk, acc):
         ks = pl.ds(kk * bk, bk)
         h = _normed(x_ref, mod_ref, rows, ks, inv, mod_row, adaptive, dtype)
-        return (acc[0] + pl.dot(h, w_ref[ks, pl.ds(j * bn, bn)]),
-                acc[1] + pl.dot(h, w_ref[ks, pl.ds(hidden + j * bn, bn)]))
+        return (acc[0] + _dot(h, w_ref[ks, pl.ds(j * bn, bn)]),
+                acc[1] + _dot(h, w_ref[ks, pl.ds(hidden + j * bn, bn)]))
 
     zero = jnp.zeros((bm, bn), jnp.float32)
     gate, up = jax.lax.fori_loop(0, width // bk, body, (zero, zero))
