@@ -1,5 +1,5 @@
 """The fused expert kernels (`pi0_jax.ops`) against the XLA path on one GPU: correctness, per-stage timings with a
-block-size sweep, and the denoise step / whole call of the engine with kernels="xla" and "pallas".
+block-size sweep, the denoise step of both paths on the same weights and cache, and the pallas engine's whole call.
 
 Per-stage times are medians over calls of one program that runs the stage on `--copies` independent inputs (separate
 buffers, so nothing is copied or de-duplicated), divided by the copies: one launch each, inside one executable.
@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import sys
 import time
@@ -23,7 +24,7 @@ import numpy as np
 
 from pi0_jax import benchmark
 from pi0_jax.config import get_config
-from pi0_jax.engine import Engine, layers
+from pi0_jax.engine import Engine, layers, programs
 from pi0_jax.ops import expert_kernels as ek, layout
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -50,6 +51,34 @@ def stage_ms(stage, varying: list, fixed: tuple, iters: int) -> float:
 def rel_l2(a, b) -> float:
     a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
     return float(np.linalg.norm(a - b) / np.linalg.norm(b))
+
+
+def xla_stages(cfg, out, xs, w, pos, ck, cv, pmask, ys, hs, s, p, rnd, args):
+    """The engine's own XLA ops for each stage, at the unpadded shapes."""
+    dt, h, nk = jnp.bfloat16, cfg.head_dim, cfg.num_kv_heads
+    x3 = [x[None, :s] for x in xs]
+    positions = pos[:, :s]
+    out["xla"]["norm_qkv_rope"] = stage_ms(
+        lambda x, w: layers._qkv(layers.rms_norm(x, w["pre_attn"])[0], w["qkv"], cfg, positions), x3, (w,),
+        args.iters)
+    q5 = [layers._qkv(x, w["qkv"], cfg, positions)[0] for x in x3]
+    kc, vc = ck[:p].reshape(1, p, nk, h), cv[:p].reshape(1, p, nk, h)
+    km, vm = rnd(1, s, nk, h), rnd(1, s, nk, h)
+    pm3 = jnp.broadcast_to(pmask[:, None, :p] != 0, (1, s, p))
+    sm3 = jnp.tril(jnp.ones((1, s, s), bool))
+    out["xla"]["attention"] = stage_ms(lambda q, kc, vc, km, vm: layers._attend(q, [kc, km], [vc, vm], [pm3, sm3], dt),
+                                       q5, (kc, vc, km, vm), args.iters)
+    out["xla"]["out_residual"] = stage_ms(lambda y, w, x: x + y @ w["attn_out"], [y[None, :s] for y in ys],
+                                          (w, x3[0]), args.iters)
+    out["xla"]["norm_geglu"] = stage_ms(
+        lambda x, w: (lambda g: jax.nn.gelu(g[0], approximate=True) * g[1])(
+            jnp.split(layers.rms_norm(x, w["pre_attn"])[0] @ w["gate_up"], 2, axis=-1)), x3, (w,), args.iters)
+    out["xla"]["down_residual"] = stage_ms(lambda hh, w, x: x + hh @ w["down"], [hh[None, :s] for hh in hs],
+                                           (w, x3[0]), args.iters)
+    out["xla"]["layer"] = stage_ms(
+        lambda x, w, kc, vc: layers.suffix_layer(cfg, w, x, positions, kc, vc, pm3, sm3), x3,
+        ({k: w[k] for k in ("qkv", "attn_out", "gate_up", "down", "pre_attn")} | {"pre_ffw": w["pre_attn"]}, kc, vc),
+        args.iters)
 
 
 def stages(config, args, key):
@@ -81,48 +110,29 @@ def stages(config, args, key):
     kw = {"num_heads": n, "num_kv_heads": nk}
 
     out = {"xla": {}, "pallas": {}}
-    # XLA: the engine's own ops for each stage, at the unpadded shapes
-    x3 = [x[None, :s] for x in xs]
-    positions = pos[:, :s]
-    out["xla"]["norm_qkv_rope"] = stage_ms(
-        lambda x, w: layers._qkv(layers.rms_norm(x, w["pre_attn"])[0], w["qkv"], cfg, positions), x3, (w,),
-        args.iters)
-    q5 = [layers._qkv(x, w["qkv"], cfg, positions)[0] for x in x3]
-    kc, vc = ck[:p].reshape(1, p, nk, h), cv[:p].reshape(1, p, nk, h)
-    km, vm = rnd(1, s, nk, h), rnd(1, s, nk, h)
-    pm3 = jnp.broadcast_to(pmask[:, None, :p] != 0, (1, s, p))
-    sm3 = jnp.tril(jnp.ones((1, s, s), bool))
-    out["xla"]["attention"] = stage_ms(lambda q, kc, vc, km, vm: layers._attend(q, [kc, km], [vc, vm], [pm3, sm3], dt),
-                                       q5, (kc, vc, km, vm), args.iters)
-    out["xla"]["out_residual"] = stage_ms(lambda y, w, x: x + y @ w["attn_out"], [y[None, :s] for y in ys],
-                                          (w, x3[0]), args.iters)
-    out["xla"]["norm_geglu"] = stage_ms(
-        lambda x, w: (lambda g: jax.nn.gelu(g[0], approximate=True) * g[1])(
-            jnp.split(layers.rms_norm(x, w["pre_attn"])[0] @ w["gate_up"], 2, axis=-1)), x3, (w,), args.iters)
-    out["xla"]["down_residual"] = stage_ms(lambda hh, w, x: x + hh @ w["down"], [hh[None, :s] for hh in hs],
-                                           (w, x3[0]), args.iters)
-    out["xla"]["layer"] = stage_ms(
-        lambda x, w, kc, vc: layers.suffix_layer(cfg, w, x, positions, kc, vc, pm3, sm3), x3,
-        ({k: w[k] for k in ("qkv", "attn_out", "gate_up", "down", "pre_attn")} | {"pre_ffw": w["pre_attn"]}, kc, vc),
-        args.iters)
-
+    if args.xla_stages:
+        xla_stages(cfg, out, xs, w, pos, ck, cv, pmask, ys, hs, s, p, rnd, args)
+    # (the first sweep, commit f0fa40a, covered warps 4/8 and attention q 16-64 x kv 32/64; these narrow it down)
     sweeps = {
-        "norm_qkv_rope": [dict(qkv_cols=a, num_warps=wp) for a in (16, 32, 64) for wp in (4, 8)],
-        "attention": [dict(q=a, kv=b, attention_warps=wp) for a in (16, 32, 64) for b in (32, 64) for wp in (4, 8)],
-        "out_residual": [dict(out_cols=a, k=b) for a in (16, 32, 64) for b in (128, 256)],
-        "norm_geglu": [dict(mlp_cols=a, num_warps=wp) for a in (16, 32, 64) for wp in (4, 8)],
-        "down_residual": [dict(out_cols=a, k=b) for a in (16, 32, 64) for b in (128, 256)],
+        "norm_qkv_rope": [dict(qkv_cols=a) for a in (16, 32, 64)] + [dict(qkv_cols=32, k=256),
+                                                                     dict(qkv_cols=32, num_stages=3)],
+        "attention": [dict(q=16, kv=64, attention_warps=4), dict(q=16, kv=64, attention_warps=4, num_stages=3)],
+        "out_residual": [dict(out_cols=a, out_splits=sp) for a in (32, 64) for sp in (1, 4, 8)],
+        "norm_geglu": [dict(mlp_cols=32), dict(mlp_cols=32, k=256), dict(mlp_cols=64, k=256),
+                       dict(mlp_cols=32, num_stages=3), dict(mlp_cols=32, num_stages=4)],
+        "down_residual": [dict(out_cols=a, down_splits=sp, k=256) for a in (32, 64) for sp in (1, 4, 8)],
     }
     calls = {
         "norm_qkv_rope": (lambda bl: lambda x, w: ek.norm_qkv_rope(x, scale, 0, False, w, cos, sin, width=d,
                                                                    head_dim=h, blocks=bl, **kw), xs, (w["qkv"],)),
         "attention": (lambda bl: lambda q, ck, cv: ek.attention(q, ck, cv, pmask, smask, batch=1, blocks=bl, **kw),
                       qkvs, (ck, cv)),
-        "out_residual": (lambda bl: lambda y, w, x: ek.matmul_residual(y, w, x, blocks=bl), ys,
+        "out_residual": (lambda bl: lambda y, w, x: ek.matmul_residual(y, w, x, splits=bl.out_splits, blocks=bl), ys,
                          (w["attn_out"], xs[0])),
         "norm_geglu": (lambda bl: lambda x, w: ek.norm_geglu(x, scale, 0, False, w, width=d, blocks=bl), xs,
                        (w["gate_up"],)),
-        "down_residual": (lambda bl: lambda hh, w, x: ek.matmul_residual(hh, w, x, blocks=bl), hs,
+        "down_residual": (lambda bl: lambda hh, w, x: ek.matmul_residual(hh, w, x, splits=bl.down_splits, blocks=bl),
+                          hs,
                           (w["down"], xs[0])),
     }
     best = {}
@@ -137,13 +147,14 @@ def stages(config, args, key):
         rows.sort(key=lambda r: r[0])
         out["pallas"][name] = [{"ms": t, **v} for t, v in rows]
         best[name] = rows[0]
-        print(f"{name:14s} xla {out['xla'][name] * 1e3:7.1f} us   pallas best {rows[0][0] * 1e3:7.1f} us "
+        print(f"{name:14s} xla {out['xla'].get(name, float('nan')) * 1e3:7.1f} us   pallas best {rows[0][0] * 1e3:7.1f} us "
               f"{rows[0][1]}", flush=True)
+    # shared fields (k, num_stages, out_cols) come from the stage that reads the most bytes
+    take = {"norm_qkv_rope": ("qkv_cols",), "attention": ("q", "kv", "attention_warps"), "out_residual": ("out_splits",),
+            "norm_geglu": ("mlp_cols", "k", "num_stages", "num_warps"), "down_residual": ("out_cols", "down_splits")}
     fields = {}
-    for name in ("norm_qkv_rope", "attention", "norm_geglu"):
-        fields.update({k: v for k, v in best[name][1].items() if k != "error"})
-    # the out-projection and the down-projection share out_cols: take the down's (more bytes)
-    fields.update({k: v for k, v in best["down_residual"][1].items() if k in ("out_cols",)})
+    for name, keys in take.items():
+        fields.update({k: v for k, v in best[name][1].items() if k in keys})
     blocks = ek.Blocks(**fields)
     out["best_blocks"] = dataclasses.asdict(blocks)
     print("best blocks", blocks, flush=True)
@@ -151,26 +162,34 @@ def stages(config, args, key):
 
 
 def engine_runs(config, args, blocks, out):
-    """Engine with kernels xla / pallas at B=1 (and B=8 if time allows): correctness and timings."""
+    """The engine with kernels="pallas" at B=1, and the XLA denoise program on the same weights and cache (at full
+    size the kernels' weight layout is the XLA one, and padded prefix keys are masked): correctness and timings."""
+    if time.perf_counter() - T0 > args.engine_before_s:
+        out[config.name] = "skipped: out of time"
+        return
     params = benchmark.random_params(config, 0)
     prompt = 200 if config.pi05 else 48
     obs, noise = benchmark.make_inputs(config, 1, 3, prompt, 0)
-    res, actions = {}, {}
+    layers.suffix_layers_pallas.__defaults__ = (None, blocks)
+    engine = Engine(config, params, kernels="pallas", cache_dir=False)
+    del params
+    cams, bucket = engine.plan(obs)
+    packed = engine.pack(obs, cams, bucket)
+    w = engine.weights
+    tokens = engine.executable("encode_images", 1, 0, cams, bucket)(w, packed[0])
+    cache = engine.executable("fill_prefix_cache", 1, 0, cams, bucket)(w, tokens, *packed[1:4])
+    res, actions = {"prefix_keys": int(cache.mask.shape[1]), "blocks": dataclasses.asdict(blocks)}, {}
     for kernels in ("xla", "pallas"):
-        if kernels == "pallas":
-            layers.suffix_layers_pallas.__defaults__ = (None, blocks)
-        engine = Engine(config, params, kernels=kernels, cache_dir=False)
-        cams, bucket = engine.plan(obs)
-        packed = engine.pack(obs, cams, bucket)
-        w = engine.weights
-        tokens = engine.executable("encode_images", 1, 0, cams, bucket)(w, packed[0])
-        cache = engine.executable("fill_prefix_cache", 1, 0, cams, bucket)(w, tokens, *packed[1:4])
-        r = {"prefix_keys": int(cache.mask.shape[1])}
+        r = {}
         for steps in (1, 10):
-            t0 = time.perf_counter()
-            den = engine.executable("denoise", 1, steps, cams, bucket)
-            r[f"compile_denoise_{steps}_s"] = time.perf_counter() - t0
             sched = engine.schedule(steps)
+            t0 = time.perf_counter()
+            if kernels == "pallas":
+                den = engine.executable("denoise", 1, steps, cams, bucket)
+            else:
+                fn = functools.partial(programs.denoise, config, num_steps=steps, unroll=True, unroll_steps=False)
+                den = jax.jit(fn).lower(w, sched, cache, packed[4], noise).compile()
+            r[f"compile_denoise_{steps}_s"] = time.perf_counter() - t0
             r[f"denoise_{steps}_ms"] = median_ms(lambda: den(w, sched, cache, packed[4], jnp.copy(noise)), (),
                                                  args.iters)
             if steps == 10:
@@ -181,21 +200,15 @@ def engine_runs(config, args, blocks, out):
                 r["loop_body_ops"] = big[1]
                 r["kernels_per_step"] = big[1]["fusion"] + big[1]["custom-call"] + big[1]["copy"]
         r["per_step_ms"] = (r["denoise_10_ms"] - r["denoise_1_ms"]) / 9
-        fused = engine.executable("infer", 1, 10, cams, bucket)
-        sched = engine.schedule(10)
-        r["infer_10_ms"] = median_ms(lambda: fused(w, sched, *packed, jnp.copy(noise)), (), args.iters)
-        if time.perf_counter() - T0 < args.b8_before_s and not config.pi05:
-            obs8, noise8 = benchmark.make_inputs(config, 8, 3, prompt, 1)
-            p8 = engine.pack(obs8, cams, bucket)
-            f8 = engine.executable("infer", 8, 10, cams, bucket)
-            r["infer_10_b8_ms"] = median_ms(lambda: f8(w, sched, *p8, jnp.copy(noise8)), (), max(10, args.iters // 3))
         res[kernels] = r
         print(config.name, kernels, json.dumps(r), flush=True)
-        del engine, w, cache, tokens
     res["pallas_vs_xla_rel_l2"] = rel_l2(actions["pallas"], actions["xla"])
     print(config.name, "pallas vs xla rel L2 (bf16, 10 steps):", res["pallas_vs_xla_rel_l2"], flush=True)
     out[config.name] = res
-    del params
+    sched = engine.schedule(10)
+    fused = engine.executable("infer", 1, 10, cams, bucket)
+    res["pallas"]["infer_10_ms"] = median_ms(lambda: fused(w, sched, *packed, jnp.copy(noise)), (), args.iters)
+    print(config.name, "pallas infer 10 steps ms", res["pallas"]["infer_10_ms"], flush=True)
 
 
 def f32_parity(out):
@@ -224,7 +237,8 @@ def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--iters", type=int, default=30)
     p.add_argument("--copies", type=int, default=16)
-    p.add_argument("--b8-before-s", type=float, default=330.0, help="time B=8 only if started before this")
+    p.add_argument("--engine-before-s", type=float, default=150.0, help="start an engine run only before this")
+    p.add_argument("--xla-stages", action="store_true", help="also time each stage's XLA ops (the first run did)")
     p.add_argument("--skip-sweep", action="store_true")
     p.add_argument("--max-variants", type=int, default=100, help="block variants per stage in the sweep")
     p.add_argument("--presets", default="pi0_base,pi05_base", help="engine runs (the sweep uses the first)")

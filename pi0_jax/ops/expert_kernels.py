@@ -31,6 +31,7 @@ from jax.experimental.pallas import triton as plgpu
 
 BIG_NEG = -2.3819763e38  # masked logits: the value pi0_jax.gemma fills (a test checks they agree)
 EPS = 1e-6
+ALIGN = 16  # Triton's smallest dot dimension
 
 
 @dataclasses.dataclass(frozen=True)
@@ -41,6 +42,8 @@ class Blocks:
     k: int = 128  # GEMM contraction chunk
     qkv_cols: int = 64  # columns of each RoPE half per norm_qkv_rope program
     out_cols: int = 64  # output columns per matmul_residual program
+    out_splits: int = 1  # split-K programs of the out-projection (partials summed by XLA with the residual)
+    down_splits: int = 1  # the same for the down-projection
     mlp_cols: int = 64  # hidden columns (of gate and of up) per norm_geglu program
     q: int = 64  # attention queries per program
     kv: int = 64  # attention keys per loop step
@@ -97,8 +100,8 @@ def _round(acc, dtype):
 
 
 # -- norm + q/k/v GEMM + RoPE -----------------------------------------------------------------------------------------
-def _norm_qkv_rope_kernel(x_ref, mod_ref, w_ref, cos_ref, sin_ref, o_ref, *, bm, bk, bh, hp, width, n_true, mod_row,
-                          adaptive, num_heads, num_kv_heads, q_scale):
+def _norm_qkv_rope_kernel(x_ref, mod_ref, w_ref, cos_ref, sin_ref, o_ref, *, m, bm, bk, bh, hp, width, n_true,
+                          mod_row, adaptive, num_heads, num_kv_heads, q_scale):
     i, n, j = pl.program_id(0), pl.program_id(1), pl.program_id(2)
     rows = pl.ds(i * bm, bm)
     dtype = x_ref.dtype
@@ -113,14 +116,16 @@ def _norm_qkv_rope_kernel(x_ref, mod_ref, w_ref, cos_ref, sin_ref, o_ref, *, bm,
     zero = jnp.zeros((bm, bh), jnp.float32)
     a1, a2 = jax.lax.fori_loop(0, width // bk, body, (zero, zero))
     a1, a2 = _round(a1, dtype), _round(a2, dtype)
-    cos, sin = cos_ref[rows, pl.ds(j * bh, bh)], sin_ref[rows, pl.ds(j * bh, bh)]
-    # RoPE on q and k heads (f32, then the dtype), q additionally scaled in the dtype; v heads pass through
-    rope, is_q = n < num_heads + num_kv_heads, n < num_heads
-    r1 = jnp.where(rope, _round(a1 * cos - a2 * sin, dtype), a1)
-    r2 = jnp.where(rope, _round(a2 * cos + a1 * sin, dtype), a2)
-    scale = jnp.where(is_q, q_scale, 1.0)
-    o_ref[rows, pl.ds(c1, bh)] = (r1 * scale).astype(o_ref.dtype)
-    o_ref[rows, pl.ds(c2, bh)] = (r2 * scale).astype(o_ref.dtype)
+    # RoPE in f32, then the dtype; v heads read the tables' identity rows (cos 1, sin 0: a1, a2 come back exactly).
+    # q is then scaled in the dtype: the blend 1 + (q_scale - 1) * is_q is exact (q_scale is a dtype value in (0, 1]).
+    # Integer arithmetic on the head index, not selects: Triton rejects a select with a scalar predicate.
+    is_v = jnp.minimum(jnp.maximum(n - (num_heads + num_kv_heads) + 1, 0), 1)
+    is_q = jnp.minimum(jnp.maximum(num_heads - n, 0), 1)
+    t_rows = pl.ds(is_v * m + i * bm, bm)
+    cos, sin = cos_ref[t_rows, pl.ds(j * bh, bh)], sin_ref[t_rows, pl.ds(j * bh, bh)]
+    scale = 1.0 + (q_scale - 1.0) * is_q.astype(jnp.float32)
+    o_ref[rows, pl.ds(c1, bh)] = (_round(a1 * cos - a2 * sin, dtype) * scale).astype(o_ref.dtype)
+    o_ref[rows, pl.ds(c2, bh)] = (_round(a2 * cos + a1 * sin, dtype) * scale).astype(o_ref.dtype)
 
 
 def norm_qkv_rope(x, mods, mod_row: int, adaptive: bool, w_qkv, cos, sin, *, width: int, num_heads: int,
@@ -128,14 +133,15 @@ def norm_qkv_rope(x, mods, mod_row: int, adaptive: bool, w_qkv, cos, sin, *, wid
     """x (M, D) -> qkv (M, (N + 2K) * 2hp): normed, projected, q/k rotated, q scaled by head_dim^-0.5.
 
     mods (R, D): row mod_row is the norm scale, +1 the adaRMS shift (adaptive); w_qkv (D, (N + 2K) * 2hp);
-    cos / sin (M, hp) f32 (`layout.rope_tables`); width: the true D (the mean's divisor).
+    cos / sin (2M, hp) f32 (`layout.rope_tables`: the rows' angles, then identity rows); width: the true D (the
+    mean's divisor).
     """
     m, d = x.shape
     hp = cos.shape[1]
     heads = num_heads + 2 * num_kv_heads
     bm, bk, bh = _fit(blocks.rows, m), _fit(blocks.k, d), _fit(blocks.qkv_cols, hp)
     q_scale = float(np.asarray(head_dim**-0.5, x.dtype))  # the reference scales q in the activation dtype
-    kernel = functools.partial(_norm_qkv_rope_kernel, bm=bm, bk=bk, bh=bh, hp=hp, width=d, n_true=width,
+    kernel = functools.partial(_norm_qkv_rope_kernel, m=m, bm=bm, bk=bk, bh=bh, hp=hp, width=d, n_true=width,
                                mod_row=mod_row, adaptive=adaptive, num_heads=num_heads, num_kv_heads=num_kv_heads,
                                q_scale=q_scale)
     out = jax.ShapeDtypeStruct((m, heads * 2 * hp), x.dtype)
@@ -207,10 +213,34 @@ def _matmul_residual_kernel(y_ref, w_ref, x_ref, mod_ref, o_ref, *, bm, bn, bk, 
     o_ref[rows, cols] = (x_ref[rows, cols].astype(jnp.float32) + y).astype(o_ref.dtype)
 
 
-def matmul_residual(y, w, x, mods=None, gate_row: int | None = None, *, blocks: Blocks = Blocks()):
-    """x + (y @ w) [* mods[gate_row]]: y (M, E), w (E, D), x (M, D); the π0.5 adaRMS gate is a row of mods (R, D)."""
+def _matmul_partial_kernel(y_ref, w_ref, o_ref, *, m, bm, bn, bk, chunk):
+    i, j, s = pl.program_id(0), pl.program_id(1), pl.program_id(2)
+    rows, cols = pl.ds(i * bm, bm), pl.ds(j * bn, bn)
+
+    def body(kk, acc):
+        ks = pl.ds(s * chunk + kk * bk, bk)
+        return acc + _dot(y_ref[rows, ks], w_ref[ks, cols])
+
+    o_ref[pl.ds(s * m + i * bm, bm), cols] = jax.lax.fori_loop(0, chunk // bk, body, jnp.zeros((bm, bn), jnp.float32))
+
+
+def matmul_residual(y, w, x, mods=None, gate_row: int | None = None, *, splits: int = 1,
+                    blocks: Blocks = Blocks()):
+    """x + (y @ w) [* mods[gate_row]]: y (M, E), w (E, D), x (M, D); the π0.5 adaRMS gate is a row of mods (R, D).
+
+    splits > 1 (where E splits into multiples of 16): split-K, so that a B=1 GEMM fills the GPU; the kernel writes
+    f32 partials and one XLA fusion sums them, rounds to the dtype and applies the gate and the residual (the XLA path's ops, in its order).
+    """
     m, e = y.shape
     d = w.shape[1]
+    if splits > 1 and e % (ALIGN * splits) == 0:
+        chunk = e // splits
+        bm, bn, bk = _fit(blocks.rows, m), _fit(blocks.out_cols, d), _fit(blocks.k, chunk)
+        kernel = functools.partial(_matmul_partial_kernel, m=m, bm=bm, bn=bn, bk=bk, chunk=chunk)
+        out = jax.ShapeDtypeStruct((splits * m, d), jnp.float32)
+        part = _call(kernel, (m // bm, d // bn, splits), out, blocks, "matmul_partial")(y, w)
+        z = part.reshape(splits, m, d).sum(axis=0).astype(x.dtype)
+        return x + (z if gate_row is None else z * mods[gate_row])
     bm, bn, bk = _fit(blocks.rows, m), _fit(blocks.out_cols, d), _fit(blocks.k, e)
     kernel = functools.partial(_matmul_residual_kernel, bm=bm, bn=bn, bk=bk, depth=e, gate_row=gate_row)
     mods = jnp.zeros((1, d), x.dtype) if mods is None else mods
