@@ -1,9 +1,10 @@
 """Fused Pallas kernels for one action-expert layer of the denoise step (Triton on GPU, interpret mode on CPU).
 
-One expert layer is five launches instead of ~24 XLA kernels:
+One expert layer is five kernels (seven launches with split-K) instead of ~23 XLA kernels:
   norm_qkv_rope    RMSNorm / adaRMS + the fused q/k/v GEMM + RoPE + q scaling
   attention        the suffix queries over [cached prefix | suffix] keys, one online softmax
   matmul_residual  out-projection + (gated) residual; again for the MLP's down-projection + (gated) residual
+                   (split-K: f32 partials, then one XLA fusion for the sum, gate and residual)
   norm_geglu       RMSNorm / adaRMS + the gate/up GEMM + GELU-tanh(gate) * up
 
 Kernel layout (`pi0_jax.ops.layout`): rows are (batch, suffix padded to Sp) flattened; each head is stored as
@@ -36,20 +37,21 @@ ALIGN = 16  # Triton's smallest dot dimension
 
 @dataclasses.dataclass(frozen=True)
 class Blocks:
-    """Tile sizes (powers of two; each is shrunk to divide its padded dimension) and Triton launch parameters."""
+    """Tile sizes (powers of two; each is shrunk to divide its padded dimension) and Triton launch parameters.
+    Defaults: the fastest of a sweep at π0 full size, B=1, on an H200 (docs/BENCHMARKS.md, "Fused kernels")."""
 
     rows: int = 64  # GEMM rows per program
     k: int = 128  # GEMM contraction chunk
-    qkv_cols: int = 64  # columns of each RoPE half per norm_qkv_rope program
+    qkv_cols: int = 32  # columns of each RoPE half per norm_qkv_rope program
     out_cols: int = 64  # output columns per matmul_residual program
-    out_splits: int = 1  # split-K programs of the out-projection (partials summed by XLA with the residual)
-    down_splits: int = 1  # the same for the down-projection
-    mlp_cols: int = 64  # hidden columns (of gate and of up) per norm_geglu program
-    q: int = 64  # attention queries per program
+    out_splits: int = 8  # split-K programs of the out-projection (partials summed by XLA with the residual)
+    down_splits: int = 8  # the same for the down-projection
+    mlp_cols: int = 32  # hidden columns (of gate and of up) per norm_geglu program
+    q: int = 16  # attention queries per program
     kv: int = 64  # attention keys per loop step
     num_warps: int = 4  # the GEMM kernels'
-    attention_warps: int = 8
-    num_stages: int = 2
+    attention_warps: int = 4
+    num_stages: int = 3
 
 
 def _fit(block: int, n: int) -> int:
