@@ -81,6 +81,11 @@ def xla_stages(cfg, out, xs, w, pos, ck, cv, pmask, ys, hs, s, p, rnd, args):
         args.iters)
 
 
+# The blocks that each sweep variant changes (the defaults of `Blocks` before the sweeps set them)
+SWEEP_BASE = dict(rows=64, k=128, qkv_cols=64, out_cols=64, out_splits=1, down_splits=1, mlp_cols=64, q=64, kv=64,
+                  num_warps=4, attention_warps=8, num_stages=2)
+
+
 def stages(config, args, key):
     """Per-stage timings of one expert layer at full size (B=1): XLA ops vs each kernel over a block sweep."""
     cfg, dt = config.action_expert, jnp.bfloat16
@@ -141,18 +146,20 @@ def stages(config, args, key):
         rows = []
         for v in variants[: args.max_variants]:
             try:
-                rows.append((stage_ms(make(ek.Blocks(**v)), varying, fixed, args.iters), v))
+                rows.append((stage_ms(make(ek.Blocks(**{**SWEEP_BASE, **v})), varying, fixed, args.iters), v))
             except Exception as e:  # a variant Triton rejects (e.g. out of shared memory) is reported, not fatal
                 rows.append((float("inf"), {**v, "error": f"{type(e).__name__}: {str(e)[:200]}"}))
         rows.sort(key=lambda r: r[0])
         out["pallas"][name] = [{"ms": t, **v} for t, v in rows]
         best[name] = rows[0]
-        print(f"{name:14s} xla {out['xla'].get(name, float('nan')) * 1e3:7.1f} us   pallas best {rows[0][0] * 1e3:7.1f} us "
+        xla_us = out["xla"].get(name, float("nan")) * 1e3
+        print(f"{name:14s} xla {xla_us:7.1f} us   pallas best {rows[0][0] * 1e3:7.1f} us "
               f"{rows[0][1]}", flush=True)
     # shared fields (k, num_stages, out_cols) come from the stage that reads the most bytes
-    take = {"norm_qkv_rope": ("qkv_cols",), "attention": ("q", "kv", "attention_warps"), "out_residual": ("out_splits",),
-            "norm_geglu": ("mlp_cols", "k", "num_stages", "num_warps"), "down_residual": ("out_cols", "down_splits")}
-    fields = {}
+    take = {"norm_qkv_rope": ("qkv_cols",), "attention": ("q", "kv", "attention_warps"),
+            "out_residual": ("out_splits",), "norm_geglu": ("mlp_cols", "k", "num_stages", "num_warps"),
+            "down_residual": ("out_cols", "down_splits")}
+    fields = dict(SWEEP_BASE)
     for name, keys in take.items():
         fields.update({k: v for k, v in best[name][1].items() if k in keys})
     blocks = ek.Blocks(**fields)
@@ -245,7 +252,8 @@ def main():
     p.add_argument("--out", type=Path, default=Path("kernels.json"))
     args = p.parse_args()
     dev = jax.devices()[0]
-    out = {"device": dev.device_kind, "jax": jax.__version__, "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
+    out = {"device": dev.device_kind, "jax": jax.__version__,
+           "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
     print(out, flush=True)
     sections = [("f32_parity", lambda: f32_parity(out))]
     blocks = ek.Blocks()

@@ -2,8 +2,8 @@
 
 Static per compiled program: the config, batch size, the active cameras (a camera masked for every element is not
 encoded at all), the prompt bucket length, num_steps, whether layers are unrolled, and the expert's kernels ("xla":
-`layers.suffix_layer`; "pallas": the fused kernels of `pi0_jax.ops`, with the prefix cache in their layout). Masked-out tokens never
-advance positions, so skipping them leaves every number as it was.
+`layers.suffix_layer`; "pallas": the fused kernels of `pi0_jax.ops`, with the prefix cache in their layout).
+Masked-out tokens never advance positions, so skipping them leaves every number as it was.
 """
 
 from __future__ import annotations

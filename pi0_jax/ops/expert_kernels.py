@@ -199,7 +199,7 @@ def attention(qkv, cache_k, cache_v, prefix_mask, suffix_mask, *, batch: int, nu
         qkv, cache_k, cache_v, prefix_mask, suffix_mask)
 
 
-# -- GEMM + (gated) residual ---------------------------------------------------------------------------------------------
+# -- GEMM + (gated) residual -------------------------------------------------------------------------------------------
 def _matmul_residual_kernel(y_ref, w_ref, x_ref, mod_ref, o_ref, *, bm, bn, bk, depth, gate_row):
     i, j = pl.program_id(0), pl.program_id(1)
     rows, cols = pl.ds(i * bm, bm), pl.ds(j * bn, bn)
@@ -231,7 +231,8 @@ def matmul_residual(y, w, x, mods=None, gate_row: int | None = None, *, splits: 
     """x + (y @ w) [* mods[gate_row]]: y (M, E), w (E, D), x (M, D); the π0.5 adaRMS gate is a row of mods (R, D).
 
     splits > 1 (where E splits into multiples of 16): split-K, so that a B=1 GEMM fills the GPU; the kernel writes
-    f32 partials and one XLA fusion sums them, rounds to the dtype and applies the gate and the residual (the XLA path's ops, in its order).
+    f32 partials and one XLA fusion sums them, rounds to the dtype and applies the gate and the residual (the XLA
+    path's ops, in its order).
     """
     m, e = y.shape
     d = w.shape[1]
