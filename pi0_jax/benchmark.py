@@ -61,6 +61,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--unroll-steps", action="store_true", help="unroll the denoise loop as well")
     p.add_argument("--attention", choices=["xla", "cudnn"], default="xla",
                    help="denoise attention: XLA ops or one cuDNN fused kernel (GPU) (default: %(default)s)")
+    p.add_argument("--kernels", choices=["xla", "pallas"], default="xla",
+                   help="the action expert's layers as XLA ops or as the fused Pallas kernels of pi0_jax.ops "
+                        "(Triton on GPU) (default: %(default)s)")
     p.add_argument("--reference", action="store_true",
                    help="also time the reference model (pi0_jax.pi0.sample_actions: openpi's structure, layers "
                         "scanned, one jit) at each batch for the largest step count")
@@ -156,7 +159,7 @@ def bench_engine(engine: Engine, args, batch: int) -> list[dict]:
         t_den = time_calls(lambda c, p, n: den(w, sched, c, p[4], jnp.copy(n)),
                            [(c, p, n) for c, p, (_, n) in zip(caches, packed, sets)], args.iters, args.warmup)
         row = {"dtype": cfg.dtype, "batch": batch, "steps": steps, "cameras": len(cameras), "prompt_bucket": bucket,
-               "attention": attention,
+               "attention": attention, "kernels": engine.kernels,
                "vision": t_vis, "prefix": t_pre, "denoise": t_den,
                "denoise_per_step_ms": t_den["median_ms"] / steps}
         if args.fused_steps is None or steps in args.fused_steps:
@@ -197,7 +200,7 @@ from pi0_jax.config import get_config
 from pi0_jax.engine import Engine
 cfg = get_config(sys.argv[1], dtype=sys.argv[2])
 params = benchmark.random_params(cfg, 0)
-engine = Engine(cfg, params, unroll=sys.argv[4] == "1", cache_dir=sys.argv[3])
+engine = Engine(cfg, params, unroll=sys.argv[4] == "1", kernels=sys.argv[8], cache_dir=sys.argv[3])
 obs, noise = benchmark.make_inputs(cfg, 1, int(sys.argv[5]), int(sys.argv[6]), 0)
 start = time.perf_counter()
 engine.executable("infer", 1, int(sys.argv[7]), *engine.plan(obs))
@@ -207,7 +210,8 @@ print(json.dumps({"warm_compile_s": time.perf_counter() - start, "process_s": ti
 
 def measure_warm_start(config: Pi0Config, args, cache_dir: Path, steps: int) -> dict:
     out = subprocess.run([sys.executable, "-c", _WARM_CHILD, config.name, config.dtype, str(cache_dir),
-                          "0" if args.no_unroll else "1", str(args.cameras), str(args.prompt_tokens), str(steps)],
+                          "0" if args.no_unroll else "1", str(args.cameras), str(args.prompt_tokens), str(steps),
+                          args.kernels],
                          capture_output=True, text=True, check=True).stdout
     return json.loads(out.strip().splitlines()[-1])
 
@@ -223,8 +227,8 @@ TABLE_HEADER = ("| dtype | batch | steps | total ms | Hz | vision ms | prefix KV
 
 
 def markdown(results: dict) -> str:
-    lines = [f"{results['env']['device']} · {results['preset']} · {results['env']['date']} · "
-             f"commit {results['env']['commit']}", "", TABLE_HEADER]
+    lines = [f"{results['env']['device']} · {results['preset']} · kernels {results['env'].get('kernels', 'xla')} · "
+             f"{results['env']['date']} · commit {results['env']['commit']}", "", TABLE_HEADER]
     lines += [_row_line(r) for r in results["rows"]]
     for peer in results.get("peers", []):
         lines.append(f"\n{peer['impl']} ({peer['dtype']}, B={peer['batch']}, {peer['steps']} steps): "
@@ -267,7 +271,8 @@ def chart(results: dict, path: Path) -> None:
 
 def run(args: argparse.Namespace) -> dict:
     cache_dir = args.cache_dir or Path(tempfile.mkdtemp(prefix="pi0-jax-xla-"))
-    results = {"preset": args.preset, "env": environment(), "rows": [], "peers": [], "compile": {},
+    results = {"preset": args.preset, "env": {**environment(), "kernels": args.kernels}, "rows": [], "peers": [],
+               "compile": {},
                "args": {k: str(v) for k, v in vars(args).items() if k != "func"}}
     print(f"{results['env']['device']} · jax {jax.__version__}\n\n{TABLE_HEADER}", flush=True)
     for dtype in args.dtype.split(","):
@@ -286,7 +291,7 @@ def run(args: argparse.Namespace) -> dict:
                                           "all", percentile=None)
                 params = schemes.quantize_params(config, params, args.quant, stats["amax"])
         engine = Engine(config, params, unroll=not args.no_unroll, unroll_steps=args.unroll_steps,
-                        attention=args.attention, cache_dir=cache_dir)
+                        attention=args.attention, kernels=args.kernels, cache_dir=cache_dir)
         for batch in args.batch:
             results["rows"] += bench_engine(engine, args, batch)
             if args.reference:

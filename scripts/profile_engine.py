@@ -48,16 +48,17 @@ def main() -> None:
     p.add_argument("--prompt-tokens", type=int, default=20)
     p.add_argument("--no-unroll", action="store_true")
     p.add_argument("--unroll-steps", action="store_true")
+    p.add_argument("--kernels", choices=["xla", "pallas"], default="xla", help="the expert's layers: XLA or Pallas")
     p.add_argument("--trace", type=Path, default=None, help="write a jax.profiler trace of 3 fused calls here")
     p.add_argument("--out", type=Path, default=None, help="JSON of the counts")
     args = p.parse_args()
 
     config = get_config(args.preset, dtype=args.dtype)
     engine = Engine(config, benchmark.random_params(config, 0), unroll=not args.no_unroll,
-                    unroll_steps=args.unroll_steps, cache_dir=False)
+                    unroll_steps=args.unroll_steps, kernels=args.kernels, cache_dir=False)
     obs, noise = benchmark.make_inputs(config, args.batch, args.cameras, args.prompt_tokens, 0)
     cameras, bucket = engine.plan(obs)
-    report = {}
+    report = {"kernels": args.kernels}
     for stage in ("encode_images", "fill_prefix_cache", "denoise", "infer"):
         exe = engine.executable(stage, args.batch, args.steps, cameras, bucket)
         counts = count_ops(exe.as_text())

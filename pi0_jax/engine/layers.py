@@ -17,6 +17,7 @@ import jax.numpy as jnp
 
 from pi0_jax.config import GemmaConfig
 from pi0_jax.gemma import _BIG_NEG, apply_rope
+from pi0_jax.ops import expert_kernels, layout
 from pi0_jax.quant import hooks as quant_hooks
 
 
@@ -130,3 +131,39 @@ def run_layers(layer_fn, weights, x, per_layer=(), *, unroll: bool):
 
     x, outs = jax.lax.scan(body, x, (weights, tuple(per_layer)))
     return x, list(outs)
+
+
+def suffix_layers_pallas(cfg: GemmaConfig, weights, x, positions, cache_k, cache_v, prefix_mask, suffix_mask,
+                         mods=None, blocks: expert_kernels.Blocks = expert_kernels.Blocks()):
+    """All action-expert layers as fused Pallas kernels (`pi0_jax.ops`), five kernels per layer (plus the split-K
+    sums); the same function as `suffix_layer` applied layer by layer.
+
+    weights: per-layer dicts in kernel layout (`ops.layout.expert_weights`); cache_k/v: per layer (B, Pp, K, 2hp)
+    and prefix_mask (B, Pp) in kernel layout (`ops.layout.cache_kv`); x (B, S, D); positions (B, S); suffix_mask
+    (B, S, S); mods: None (π0) or a step's π0.5 adaRMS outputs (attn, ffw), (L, 3D) each. Returns x (B, S, D).
+    """
+    b, s, d = x.shape
+    sp = layout.suffix_rows(s)
+    rows = layout.rows(x, sp)
+    cos, sin = layout.rope_tables(jnp.pad(positions, ((0, 0), (0, sp - s))), cfg.head_dim)
+    pmask = prefix_mask.astype(jnp.int32)
+    smask = jnp.pad(suffix_mask, ((0, 0), (0, sp - s), (0, sp - s))).reshape(b * sp, sp).astype(jnp.int32)
+    heads = {"num_heads": cfg.num_heads, "num_kv_heads": cfg.num_kv_heads}
+    adaptive = mods is not None
+    if adaptive:
+        mods_attn, mods_ffw = layout.mods(mods[0], d), layout.mods(mods[1], d)
+    for i, w in enumerate(weights):
+        if adaptive:  # layer i's rows of the step's table: scale 3i, shift 3i + 1, gate 3i + 2
+            (ma, ra, ga), (mf, rf, gf) = (mods_attn, 3 * i, 3 * i + 2), (mods_ffw, 3 * i, 3 * i + 2)
+        else:
+            (ma, ra, ga), (mf, rf, gf) = (w["pre_attn"], 0, None), (w["pre_ffw"], 0, None)
+        qkv = expert_kernels.norm_qkv_rope(rows, ma, ra, adaptive, w["qkv"], cos, sin, width=d,
+                                           head_dim=cfg.head_dim, blocks=blocks, **heads)
+        k, v = (c[i].reshape(b * c[i].shape[1], -1) for c in (cache_k, cache_v))
+        y = expert_kernels.attention(qkv, k, v, pmask, smask, batch=b, blocks=blocks, **heads)
+        rows = expert_kernels.matmul_residual(y, w["attn_out"], rows, ma, ga, splits=blocks.out_splits,
+                                              blocks=blocks)
+        h = expert_kernels.norm_geglu(rows, mf, rf, adaptive, w["gate_up"], width=d, blocks=blocks)
+        rows = expert_kernels.matmul_residual(h, w["down"], rows, mf, gf, splits=blocks.down_splits,
+                                              blocks=blocks)
+    return rows.reshape(b, sp, -1)[:, :s, :d]

@@ -1,8 +1,9 @@
 """The three inference stages and the fused program, as pure functions of (engine weights, inputs).
 
 Static per compiled program: the config, batch size, the active cameras (a camera masked for every element is not
-encoded at all), the prompt bucket length, num_steps, and whether layers are unrolled. Masked-out tokens never
-advance positions, so skipping them leaves every number as it was.
+encoded at all), the prompt bucket length, num_steps, whether layers are unrolled, and the expert's kernels ("xla":
+`layers.suffix_layer`; "pallas": the fused kernels of `pi0_jax.ops`, with the prefix cache in their layout).
+Masked-out tokens never advance positions, so skipping them leaves every number as it was.
 """
 
 from __future__ import annotations
@@ -16,11 +17,13 @@ import jax.numpy as jnp
 from pi0_jax import pi0, siglip
 from pi0_jax.config import Pi0Config
 from pi0_jax.engine import layers
+from pi0_jax.ops import layout
 
 
 @flax.struct.dataclass
 class PrefixCache:
-    """k, v: per layer (B, P, K, H), post-RoPE (a tuple when unrolled, (L, ...) stacked when scanned); mask (B, P)."""
+    """k, v: per layer (B, P, K, H), post-RoPE (a tuple when unrolled, (L, ...) stacked when scanned); mask (B, P).
+    With kernels="pallas", in the kernels' layout (`ops.layout.cache_kv`, `cache_mask`: keys and head dims padded)."""
 
     k: tuple | jax.Array
     v: tuple | jax.Array
@@ -38,7 +41,7 @@ def encode_images(config: Pi0Config, weights: dict, images: jax.Array, *, unroll
 
 
 def fill_prefix_cache(config: Pi0Config, weights: dict, image_tokens, image_masks, tokens, token_mask, *,
-                      unroll: bool) -> PrefixCache:
+                      unroll: bool, kernels: str = "xla") -> PrefixCache:
     """image_tokens (B, C*256, D); image_masks (C, B) bool; tokens / token_mask (B, L). The prefix is bidirectional."""
     dtype = jnp.dtype(config.dtype)
     n_img = image_tokens.shape[1] // image_masks.shape[0]
@@ -50,6 +53,10 @@ def fill_prefix_cache(config: Pi0Config, weights: dict, image_tokens, image_mask
     attn_mask = mask[:, None, :] & mask[:, :, None]
     layer = functools.partial(_prefix_layer, config, positions=positions, mask=attn_mask)
     _, (k, v) = layers.run_layers(layer, weights["vlm"], x, unroll=unroll)
+    if kernels == "pallas":  # once per call, so that no denoise step pads
+        head_dim = config.paligemma.head_dim
+        k, v = (tuple(layout.cache_kv(a, head_dim) for a in c) for c in (k, v))
+        mask = layout.cache_mask(mask)
     return PrefixCache(k=k, v=v, mask=mask)
 
 
@@ -63,7 +70,7 @@ def _dense(p, x):
 
 
 def velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, cache: PrefixCache, state, x_t, *,
-             unroll: bool, attention: str = "xla") -> jax.Array:
+             unroll: bool, attention: str = "xla", kernels: str = "xla") -> jax.Array:
     """v(x_t, t_step) over the cache. `sched` is `weights.precompute_schedule` output, indexed by the step number."""
     dtype = jnp.dtype(config.dtype)
     top, horizon = weights["top"], config.action_horizon
@@ -84,9 +91,14 @@ def velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, cac
     s = x.shape[1]
     ar = jnp.asarray(ar_state + [True] + [False] * (horizon - 1))
     suffix_mask = jnp.broadcast_to(pi0.make_attn_mask(jnp.ones((1, s), bool), ar), (b, s, s))
-    prefix_mask = jnp.broadcast_to(cache.mask[:, None, :], (b, s, cache.mask.shape[1]))
     positions = jnp.sum(cache.mask, axis=-1, keepdims=True) + jnp.arange(s)[None, :]
 
+    if kernels == "pallas":
+        x = layers.suffix_layers_pallas(config.action_expert, weights["expert"], x, positions, cache.k, cache.v,
+                                        cache.mask, suffix_mask, mods)
+        return _top(config, weights, sched, step, x)
+
+    prefix_mask = jnp.broadcast_to(cache.mask[:, None, :], (b, s, cache.mask.shape[1]))
     kv_len = None
     if attention == "cudnn":
         kv_len = (s + jnp.sum(cache.mask, axis=-1)).astype(jnp.int32)
@@ -101,11 +113,16 @@ def velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, cac
     if mods is not None:
         per_layer += [_by_layer(mods[0], unroll), _by_layer(mods[1], unroll)]
     x, _ = layers.run_layers(layer, weights["expert"], x, per_layer, unroll=unroll)
+    return _top(config, weights, sched, step, x)
+
+
+def _top(config, weights, sched, step, x):
+    """The expert's final norm and the action output projection."""
     if config.pi05:
         x, _ = layers.rms_norm(x, mod=sched["mods_final"][step][None])
     else:
         x, _ = layers.rms_norm(x, weights["final_norm_1"])
-    return _dense(top["action_out_proj"], x[:, -horizon:])
+    return _dense(weights["top"]["action_out_proj"], x[:, -config.action_horizon:])
 
 
 def _by_layer(x, unroll):
@@ -113,7 +130,7 @@ def _by_layer(x, unroll):
 
 
 def denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixCache, state, noise, *, num_steps: int,
-            unroll: bool, unroll_steps: bool, attention: str = "xla") -> jax.Array:
+            unroll: bool, unroll_steps: bool, attention: str = "xla", kernels: str = "xla") -> jax.Array:
     """num_steps Euler steps from noise (t = 1) to actions (t = 0): a fixed trip count for a Python int, a while
     loop for a traced int32 (then `sched` must hold at least num_steps entries)."""
     dt = -1.0 / num_steps
@@ -121,19 +138,21 @@ def denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixCache, s
         dt, unroll_steps = jnp.asarray(dt, jnp.float32), None   # f32 as the reference's traced dt
 
     def step(i, x_t):
-        v = velocity(config, weights, sched, i, cache, state, x_t, unroll=unroll, attention=attention)
+        v = velocity(config, weights, sched, i, cache, state, x_t, unroll=unroll, attention=attention,
+                     kernels=kernels)
         return x_t + dt * v  # dt * v in v's dtype, then promoted to f32: as the reference
 
     return jax.lax.fori_loop(0, num_steps, step, noise.astype(jnp.float32), unroll=unroll_steps)
 
 
 def infer(config: Pi0Config, weights: dict, sched: dict, images, image_masks, tokens, token_mask, state, noise, *,
-          num_steps: int, unroll: bool, unroll_steps: bool, attention: str = "xla") -> jax.Array:
+          num_steps: int, unroll: bool, unroll_steps: bool, attention: str = "xla", kernels: str = "xla") -> jax.Array:
     """The fused program: vision -> prefix cache -> denoise, one XLA executable, no host round trip."""
     image_tokens = encode_images(config, weights, images, unroll=unroll)
-    cache = fill_prefix_cache(config, weights, image_tokens, image_masks, tokens, token_mask, unroll=unroll)
+    cache = fill_prefix_cache(config, weights, image_tokens, image_masks, tokens, token_mask, unroll=unroll,
+                              kernels=kernels)
     return denoise(config, weights, sched, cache, state, noise, num_steps=num_steps, unroll=unroll,
-                   unroll_steps=unroll_steps, attention=attention)
+                   unroll_steps=unroll_steps, attention=attention, kernels=kernels)
 
 
 def guided_denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixCache, state, noise, target,

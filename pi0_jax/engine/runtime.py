@@ -20,6 +20,8 @@ import numpy as np
 from pi0_jax import pi0, siglip
 from pi0_jax.config import IMAGE_KEYS, Pi0Config
 from pi0_jax.engine import programs, weights as weights_lib
+from pi0_jax.ops import layout
+from pi0_jax.quant import hooks as quant
 
 PROMPT_BUCKETS = (16, 32, 48, 64, 96, 128, 160, 200)
 STAGES = ("encode_images", "fill_prefix_cache", "denoise", "infer")
@@ -47,13 +49,19 @@ def prompt_bucket(valid_len: int, max_len: int) -> int:
     return max_len
 
 
-def engine_weights(config: Pi0Config, params: dict, *, unroll: bool = True) -> dict:
-    """The programs' weights (`weights.prepare`, on device); unroll: per-layer buffers for unrolled layers."""
+def engine_weights(config: Pi0Config, params: dict, *, unroll: bool = True, kernels: str = "xla") -> dict:
+    """The programs' weights (`weights.prepare`, on device); unroll: per-layer buffers for unrolled layers;
+    kernels="pallas": the expert's layers in the fused kernels' layout (`pi0_jax.ops.layout`)."""
     w = jax.jit(functools.partial(weights_lib.prepare, config))(params)
     if unroll:
         depth = config.paligemma.depth
         w["vlm"] = weights_lib.unstack(w["vlm"], depth)
         w["expert"] = weights_lib.unstack(w["expert"], depth)
+        if kernels == "pallas":
+            if any(quant.is_quant(x) for x in jax.tree.leaves(w["expert"], is_leaf=quant.is_quant)):
+                raise ValueError("kernels='pallas' needs unquantised expert weights")
+            layout_fn = jax.jit(functools.partial(layout.expert_weights, cfg=config.action_expert))
+            w["expert"] = [layout_fn(x) for x in w["expert"]]
         w["img"] = siglip.unstack_blocks(w["img"], config.siglip.depth)
     return w
 
@@ -66,21 +74,28 @@ class Engine:
 
     unroll: layers unrolled (separate per-layer weight buffers) instead of `lax.scan`; unroll_steps: the denoise
     loop unrolled; attention: "xla" or "cudnn" (the denoise attention as one cuDNN kernel; GPU only, and used only
-    when every element's valid prefix is contiguous, else the call falls back to "xla").
+    when every element's valid prefix is contiguous, else the call falls back to "xla"); kernels: the action
+    expert's layers as XLA ops ("xla") or as the fused Pallas kernels of `pi0_jax.ops` ("pallas": Triton on GPU,
+    interpret mode on CPU; needs unrolled layers and unquantised expert weights).
     """
 
     def __init__(self, config: Pi0Config, params: dict, *, unroll: bool = True, unroll_steps: bool = False,
-                 attention: str = "xla", cache_dir: str | os.PathLike | None | bool = None):
+                 attention: str = "xla", kernels: str = "xla", cache_dir: str | os.PathLike | None | bool = None):
         if attention not in ("xla", "cudnn"):
             raise ValueError(f"attention must be 'xla' or 'cudnn', got {attention!r}")
+        if kernels not in ("xla", "pallas"):
+            raise ValueError(f"kernels must be 'xla' or 'pallas', got {kernels!r}")
+        if kernels == "pallas" and (not unroll or attention != "xla"):
+            raise ValueError("kernels='pallas' needs unroll=True and attention='xla' (it brings its own attention)")
         self.attention = attention
+        self.kernels = kernels
         if cache_dir is not False:
             self.cache_dir = enable_compilation_cache(None if cache_dir in (None, True) else cache_dir)
         self.config = config
         self.unroll = unroll
         self.unroll_steps = unroll_steps
         self._schedule_params = weights_lib.schedule_params(config, params)  # not the whole tree: it is 6 GB
-        self.weights = engine_weights(config, params, unroll=unroll)
+        self.weights = engine_weights(config, params, unroll=unroll, kernels=kernels)
         self._schedules: dict[int, dict] = {}
         self._executables: dict[tuple, jax.stages.Compiled] = {}
         self.compile_seconds: dict[tuple, float] = {}
@@ -126,15 +141,17 @@ class Engine:
         w = jax.tree.map(lambda x: spec(x.shape, x.dtype), self.weights)
         sched = jax.tree.map(lambda x: spec(x.shape, x.dtype), self.schedule(num_steps)) if num_steps else None
         kw = {"unroll": self.unroll}
-        denoise_kw = {**kw, "num_steps": num_steps, "unroll_steps": self.unroll_steps, "attention": attention}
+        denoise_kw = {**kw, "num_steps": num_steps, "unroll_steps": self.unroll_steps, "attention": attention,
+                      "kernels": self.kernels}
         if stage == "encode_images":
             return functools.partial(programs.encode_images, cfg, **kw), (w, images), ()
         image_tokens = spec((batch, c * cfg.siglip.num_patches, cfg.paligemma.width), dtype)
+        kw_cache = {**kw, "kernels": self.kernels}
         if stage == "fill_prefix_cache":
-            fn = functools.partial(programs.fill_prefix_cache, cfg, **kw)
+            fn = functools.partial(programs.fill_prefix_cache, cfg, **kw_cache)
             return fn, (w, image_tokens, image_masks, tokens, token_mask), ()
         if stage == "denoise":
-            cache = jax.eval_shape(functools.partial(programs.fill_prefix_cache, cfg, **kw), w, image_tokens,
+            cache = jax.eval_shape(functools.partial(programs.fill_prefix_cache, cfg, **kw_cache), w, image_tokens,
                                    image_masks, tokens, token_mask)
             fn = functools.partial(programs.denoise, cfg, **denoise_kw)
             return fn, (w, sched, cache, state, noise), (4,)

@@ -1,0 +1,103 @@
+"""The kernel layout of `pi0_jax.ops.expert_kernels`: weights, KV cache and per-step tables, padded once.
+
+Widths are padded to multiples of 16 (Triton's smallest dot), suffix rows to a power of two Sp >= 16, prefix keys to
+a multiple of KEY_PAD, and each head dim H to [x1 | 0 | x2 | 0] with both RoPE halves padded to hp. At π0 / π0.5
+full size (D 1024, H 256, F 4096) the weights need no padding: these are reshapes, free in XLA.
+
+Axis legend: L layers, B batch, S suffix tokens, P prefix keys, D width, N query heads, K kv heads, F MLP hidden.
+"""
+
+from __future__ import annotations
+
+import einops
+import jax.numpy as jnp
+
+from pi0_jax.config import GemmaConfig
+from pi0_jax.ops.expert_kernels import ALIGN
+
+KEY_PAD = 64  # prefix keys are padded to a multiple of this (the attention kernel's largest key block)
+
+
+def _round_up(n: int, m: int) -> int:
+    return -(-n // m) * m
+
+
+def _pad(x, axis: int, size: int):
+    """Zero-pad `axis` of x to `size` (nothing when it is already that size)."""
+    axis = axis % x.ndim
+    if x.shape[axis] == size:
+        return x
+    widths = [(0, 0)] * x.ndim
+    widths[axis] = (0, size - x.shape[axis])
+    return jnp.pad(x, widths)
+
+
+def suffix_rows(s: int) -> int:
+    """Sp: suffix tokens padded to a power of two >= 16 (the suffix block of the attention kernel is one tile)."""
+    return max(ALIGN, 1 << (s - 1).bit_length())
+
+
+def half_dim(head_dim: int) -> int:
+    """hp: one RoPE half of a head, padded."""
+    return _round_up(head_dim // 2, ALIGN)
+
+
+def _heads(x, axis: int, head_dim: int):
+    """Split `axis` = (heads H) into (heads 2 hp) with each half zero-padded, and merge it back."""
+    axis = axis % x.ndim
+    shape = x.shape
+    x = x.reshape(*shape[:axis], -1, 2, head_dim // 2, *shape[axis + 1:])
+    x = _pad(x, axis + 2, half_dim(head_dim))
+    return x.reshape(*shape[:axis], -1, *shape[axis + 1:])
+
+
+def expert_weights(w: dict, cfg: GemmaConfig) -> dict:
+    """One expert layer's engine weights (`engine.weights.prepare`) -> kernel layout:
+    qkv (D, (N + 2K) 2hp), attn_out (N 2hp, D), gate_up (D, 2F) = [gate | up], down (F, D), and π0's norm scales
+    pre_attn / pre_ffw as (1, D)."""
+    d, f = _round_up(cfg.width, ALIGN), _round_up(cfg.mlp_dim, ALIGN)
+    gate_up = einops.rearrange(w["gate_up"], "D (two F) -> D two F", two=2)
+    out = {
+        "qkv": _pad(_heads(w["qkv"], -1, cfg.head_dim), 0, d),
+        "attn_out": _pad(_heads(w["attn_out"], 0, cfg.head_dim), 1, d),
+        "gate_up": einops.rearrange(_pad(_pad(gate_up, 0, d), 2, f), "D two F -> D (two F)"),
+        "down": _pad(_pad(w["down"], 0, f), 1, d),
+    }
+    for name in ("pre_attn", "pre_ffw"):
+        if name in w:
+            out[name] = _pad(w[name][None], 1, d)
+    return out
+
+
+def cache_kv(x, head_dim: int):
+    """A prefix cache's k or v (B, P, K, H) -> (B, Pp, K, 2hp); padded keys are masked by `cache_mask`."""
+    return _pad(_heads(x, -1, head_dim), 1, _round_up(x.shape[1], KEY_PAD))
+
+
+def cache_mask(mask):
+    """(B, P) bool -> (B, Pp), padded keys False."""
+    return _pad(mask, 1, _round_up(mask.shape[1], KEY_PAD))
+
+
+def rows(x, sp: int):
+    """(B, S, D) activations -> (B Sp, Dpad) kernel rows, zero-padded."""
+    x = _pad(_pad(x, 1, sp), 2, _round_up(x.shape[2], ALIGN))
+    return x.reshape(-1, x.shape[2])
+
+
+def mods(m, width: int):
+    """A step's π0.5 adaRMS outputs (L, 3D) = [scale | shift | gate] per layer -> (3L, Dpad); layer i's rows are
+    3i, 3i + 1, 3i + 2."""
+    m = einops.rearrange(m, "L (three D) -> (L three) D", three=3)
+    return _pad(m, 1, _round_up(width, ALIGN))
+
+
+def rope_tables(positions, head_dim: int, max_wavelength: float = 10_000):
+    """positions (B, Sp) -> cos, sin (2 B Sp, hp) f32: the angles of `pi0_jax.gemma.apply_rope` for each row, then
+    as many identity rows (cos 1, sin 0) that v heads read, so one kernel body serves q, k and v."""
+    half = head_dim // 2
+    timescale = max_wavelength ** ((2.0 / head_dim) * jnp.arange(half, dtype=jnp.float32))
+    radians = positions.reshape(-1)[:, None].astype(jnp.float32) / timescale
+    cos = jnp.concatenate([jnp.cos(radians), jnp.ones_like(radians)])
+    sin = jnp.concatenate([jnp.sin(radians), jnp.zeros_like(radians)])
+    return _pad(cos, 1, half_dim(head_dim)), _pad(sin, 1, half_dim(head_dim))

@@ -1,0 +1,178 @@
+"""The fused expert kernels (`pi0_jax.ops`, interpret mode on CPU) compute what the engine's XLA ops compute, at the
+`dummy` sizes (every width, head half and key count padded), and the engine with kernels="pallas" matches the
+reference sampler. f32 throughout: the kernels and XLA differ only in summation order (measured ~1e-6)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from pi0_jax import gemma, pi0
+from pi0_jax.config import IMAGE_KEYS, get_config
+from pi0_jax.engine import Engine, layers
+from pi0_jax.ops import Blocks, expert_kernels as ek, layout
+from test_model import make_obs, randomize
+
+CFG = get_config("dummy").action_expert  # width 48, 4 heads x 16 (1 kv head), mlp 96: all padded by the layout
+B, S, P = 2, 11, 2 * 64 + 32  # two cameras of 64 tokens and a 32-token prompt bucket: 160 keys, padded to 192
+TOL = {"rtol": 1e-5, "atol": 1e-5}
+
+
+def _rand(key, *shape, scale=1.0):
+    return jax.random.normal(jax.random.key(key), shape, jnp.float32) * scale
+
+
+def _layer_weights(seed=0):
+    d, f, n, k, h = CFG.width, CFG.mlp_dim, CFG.num_heads, CFG.num_kv_heads, CFG.head_dim
+    return {"qkv": _rand(seed, d, (n + 2 * k) * h, scale=d**-0.5), "attn_out": _rand(seed + 1, n * h, d, scale=0.1),
+            "gate_up": _rand(seed + 2, d, 2 * f, scale=d**-0.5), "down": _rand(seed + 3, f, d, scale=f**-0.5),
+            "pre_attn": _rand(seed + 4, d, scale=0.2), "pre_ffw": _rand(seed + 5, d, scale=0.2)}
+
+
+def _prefix_mask():
+    """Element 0: its second camera masked and 13 prompt tokens; element 1: both cameras and 21 prompt tokens."""
+    idx = np.arange(P)
+    m0 = (idx < 64) | ((idx >= 128) & (idx < 128 + 13))
+    m1 = idx < 128 + 21
+    return jnp.asarray(np.stack([m0, m1]))
+
+
+def _suffix_mask(pi05: bool):
+    ar = [True] + [True] + [False] * (S - 2) if not pi05 else [True] + [False] * (S - 1)
+    return jnp.broadcast_to(pi0.make_attn_mask(jnp.ones((1, S), bool), jnp.asarray(ar)), (B, S, S))
+
+
+def _unrows(rows, width):
+    """Kernel rows (B Sp, Dpad) -> (B, S, width)."""
+    return rows.reshape(B, layout.suffix_rows(S), -1)[:, :S, :width]
+
+
+def _unheads(x, heads):
+    """(..., heads 2hp) -> (..., heads, H): drop each RoPE half's padding."""
+    half = CFG.head_dim // 2
+    x = x.reshape(*x.shape[:-1], heads, 2, layout.half_dim(CFG.head_dim))[..., :half]
+    return x.reshape(*x.shape[:-3], heads, CFG.head_dim)
+
+
+def _mods(adaptive, w):
+    """(mods, row, gate_row) of the kernels and the XLA path's mod / scale, for layer 1 of a 2-layer table."""
+    if not adaptive:
+        wk = layout.expert_weights(w, CFG)
+        return (wk["pre_attn"], 0, None), {"scale": w["pre_attn"]}, None
+    table = _rand(7, 2, 3 * CFG.width, scale=0.3)
+    return (layout.mods(table, CFG.width), 3, 5), {"mod": table[1:2]}, table[1, 2 * CFG.width:]
+
+
+def test_big_negative_fill_is_the_models():
+    assert ek.BIG_NEG == gemma._BIG_NEG
+
+
+@pytest.mark.parametrize("adaptive", [False, True])
+def test_norm_qkv_rope_matches_xla(adaptive):
+    w = _layer_weights()
+    x = _rand(10, B, S, CFG.width)
+    positions = jnp.asarray([[77], [149]]) + jnp.arange(S)  # each element's valid prefix length, then the suffix
+    (mods, row, _), norm_kw, _ = _mods(adaptive, w)
+    h, _ = layers.rms_norm(x, **norm_kw)
+    q, k, v = layers._qkv(h, w["qkv"], CFG, positions)
+    sp = layout.suffix_rows(S)
+    cos, sin = layout.rope_tables(jnp.pad(positions, ((0, 0), (0, sp - S))), CFG.head_dim)
+    out = ek.norm_qkv_rope(layout.rows(x, sp), mods, row, adaptive, layout.expert_weights(w, CFG)["qkv"], cos, sin,
+                           width=CFG.width, num_heads=CFG.num_heads, num_kv_heads=CFG.num_kv_heads,
+                           head_dim=CFG.head_dim)
+    got = _unheads(out.reshape(B, sp, -1)[:, :S], CFG.num_heads + 2 * CFG.num_kv_heads)
+    np.testing.assert_allclose(got[:, :, : CFG.num_heads], q.reshape(B, S, CFG.num_heads, -1), **TOL)
+    np.testing.assert_allclose(got[:, :, CFG.num_heads: -1], k, **TOL)
+    np.testing.assert_allclose(got[:, :, -1:], v, **TOL)
+
+
+def _attention_inputs(pi05):
+    n, kh, h = CFG.num_heads, CFG.num_kv_heads, CFG.head_dim
+    q = _rand(20, B, S, kh, n // kh, h)
+    k, v = _rand(21, B, S, kh, h), _rand(22, B, S, kh, h)
+    ck, cv = _rand(23, B, P, kh, h), _rand(24, B, P, kh, h)
+    return q, k, v, ck, cv, _prefix_mask(), _suffix_mask(pi05)
+
+
+def _pallas_attention(q, k, v, ck, cv, pmask, smask):
+    sp, h = layout.suffix_rows(S), CFG.head_dim
+    qkv = jnp.concatenate([q.reshape(B, S, -1), k.reshape(B, S, -1), v.reshape(B, S, -1)], axis=-1)
+    qkv = layout.rows(layout._heads(qkv, -1, h), sp)
+    ck, cv = (layout.cache_kv(c, h) for c in (ck, cv))
+    smask = jnp.pad(smask, ((0, 0), (0, sp - S), (0, sp - S))).reshape(B * sp, sp).astype(jnp.int32)
+    out = ek.attention(qkv, ck.reshape(-1, ck.shape[2] * ck.shape[3]), cv.reshape(-1, cv.shape[2] * cv.shape[3]),
+                       layout.cache_mask(pmask).astype(jnp.int32), smask, batch=B, num_heads=CFG.num_heads,
+                       num_kv_heads=CFG.num_kv_heads, blocks=Blocks(kv=32))
+    return _unheads(out.reshape(B, sp, -1)[:, :S], CFG.num_heads).reshape(B, S, -1)
+
+
+@pytest.mark.parametrize("pi05", [False, True])
+def test_attention_matches_xla_with_masked_camera_and_padded_prompt(pi05):
+    q, k, v, ck, cv, pmask, smask = _attention_inputs(pi05)
+    want = layers._attend(q, [ck, k], [cv, v], [jnp.broadcast_to(pmask[:, None], (B, S, P)), smask], jnp.float32)
+    got = _pallas_attention(q, k, v, ck, cv, pmask, smask)
+    np.testing.assert_allclose(got, want, **TOL)
+    # the masks matter: a prefix mask without the masked camera, or π0.5's suffix mask for π0, changes the result
+    wrong_prefix = _pallas_attention(q, k, v, ck, cv, pmask.at[0, 64:128].set(True), smask)
+    assert not np.allclose(wrong_prefix, want, **TOL)
+    if not pi05:
+        assert not np.allclose(_pallas_attention(q, k, v, ck, cv, pmask, _suffix_mask(True)), want, **TOL)
+
+
+@pytest.mark.parametrize("adaptive", [False, True])
+def test_mlp_kernels_match_xla(adaptive):
+    w = _layer_weights(30)
+    wk = layout.expert_weights(w, CFG)
+    x = _rand(40, B, S, CFG.width)
+    (mods, row, gate_row), norm_kw, gate = _mods(adaptive, w)
+    h, _ = layers.rms_norm(x, **norm_kw)
+    gate_up = jnp.split(h @ w["gate_up"], 2, axis=-1)
+    hidden = jax.nn.gelu(gate_up[0], approximate=True) * gate_up[1]
+    down = hidden @ w["down"]
+    want = x + (down if gate is None else down * gate)
+    sp = layout.suffix_rows(S)
+    got_hidden = ek.norm_geglu(layout.rows(x, sp), mods, row, adaptive, wk["gate_up"], width=CFG.width)
+    np.testing.assert_allclose(_unrows(got_hidden, CFG.mlp_dim), hidden, **TOL)
+    for splits in (1, 2):  # one kernel, and split-K (96 = 2 x 48)
+        got = ek.matmul_residual(got_hidden, wk["down"], layout.rows(x, sp), mods, gate_row, splits=splits)
+        np.testing.assert_allclose(_unrows(got, CFG.width), want, **TOL)
+
+
+@pytest.fixture(scope="module", params=["dummy", "dummy_pi05"])
+def model(request):
+    config = get_config(request.param)
+    return config, randomize(pi0.init_params(config, jax.random.key(0)))
+
+
+def test_engine_with_kernels_matches_reference(model):
+    """Element 1 has its last camera masked and prompts are padded (valid 13 / 31 of a 32 bucket)."""
+    config, params = model
+    obs = make_obs(config)
+    noise = jax.random.normal(jax.random.key(1), (2, config.action_horizon, config.action_dim))
+    ref = jax.jit(pi0.sample_actions, static_argnums=(0, 4))(config, params, obs, noise, 3)
+    engine = Engine(config, params, kernels="pallas", cache_dir=False)
+    np.testing.assert_allclose(engine.sample_actions(obs, jnp.array(noise), 3), ref, **TOL)
+    _, cache, staged = engine.run_stages(obs, jnp.array(noise), 3)
+    assert cache.mask.shape[1] % layout.KEY_PAD == 0 and cache.k[0].shape[-1] == 2 * layout.half_dim(16)
+    np.testing.assert_allclose(staged, ref, **TOL)
+
+
+def test_engine_with_kernels_skips_a_camera_masked_everywhere():
+    config = get_config("dummy")
+    params = randomize(pi0.init_params(config, jax.random.key(0)))
+    obs = make_obs(config, valid_lens=(5, 21))
+    last = IMAGE_KEYS[config.num_cameras - 1]
+    obs = obs.replace(image_masks={**obs.image_masks, last: jnp.zeros((2,), bool)})
+    noise = jax.random.normal(jax.random.key(2), (2, config.action_horizon, config.action_dim))
+    ref = jax.jit(pi0.sample_actions, static_argnums=(0, 4))(config, params, obs, noise, 2)
+    got = Engine(config, params, kernels="pallas", cache_dir=False).sample_actions(obs, jnp.array(noise), 2)
+    np.testing.assert_allclose(got, ref, **TOL)
+
+
+def test_kernel_flag_is_checked():
+    config = get_config("dummy")
+    params = pi0.init_params(config, jax.random.key(0))
+    with pytest.raises(ValueError, match="kernels must be"):
+        Engine(config, params, kernels="triton", cache_dir=False)
+    with pytest.raises(ValueError, match="needs unroll"):
+        Engine(config, params, kernels="pallas", unroll=False, cache_dir=False)
