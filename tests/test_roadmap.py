@@ -1,0 +1,205 @@
+"""Issue 15 (the origin roadmap, measured): latency with sync / naive / rtc execution, prefix reuse, layer dropping,
+on the embedded trained pi0_small (pi0_jax/sim/realtime.py, pi0_jax/prune.py).
+
+* One jitted rollout steps every policy variant side by side on copies of the same episodes (same initial states,
+  same policy noise), so the physics compiles once: with D = 0 naive and rtc execute exactly the synchronous
+  policy's actions, and so does prefix reuse with K = 1 (through the reuse path); an auto rule that never fires
+  reuses the first plan's prefix (the same first chunk, a different second one); naive and rtc with D = 2 hold
+  still, then switch at
+  index D, then execute the previous chunk's committed actions while the next one is computed; rtc's new chunk
+  starts with exactly those committed actions and its guided overlap lies closer to the previous chunk than the
+  unguided (naive) sample from the same noise and observation.
+* `pi0-jax eval --execution --latency-steps --reuse-prefix` end to end, with the recompute fraction of K = 2 in
+  eval_info.
+* `pi0-jax prune`: the checkpoint with no layers dropped acts exactly as the original in the same rollout; dropping
+  layers 1, 2 writes a 2-layer model holding exactly the original's layers 0 and 3, with tokenizer and norm stats.
+"""
+
+import json
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import pi0_jax
+from pi0_jax import checkpoint, cli
+from pi0_jax import normalize as nz
+from pi0_jax.policy import find_tokenizer
+from pi0_jax.sim import policies
+from pi0_jax.sim.env import Env
+from pi0_jax.sim.realtime import Realtime, rtc_weights
+from pi0_jax.sim.render import RenderConfig
+from pi0_jax.tokenizer import PaligemmaTokenizer
+
+EMBEDDED = Path(pi0_jax.__file__).parent / "assets" / "pi0_small"
+TASKS = ("goal/red_block_on_plate", "object/blue_block_in_bowl")
+RES, NUM_STEPS, R, D, REPLANS = 32, 3, 5, 2, 2
+
+VARIANTS = {
+    "plain": None,                                     # today's policy: the fused program, chunk as its state
+    "naive0": Realtime("naive", 0),
+    "rtc0": Realtime("rtc", 0),
+    "reuse1": Realtime("sync", 0, "1"),
+    "never": Realtime("sync", 0, "auto:1e9"),          # auto rule that never fires after the first plan
+    "naive2": Realtime("naive", D),
+    "rtc2": Realtime("rtc", D),
+    "pruned_none": None,                               # `pi0-jax prune --drop-layers none` of the embedded model
+}
+
+
+def _chunk(ps):
+    return ps if isinstance(ps, jax.Array) else ps["chunk"]
+
+
+@pytest.fixture(scope="module")
+def pruned(tmp_path_factory):
+    root = tmp_path_factory.mktemp("pruned")
+    assert cli.main(["prune", str(EMBEDDED), str(root / "none"), "--drop-layers", "none"]) == 0
+    assert cli.main(["prune", str(EMBEDDED), str(root / "p2"), "--drop-layers", "1,2"]) == 0
+    return root
+
+
+@pytest.fixture(scope="module")
+def rollout(pruned):
+    """Every variant on the same 2 episodes for REPLANS plans of R steps: executed actions (steps, V, m, 7), each
+    plan's chunk per variant (REPLANS, V, m, H, 7), and the final policy states."""
+    config, params = checkpoint.load_checkpoint(EMBEDDED, dtype="float32")
+    config = config.replace(dtype="float32")
+    p_config, p_params = checkpoint.load_checkpoint(pruned / "none", dtype="float32")
+    tok = PaligemmaTokenizer(find_tokenizer(EMBEDDED), config.max_token_len)
+    normalizer = nz.load_normalizer(EMBEDDED, use_quantiles=False)
+    env = Env(TASKS, RenderConfig(RES, RES))
+    pols = [policies.model_policy(config, params, tok, normalizer, env, num_steps=NUM_STEPS, realtime=rt,
+                                  replan_steps=R) if name != "pruned_none" else
+            policies.model_policy(p_config.replace(dtype="float32"), p_params, tok, normalizer, env,
+                                  num_steps=NUM_STEPS) for name, rt in VARIANTS.items()]
+    m, v = len(TASKS), len(VARIANTS)
+    state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.key(0), m), jnp.arange(m), jnp.array([2, 9]))
+    state = jax.tree.map(lambda x: jnp.concatenate([x] * v), state)      # variant-major copies
+    keys = jax.random.split(jax.random.key(1), m)
+
+    def part(tree, i):
+        return jax.tree.map(lambda x: x[i * m:(i + 1) * m], tree)
+
+    def run(params_all, state, keys):
+        def replan(carry, _):
+            state, pss, keys = carry
+            split = jax.vmap(jax.random.split)(keys)
+            keys, sub = split[:, 0], split[:, 1]
+            obs = jax.vmap(env.observe)(state)
+            pss = tuple(p.plan(pp, ps, part(obs, i), part(state, i), sub)
+                        for i, (p, pp, ps) in enumerate(zip(pols, params_all, pss)))
+
+            def inner(c, k):
+                state, pss = c
+                acts = [p.act(ps, part(state, i), k)[0] for i, (p, ps) in enumerate(zip(pols, pss))]
+                state = jax.vmap(env.step)(state, jnp.concatenate(acts))
+                return (state, pss), jnp.stack(acts)
+
+            (state, pss), acts = jax.lax.scan(inner, (state, pss), jnp.arange(R))
+            return (state, pss, keys), (acts, jnp.stack([_chunk(ps) for ps in pss]))
+
+        pss = tuple(p.init(m) for p in pols)
+        (state, pss, _), (acts, chunks) = jax.lax.scan(replan, (state, pss, keys), None, length=REPLANS)
+        return acts.reshape((-1,) + acts.shape[2:]), chunks, state, pss
+
+    acts, chunks, state, pss = jax.jit(run)(tuple(p.params for p in pols), state, keys)
+    return {"acts": np.asarray(acts), "chunks": np.asarray(chunks), "state": state, "pss": pss,
+            "index": {k: i for i, k in enumerate(VARIANTS)}, "horizon": config.action_horizon}
+
+
+def test_zero_latency_modes_and_reuse_every_plan_equal_the_sync_policy(rollout):
+    acts, ix, state = rollout["acts"], rollout["index"], rollout["state"]
+    done = np.asarray(state.success).reshape(len(VARIANTS), -1)
+    for name in ("naive0", "rtc0", "reuse1"):
+        np.testing.assert_array_equal(acts[:, ix[name]], acts[:, ix["plain"]], err_msg=name)
+        np.testing.assert_array_equal(done[ix[name]], done[ix["plain"]], err_msg=name)
+    assert np.abs(acts[:, ix["plain"]]).max() > 0.05          # the policy moves: equality is not vacuous
+
+
+def test_prefix_reuse_keeps_the_cached_prefix(rollout):
+    chunks, ix, pss = rollout["chunks"], rollout["index"], rollout["pss"]
+    np.testing.assert_array_equal(chunks[0, ix["never"]], chunks[0, ix["plain"]])   # plan 0 computes the prefix
+    assert np.abs(chunks[1, ix["never"]] - chunks[1, ix["plain"]]).max() > 1e-4     # plan 1 reuses plan 0's
+    never = pss[ix["never"]]
+    np.testing.assert_array_equal(np.asarray(never["recomputed"]), 1)   # of REPLANS plans
+    np.testing.assert_array_equal(np.asarray(never["plans"]), REPLANS)
+
+
+def test_latency_switches_chunks_at_the_delay(rollout):
+    acts, chunks, ix = rollout["acts"], rollout["chunks"], rollout["index"]
+    hold = np.zeros(7, np.float32)
+    hold[6] = -1.0
+    for name in ("naive2", "rtc2"):
+        a, c = acts[:, ix[name]], chunks[:, ix[name]]
+        np.testing.assert_array_equal(a[:D], np.broadcast_to(hold, a[:D].shape))   # no chunk yet: hold still
+        for j in range(REPLANS):
+            t = j * R
+            np.testing.assert_array_equal(a[t + D: t + R], c[j][:, D:R].transpose(1, 0, 2))
+            if j:
+                np.testing.assert_array_equal(a[t: t + D], c[j - 1][:, R:R + D].transpose(1, 0, 2))
+
+
+def test_rtc_freezes_the_committed_prefix_and_guides_the_overlap(rollout):
+    chunks, ix, h = rollout["chunks"], rollout["index"], rollout["horizon"]
+    rtc, naive = chunks[:, ix["rtc2"]], chunks[:, ix["naive2"]]
+    np.testing.assert_array_equal(rtc[0], naive[0])          # first plan: nothing committed, same sample
+    for j in range(1, REPLANS):
+        np.testing.assert_array_equal(rtc[j][:, :D], rtc[j - 1][:, R:R + D])
+    # plan 1 sees the same observation and noise in both (identical trajectories so far): guidance alone pulls the
+    # overlap (weights 0.49, 0.19, 0.04 here) towards the previous chunk; measured 0.62x unweighted
+    w = rtc_weights(h, D, R)[D: h - R]
+    assert w.min() > 0
+
+    def err(c):
+        return float((np.abs(c[1][:, D: h - R] - c[0][:, R + D:]).mean(axis=(0, 2)) * w).sum() / w.sum())
+
+    assert err(rtc) < 0.8 * err(naive), (err(rtc), err(naive))
+
+
+def test_rtc_weights_follow_the_paper():
+    w = rtc_weights(10, 2, 5)
+    assert w[:2].tolist() == [1.0, 1.0] and (w[5:] == 0).all()
+    assert 1.0 > w[2] > w[3] > w[4] > 0.0
+
+
+def test_eval_cli_latency_execution_reuse(tmp_path, capsys):
+    out = tmp_path / "eval"
+    assert cli.main(["eval", "--policy", str(EMBEDDED), "--suite", TASKS[0], "--episodes-per-task", "2",
+                     "--batch", "2", "--steps", "10", "--resolution", str(RES), "--videos", "0", "--num-steps",
+                     str(NUM_STEPS), "--dtype", "float32", "--execution", "naive", "--latency-steps", "4",
+                     "--reuse-prefix", "2", "--output-dir", str(out), "--no-progress"]) == 0
+    info = json.loads((out / "eval_info.json").read_text())
+    rt = info["realtime"]
+    assert (rt["execution"], rt["latency_steps"], rt["latency_ms"], rt["reuse_prefix"]) == ("naive", 4, 200.0, "2")
+    assert rt["plans"] == 4 and rt["prefix_recompute_fraction"] == 0.5      # 2 episodes x plans at steps 0, 5
+    assert [e["length"] for e in info["per_episode"]] == [10, 10]           # one env step per control step
+    assert "200 ms" in capsys.readouterr().out
+    with pytest.raises(ValueError, match="replan_steps"):
+        cli.main(["eval", "--policy", str(EMBEDDED), "--suite", TASKS[0], "--episodes-per-task", "1", "--batch",
+                  "1", "--steps", "5", "--videos", "0", "--execution", "naive", "--latency-steps", "6",
+                  "--no-progress"])
+
+
+def test_prune_drops_layers_and_nothing_changes_nothing(pruned, rollout, tmp_path):
+    from pi0_jax.train.distill import slice_layers
+
+    acts, ix = rollout["acts"], rollout["index"]
+    np.testing.assert_array_equal(acts[:, ix["pruned_none"]], acts[:, ix["plain"]])
+    meta = checkpoint.read_meta(pruned / "p2")
+    assert meta["pruned"]["kept_layers"] == [0, 3] and meta["model"]["paligemma_variant"] == "gemma_small_2l"
+    assert (pruned / "p2" / "tokenizer.model").is_file()
+    assert (pruned / "p2" / "assets" / "mjx_suite" / "norm_stats.json").is_file()
+    # the pruned checkpoint loads (shapes checked against its 2-layer config) and holds the original's layers 0, 3
+    config, params = checkpoint.load_checkpoint(pruned / "p2")
+    assert config.paligemma.depth == config.action_expert.depth == 2
+    _, full = checkpoint.load_checkpoint(EMBEDDED)
+    flat, want = jax.tree_util.tree_flatten_with_path(params)[0], slice_layers(full, (0, 3))
+    assert len(flat) == len(jax.tree.leaves(want))
+    for (path, a), b in zip(flat, jax.tree.leaves(want)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=jax.tree_util.keystr(path))
+    assert any(np.shape(a) != np.shape(b) for a, b in zip(jax.tree.leaves(full), jax.tree.leaves(want)))
+    with pytest.raises(ValueError, match="layers 0..3"):
+        cli.main(["prune", str(EMBEDDED), str(tmp_path / "bad"), "--drop-layers", "4"])
