@@ -1,0 +1,375 @@
+"""The origin roadmap, measured (issue 15): task success and inference cost per control step of latency with
+sync / naive / rtc execution, prefix reuse across frames, and layer dropping.
+
+Success: a trained checkpoint (default: the embedded pi0_small) in the MJX suite, every cell on the same episodes
+(K per task from initial states 0..K-1, held out from training) and the same policy noise (fold_in(seed, episode)),
+with Wilson 95 % intervals. Cells, run in the order given until the time budget is spent:
+
+  sync     the baseline: the world waits for each chunk, replan every R steps (= every execution mode at D = 0, and
+           sync at any D: sync ignores the delay, so "sync at D" is this cell by construction)
+  naive    D-step latency, the previous chunk executed while the next one is computed
+  rtc      D-step latency with real-time chunking (frozen committed prefix, guided overlap)
+  reuseK   vision + prefix KV cache recomputed every K-th plan (e.g. reuse2, reuse4)
+  auto     prefix recomputed when the images moved more than --auto-threshold (per environment)
+  prune    the checkpoint without --prune-layers (both Gemma towers; `pi0-jax prune`), no recovery fine-tune
+  NAME@N   any of these with N flow steps instead of --num-steps (e.g. sync@1, reuse2@1: the embedded model keeps
+           its success at 1 step, docs/RESULTS.md, so fewer steps and reuse combine)
+
+Cost: the full-size model's stage timings on this device (--timing-preset, random weights, batch 1, 2 cameras, a
+20-token prompt, bf16, the cells' flow steps): vision, prefix KV fill, denoise, RTC's guided denoise (a VJP per step,
+XLA attention), and prefix + denoise of the preset with the same fraction of layers dropped as the prune cell
+(pi0_small 4 -> 2 pairs with pi0_base 18 -> 9; the seed's guess was for 18 -> 12). Per control step:
+(vision + prefix + denoise) / R; reuse counts vision + prefix at the cell's measured recompute fraction. naive and
+rtc cost what sync costs per step (rtc: its guided denoise); what they buy is that the robot does not wait
+(D x 50 ms at 20 Hz: D = 4 is 200 ms).
+
+Writes OUT/roadmap.json (every number, the command line, the device), OUT/roadmap.md (the table, what was not run)
+and OUT/roadmap.png (success against cost per control step, the Pareto front). Cells that did not fit the budget
+are listed as not run, with the command that runs them.
+
+    python scripts/roadmap_grid.py --out $OUT                        # H100: about 6 minutes with the defaults
+    python scripts/roadmap_grid.py --quick --out /tmp/roadmap_quick   # CPU smoke run: a few episodes per cell
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import shlex
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import pi0_jax.sim  # noqa: F401  (sets the XLA:CPU flags MJX needs before the backend starts)
+from pi0_jax import checkpoint
+from pi0_jax.sim.evaluate import EvalConfig, evaluate
+from pi0_jax.sim.realtime import CONTROL_HZ
+
+sys.path.insert(0, str(Path(__file__).parent))
+from results_grid import wilson  # noqa: E402
+
+EMBEDDED = Path(pi0_jax.sim.__file__).parents[1] / "assets" / "pi0_small"
+# What the origin project's notes (../shared/origin) guessed, next to each option.
+GUESSED = {"reuse": "KV-cache reuse across frames: 2-3x (one table), 1.5-2x (the other)",
+           "prune": "18 -> 12 layers: ~1.5x, 'large accuracy loss' risk",
+           "naive": "async 3-stream pipeline: 'hides vision latency'", "rtc": "(not in the notes)",
+           "auto": "dynamic similarity detection + partial reuse: no number", "sync": "baseline"}
+
+
+def cell_spec(cell: str, args) -> dict:
+    """A cell name -> its EvalConfig fields, kind and flow steps."""
+    name, _, steps = cell.partition("@")
+    spec = _cell_kind(name, args)
+    spec["num_steps"] = int(steps) if steps else args.num_steps
+    return spec
+
+
+def _cell_kind(name: str, args) -> dict:
+    if name == "sync":
+        return {"kind": "sync", "execution": "sync", "latency_steps": 0, "reuse_prefix": None}
+    if name in ("naive", "rtc"):
+        return {"kind": name, "execution": name, "latency_steps": args.latency_steps, "reuse_prefix": None}
+    if name.startswith("reuse") and name[5:].isdigit():
+        return {"kind": "reuse", "execution": "sync", "latency_steps": 0, "reuse_prefix": name[5:]}
+    if name == "auto":
+        return {"kind": "auto", "execution": "sync", "latency_steps": 0, "reuse_prefix": f"auto:{args.auto_threshold}"}
+    if name == "prune":
+        return {"kind": "prune", "execution": "sync", "latency_steps": 0, "reuse_prefix": None}
+    raise SystemExit(f"unknown cell {name!r}: sync, naive, rtc, reuseK, auto, prune (each optionally @N)")
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Stage timings of the full-size model.
+
+
+def stage_timings(preset: str, num_steps: int, other_steps: list[int], drop_fraction: float, iters: int,
+                  dtype: str) -> dict:
+    """Median ms at batch 1 of vision, prefix, denoise (at num_steps and every other_steps count), guided denoise
+    (RTC, num_steps), and prefix + denoise with round(depth * drop_fraction) layers dropped (random weights)."""
+    from pi0_jax.benchmark import make_inputs, time_calls
+    from pi0_jax.config import get_config
+    from pi0_jax.engine import Engine, programs
+    from pi0_jax.pi0 import random_params
+
+    def engine_stages(config, guided: bool, extra_steps=()) -> dict:
+        engine = Engine(config, random_params(config, 0))
+        sets = [make_inputs(config, 1, 2, 20, seed) for seed in range(2)]
+        cameras, bucket = engine.plan(sets[0][0])
+        attention = engine.attention_for(sets[0][0], cameras)
+        packed = [engine.pack(obs, cameras, bucket) for obs, _ in sets]
+        w, sched = engine.weights, engine.schedule(num_steps)
+        enc = engine.executable("encode_images", 1, 0, cameras, bucket)
+        pre = engine.executable("fill_prefix_cache", 1, 0, cameras, bucket)
+        den = engine.executable("denoise", 1, num_steps, cameras, bucket, attention)
+        out = {"vision": time_calls(lambda im: enc(w, im), [(p[0],) for p in packed], iters, 2)["median_ms"]}
+        tokens = [enc(w, p[0]) for p in packed]
+        out["prefix"] = time_calls(lambda t, p: pre(w, t, p[1], p[2], p[3]), list(zip(tokens, packed)), iters,
+                                   2)["median_ms"]
+        caches = [pre(w, t, p[1], p[2], p[3]) for t, p in zip(tokens, packed)]
+        args = [(c, p, n) for c, p, (_, n) in zip(caches, packed, sets)]
+        out["denoise"] = time_calls(lambda c, p, n: den(w, sched, c, p[4], jnp.copy(n)), args, iters, 2)["median_ms"]
+        out["denoise_at"] = {str(num_steps): out["denoise"]}
+        for n_steps in extra_steps:
+            d_n, s_n = engine.executable("denoise", 1, n_steps, cameras, bucket, attention), engine.schedule(n_steps)
+            out["denoise_at"][str(n_steps)] = time_calls(lambda c, p, n: d_n(w, s_n, c, p[4], jnp.copy(n)), args,
+                                                         iters, 2)["median_ms"]
+        out.update(attention=attention, prefix_tokens=int(caches[0].mask.shape[1]), depth=config.paligemma.depth)
+        if guided:
+            h, a = config.action_horizon, config.action_dim
+            weight = jnp.broadcast_to(jnp.linspace(1.0, 0.0, h)[None, :, None], (1, h, a))
+            fn = jax.jit(lambda c, s, n, y: programs.guided_denoise(config, w, sched, c, s, n, y, weight,
+                                                                    num_steps=num_steps, unroll=True))
+            out["guided_denoise"] = time_calls(lambda c, p, n: fn(c, p[4], n, n), args, iters, 2)["median_ms"]
+        return out
+
+    config = get_config(preset, dtype=dtype)
+    full = engine_stages(config, guided=True, extra_steps=[n for n in other_steps if n != num_steps])
+    depth = config.paligemma.depth
+    n_drop = int(round(depth * drop_fraction))
+    pruned = {}
+    if 0 < n_drop < depth:
+        small = config.replace(paligemma_variant=f"{config.paligemma_variant}_{depth - n_drop}l",
+                               action_expert_variant=f"{config.action_expert_variant}_{depth - n_drop}l")
+        pruned = engine_stages(small, guided=False)
+    return {"preset": preset, "dtype": dtype, "num_steps": num_steps, "batch": 1, "cameras": 2, "prompt_tokens": 20,
+            "full": full, "pruned": pruned, "guided_attention": "xla"}
+
+
+def cost_per_step(row: dict, t: dict, replan: int) -> float | None:
+    """Full-size inference ms per control step of a cell."""
+    if not t:
+        return None
+    f = t["full"]
+    if row["kind"] == "prune":
+        if not t["pruned"] or row["num_steps"] != t["num_steps"]:
+            return None
+        p = t["pruned"]
+        return (p["vision"] + p["prefix"] + p["denoise"]) / replan
+    den = f["guided_denoise"] if row["kind"] == "rtc" else f["denoise_at"].get(str(row["num_steps"]))
+    if den is None or (row["kind"] == "rtc" and row["num_steps"] != t["num_steps"]):
+        return None
+    frac = row.get("prefix_recompute_fraction", 1.0) if row["kind"] in ("reuse", "auto") else 1.0
+    return (frac * (f["vision"] + f["prefix"]) + den) / replan
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+
+
+def run_cell(name: str, spec: dict, args, ckpt: Path) -> dict:
+    cfg = EvalConfig(suite=args.suite, episodes_per_task=args.episodes_per_task, batch=args.batch,
+                     replan_steps=args.replan_steps, max_steps=args.max_steps, resolution=args.resolution,
+                     seed=args.seed, videos=0, num_steps=spec["num_steps"], execution=spec["execution"],
+                     latency_steps=spec["latency_steps"], reuse_prefix=spec["reuse_prefix"])
+    t0 = time.perf_counter()
+    info = evaluate(str(ckpt), cfg, None, progress=False, policy_kwargs={"dtype": args.dtype})
+    a = info["aggregated"]
+    lo, hi = wilson(a["n_success"], a["n_episodes"])
+    row = {"cell": name, **spec, "latency_ms": 1000.0 * spec["latency_steps"] / CONTROL_HZ,
+           "n_episodes": a["n_episodes"], "n_success": a["n_success"], "pc_success": a["pc_success"],
+           "ci95": [lo, hi], "wall_s": time.perf_counter() - t0, "first_segment_s": a["first_segment_s"],
+           "per_group": {g["group"]: g["pc_success"] for g in info["per_group"]}, "checkpoint": str(ckpt)}
+    rt = info.get("realtime", {})
+    if "prefix_recompute_fraction" in rt:
+        row["prefix_recompute_fraction"] = rt["prefix_recompute_fraction"]
+    return row
+
+
+def markdown(result: dict) -> str:
+    rows, base = result["rows"], next((r for r in result["rows"] if r["cell"] == "sync"), None)
+    t = result.get("timing") or {}
+    lines = [f"Success: {result['checkpoint_model']} on {result['device']}, {result['episodes']} episodes per cell, "
+             f"{result['num_steps']} flow steps, replan every {result['replan_steps']} steps. Cost: "
+             + (f"{t['preset']} ({t['dtype']}, batch 1, random weights) stage timings on the same device."
+                if t else "not measured (--no-timing)."), "",
+             "| cell | setting | flow steps | D (steps / ms) | prefix recomputed | cost per control step (ms) | "
+             "vs baseline | success | Δ vs baseline | in baseline CI | seed guessed |",
+             "|---|---|---:|---|---:|---:|---:|---:|---:|---|---|"]
+    base_cost = cost_per_step(base, t, result["replan_steps"]) if base else None
+    for r in rows:
+        cost = cost_per_step(r, t, result["replan_steps"])
+        setting = {"sync": "sync (world waits)", "naive": "naive async", "rtc": "real-time chunking",
+                   "reuse": f"reuse prefix K={r['reuse_prefix']}", "auto": f"reuse {r['reuse_prefix']}",
+                   "prune": f"drop layers {result['prune_layers']}"}[r["kind"]]
+        frac = r.get("prefix_recompute_fraction")
+        inside = base is not None and base["ci95"][0] <= r["pc_success"] <= base["ci95"][1]
+        delta = "" if base is None else f"{r['pc_success'] - base['pc_success']:+.1f}"
+        lines.append(
+            f"| {r['cell']} | {setting} | {r['num_steps']} | {r['latency_steps']} / {r['latency_ms']:.0f} | "
+            f"{'' if frac is None else f'{100 * frac:.0f} %'} | {'' if cost is None else f'{cost:.2f}'} | "
+            f"{'' if cost is None or not base_cost else f'{base_cost / cost:.2f}x'} | "
+            f"{r['pc_success']:.1f} % [{r['ci95'][0]:.1f}, {r['ci95'][1]:.1f}] | "
+            f"{delta} | "
+            f"{'yes' if inside else 'no'} | {GUESSED[r['kind']]} |")
+    if base is not None:
+        lines.append(f"| sync D={result['latency_steps']} | sync (world waits) | {base['num_steps']} | "
+                     f"{result['latency_steps']} / {50 * result['latency_steps']} | | = baseline | | = baseline "
+                     "(sync ignores D: not run separately) | | | |")
+    for name, why in result["not_run"].items():
+        lines.append(f"| {name} | not run ({why}) | | | | | | | | | |")
+    if t:
+        f = t["full"]
+        total = f["vision"] + f["prefix"] + f["denoise"]
+        lines += ["", f"Stage timings ({t['preset']}, {f['depth']} layers, {f['prefix_tokens']} prefix "
+                      f"tokens, {t['num_steps']} steps): vision {f['vision']:.2f} ms, prefix {f['prefix']:.2f} ms, "
+                      f"denoise {f['denoise']:.2f} ms ({f['attention']} attention; by steps "
+                      f"{', '.join(f'{k}: {v:.2f} ms' for k, v in f['denoise_at'].items())}), guided denoise (RTC) "
+                      f"{f['guided_denoise']:.2f} ms; one inference {total:.1f} ms = "
+                      f"{math.ceil(total / (1000 / CONTROL_HZ))} control steps at {CONTROL_HZ} Hz."]
+        if t["pruned"]:
+            p = t["pruned"]
+            lines.append(f"Pruned to {p['depth']} layers: prefix {p['prefix']:.2f} ms, denoise {p['denoise']:.2f} ms.")
+    lines += ["", "Command:", "", "```", result["command"], "```", ""]
+    return "\n".join(lines)
+
+
+def chart(result: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = result.get("timing") or {}
+    pts = [(cost_per_step(r, t, result["replan_steps"]), r) for r in result["rows"]]
+    pts = [(c, r) for c, r in pts if c is not None]
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for i, (c, r) in enumerate(pts):
+        err = [[r["pc_success"] - r["ci95"][0]], [r["ci95"][1] - r["pc_success"]]]
+        ax.errorbar(c, r["pc_success"], yerr=err, fmt="o" if r["latency_steps"] == 0 else "s", capsize=3)
+        ax.annotate(f"{r['cell']}" + (f" (D={r['latency_steps']})" if r["latency_steps"] else ""),
+                    (c, r["pc_success"]), textcoords="offset points", xytext=(5, 4 - 11 * (i % 2)), fontsize=8)
+    front = sorted(pts, key=lambda p: (p[0], -p[1]["pc_success"]))
+    best, line = -1.0, []
+    for c, r in front:            # Pareto front: no cheaper cell succeeds as often
+        if r["pc_success"] > best:
+            best = r["pc_success"]
+            line.append((c, best))
+    if line:
+        ax.step(*zip(*line), where="post", color="grey", alpha=0.5, label="Pareto front")
+    ax.set_xlabel(f"full-size inference per control step (ms, {t.get('preset', '?')}, {result['device']})")
+    ax.set_ylabel(f"success (%), {result['episodes']} episodes, 95 % Wilson")
+    ax.set_title(f"{result['checkpoint_model']}: success against inference cost (squares: D = "
+                 f"{result['latency_steps']} steps = {50 * result['latency_steps']} ms latency)", fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", type=Path, required=True, help="directory for roadmap.json, roadmap.md, roadmap.png")
+    p.add_argument("--checkpoint", type=Path, default=EMBEDDED, help="a trained pi0-jax checkpoint (default: the "
+                   "embedded pi0_small)")
+    p.add_argument("--cells", default="sync,rtc,naive,reuse2@1,prune,reuse2,auto,reuse4",
+                   help="comma list, run in this order while the budget lasts: sync, naive, rtc, reuseK (K an "
+                        "integer), auto, prune, each optionally @N for N flow steps (default: %(default)s)")
+    p.add_argument("--latency-steps", type=int, default=4, help="D of the naive and rtc cells, in 50 ms control "
+                   "steps (default: %(default)s = 200 ms)")
+    p.add_argument("--auto-threshold", type=float, default=0.05,
+                   help="image change (mean absolute difference of 16x16 frames in [0, 1]) above which the auto "
+                        "cell recomputes an environment's prefix (default: %(default)s)")
+    p.add_argument("--prune-layers", default="1,2", help="layers the prune cell drops from both Gemma towers "
+                   "(default: %(default)s: pi0_small keeps 0 and 3)")
+    p.add_argument("--episodes-per-task", type=int, default=50, help="episodes per task (default: %(default)s: 550)")
+    p.add_argument("--suite", default="all", help="task suite (default: %(default)s)")
+    p.add_argument("--batch", type=int, default=550, help="environments at once (default: %(default)s)")
+    p.add_argument("--replan-steps", type=int, default=5, help="actions executed per plan (default: %(default)s)")
+    p.add_argument("--num-steps", type=int, default=10, help="flow steps (default: %(default)s)")
+    p.add_argument("--max-steps", type=int, default=None, help="episode step limit (default: each task's own)")
+    p.add_argument("--resolution", type=int, default=None, help="camera pixels (default: the checkpoint's)")
+    p.add_argument("--dtype", default=None, choices=("bfloat16", "float32"),
+                   help="policy dtype (default: the checkpoint's; --quick: float32, as XLA:CPU emulates bf16)")
+    p.add_argument("--seed", type=int, default=0, help="policy noise seed (default: %(default)s)")
+    p.add_argument("--budget-s", type=float, default=330.0,
+                   help="wall-clock seconds for the whole run: a cell starts only if the time so far plus the "
+                        "longest cell so far (first: 90 s) fits; the rest are reported as not run "
+                        "(default: %(default)s)")
+    p.add_argument("--timing-preset", default="pi0_base", help="full-size preset whose stage timings give the cost "
+                   "column (default: %(default)s; random weights)")
+    p.add_argument("--timing-iters", type=int, default=20, help="timed calls per stage (default: %(default)s)")
+    p.add_argument("--no-timing", action="store_true", help="skip the stage timings (no cost column)")
+    p.add_argument("--resume", type=Path, default=None, metavar="JSON",
+                   help="a previous run's roadmap.json: its timings and rows are kept, its cells are not run again "
+                        "(a second call fills the cells the first one's budget left out)")
+    p.add_argument("--cache-dir", type=Path, default=Path.home() / ".cache/pi0_jax/xla",
+                   help="persistent compilation cache (default: %(default)s)")
+    p.add_argument("--quick", action="store_true",
+                   help="CPU smoke run: suite 'goal', 1 episode per task, 12 steps, 3 flow steps, float32, "
+                        "timings of the 'dummy' preset with 2 iterations, no budget")
+    args = p.parse_args()
+    command = "python scripts/roadmap_grid.py " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    if args.quick:
+        args.suite, args.episodes_per_task, args.batch, args.max_steps = "goal", 1, 4, 12
+        args.num_steps, args.dtype, args.timing_preset, args.timing_iters = 3, args.dtype or "float32", "dummy", 2
+        args.budget_s = float("inf")
+    args.out.mkdir(parents=True, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", str(args.cache_dir))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
+
+    from pi0_jax.config import Pi0Config
+    from pi0_jax.prune import parse_layers, prune
+
+    model = Pi0Config.from_json(checkpoint.read_meta(args.checkpoint)["model"])
+    args.resolution = args.resolution or model.image_size
+    drop = parse_layers(args.prune_layers)
+    start = time.perf_counter()
+    result = {"command": command, "device": jax.devices()[0].device_kind, "jax": jax.__version__,
+              "checkpoint": str(args.checkpoint), "checkpoint_model": model.name, "episodes": None,
+              "num_steps": args.num_steps, "replan_steps": args.replan_steps, "latency_steps": args.latency_steps,
+              "prune_layers": list(drop), "rows": [], "not_run": {}, "timing": None}
+
+    def save():
+        (args.out / "roadmap.json").write_text(json.dumps(result, indent=2) + "\n")
+
+    if args.resume is not None:
+        prev = json.loads(args.resume.read_text())
+        result["rows"], result["timing"], result["episodes"] = prev["rows"], prev["timing"], prev["episodes"]
+        result["command"] = prev["command"] + "\n" + command
+    done = {r["cell"] for r in result["rows"]}
+    if not args.no_timing and result["timing"] is None:
+        t0 = time.perf_counter()
+        steps = sorted({cell_spec(c, args)["num_steps"] for c in args.cells.split(",") if c})
+        result["timing"] = stage_timings(args.timing_preset, args.num_steps, steps, len(drop) / model.paligemma.depth,
+                                         args.timing_iters, "bfloat16" if not args.quick else "float32")
+        result["timing"]["wall_s"] = time.perf_counter() - t0
+        print(f"timings ({result['timing']['wall_s']:.0f} s): {json.dumps(result['timing'])}", flush=True)
+        save()
+    longest = 90.0
+    with tempfile.TemporaryDirectory(prefix="roadmap_prune_") as tmp:
+        for name in [c for c in args.cells.split(",") if c and c not in done]:
+            spec = cell_spec(name, args)
+            elapsed = time.perf_counter() - start
+            if elapsed + longest > args.budget_s:
+                result["not_run"][name] = f"budget: {elapsed:.0f} s spent of {args.budget_s:.0f}"
+                print(f"{name}: not run ({result['not_run'][name]})", flush=True)
+                continue
+            ckpt = args.checkpoint
+            if spec["kind"] == "prune":
+                ckpt = prune(args.checkpoint, Path(tmp) / "pruned", drop, overwrite=True)
+            row = run_cell(name, spec, args, ckpt)
+            longest = max(longest if result["rows"] else 0.0, row["wall_s"])
+            result["rows"].append(row)
+            result["episodes"] = row["n_episodes"]
+            print(f"{name:>8}: {row['pc_success']:5.1f}% [{row['ci95'][0]:.1f}, {row['ci95'][1]:.1f}] of "
+                  f"{row['n_episodes']}" + (f", prefix recomputed {100 * row['prefix_recompute_fraction']:.0f}%"
+                                            if "prefix_recompute_fraction" in row else "")
+                  + f" ({row['wall_s']:.0f} s)", flush=True)
+            save()
+    result["wall_s"] = time.perf_counter() - start
+    save()
+    (args.out / "roadmap.md").write_text(markdown(result))
+    if result["rows"]:
+        chart(result, args.out / "roadmap.png")
+    print(markdown(result))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
