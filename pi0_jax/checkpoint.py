@@ -117,9 +117,9 @@ def save_checkpoint(
     overwrite: bool = False,
 ) -> Path:
     """Write a pi0-jax checkpoint atomically. `assets` maps relative paths under assets/ (or `tokenizer.model`)
-    to file contents (bytes) or source files. Quantised leaves (`pi0_jax.quant.QArray`) are stored as their
+    to file contents (bytes) or source files. Quantised leaves (`pi0_jax.ops.formats.QArray`) are stored as their
     fields, described under the metadata's "quant" key."""
-    from pi0_jax.quant import schemes as quant_schemes
+    from pi0_jax.ops import formats as quant_schemes
 
     check_params(config, params)
     leaves = jax.tree.leaves(dict(params), is_leaf=lambda x: isinstance(x, quant_schemes.QArray))
@@ -167,7 +167,7 @@ def load_checkpoint(path: str | os.PathLike, *, dtype: str | None = None) -> tup
     if "quant" not in meta:
         params = restore_params(Path(path) / "params", dtype=dtype)
     else:  # quantised leaves keep their storage dtypes; the rest is cast
-        from pi0_jax.quant import schemes as quant_schemes
+        from pi0_jax.ops import formats as quant_schemes
 
         params = restore_params(Path(path) / "params")
         if dtype is not None:

@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 
 from pi0_jax.config import GemmaConfig
-from pi0_jax.quant import hooks as quant_hooks
+from pi0_jax.ops.matmul import matmul
 
 # openpi's mask fill: finite, so a fully-masked (padded) query row softmaxes to a uniform, finite distribution.
 _BIG_NEG = -2.3819763e38
@@ -43,14 +43,6 @@ class KVCache:
 
 def _name(name: str, i: int) -> str:
     return name if i == 0 else f"{name}_{i}"
-
-
-def matmul(eqn: str, x: jax.Array, w: jax.Array) -> jax.Array:
-    """The one entry point for weighted matmuls in the transformer: weights are cast to the activation dtype.
-    A quantised weight (`pi0_jax.quant`) brings its own op."""
-    if quant_hooks.is_quant(w):
-        return quant_hooks.matmul(eqn, x, w)
-    return jnp.einsum(eqn, x, w.astype(x.dtype))
 
 
 class Einsum(nn.Module):

@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from pi0_jax.config import SiglipConfig
-from pi0_jax.quant import hooks as quant_hooks
+from pi0_jax.ops import matmul as ops_matmul
 
 
 class MlpBlock(nn.Module):
@@ -94,7 +94,7 @@ class Siglip(nn.Module):
         x = x + pos
         stem = x
         x = x.astype(self.dtype_mm)
-        with nn.intercept_methods(quant_hooks.dense_interceptor):  # quantised kernels (pi0_jax.quant) take their op
+        with nn.intercept_methods(ops_matmul.dense_interceptor):  # quantised kernels take their op
             encoded = Encoder(self.cfg, self.dtype_mm, self.scan, name="Transformer")(x)
             # Image tokens are *not* scaled by sqrt(width) (spec §3.8).
             tokens = nn.Dense(self.out_dim, dtype=self.dtype_mm, kernel_init=nn.initializers.zeros,

@@ -35,7 +35,7 @@ patterns = {
     "2d_nodq": lambda x, w, s, cs: jax.lax.dot_general(
         qx(x, s).reshape(-1, K), w, (((1,), (0,)), ((), ())), preferred_element_type=jnp.bfloat16),
 }
-from pi0_jax.quant import formats  # noqa: E402
+from pi0_jax.ops import formats  # noqa: E402
 
 wf = jax.random.normal(jax.random.key(2), (K, N), jnp.float32)
 for per_channel in (True, False):

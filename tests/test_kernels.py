@@ -10,7 +10,9 @@ import pytest
 from pi0_jax import gemma, pi0
 from pi0_jax.config import IMAGE_KEYS, get_config
 from pi0_jax.engine import Engine, layers
-from pi0_jax.ops import Blocks, expert_kernels as ek, layout
+from pi0_jax.ops import expert_kernels as ek
+from pi0_jax.ops import layout
+from pi0_jax.ops.expert_kernels import Blocks
 from test_model import make_obs, randomize
 
 CFG = get_config("dummy").action_expert  # width 48, 4 heads x 16 (1 kv head), mlp 96: all padded by the layout

@@ -8,7 +8,8 @@ import pytest
 
 from pi0_jax import benchmark, checkpoint, pi0
 from pi0_jax.config import get_config
-from pi0_jax.quant import formats, report, schemes
+from pi0_jax.ops import formats
+from pi0_jax.quant import report, schemes
 
 
 @pytest.fixture(scope="module")

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 from pi0_jax.config import GemmaConfig
 from pi0_jax.gemma import _BIG_NEG, apply_rope
 from pi0_jax.ops import expert_kernels, layout
-from pi0_jax.quant import hooks as quant_hooks
+from pi0_jax.ops.matmul import matmul
 
 
 def rms_norm(x, scale=None, mod=None):
@@ -33,8 +33,8 @@ def rms_norm(x, scale=None, mod=None):
 
 
 def _mm(x, w):
-    """x @ w; a quantised weight (`pi0_jax.quant`) takes its own op (FP8 GEMM on Hopper)."""
-    return quant_hooks.matmul("...D,DF->...F", x, w) if quant_hooks.is_quant(w) else x @ w
+    """x @ w through the one matmul entry point (a quantised weight takes its own op: FP8 GEMM on Hopper)."""
+    return matmul("...D,DF->...F", x, w)
 
 
 def _qkv(h, w, cfg: GemmaConfig, positions):

@@ -21,7 +21,7 @@ from pi0_jax import pi0, siglip
 from pi0_jax.config import IMAGE_KEYS, Pi0Config
 from pi0_jax.engine import programs, weights as weights_lib
 from pi0_jax.ops import layout
-from pi0_jax.quant import hooks as quant
+from pi0_jax.ops import matmul as quant
 
 PROMPT_BUCKETS = (16, 32, 48, 64, 96, 128, 160, 200)
 STAGES = ("encode_images", "fill_prefix_cache", "denoise", "infer")

@@ -19,7 +19,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pi0_jax import pi0, quant
+from pi0_jax import pi0
+from pi0_jax.ops import formats as quant
 from pi0_jax.config import Pi0Config
 
 
@@ -41,7 +42,7 @@ def step_times(num_steps, length: int | None = None):
 
 
 def _rearrange(w, pattern: str, dtype):
-    """Quantised weights (`pi0_jax.quant.QArray`) keep their storage dtype and scales; fused after quantising, so
+    """Quantised weights (`pi0_jax.ops.formats.QArray`) keep their storage dtype and scales; fused after quantising, so
     their scales are per output channel of the fused matrix."""
     if isinstance(w, quant.QArray):
         return quant.rearrange(w, pattern)

@@ -1,5 +1,6 @@
-"""Low-level ops the model and engine modules build on: fused Pallas kernels with their layouts."""
+"""Low-level ops the model, engine and quant modules build on.
 
-from pi0_jax.ops.expert_kernels import Blocks
-
-__all__ = ["Blocks"]
+matmul: the one entry point of every weighted matmul (plain, FP8 `QArray`, calibration `Tap`) and SigLIP's Dense
+hook. formats: FP8 / FP4 number formats, `QArray`, its checkpoint storage. expert_kernels, layout: the action
+expert's fused Pallas kernels and their data layout (imported on use: Pallas is not needed otherwise).
+"""

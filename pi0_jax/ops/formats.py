@@ -15,6 +15,7 @@ Conventions:
 from __future__ import annotations
 
 import flax.struct
+from flax import traverse_util
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -200,3 +201,52 @@ def dequantize_fp4(q, block_scale, tensor_scale, fmt: str, axis: int = -2, dtype
 def fake_quant_fp4(w: jax.Array, fmt: str, axis: int = -2) -> jax.Array:
     """Quantise-dequantise (the emulated FP4 weight), in w's dtype."""
     return dequantize_fp4(*quantize_fp4(w, fmt, axis), fmt, axis, dtype=w.dtype)
+
+
+# -- checkpoint storage: QArray leaves as plain arrays (pi0_jax.checkpoint) ------------------------------------
+def get_leaf(tree, path):
+    for p in path:
+        tree = tree[p]
+    return tree
+
+
+def set_leaf(tree, path, value):
+    """Copy-on-write set of a nested-dict leaf (the input tree is not modified)."""
+    if not path:
+        return value
+    out = dict(tree)
+    out[path[0]] = set_leaf(tree[path[0]], path[1:], value)
+    return out
+
+
+# -- calibration ----------------------------------------------------------------------------------------------------
+def quantized_paths(params: dict) -> list[str]:
+    flat = traverse_util.flatten_dict(params, sep="/", is_leaf=lambda _, v: not isinstance(v, dict))
+    return sorted(k for k, v in flat.items() if isinstance(v, QArray))
+
+
+def to_storage(params: dict) -> tuple[dict, dict]:
+    """QArray leaves -> plain dicts {q (uint8 bits), scale, act_scale?}; returns (tree, per-leaf metadata)."""
+    meta = {}
+    for path in quantized_paths(params):
+        keys = tuple(path.split("/"))
+        qa = get_leaf(params, keys)
+        leaf = {"q": np.asarray(qa.q).view(np.uint8), "scale": np.asarray(qa.scale, np.float32)}
+        if qa.act_scale is not None:
+            leaf["act_scale"] = np.asarray(qa.act_scale, np.float32)
+        meta[path] = {"dtype": str(np.asarray(qa.q).dtype), "contract": list(qa.contract)}
+        params = set_leaf(params, keys, leaf)
+    return params, meta
+
+
+def from_storage(tree: dict, meta: dict) -> dict:
+    import ml_dtypes
+
+    for path, m in meta.items():
+        keys = tuple(path.split("/"))
+        leaf = get_leaf(tree, keys)
+        q = np.asarray(leaf["q"]).view(getattr(ml_dtypes, m["dtype"]))
+        act = leaf.get("act_scale")
+        tree = set_leaf(tree, keys, QArray(q, np.asarray(leaf["scale"], np.float32),
+                                       None if act is None else np.asarray(act, np.float32), tuple(m["contract"])))
+    return tree

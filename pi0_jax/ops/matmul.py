@@ -1,8 +1,9 @@
-"""Where quantised weights meet the model: the matmul dispatch, SigLIP's Dense layers, and calibration taps.
+"""The one entry point of every weighted matmul (Gemma's einsums, the engine's fused GEMMs) and SigLIP's Dense hook.
 
-`matmul` handles a `QArray` (FP8) or a `Tap` (a plain weight that records the magnitude of its GEMM input while
-`recording()` is active, for calibration). Plain arrays never come here: the model code keeps its own op for them,
-so unquantised numerics are untouched.
+`matmul(eqn, x, w)`: a plain weight is cast to the activation dtype and contracted with `jnp.einsum`; a `QArray`
+(FP8, `pi0_jax.ops.formats`) brings its own op; a `Tap` (a plain weight that records the magnitude of its GEMM
+input while `recording()` is active, for calibration) runs the plain op. SigLIP's Flax Dense layers keep their own
+op for plain kernels and come here through `dense_interceptor` only for quantised or tapped ones.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 
-from pi0_jax.quant.formats import QArray, qmatmul
+from pi0_jax.ops.formats import QArray, qmatmul
 
 _RECORDER: dict | None = None
 

@@ -12,12 +12,14 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import traverse_util
 
 from pi0_jax import siglip
 from pi0_jax.config import IMAGE_KEYS, Pi0Config
-from pi0_jax.quant import hooks
-from pi0_jax.quant.formats import (QArray, act_scale_from_amax, fake_quant_fp4, quantize_fp8)
+from pi0_jax.ops import matmul as hooks
+from pi0_jax.ops.formats import act_scale_from_amax, fake_quant_fp4, quantize_fp8
+from pi0_jax.ops.formats import from_storage, quantized_paths, to_storage  # noqa: F401  (re-exported)
+from pi0_jax.ops.formats import get_leaf as _get
+from pi0_jax.ops.formats import set_leaf as _set
 
 _LLM = ("PaliGemma", "llm", "layers")
 _IMG = ("PaliGemma", "img", "Transformer", "encoderblock")
@@ -54,22 +56,6 @@ def _leaves(scheme: str):
     return [(group, *leaf) for group in SCHEMES[scheme] for leaf in GROUPS[group]]
 
 
-def _get(tree, path):
-    for p in path:
-        tree = tree[p]
-    return tree
-
-
-def _set(tree, path, value):
-    """Copy-on-write set of a nested-dict leaf (the input tree is not modified)."""
-    if not path:
-        return value
-    out = dict(tree)
-    out[path[0]] = _set(tree[path[0]], path[1:], value)
-    return out
-
-
-# -- calibration ----------------------------------------------------------------------------------------------------
 def sample_observations(config: Pi0Config, n: int, seed: int = 0, batch: int = 1, tokenizer=None):
     """Realistic calibration / evaluation inputs: smooth natural-image-like images in [-1, 1] (a coarse random
     field upsampled and squashed), LIBERO-style prompts tokenised with `tokenizer` (else random ids), normal state.
@@ -202,36 +188,3 @@ def _fake_quant_fp4_params(params: dict, fmt: str, scheme: str) -> dict:
         fq = jax.jit(fake_quant_fp4, static_argnums=(1, 2))(merged, fmt, lo - merged.ndim)
         params = _set(params, path, fq.reshape(w.shape))
     return params
-
-
-def quantized_paths(params: dict) -> list[str]:
-    flat = traverse_util.flatten_dict(params, sep="/", is_leaf=lambda _, v: not isinstance(v, dict))
-    return sorted(k for k, v in flat.items() if isinstance(v, QArray))
-
-
-# -- checkpoint storage ---------------------------------------------------------------------------------------------
-def to_storage(params: dict) -> tuple[dict, dict]:
-    """QArray leaves -> plain dicts {q (uint8 bits), scale, act_scale?}; returns (tree, per-leaf metadata)."""
-    meta = {}
-    for path in quantized_paths(params):
-        keys = tuple(path.split("/"))
-        qa = _get(params, keys)
-        leaf = {"q": np.asarray(qa.q).view(np.uint8), "scale": np.asarray(qa.scale, np.float32)}
-        if qa.act_scale is not None:
-            leaf["act_scale"] = np.asarray(qa.act_scale, np.float32)
-        meta[path] = {"dtype": str(np.asarray(qa.q).dtype), "contract": list(qa.contract)}
-        params = _set(params, keys, leaf)
-    return params, meta
-
-
-def from_storage(tree: dict, meta: dict) -> dict:
-    import ml_dtypes
-
-    for path, m in meta.items():
-        keys = tuple(path.split("/"))
-        leaf = _get(tree, keys)
-        q = np.asarray(leaf["q"]).view(getattr(ml_dtypes, m["dtype"]))
-        act = leaf.get("act_scale")
-        tree = _set(tree, keys, QArray(q, np.asarray(leaf["scale"], np.float32),
-                                       None if act is None else np.asarray(act, np.float32), tuple(m["contract"])))
-    return tree

@@ -7,7 +7,7 @@ batch is sharded along "data", and XLA's partitioner turns the gradient's batch 
 code runs on one CPU and on k GPUs.
 
 Precision (spec §8): master params, AdamW moments and EMA are f32; with the model's dtype "bfloat16" the
-transformers compute in bf16 (`gemma.matmul` / SigLIP cast the f32 weights to the activation dtype), and the
+transformers compute in bf16 (`ops.matmul.matmul` / SigLIP cast the f32 weights to the activation dtype), and the
 gradients flow back to the f32 masters.
 """
 
