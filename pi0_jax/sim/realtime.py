@@ -145,9 +145,9 @@ def make_model_callbacks(core, rt: Realtime, replan_steps: int, inputs, cameras,
     `bucket` the prompt length `inputs` returns)."""
     from pi0_jax.engine import programs
 
-    if core.sampler != "engine":
-        raise ValueError("--execution / --latency-steps / --reuse-prefix run on the engine sampler, not "
-                         f"{core.sampler!r}")
+    if core.sampler != "engine" or getattr(core, "kernels", "xla") != "xla":
+        raise ValueError("--execution / --latency-steps / --reuse-prefix run on the engine sampler with XLA "
+                         f"kernels, not {core.sampler!r} / {getattr(core, 'kernels', 'xla')!r}")
     cfg, horizon, adim, dims = core.config, core.config.action_horizon, core.config.action_dim, core.action_dims
     r, d = replan_steps, rt.delay
     rt.check(r, horizon)
@@ -169,9 +169,9 @@ def make_model_callbacks(core, rt: Realtime, replan_steps: int, inputs, cameras,
             ps["raw"] = jnp.zeros((b, horizon, adim), jnp.float32)
             ps["fresh"] = jnp.zeros((b,), bool)     # "raw" holds a planned chunk (not the hold chunk)
         if reuse:
-            shapes = jax.eval_shape(prefix, core.model, jax.ShapeDtypeStruct((n_cam, b, size, size, 3), jnp.float32),
-                                    jax.ShapeDtypeStruct((n_cam, b), bool), jax.ShapeDtypeStruct((b, bucket), jnp.int32),
-                                    jax.ShapeDtypeStruct((b, bucket), bool))
+            spec = jax.ShapeDtypeStruct
+            shapes = jax.eval_shape(prefix, core.model, spec((n_cam, b, size, size, 3), jnp.float32),
+                                    spec((n_cam, b), bool), spec((b, bucket), jnp.int32), spec((b, bucket), bool))
             ps["cache"] = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
             if every == 0:
                 ps["thumbs"] = jnp.zeros((b, n_cam, THUMB, THUMB, 3), jnp.float32)
