@@ -112,8 +112,10 @@ def test_layer_slicing(teacher):
     s_model = distill.student_config(t_model, 2)
     assert (s_model.paligemma.depth, s_model.action_expert.depth) == (2, 2)
     assert distill.student_config(t_model, 3) == t_model
-    with pytest.raises(ValueError, match="gemma_2b_4l"):
-        distill.student_config(t_model.replace(paligemma_variant="gemma_2b", action_expert_variant="gemma_300m"), 4)
+    deep = t_model.replace(paligemma_variant="gemma_2b", action_expert_variant="gemma_300m")
+    assert distill.student_config(deep, 4).paligemma.depth == 4     # `<variant>_<n>l` exists for every n <= depth
+    with pytest.raises(ValueError, match="gemma_2b_19l"):
+        distill.student_config(deep, 19)
 
     student = distill.slice_layers(t_params, (0, 2))
     ckpt_lib.check_params(s_model, student)
