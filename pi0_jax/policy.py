@@ -41,7 +41,7 @@ from pi0_jax.engine import engine_weights, enable_compilation_cache, prompt_buck
 from pi0_jax.engine import programs
 from pi0_jax.engine import weights as weights_lib
 from pi0_jax.observation import DEFAULT_OPTIONAL_CAMERAS, ObservationError, Prepared, Validator
-from pi0_jax.preprocess import _resize_with_pad
+from pi0_jax.preprocess import resize_with_pad
 from pi0_jax.tokenizer import PaligemmaTokenizer
 
 __all__ = ["ObservationError", "Policy", "PolicyCore", "Prepared", "find_tokenizer"]
@@ -152,7 +152,7 @@ class PolicyCore:
         size, pixels = self.config.image_size, []
         for x in images:
             x = x.astype(jnp.float32) / 255.0 * 2.0 - 1.0 if x.dtype == jnp.uint8 else x.astype(jnp.float32)
-            pixels.append(x if x.shape[1:3] == (size, size) else _resize_with_pad(x, size, size, True))
+            pixels.append(resize_with_pad(x, size, size))
         return pixels, state.astype(jnp.float32) * norm["state_scale"] + norm["state_offset"]
 
     def program(self, model, norm, images: Sequence[jax.Array], cameras: Sequence[str], image_masks, tokens,
@@ -275,8 +275,7 @@ class Policy:
         images = {k: np.full((1, size, size, 3), -1.0, np.float32) for k in core.slots}
         for slot, x in p.images.items():
             x = x.astype(np.float32) / 255.0 * 2.0 - 1.0 if x.dtype == np.uint8 else x
-            images[slot] = np.asarray(_resize_with_pad(jnp.asarray(x[None]), size, size, True)
-                                      if x.shape[:2] != (size, size) else x[None])
+            images[slot] = np.asarray(resize_with_pad(jnp.asarray(x[None]), size, size))
         state = p.state * core.norm["state_scale"] + core.norm["state_offset"]
         return pi0.Observation(images=images, image_masks={k: np.array([k in p.images]) for k in core.slots},
                                state=state[None], tokenized_prompt=p.tokens[None],

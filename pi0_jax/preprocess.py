@@ -1,4 +1,4 @@
-"""Image and vector preprocessing for the policy: any camera frame -> (B, 224, 224, 3) float32 in [-1, 1].
+"""Camera frames for the policy: value range and layout checked on the host, resize-with-pad on device.
 
 Value range (decided here, applied by `to_signed_float`):
 * uint8 -> x / 255 * 2 - 1 (openpi's `Observation.from_dict`).
@@ -74,9 +74,13 @@ def to_signed_float(image, float_range: tuple[float, float] = (0.0, 1.0)) -> np.
     return np.clip(out, -1.0, 1.0)
 
 
-@functools.partial(jax.jit, static_argnums=(1, 2, 3))
-def _resize_with_pad(images: jax.Array, height: int, width: int, antialias: bool) -> jax.Array:
+@functools.partial(jax.jit, static_argnames=("height", "width", "antialias"))
+def resize_with_pad(images: jax.Array, height: int, width: int, antialias: bool = True) -> jax.Array:
+    """(B, H, W, C) float in [-1, 1] -> (B, height, width, C): aspect-preserving bilinear resize, -1 padding; frames
+    already at the target size pass through untouched. Traceable (the policy pipeline calls it inside its program)."""
     b, cur_h, cur_w, c = images.shape
+    if (cur_h, cur_w) == (height, width):
+        return images
     ratio = max(cur_w / width, cur_h / height)
     new_h, new_w = int(cur_h / ratio), int(cur_w / ratio)
     resized = jax.image.resize(images, (b, new_h, new_w, c), method="linear", antialias=antialias)
@@ -84,36 +88,3 @@ def _resize_with_pad(images: jax.Array, height: int, width: int, antialias: bool
     top, left = (height - new_h) // 2, (width - new_w) // 2
     pad = ((0, 0), (top, height - new_h - top), (left, width - new_w - left), (0, 0))
     return jnp.pad(resized, pad, constant_values=-1.0)
-
-
-def resize_with_pad(images, height: int, width: int, *, antialias: bool = True) -> np.ndarray:
-    """(B, H, W, C) float32 in [-1, 1] -> (B, height, width, C): aspect-preserving bilinear resize, -1 padding."""
-    images = np.asarray(images, np.float32)
-    if images.ndim != 4:
-        raise ValueError(f"resize_with_pad expects (B, H, W, C), got shape {images.shape}")
-    if images.shape[1:3] == (height, width):
-        return images
-    return np.asarray(_resize_with_pad(jnp.asarray(images), height, width, antialias))
-
-
-def preprocess_image(image, *, size: int = 224, layout: str | None = None,
-                     float_range: tuple[float, float] = (0.0, 1.0), antialias: bool = True) -> np.ndarray:
-    """Any frame or batch (uint8 / float, HWC / CHW) -> (B, size, size, 3) float32 in [-1, 1]."""
-    image = to_hwc(image, layout)
-    if image.ndim == 3:
-        image = image[None]
-    return resize_with_pad(to_signed_float(image, float_range), size, size, antialias=antialias)
-
-
-def pad_to_dim(x, dim: int, *, axis: int = -1, value: float = 0.0):
-    """Pad `axis` of x up to `dim` with `value` (zeros: openpi's `PadStatesAndActions`). Longer inputs raise."""
-    xp = jnp if isinstance(x, jax.Array) else np
-    x = xp.asarray(x)
-    n = x.shape[axis]
-    if n > dim:
-        raise ValueError(f"cannot pad axis {axis} of size {n} down to {dim}")
-    if n == dim:
-        return x
-    widths = [(0, 0)] * x.ndim
-    widths[axis] = (0, dim - n)
-    return xp.pad(x, widths, constant_values=value)

@@ -2,9 +2,20 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from pi0_jax.preprocess import pad_to_dim, preprocess_image, resize_with_pad, to_hwc, to_signed_float
+from pi0_jax.preprocess import resize_with_pad as _resize, to_hwc, to_signed_float
 
 RNG = np.random.default_rng(0)
+
+
+def preprocess_image(image, *, float_range=(0.0, 1.0)):
+    """The host checks and the device resize, as the policy pipeline chains them."""
+    image = to_hwc(image)
+    image = image if image.ndim == 4 else image[None]
+    return np.asarray(_resize(jnp.asarray(to_signed_float(image, float_range)), 224, 224))
+
+
+def resize_with_pad(images, height, width, **kw):
+    return np.asarray(_resize(jnp.asarray(images), height, width, **kw))
 
 
 def bilinear_ref(img, out_h, out_w):
@@ -90,13 +101,3 @@ def test_resize_downsample():
     out = preprocess_image(RNG.integers(0, 256, (240, 320, 3), dtype=np.uint8))
     assert out.shape == (1, 224, 224, 3) and out.min() >= -1 and out.max() <= 1
     assert (out[:, :28] == -1).all() and (out[:, 28 + 168:] == -1).all()
-
-
-def test_pad_to_dim():
-    x = np.arange(8.0)
-    y = pad_to_dim(x, 32)
-    assert y.shape == (32,) and (y[8:] == 0).all() and (y[:8] == x).all()
-    assert pad_to_dim(jnp.ones((2, 7)), 32).shape == (2, 32)
-    assert pad_to_dim(np.ones((2, 7, 3)), 9, axis=1).shape == (2, 9, 3)
-    with pytest.raises(ValueError):
-        pad_to_dim(np.ones(33), 32)

@@ -26,7 +26,7 @@ from jax.sharding import PartitionSpec as P
 
 from pi0_jax import pi0
 from pi0_jax.config import IMAGE_KEYS, Pi0Config
-from pi0_jax.preprocess import _resize_with_pad
+from pi0_jax.preprocess import resize_with_pad
 from pi0_jax.train.augment import augment
 from pi0_jax.train.config import TrainConfig
 from pi0_jax.train.data import Dataset
@@ -109,7 +109,7 @@ def make_batch(cfg: TrainConfig, model: Pi0Config, data: dict, rng: jax.Array, s
     def camera(c: int, key, geometric: bool):
         x = data["images"][idx, c].astype(jnp.float32) / 255.0 * 2.0 - 1.0
         if x.shape[1:3] != (size, size):
-            x = _resize_with_pad(x, size, size, True)      # as the sim policy does at evaluation
+            x = resize_with_pad(x, size, size)      # as the policy pipeline does at evaluation
         return augment(key, x, geometric=geometric) if cfg.augment else x
 
     cams = {"base_0_rgb": camera(0, k_base, True), "left_wrist_0_rgb": camera(1, k_wrist, False)}
