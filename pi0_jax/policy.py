@@ -236,22 +236,10 @@ class Policy:
         """
         from pi0_jax import checkpoint
 
-        path = Path(path)
-        config, params = checkpoint.load_checkpoint(path, dtype=dtype)
-        if dtype is not None:
-            config = config.replace(dtype=dtype)
+        config, params, tokenizer, normalizer = load_parts(path, tokenizer_path=tokenizer_path,
+                                                           norm_stats=norm_stats, dtype=dtype)
         if num_steps is None:
             num_steps = int(checkpoint.read_meta(path).get("num_steps", 10))
-        tokenizer = PaligemmaTokenizer(find_tokenizer(path, tokenizer_path), config.max_token_len)
-        use_quantiles = config.pi05  # openpi: quantiles for every model type but PI0
-        if isinstance(norm_stats, _norm.Normalizer):
-            normalizer = norm_stats
-        elif isinstance(norm_stats, str) and norm_stats == "identity":
-            normalizer = _norm.Normalizer.identity()
-        elif isinstance(norm_stats, Mapping):
-            normalizer = _norm.Normalizer.openpi(norm_stats, use_quantiles=use_quantiles)
-        else:
-            normalizer = _norm.load_normalizer(path if norm_stats is None else norm_stats, use_quantiles=use_quantiles)
         return cls(config, params, tokenizer, normalizer, num_steps=num_steps, **kw)
 
     # -----------------------------------------------------------------------------------------------------------------
@@ -272,13 +260,12 @@ class Policy:
         size in [-1, 1], state normalised and padded); for inspection and tests."""
         p = self.prepare(obs, np.zeros((self.config.action_horizon, self.config.action_dim), np.float32))
         core, size = self.core, self.config.image_size
+        pixels, state = core.preprocess(core.norm, [jnp.asarray(p.images[c][None]) for c in p.cameras],
+                                        jnp.asarray(p.state[None]))
         images = {k: np.full((1, size, size, 3), -1.0, np.float32) for k in core.slots}
-        for slot, x in p.images.items():
-            x = x.astype(np.float32) / 255.0 * 2.0 - 1.0 if x.dtype == np.uint8 else x
-            images[slot] = np.asarray(resize_with_pad(jnp.asarray(x[None]), size, size))
-        state = p.state * core.norm["state_scale"] + core.norm["state_offset"]
+        images.update({c: np.asarray(x) for c, x in zip(p.cameras, pixels)})
         return pi0.Observation(images=images, image_masks={k: np.array([k in p.images]) for k in core.slots},
-                               state=state[None], tokenized_prompt=p.tokens[None],
+                               state=np.asarray(state), tokenized_prompt=p.tokens[None],
                                tokenized_prompt_mask=p.token_mask[None])
 
     def run(self, prepared: Sequence[Prepared]) -> list[dict[str, Any]]:
@@ -372,6 +359,30 @@ class Policy:
                 "kernels": self.core.kernels,
                 "image_size": cfg.image_size, "state_dim": self.core.state_dim, "max_batch": self.batch_buckets[-1],
                 **self.validator.describe()}
+
+
+def load_parts(path: str | os.PathLike, *, tokenizer_path: str | os.PathLike | None = None,
+               norm_stats: _norm.Normalizer | Mapping[str, _norm.NormStats] | str | os.PathLike | None = None,
+               dtype: str | None = None) -> tuple[Pi0Config, dict, PaligemmaTokenizer, _norm.Normalizer]:
+    """A checkpoint dir -> (config, params, tokenizer, normaliser), as every policy (Policy, the simulator's) loads
+    it; see `Policy.from_checkpoint` for the arguments."""
+    from pi0_jax import checkpoint
+
+    path = Path(path)
+    config, params = checkpoint.load_checkpoint(path, dtype=dtype)
+    if dtype is not None:   # params and compute: bf16 on CPU is emulated and slower than f32
+        config = config.replace(dtype=dtype)
+    tokenizer = PaligemmaTokenizer(find_tokenizer(path, tokenizer_path), config.max_token_len)
+    use_quantiles = config.pi05  # openpi: quantiles for every model type but PI0
+    if isinstance(norm_stats, _norm.Normalizer):
+        normalizer = norm_stats
+    elif isinstance(norm_stats, str) and norm_stats == "identity":
+        normalizer = _norm.Normalizer.identity()
+    elif isinstance(norm_stats, Mapping):
+        normalizer = _norm.Normalizer.openpi(norm_stats, use_quantiles=use_quantiles)
+    else:
+        normalizer = _norm.load_normalizer(path if norm_stats is None else norm_stats, use_quantiles=use_quantiles)
+    return config, params, tokenizer, normalizer
 
 
 def find_tokenizer(ckpt: str | os.PathLike, explicit: str | os.PathLike | None = None) -> Path:

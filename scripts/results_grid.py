@@ -22,12 +22,9 @@ import jax
 import numpy as np
 
 import pi0_jax.sim  # noqa: F401  (sets the XLA:CPU flags MJX needs before the backend starts)
-from pi0_jax import checkpoint
-from pi0_jax import normalize as nz
 from pi0_jax.sim import policies
-from pi0_jax.policy import find_tokenizer
+from pi0_jax.policy import load_parts
 from pi0_jax.sim.evaluate import EvalConfig, evaluate
-from pi0_jax.tokenizer import PaligemmaTokenizer
 
 
 def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
@@ -75,9 +72,7 @@ def main() -> int:
     jax.config.update("jax_compilation_cache_dir", str(args.cache_dir))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
 
-    config, params = checkpoint.load_checkpoint(args.checkpoint)
-    tok = PaligemmaTokenizer(find_tokenizer(args.checkpoint), config.max_token_len)
-    normalizer = nz.load_normalizer(args.checkpoint, use_quantiles=config.pi05)
+    config, params, tok, normalizer = load_parts(args.checkpoint)
     steps = [int(s) for s in args.steps.split(",") if s]
     rows = []
     calib = None

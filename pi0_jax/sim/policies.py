@@ -68,20 +68,10 @@ def checkpoint_policy(path: str | os.PathLike, env, *, tokenizer_path=None, num_
                       norm_stats: str | os.PathLike | None = None, dtype: str | None = None,
                       sampler: str = "engine", realtime=None, replan_steps: int | None = None) -> SimPolicy:
     """A pi0-jax checkpoint directory (`pi0-jax convert` output) as a batched in-jit policy for `env`'s tasks."""
-    from pi0_jax import checkpoint
-    from pi0_jax import normalize as nz
-    from pi0_jax.policy import find_tokenizer
-    from pi0_jax.tokenizer import PaligemmaTokenizer
+    from pi0_jax.policy import load_parts
 
-    path = Path(path)
-    config, params = checkpoint.load_checkpoint(path, dtype=dtype)
-    if dtype is not None:   # params and compute: bf16 on CPU is emulated and slower than f32
-        config = config.replace(dtype=dtype)
-    tok = PaligemmaTokenizer(find_tokenizer(path, tokenizer_path), config.max_token_len)
-    if norm_stats == "identity":
-        normalizer = nz.Normalizer.identity()
-    else:
-        normalizer = nz.load_normalizer(path if norm_stats is None else norm_stats, use_quantiles=config.pi05)
+    config, params, tok, normalizer = load_parts(path, tokenizer_path=tokenizer_path, norm_stats=norm_stats,
+                                                 dtype=dtype)
     return model_policy(config, params, tok, normalizer, env, num_steps=num_steps, name=str(path), sampler=sampler,
                         realtime=realtime, replan_steps=replan_steps)
 
