@@ -7,8 +7,9 @@ with Wilson 95 % intervals. Cells, run in the order given until the time budget 
 
   sync     the baseline: the world waits for each chunk, replan every R steps (= every execution mode at D = 0, and
            sync at any D: sync ignores the delay, so "sync at D" is this cell by construction)
-  naive    D-step latency, the previous chunk executed while the next one is computed
-  rtc      D-step latency with real-time chunking (frozen committed prefix, guided overlap)
+  naive    D-step latency, the previous chunk executed while the next one is computed (naive-dD: this cell's own D
+           instead of --latency-steps, e.g. naive-d1)
+  rtc      D-step latency with real-time chunking (frozen committed prefix, guided overlap; rtc-dD likewise)
   reuseK   vision + prefix KV cache recomputed every K-th plan (e.g. reuse2, reuse4)
   auto     prefix recomputed when the images moved more than --auto-threshold (per environment)
   prune    the checkpoint without --prune-layers (both Gemma towers; `pi0-jax prune`), no recovery fine-tune
@@ -73,15 +74,17 @@ def cell_spec(cell: str, args) -> dict:
 def _cell_kind(name: str, args) -> dict:
     if name == "sync":
         return {"kind": "sync", "execution": "sync", "latency_steps": 0, "reuse_prefix": None}
-    if name in ("naive", "rtc"):
-        return {"kind": name, "execution": name, "latency_steps": args.latency_steps, "reuse_prefix": None}
+    kind, _, delay = name.partition("-d")
+    if kind in ("naive", "rtc") and (not delay or delay.isdigit()):
+        d = int(delay) if delay else args.latency_steps
+        return {"kind": kind, "execution": kind, "latency_steps": d, "reuse_prefix": None}
     if name.startswith("reuse") and name[5:].isdigit():
         return {"kind": "reuse", "execution": "sync", "latency_steps": 0, "reuse_prefix": name[5:]}
     if name == "auto":
         return {"kind": "auto", "execution": "sync", "latency_steps": 0, "reuse_prefix": f"auto:{args.auto_threshold}"}
     if name == "prune":
         return {"kind": "prune", "execution": "sync", "latency_steps": 0, "reuse_prefix": None}
-    raise SystemExit(f"unknown cell {name!r}: sync, naive, rtc, reuseK, auto, prune (each optionally @N)")
+    raise SystemExit(f"unknown cell {name!r}: sync, naive[-dD], rtc[-dD], reuseK, auto, prune (each optionally @N)")
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -253,8 +256,8 @@ def chart(result: dict, path: Path) -> None:
         ax.step(*zip(*line), where="post", color="grey", alpha=0.5, label="Pareto front")
     ax.set_xlabel(f"full-size inference per control step (ms, {t.get('preset', '?')}, {result['device']})")
     ax.set_ylabel(f"success (%), {result['episodes']} episodes, 95 % Wilson")
-    ax.set_title(f"{result['checkpoint_model']}: success against inference cost (squares: D = "
-                 f"{result['latency_steps']} steps = {50 * result['latency_steps']} ms latency)", fontsize=9)
+    ax.set_title(f"{result['checkpoint_model']}: success against inference cost (squares: D > 0 steps of "
+                 f"{1000 // CONTROL_HZ} ms latency)", fontsize=9)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
@@ -268,8 +271,9 @@ def main() -> int:
     p.add_argument("--checkpoint", type=Path, default=EMBEDDED, help="a trained pi0-jax checkpoint (default: the "
                    "embedded pi0_small)")
     p.add_argument("--cells", default="sync,rtc,naive,reuse2@1,prune,reuse2,auto,reuse4",
-                   help="comma list, run in this order while the budget lasts: sync, naive, rtc, reuseK (K an "
-                        "integer), auto, prune, each optionally @N for N flow steps (default: %(default)s)")
+                   help="comma list, run in this order while the budget lasts: sync, naive, rtc (naive-dD, rtc-dD: "
+                        "latency D instead of --latency-steps), reuseK (K an integer), auto, prune, each optionally "
+                        "@N for N flow steps (default: %(default)s)")
     p.add_argument("--latency-steps", type=int, default=4, help="D of the naive and rtc cells, in 50 ms control "
                    "steps (default: %(default)s = 200 ms)")
     p.add_argument("--auto-threshold", type=float, default=0.1,
