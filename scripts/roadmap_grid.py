@@ -7,14 +7,15 @@ with Wilson 95 % intervals. Cells, run in the order given until the time budget 
 
   sync     the baseline: the world waits for each chunk, replan every R steps (= every execution mode at D = 0, and
            sync at any D: sync ignores the delay, so "sync at D" is this cell by construction)
-  naive    D-step latency, the previous chunk executed while the next one is computed (naive-dD: this cell's own D
-           instead of --latency-steps, e.g. naive-d1)
-  rtc      D-step latency with real-time chunking (frozen committed prefix, guided overlap; rtc-dD likewise)
+  naive    D-step latency, the previous chunk executed while the next one is computed
+  rtc      D-step latency with real-time chunking (frozen committed prefix, guided overlap)
   reuseK   vision + prefix KV cache recomputed every K-th plan (e.g. reuse2, reuse4)
   auto     prefix recomputed when the images moved more than --auto-threshold (per environment)
   prune    the checkpoint without --prune-layers (both Gemma towers; `pi0-jax prune`), no recovery fine-tune
   NAME@N   any of these with N flow steps instead of --num-steps (e.g. sync@1, reuse2@1: the embedded model keeps
            its success at 1 step, docs/RESULTS.md, so fewer steps and reuse combine)
+  -dD, -rR before @N: this cell's own latency D (naive, rtc; e.g. naive-d1) or replan interval R (any cell; e.g.
+           sync-r8@1: plan every 8 steps, the origin notes' "action chunking to infer less often")
 
 Cost: the full-size model's stage timings on this device (--timing-preset, random weights, batch 1, 2 cameras, a
 20-token prompt, bf16, the cells' flow steps): vision, prefix KV fill, denoise, RTC's guided denoise (a VJP per step,
@@ -45,7 +46,6 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 import pi0_jax.sim  # noqa: F401  (sets the XLA:CPU flags MJX needs before the backend starts)
 from pi0_jax import checkpoint
@@ -60,31 +60,36 @@ EMBEDDED = Path(pi0_jax.sim.__file__).parents[1] / "assets" / "pi0_small"
 GUESSED = {"reuse": "KV-cache reuse across frames: 2-3x (one table), 1.5-2x (the other)",
            "prune": "18 -> 12 layers: ~1.5x, 'large accuracy loss' risk",
            "naive": "async 3-stream pipeline: 'hides vision latency'", "rtc": "(not in the notes)",
-           "auto": "dynamic similarity detection + partial reuse: no number", "sync": "baseline"}
+           "auto": "dynamic similarity detection + partial reuse: no number", "sync": "baseline",
+           "chunk": "action chunking, infer less often: 'reduces inference frequency', no number"}
 
 
 def cell_spec(cell: str, args) -> dict:
-    """A cell name -> its EvalConfig fields, kind and flow steps."""
+    """A cell name -> its EvalConfig fields, kind, flow steps and replan interval: KIND[-dD][-rR][@N]."""
     name, _, steps = cell.partition("@")
-    spec = _cell_kind(name, args)
+    kind, *opts = name.split("-")
+    own = {o[0]: o[1:] for o in opts if o[:1] in ("d", "r") and o[1:].isdigit()}
+    if len(own) != len(opts) or ("d" in own and kind not in ("naive", "rtc")):
+        raise SystemExit(f"unknown cell {cell!r}: sync, naive, rtc, reuseK, auto, prune, then optionally -dD "
+                         "(naive, rtc: latency D), -rR (replan every R steps), @N (N flow steps)")
+    spec = _cell_kind(kind, args, int(own.get("d", args.latency_steps)))
     spec["num_steps"] = int(steps) if steps else args.num_steps
+    spec["replan_steps"] = int(own.get("r", args.replan_steps))
     return spec
 
 
-def _cell_kind(name: str, args) -> dict:
+def _cell_kind(name: str, args, delay: int) -> dict:
     if name == "sync":
         return {"kind": "sync", "execution": "sync", "latency_steps": 0, "reuse_prefix": None}
-    kind, _, delay = name.partition("-d")
-    if kind in ("naive", "rtc") and (not delay or delay.isdigit()):
-        d = int(delay) if delay else args.latency_steps
-        return {"kind": kind, "execution": kind, "latency_steps": d, "reuse_prefix": None}
+    if name in ("naive", "rtc"):
+        return {"kind": name, "execution": name, "latency_steps": delay, "reuse_prefix": None}
     if name.startswith("reuse") and name[5:].isdigit():
         return {"kind": "reuse", "execution": "sync", "latency_steps": 0, "reuse_prefix": name[5:]}
     if name == "auto":
         return {"kind": "auto", "execution": "sync", "latency_steps": 0, "reuse_prefix": f"auto:{args.auto_threshold}"}
     if name == "prune":
         return {"kind": "prune", "execution": "sync", "latency_steps": 0, "reuse_prefix": None}
-    raise SystemExit(f"unknown cell {name!r}: sync, naive[-dD], rtc[-dD], reuseK, auto, prune (each optionally @N)")
+    raise SystemExit(f"unknown cell {name!r}: sync, naive, rtc, reuseK, auto, prune")
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -145,9 +150,10 @@ def stage_timings(preset: str, num_steps: int, other_steps: list[int], drop_frac
 
 
 def cost_per_step(row: dict, t: dict, replan: int) -> float | None:
-    """Full-size inference ms per control step of a cell."""
+    """Full-size inference ms per control step of a cell (`replan`: the run's default interval)."""
     if not t:
         return None
+    replan = row.get("replan_steps", replan)
     f = t["full"]
     if row["kind"] == "prune":
         if not t["pruned"] or row["num_steps"] != t["num_steps"]:
@@ -166,7 +172,7 @@ def cost_per_step(row: dict, t: dict, replan: int) -> float | None:
 
 def run_cell(name: str, spec: dict, args, ckpt: Path) -> dict:
     cfg = EvalConfig(suite=args.suite, episodes_per_task=args.episodes_per_task, batch=args.batch,
-                     replan_steps=args.replan_steps, max_steps=args.max_steps, resolution=args.resolution,
+                     replan_steps=spec["replan_steps"], max_steps=args.max_steps, resolution=args.resolution,
                      seed=args.seed, videos=0, num_steps=spec["num_steps"], execution=spec["execution"],
                      latency_steps=spec["latency_steps"], reuse_prefix=spec["reuse_prefix"])
     t0 = time.perf_counter()
@@ -183,6 +189,11 @@ def run_cell(name: str, spec: dict, args, ckpt: Path) -> dict:
     return row
 
 
+def guess_key(row: dict, result: dict) -> str:
+    longer = row.get("replan_steps", result["replan_steps"]) > result["replan_steps"]
+    return "chunk" if row["kind"] == "sync" and longer else row["kind"]
+
+
 def markdown(result: dict) -> str:
     rows, base = result["rows"], next((r for r in result["rows"] if r["cell"] == "sync"), None)
     t = result.get("timing") or {}
@@ -190,9 +201,9 @@ def markdown(result: dict) -> str:
              f"{result['num_steps']} flow steps, replan every {result['replan_steps']} steps. Cost: "
              + (f"{t['preset']} ({t['dtype']}, batch 1, random weights) stage timings on the same device."
                 if t else "not measured (--no-timing)."), "",
-             "| cell | setting | flow steps | D (steps / ms) | prefix recomputed | cost per control step (ms) | "
-             "vs baseline | success | Δ vs baseline | in baseline CI | seed guessed |",
-             "|---|---|---:|---|---:|---:|---:|---:|---:|---|---|"]
+             ("| cell | setting | flow steps | replan every | D (steps / ms) | prefix recomputed | "
+              "cost per control step (ms) | vs baseline | success | Δ vs baseline | in baseline CI | seed guessed |"),
+             "|---|---|---:|---:|---|---:|---:|---:|---:|---:|---|---|"]
     base_cost = cost_per_step(base, t, result["replan_steps"]) if base else None
     for r in rows:
         cost = cost_per_step(r, t, result["replan_steps"])
@@ -203,18 +214,20 @@ def markdown(result: dict) -> str:
         inside = base is not None and base["ci95"][0] <= r["pc_success"] <= base["ci95"][1]
         delta = "" if base is None else f"{r['pc_success'] - base['pc_success']:+.1f}"
         lines.append(
-            f"| {r['cell']} | {setting} | {r['num_steps']} | {r['latency_steps']} / {r['latency_ms']:.0f} | "
+            f"| {r['cell']} | {setting} | {r['num_steps']} | {r.get('replan_steps', result['replan_steps'])} | "
+            f"{r['latency_steps']} / {r['latency_ms']:.0f} | "
             f"{'' if frac is None else f'{100 * frac:.0f} %'} | {'' if cost is None else f'{cost:.2f}'} | "
             f"{'' if cost is None or not base_cost else f'{base_cost / cost:.2f}x'} | "
             f"{r['pc_success']:.1f} % [{r['ci95'][0]:.1f}, {r['ci95'][1]:.1f}] | "
             f"{delta} | "
-            f"{'yes' if inside else 'no'} | {GUESSED[r['kind']]} |")
+            f"{'yes' if inside else 'no'} | {GUESSED[guess_key(r, result)]} |")
     if base is not None:
         lines.append(f"| sync D={result['latency_steps']} | sync (world waits) | {base['num_steps']} | "
+                     f"{base.get('replan_steps', result['replan_steps'])} | "
                      f"{result['latency_steps']} / {50 * result['latency_steps']} | | = baseline | | = baseline "
                      "(sync ignores D: not run separately) | | | |")
     for name, why in result["not_run"].items():
-        lines.append(f"| {name} | not run ({why}) | | | | | | | | | |")
+        lines.append(f"| {name} | not run ({why}) | | | | | | | | | | |")
     if t:
         f = t["full"]
         total = f["vision"] + f["prefix"] + f["denoise"]
