@@ -253,12 +253,34 @@ def chart(result: dict, path: Path) -> None:
     t = result.get("timing") or {}
     pts = [(cost_per_step(r, t, result["replan_steps"]), r) for r in result["rows"]]
     pts = [(c, r) for c, r in pts if c is not None]
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    for i, (c, r) in enumerate(pts):
+    fig, ax = plt.subplots(figsize=(8, 5))
+    base = next((r for r in result["rows"] if r["cell"] == "sync"), None)
+    if base is not None:
+        ax.axhspan(*base["ci95"], color="tab:blue", alpha=0.08, label="baseline's 95 % interval")
+    xs = [c for c, _ in pts] or [0.0, 1.0]
+    lo_x, span_x = min(xs), max(max(xs) - min(xs), 1e-9)
+
+    def frac(c, y, d=(0, 0)):     # axis-fraction position of a point plus an offset in points
+        return (c - lo_x) / span_x * 0.85 + 0.05 + d[0] / 600, y / 100 + d[1] / 380
+
+    taken = [frac(c, r["pc_success"]) for c, r in pts]    # markers, then labels as they are placed
+    for c, r in pts:
         err = [[r["pc_success"] - r["ci95"][0]], [r["ci95"][1] - r["pc_success"]]]
         ax.errorbar(c, r["pc_success"], yerr=err, fmt="o" if r["latency_steps"] == 0 else "s", capsize=3)
-        ax.annotate(f"{r['cell']}" + (f" (D={r['latency_steps']})" if r["latency_steps"] else ""),
-                    (c, r["pc_success"]), textcoords="offset points", xytext=(5, 4 - 11 * (i % 2)), fontsize=8)
+        label = f"{r['cell']}" + (f" (D={r['latency_steps']})" if r["latency_steps"] else "")
+        width = 5.2 * len(label)
+        # the label spot farthest from every marker and label so far, inside the axes
+        spots = [(dx, dy) for dy in (4, -12, 16, -24, 28) for dx in (6, -width - 6, -width / 2)]
+
+        def clearance(d, c=c, y=r["pc_success"], width=width):
+            x0, y0 = frac(c, y, (d[0] + width / 2, d[1] + 4))
+            if not (0.02 < x0 - width / 1200 and x0 + width / 1200 < 0.98 and 0.0 < y0 < 0.95):
+                return -1.0
+            return min(abs(x0 - px) * 2.5 + abs(y0 - py) * 12 for px, py in taken) - 0.01 * abs(d[1])
+        d = max(spots, key=clearance)
+        taken.append(frac(c, r["pc_success"], (d[0] + width / 2, d[1] + 4)))
+        ax.annotate(label, (c, r["pc_success"]), textcoords="offset points", xytext=d, fontsize=8,
+                    arrowprops={"arrowstyle": "-", "color": "grey", "lw": 0.5} if abs(d[1]) > 12 else None)
     front = sorted(pts, key=lambda p: (p[0], -p[1]["pc_success"]))
     best, line = -1.0, []
     for c, r in front:            # Pareto front: no cheaper cell succeeds as often
@@ -269,6 +291,7 @@ def chart(result: dict, path: Path) -> None:
         ax.step(*zip(*line), where="post", color="grey", alpha=0.5, label="Pareto front")
     ax.set_xlabel(f"full-size inference per control step (ms, {t.get('preset', '?')}, {result['device']})")
     ax.set_ylabel(f"success (%), {result['episodes']} episodes, 95 % Wilson")
+    ax.set_ylim(-4, 100)
     ax.set_title(f"{result['checkpoint_model']}: success against inference cost (squares: D > 0 steps of "
                  f"{1000 // CONTROL_HZ} ms latency)", fontsize=9)
     ax.grid(alpha=0.3)
@@ -283,7 +306,7 @@ def main() -> int:
     p.add_argument("--out", type=Path, required=True, help="directory for roadmap.json, roadmap.md, roadmap.png")
     p.add_argument("--checkpoint", type=Path, default=EMBEDDED, help="a trained pi0-jax checkpoint (default: the "
                    "embedded pi0_small)")
-    p.add_argument("--cells", default="sync,rtc,naive,reuse2@1,prune,reuse2,auto,reuse4",
+    p.add_argument("--cells", default="sync,sync@1,sync-r6@1,rtc,naive,reuse2@1,prune,reuse2,auto,reuse4",
                    help="comma list, run in this order while the budget lasts: sync, naive, rtc (naive-dD, rtc-dD: "
                         "latency D instead of --latency-steps), reuseK (K an integer), auto, prune, each optionally "
                         "@N for N flow steps (default: %(default)s)")
