@@ -204,3 +204,34 @@ def test_prune_drops_layers_and_nothing_changes_nothing(pruned, tmp_path):
     assert any(np.shape(a) != np.shape(b) for a, b in zip(jax.tree.leaves(full), jax.tree.leaves(want)))
     with pytest.raises(ValueError, match="layers 0..3"):
         cli.main(["prune", str(EMBEDDED), str(tmp_path / "bad"), "--drop-layers", "4"])
+
+
+def test_roadmap_grid_cells_and_cost():
+    """scripts/roadmap_grid.py: KIND[-dD][-rR][@N] names parse into the eval settings they claim, and the cost per
+    control step divides by the cell's own replan interval (the 2.31x row of RESULTS.md)."""
+    import importlib.util
+    import sys
+    from types import SimpleNamespace
+
+    path = Path(__file__).parents[1] / "scripts" / "roadmap_grid.py"
+    sys.path.insert(0, str(path.parent))
+    try:
+        spec = importlib.util.spec_from_file_location("roadmap_grid", path)
+        grid = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(grid)
+    finally:
+        sys.path.remove(str(path.parent))
+    args = SimpleNamespace(latency_steps=4, num_steps=10, replan_steps=5, auto_threshold=0.1)
+    assert grid.cell_spec("sync-r6@1", args) == {"kind": "sync", "execution": "sync", "latency_steps": 0,
+                                                 "reuse_prefix": None, "num_steps": 1, "replan_steps": 6}
+    assert grid.cell_spec("rtc-d1", args)["latency_steps"] == 1 and grid.cell_spec("rtc", args)["latency_steps"] == 4
+    assert grid.cell_spec("reuse2@1", args)["reuse_prefix"] == "2"
+    for bad in ("sync-d2", "naive-x3", "reuse", "naive-d"):
+        with pytest.raises(SystemExit):
+            grid.cell_spec(bad, args)
+    t = {"full": {"vision": 3.74, "prefix": 5.23, "denoise_at": {"1": 2.40, "10": 12.93}}}
+    base = {"kind": "sync", "num_steps": 10}
+    fast = {"kind": "sync", "num_steps": 1, "replan_steps": 6}
+    assert grid.cost_per_step(base, t, 5) == pytest.approx((3.74 + 5.23 + 12.93) / 5)
+    assert grid.cost_per_step(base, t, 5) / grid.cost_per_step(fast, t, 5) == pytest.approx(2.31, abs=0.01)
+    assert grid.guess_key(fast, {"replan_steps": 5}) == "chunk"
