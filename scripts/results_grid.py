@@ -19,7 +19,6 @@ import time
 from pathlib import Path
 
 import jax
-import numpy as np
 
 import pi0_jax.sim  # noqa: F401  (sets the XLA:CPU flags MJX needs before the backend starts)
 from pi0_jax.sim import policies
@@ -35,19 +34,6 @@ def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
     centre = (p + z * z / (2 * n)) / (1 + z * z / n)
     half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
     return 100 * max(0.0, centre - half), 100 * min(1.0, centre + half)
-
-
-def scheme_params(config, params, scheme: str, calib_obs):
-    """params for `scheme`: bf16 as stored; FP8 schemes with static activation scales (amax over calib_obs); FP4
-    formats as weight emulation (quantised and dequantised back) of every GEMM the FP8 scheme "all" covers."""
-    from pi0_jax.quant import schemes
-
-    if scheme == "bf16":
-        return params
-    if scheme in ("nvfp4", "mxfp4"):
-        return jax.device_put(schemes.fake_quant_fp4_params(params, scheme, "all"), jax.devices()[0])
-    amax = schemes.calibrate(config, params, [calib_obs], "all", percentile=None)["amax"]
-    return schemes.quantize_params(config, params, scheme, amax)
 
 
 def main() -> int:
@@ -82,15 +68,16 @@ def main() -> int:
         plan.append((name, [int(c) for c in counts.split("+")] if counts else steps))
     steps = sorted({n for _, counts in plan for n in counts})
     for scheme, counts in plan:
-        if scheme != "bf16" and calib is None:
-            calib = _calibration_batch(config, tok, normalizer, args.calib_samples, args.seed)
+        quant = None if scheme == "bf16" else scheme
+        if quant not in (None, *policies.QUANT_FORMATS) and calib is None:
+            calib = policies.calibration_observation(config, tok, normalizer, args.calib_samples, args.seed)
         t0 = time.perf_counter()
-        qparams = scheme_params(config, params, scheme, calib)
+        qparams = policies.quantize_for_suite(config, params, tok, normalizer, quant, calib=calib)
         quant_s = time.perf_counter() - t0
         for n in counts:
             def make(env, qparams=qparams, n=n, scheme=scheme):
                 return policies.model_policy(config, qparams, tok, normalizer, env, num_steps=n, dynamic_steps=True,
-                                             name=f"{config.name}/{scheme}")
+                                             name=f"{config.name}/{scheme}", quant=None if scheme == "bf16" else scheme)
             cfg = EvalConfig(suite="all", episodes_per_task=args.episodes_per_task, batch=args.batch,
                              replan_steps=args.replan_steps, resolution=config.image_size, seed=args.seed, videos=0,
                              num_steps=n, max_steps=args.max_steps)
@@ -111,21 +98,6 @@ def main() -> int:
     (args.out / "results.md").write_text(markdown(rows, steps))
     print(markdown(rows, steps))
     return 0
-
-
-def _calibration_batch(config, tok, normalizer, n: int, seed: int):
-    """The model's pi0.Observation for n rendered suite observations at initial states 50..99 (never evaluated)."""
-    from pi0_jax.sim import tasks
-    from pi0_jax.sim.env import Env
-    from pi0_jax.sim.render import RenderConfig
-
-    env = Env(tasks.SUITES["all"], RenderConfig(config.image_size, config.image_size), num_init_states=100)
-    t = (np.arange(n) % len(env.tasks)).astype(np.int32)
-    i = (50 + (np.arange(n) // len(env.tasks)) % 50).astype(np.int32)
-    state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.key(seed), n), t, i)
-    obs = jax.jit(jax.vmap(env.observe))(state)
-    pol = policies.model_policy(config, None, tok, normalizer, env)
-    return pol.observation(obs, state)
 
 
 def markdown(rows: list[dict], steps: list[int]) -> str:

@@ -41,7 +41,8 @@ class Args:
     resolution: int
     steps: int
     policy_model: str
-    policy_batch: int
+    policy_batch: tuple[int, ...]
+    policy_quant: str | None
     policy_episode_steps: int
     replan_steps: int
     num_steps: int
@@ -57,7 +58,11 @@ def parse(argv=None) -> Args:
     p.add_argument("--resolution", type=int, default=224, help="camera resolution (square)")
     p.add_argument("--steps", type=int, default=50, help="timed control steps per measurement")
     p.add_argument("--policy-model", default="pi05_libero", help="pi0_jax.config preset for the policy run")
-    p.add_argument("--policy-batch", type=int, default=64, help="environments in the policy run")
+    p.add_argument("--policy-batch", type=int, nargs="+", default=[64],
+                   help="environments in the policy run; several values: one run each (default: 64)")
+    p.add_argument("--policy-quant", default=None, metavar="FORMAT",
+                   help="number format of the policy's weights, as `pi0-jax eval --quant` (an FP8 scheme such as "
+                        "prefix-mlp, calibrated on rendered suite frames; default: bf16 as initialised)")
     p.add_argument("--policy-episode-steps", type=int, default=220, help="steps per episode in the policy run")
     p.add_argument("--replan-steps", type=int, default=5, help="steps per action chunk")
     p.add_argument("--num-steps", type=int, default=10, help="flow-matching steps per policy call")
@@ -66,7 +71,7 @@ def parse(argv=None) -> Args:
     p.add_argument("--no-physics-only", action="store_true", help="skip the physics-only (no cameras) runs")
     p.add_argument("--json", type=Path, default=None, help="also write the JSON here")
     a = p.parse_args(argv)
-    return Args(**{**vars(a), "sizes": tuple(a.sizes)})
+    return Args(**{**vars(a), "sizes": tuple(a.sizes), "policy_batch": tuple(a.policy_batch)})
 
 
 def _sharded(x, sharding):
@@ -110,8 +115,8 @@ def env_throughput(env, n: int, steps: int, render: bool, sharding) -> dict:
             "compile_s": compile_s}
 
 
-def policy_throughput(args: Args, sharding) -> dict:
-    """Episodes per minute with a π0 / π0.5 (random weights) in the loop, through evaluate.make_segment."""
+def policy_throughput(args: Args, n: int, sharding) -> dict:
+    """Episodes per minute with a π0 / π0.5 (random weights) at batch n in the loop, through evaluate.make_segment."""
     import jax
     import jax.numpy as jnp
 
@@ -124,7 +129,6 @@ def policy_throughput(args: Args, sharding) -> dict:
     from pi0_jax.tokenizer import PaligemmaTokenizer
 
     config = get_config(args.policy_model)
-    n = args.policy_batch
     t0 = time.perf_counter()
     params = pi0.init_params(config, jax.random.key(0))
     if config.dtype == "bfloat16":
@@ -139,8 +143,11 @@ def policy_throughput(args: Args, sharding) -> dict:
     # any SentencePiece model works for timing (the prompt's content does not change the cost): the embedded model's
     tok_path = Path(pi0_jax.__file__).parent / "assets" / "pi0_small" / "tokenizer.model"
     tok = PaligemmaTokenizer(tok_path, config.max_token_len)
+    t0 = time.perf_counter()
+    params = policies.quantize_for_suite(config, params, tok, nz.Normalizer.identity(), args.policy_quant)
+    quant_s = time.perf_counter() - t0
     policy = policies.model_policy(config, params, tok, nz.Normalizer.identity(), env, num_steps=args.num_steps,
-                                   name=f"{args.policy_model} (random weights)")
+                                   name=f"{args.policy_model} (random weights)", quant=args.policy_quant)
     cfg = evaluate.EvalConfig(batch=n, replan_steps=args.replan_steps, max_steps=args.policy_episode_steps,
                               resolution=res, videos=0, segment_replans=8, num_steps=args.num_steps)
     segment = evaluate.make_segment(env, policy, cfg, 0)
@@ -182,6 +189,7 @@ def policy_throughput(args: Args, sharding) -> dict:
     step_s = dt / steps                                       # wall time of one batched step incl. its share of plans
     protocol_min = LIBERO_EPISODES / n * LIBERO_MEAN_STEPS * step_s / 60
     return {"model": args.policy_model, "params": int(n_params), "dtype": config.dtype, "batch": n,
+            "quant": args.policy_quant or "none", "quantise_s": quant_s,
             "episode_steps": steps, "replan_steps": args.replan_steps, "num_steps": args.num_steps,
             "plan_calls_per_episode": plan_calls, "seconds": dt, "episodes_per_min": ep_per_min,
             "plan_ms": plan_ms, "compile_s": compile_s, "init_params_s": init_s,
@@ -222,8 +230,11 @@ def main(argv=None) -> int:
                   f"(compile {r['compile_s']:.0f} s)", flush=True)
             _save(args, result)
     if not args.skip_policy:
-        result["policy"] = policy_throughput(args, sharding)
-        _save(args, result)
+        result["policy"] = []
+        for n in args.policy_batch:
+            result["policy"].append(policy_throughput(args, math.ceil(n / len(devices)) * len(devices), sharding))
+            print(json.dumps(result["policy"][-1]), flush=True)
+            _save(args, result)
 
     print(f"\n{result['device']} ({result['backend']}), jax {result['jax']}, mujoco {result['mujoco']}, "
           f"commit {commit}, {result['date']}\n`{result['command']}`\n")
@@ -234,13 +245,15 @@ def main(argv=None) -> int:
         ren = next(r for r in result["env"] if r["n"] == n and r["render"])
         phy = next((r["env_steps_per_s"] for r in result["env"] if r["n"] == n and not r["render"]), float("nan"))
         print(f"| {n} | {ren['env_steps_per_s']:.0f} | {phy:.0f} | {ren['compile_s']:.0f} |")
-    if (p := result["policy"]) is not None:
+    if result["policy"]:
         print("\n| policy in the loop | batch | steps/episode | plan calls/episode | policy call (ms) | "
-              "episodes/min | LIBERO 2000-episode protocol (min, est.) |")
-        print("|---|---:|---:|---:|---:|---:|---:|")
-        print(f"| {p['model']} ({p['params'] / 1e9:.2f} B params, {p['dtype']}, {p['num_steps']} steps) | "
-              f"{p['batch']} | {p['episode_steps']} | {p['plan_calls_per_episode']} | {p['plan_ms']:.1f} | "
-              f"{p['episodes_per_min']:.1f} | {p['libero_2000_protocol_min_estimate']:.1f} |")
+              "policy share | episodes/min | LIBERO 2000-episode protocol (min, est.) |")
+        print("|---|---:|---:|---:|---:|---:|---:|---:|")
+    for p in result["policy"] or ():
+        share = p["plan_ms"] * p["plan_calls_per_episode"] / 1e3 / p["seconds"]
+        print(f"| {p['model']} ({p['params'] / 1e9:.2f} B params, {p['dtype']}, {p['quant']}, {p['num_steps']} "
+              f"steps) | {p['batch']} | {p['episode_steps']} | {p['plan_calls_per_episode']} | {p['plan_ms']:.1f} | "
+              f"{100 * share:.0f} % | {p['episodes_per_min']:.1f} | {p['libero_2000_protocol_min_estimate']:.1f} |")
     print("\n" + json.dumps(result))
     _save(args, result)
     return 0

@@ -125,3 +125,54 @@ def test_eval_preset_policy_with_timing_and_profile(tmp_path):
     assert {"physics_ms", "render_ms", "policy_ms"} <= set(t["phases"]) and all(
         t["phases"][k] > 0 for k in ("physics_ms", "render_ms", "policy_ms"))
     assert abs(sum(t["phases"]["share"].values()) - 1) < 1e-6
+
+
+def test_balanced_batch():
+    from pi0_jax.sim.evaluate import balanced_batch
+
+    assert balanced_batch(2000, 1024, 1) == 1000          # 2 even batches, not 1024 + 976
+    assert balanced_batch(2000, 2048, 2) == 2000 and balanced_batch(2001, 2048, 2) == 2002
+    assert balanced_batch(550, 1024, 1) == 550
+    assert balanced_batch(10, 4, 1) == 4 and balanced_batch(10, 4, 3) == 3 and balanced_batch(5, 1, 2) == 2
+
+
+def test_eval_batch_auto(tmp_path, monkeypatch):
+    """`--batch auto` starts from the whole suite and halves while the compiled segment does not fit the memory
+    budget (here: the first program reports more bytes than any device has), recording what it tried."""
+    from pi0_jax.sim import evaluate
+
+    real, calls = evaluate.program_bytes, []
+
+    def program_bytes(compiled):
+        calls.append(real(compiled))
+        return 1 << 60 if len(calls) == 1 else calls[-1]
+
+    monkeypatch.setattr(evaluate, "program_bytes", program_bytes)
+    out = tmp_path / "eval"
+    assert cli.main(["eval", "--policy", "expert", "--suite", "goal/red_block_on_plate", "--episodes-per-task", "2",
+                     "--batch", "auto", "--steps", "10", "--resolution", "16", "--videos", "0", "--output-dir",
+                     str(out), "--no-progress"]) == 0
+    info = json.loads((out / "eval_info.json").read_text())
+    tried = info["config"]["batch_auto"]["tried"]
+    assert [t["batch"] for t in tried] == [2, 1] and info["config"]["batch_rounded"] == 1
+    assert tried[1]["program_bytes"] == calls[1] > 0 and tried[1]["free_bytes"] > calls[1]
+    assert info["aggregated"]["n_episodes"] == 2 and all(e["length"] <= 10 for e in info["per_episode"])
+    with pytest.raises(SystemExit):
+        cli.main(["eval", "--policy", "expert", "--batch", "0"])
+
+
+def test_eval_quant(tmp_path, monkeypatch):
+    """`--quant` runs an FP8 scheme (static scales calibrated on rendered suite frames) in the loop and says so."""
+    import functools
+
+    monkeypatch.setattr(policies, "quantize_for_suite", functools.partial(policies.quantize_for_suite,
+                                                                          calib_samples=2))
+    out = tmp_path / "eval"
+    assert cli.main(["eval", "--policy", "preset:dummy", "--suite", "goal/red_block_on_plate", "--episodes-per-task",
+                     "2", "--batch", "2", "--steps", "5", "--replan-steps", "5", "--num-steps", "2", "--resolution",
+                     str(RES), "--videos", "0", "--output-dir", str(out), "--no-progress", "--quant",
+                     "prefix-mlp"]) == 0
+    info = json.loads((out / "eval_info.json").read_text())
+    assert info["config"]["policy_info"]["quant"] == "prefix-mlp" and info["aggregated"]["n_episodes"] == 2
+    with pytest.raises(ValueError, match="unknown number format 'fp7'"):
+        policies.quantize_for_suite(None, {}, None, None, "fp7")

@@ -40,9 +40,11 @@ def add_eval_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--episodes-per-task", type=int, default=10, metavar="K",
                    help="episodes per task; episode k of a task starts from its initial state k %% 50 "
                         "(default: %(default)s; LIBERO's protocol is 50)")
-    p.add_argument("--batch", type=int, default=32, metavar="N",
-                   help="environments simulated at once, rounded up to a multiple of the device count "
-                        "(default: %(default)s)")
+    p.add_argument("--batch", type=batch_arg, default=32, metavar="N|auto",
+                   help="environments simulated at once, rounded up to a multiple of the device count; 'auto': "
+                        "the fewest even batches of at most 1024 per device whose compiled segment fits in 85 %% "
+                        "of the free device memory (halved until it does; what was tried goes into "
+                        "eval_info.json's config.batch_auto) (default: %(default)s)")
     p.add_argument("--replan-steps", type=int, default=5, metavar="R",
                    help="steps executed from each action chunk before the policy is called again; at most the "
                         "model's action horizon (default: %(default)s, openpi's LIBERO setting)")
@@ -63,6 +65,11 @@ def add_eval_parser(subparsers) -> argparse.ArgumentParser:
                         "which a distilled student records, else 10)")
     p.add_argument("--dtype", choices=("float32", "bfloat16"), default=None,
                    help="param and compute dtype of a checkpoint policy (default: the checkpoint's own)")
+    p.add_argument("--quant", default=None, metavar="FORMAT",
+                   help="number format of a checkpoint or preset policy's weights: an FP8 scheme of pi0_jax.quant "
+                        "(prefix-mlp, prefix-all, vision, expert-weights, all; static activation scales calibrated "
+                        "on 64 rendered observations from initial states 50-99, which are never evaluated) or an "
+                        "FP4 weight emulation (nvfp4, mxfp4) (default: as stored)")
     p.add_argument("--sampler", choices=("engine", "reference"), default="engine",
                    help="how a checkpoint policy samples: the compiled engine's programs (default), or openpi's "
                         "reference structure (pi0.sample_actions; the parity path, slower)")
@@ -109,6 +116,19 @@ def add_eval_parser(subparsers) -> argparse.ArgumentParser:
     return p
 
 
+def batch_arg(text: str) -> int | str:
+    """--batch: a positive integer or 'auto'."""
+    if text == "auto":
+        return text
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: a positive number of environments or 'auto'")
+    return n
+
+
 def default_resolution(policy: str) -> int:
     """The image size a checkpoint or preset was built for (config.json's model), else 224."""
     from pi0_jax.config import Pi0Config, get_config
@@ -148,7 +168,7 @@ def run(args: argparse.Namespace) -> int:
                      num_steps=default_num_steps(args.policy) if args.num_steps is None else args.num_steps,
                      execution=args.execution, latency_steps=args.latency_steps, reuse_prefix=args.reuse_prefix)
     kw = {"tokenizer_path": args.tokenizer, "norm_stats": args.norm_stats, "dtype": args.dtype,
-          "sampler": args.sampler}
+          "sampler": args.sampler, "quant": args.quant}
     info = evaluate(args.policy, cfg, args.output_dir, progress=not args.no_progress, policy_kwargs=kw,
                     profile=args.profile)
     if jax.process_index() == 0:

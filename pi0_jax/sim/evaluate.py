@@ -38,11 +38,15 @@ from pi0_jax.sim.policies import SimPolicy, make_policy
 from pi0_jax.sim.render import RenderConfig
 
 
+AUTO_MAX_PER_DEVICE = 1024      # --batch auto: the largest batch tried, per device
+AUTO_MEMORY_FRACTION = 0.85     # ... and the share of the free device memory its segment program may take
+
+
 @dataclasses.dataclass(frozen=True)
 class EvalConfig:
     suite: str = "all"
     episodes_per_task: int = 10
-    batch: int = 32
+    batch: int | str = 32             # or "auto" (`auto_batches`)
     replan_steps: int = 5
     max_steps: int | None = None      # None: each task's own limit (LIBERO's 220 / 280 / 300)
     resolution: int = 224
@@ -93,6 +97,37 @@ def auto_ray_chunk(height: int, width: int, local_batch: int, budget: int = 1 <<
     if target >= rays:
         return 0
     return max(d for d in range(1, target + 1) if rays % d == 0)
+
+
+def balanced_batch(n_episodes: int, cap: int, n_dev: int) -> int:
+    """The batch that covers n_episodes in the fewest batches of at most `cap` (>= n_dev), evened out and rounded up
+    to a multiple of the device count: 2000 episodes under a cap of 1024 -> 2 batches of 1000, not 1024 + 976."""
+    cap = max(n_dev, cap // n_dev * n_dev)
+    per = math.ceil(n_episodes / math.ceil(n_episodes / cap))
+    return math.ceil(per / n_dev) * n_dev
+
+
+def free_device_bytes(device) -> int | None:
+    """Bytes the allocator can still hand out on `device` (GPU: its limit minus what is in use; CPU: the host's
+    available memory; None if unknown)."""
+    stats = device.memory_stats() if hasattr(device, "memory_stats") else None
+    if stats and "bytes_limit" in stats:
+        return int(stats["bytes_limit"] - stats.get("bytes_in_use", 0))
+    try:
+        import os
+
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def program_bytes(compiled) -> int | None:
+    """Per-device memory a compiled segment needs beyond its (already resident) arguments: scratch plus outputs
+    that do not reuse a donated input."""
+    m = compiled.memory_analysis()
+    if m is None:
+        return None
+    return int(m.temp_size_in_bytes + max(m.output_size_in_bytes - m.alias_size_in_bytes, 0))
 
 
 def episode_plan(names: tuple[str, ...], episodes_per_task: int, num_init: int) -> tuple[np.ndarray, np.ndarray]:
@@ -168,12 +203,20 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
     devices = jax.devices()
     n_dev, n_local = len(devices), len(jax.local_devices())
     n_episodes = len(names) * cfg.episodes_per_task
-    batch = math.ceil(min(cfg.batch, n_episodes) / n_dev) * n_dev       # a multiple of the device count
+    auto = cfg.batch == "auto"
+    if not auto and (not isinstance(cfg.batch, int) or cfg.batch < 1):
+        raise ValueError(f"batch {cfg.batch!r}: a positive number of environments or 'auto'")
+    batch = (balanced_batch(n_episodes, AUTO_MAX_PER_DEVICE * n_dev, n_dev) if auto
+             else math.ceil(min(cfg.batch, n_episodes) / n_dev) * n_dev)      # a multiple of the device count
     mesh = Mesh(np.array(devices), ("batch",))
     shard, repl = NamedSharding(mesh, P("batch")), NamedSharding(mesh, P())
-    render_cfg = RenderConfig(cfg.resolution, cfg.resolution,
-                              auto_ray_chunk(cfg.resolution, cfg.resolution, batch // n_dev))
-    env = Env(names, render_cfg, max_steps=cfg.max_steps)
+
+    def make_env(batch: int) -> Env:
+        render_cfg = RenderConfig(cfg.resolution, cfg.resolution,
+                                  auto_ray_chunk(cfg.resolution, cfg.resolution, batch // n_dev))
+        return Env(names, render_cfg, max_steps=cfg.max_steps)
+
+    env = make_env(batch)
     from pi0_jax.sim.realtime import Realtime
 
     realtime = Realtime(cfg.execution, cfg.latency_steps, cfg.reuse_prefix)
@@ -192,14 +235,9 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
         policy = make_policy(policy_spec, env, cfg.replan_steps, **kw)
     if policy.horizon is not None and cfg.replan_steps > policy.horizon:
         raise ValueError(f"replan_steps {cfg.replan_steps} > the policy's action horizon {policy.horizon}")
-    n_video = min(cfg.videos, batch) if output_dir is not None else 0
 
     task_of, init_of = episode_plan(names, cfg.episodes_per_task, env.num_init_states)
     n_ep = len(task_of)
-    n_batches = math.ceil(n_ep / batch)
-    pad = n_batches * batch - n_ep
-    task_of_p, init_of_p = np.pad(task_of, (0, pad)), np.pad(init_of, (0, pad))
-    valid = np.arange(n_batches * batch) < n_ep
     max_steps = int(env.max_steps.max())
     steps_per_segment = segment_replans(cfg, env) * cfg.replan_steps
     base_key = jax.random.key(cfg.seed)
@@ -209,12 +247,36 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
         host = np.asarray(host)
         return jax.make_array_from_callback(host.shape, sharding, lambda idx: host[idx])
 
-    reset = jax.jit(lambda keys, t, i: jax.vmap(env.reset)(keys, t, i), out_shardings=shard)
     params = jax.tree.map(lambda x: global_array(x, repl), policy.params)
-    init_pstate = jax.jit(lambda: policy.init(batch), out_shardings=shard)
-    segment = make_segment(env, policy, cfg, n_video)
     ep_keys = jax.jit(lambda e: jax.vmap(lambda i: jax.random.fold_in(base_key, i))(e), out_shardings=shard)
+    t_compile = time.perf_counter()
+    tried = []
+    while True:   # the segment program compiled ahead; with --batch auto, halved until it fits in device memory
+        pad = math.ceil(n_ep / batch) * batch - n_ep
+        task_of_p, init_of_p = np.pad(task_of, (0, pad)), np.pad(init_of, (0, pad))
+        n_video = min(cfg.videos, batch) if output_dir is not None else 0
+        reset = jax.jit(lambda keys, t, i, env=env: jax.vmap(env.reset)(keys, t, i), out_shardings=shard)
+        init_pstate = jax.jit(lambda b=batch: policy.init(b), out_shardings=shard)
 
+        def first_carry(b: int) -> Carry:
+            sl = slice(b * batch, (b + 1) * batch)
+            keys = ep_keys(global_array(np.arange(b * batch, (b + 1) * batch, dtype=np.int32)))
+            state = reset(keys, global_array(task_of_p[sl]), global_array(init_of_p[sl]))
+            return Carry(state=state, pstate=init_pstate(), keys=keys)
+
+        carry0 = first_carry(0)
+        t0 = time.perf_counter()
+        segment = make_segment(env, policy, cfg, n_video).lower(params, carry0).compile()
+        need, free = program_bytes(segment), free_device_bytes(jax.local_devices()[0])
+        tried.append({"batch": batch, "program_bytes": need, "free_bytes": free,
+                      "compile_s": time.perf_counter() - t0})
+        if not auto or need is None or free is None or need <= AUTO_MEMORY_FRACTION * free or batch <= n_dev:
+            break
+        del segment, carry0
+        batch = balanced_batch(n_episodes, batch // 2, n_dev)
+        env = make_env(batch)
+    n_batches = math.ceil(n_ep / batch)
+    valid = np.arange(n_batches * batch) < n_ep
     success, length = np.zeros(n_ep, bool), np.zeros(n_ep, np.int32)
     policy_stats: dict[str, int] = {}
     video_frames, video_done = [], []
@@ -223,13 +285,10 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
     if progress and jax.process_index() == 0:
         from tqdm import tqdm
         bar = tqdm(total=n_ep, unit="ep", desc=f"eval {cfg.suite}", dynamic_ncols=True)
-    t_roll = time.perf_counter()
+    t_roll = t_compile
     for b in range(n_batches):
         sl = slice(b * batch, (b + 1) * batch)
-        t_ids, i_ids = global_array(task_of_p[sl]), global_array(init_of_p[sl])
-        keys = ep_keys(global_array(np.arange(b * batch, (b + 1) * batch, dtype=np.int32)))
-        state = reset(keys, t_ids, i_ids)
-        carry = Carry(state=state, pstate=init_pstate(), keys=keys)
+        carry = carry0 if b == 0 else first_carry(b)
         prev_done = 0
         for s in range(math.ceil(max_steps / steps_per_segment)):
             t0 = time.perf_counter()
@@ -238,7 +297,7 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
                 _barrier("pi0_jax.sim.evaluate: compiled")
             done = _fetch(carry.state.done)
             if b == 0 and s == 0:
-                compile_s = time.perf_counter() - t0
+                compile_s = time.perf_counter() - t_compile
             else:
                 wait_s += time.perf_counter() - t0
             if b == 0 and n_video:
@@ -271,14 +330,16 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
 
     info = _eval_info(env, cfg, policy, task_of, init_of, success, length, eval_s, rollout_s, compile_s, batch,
                       n_dev, n_local)
+    if auto:
+        info["config"]["batch_auto"] = {"tried": tried, "max_per_device": AUTO_MAX_PER_DEVICE,
+                                        "memory_fraction": AUTO_MEMORY_FRACTION}
     info["timing"] = timing_section(info, rollout_s, compile_s, wait_s, n_batches, steps_per_segment, cfg)
     if "realtime" in policy.info:
         info["realtime"] = {**policy.info["realtime"], **policy_stats}
         if policy_stats.get("plans"):
             info["realtime"]["prefix_recompute_fraction"] = policy_stats["prefix_recomputed"] / policy_stats["plans"]
     if profile:
-        fresh = ep_keys(global_array(np.arange(batch, dtype=np.int32)))   # the rollout donated its keys
-        info["timing"]["phases"] = profile_phases(env, policy, cfg, params, reset(fresh, t_ids, i_ids), batch)
+        info["timing"]["phases"] = profile_phases(env, policy, cfg, params, first_carry(0).state, batch)
     if output_dir is not None and jax.process_index() == 0:
         out = Path(output_dir)
         out.mkdir(parents=True, exist_ok=True)

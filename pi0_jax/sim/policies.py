@@ -66,25 +66,29 @@ def random_policy(replan_steps: int) -> SimPolicy:
 
 def checkpoint_policy(path: str | os.PathLike, env, *, tokenizer_path=None, num_steps: int = 10,
                       norm_stats: str | os.PathLike | None = None, dtype: str | None = None,
-                      sampler: str = "engine", realtime=None, replan_steps: int | None = None) -> SimPolicy:
-    """A pi0-jax checkpoint directory (`pi0-jax convert` output) as a batched in-jit policy for `env`'s tasks."""
+                      sampler: str = "engine", realtime=None, replan_steps: int | None = None,
+                      quant: str | None = None) -> SimPolicy:
+    """A pi0-jax checkpoint directory (`pi0-jax convert` output) as a batched in-jit policy for `env`'s tasks.
+    quant: a number format for the weights (`quantize_for_suite`), None = as stored."""
     from pi0_jax.policy import load_parts
 
     config, params, tok, normalizer = load_parts(path, tokenizer_path=tokenizer_path, norm_stats=norm_stats,
                                                  dtype=dtype)
+    params = quantize_for_suite(config, params, tok, normalizer, quant)
     return model_policy(config, params, tok, normalizer, env, num_steps=num_steps, name=str(path), sampler=sampler,
-                        realtime=realtime, replan_steps=replan_steps)
+                        realtime=realtime, replan_steps=replan_steps, quant=quant)
 
 
 def model_policy(config, params, tok, normalizer, env, *, num_steps: int = 10, dynamic_steps: bool = False,
                  name: str = "model", sampler: str = "engine", action_dims: int | None = None, realtime=None,
-                 replan_steps: int | None = None) -> SimPolicy:
+                 replan_steps: int | None = None, quant: str | None = None) -> SimPolicy:
     """A π0 / π0.5 with its tokenizer and normaliser as a batched in-jit policy for `env`'s tasks, through the one
     policy pipeline (`pi0_jax.policy.PolicyCore.program`: the engine, or the reference sampler when asked).
 
     dynamic_steps: the flow-step count travels in the policy's params ({..., "num_steps": int32}) instead of the
     program, so one compiled rollout serves every step count up to `PolicyCore.max_dynamic_steps` (same numerics).
-    params None: the transforms only (`observation`), e.g. for calibration batches.
+    params None: the transforms only (`observation`), e.g. for calibration batches. quant: the number format the
+    params were quantised to (`quantize_for_suite`), recorded in the policy's info.
     realtime: a `pi0_jax.sim.realtime.Realtime` (latency, sync / naive / rtc execution, prefix reuse; needs
     replan_steps); the policy state is then a dict (chunk, previous chunk, cached prefix, counters) instead of the
     chunk itself."""
@@ -145,7 +149,8 @@ def model_policy(config, params, tok, normalizer, env, *, num_steps: int = 10, d
     if dynamic_steps:
         pparams["num_steps"] = np.int32(num_steps)
     info = {"model": config.name, "pi05": config.pi05, "dtype": config.dtype, "num_steps": num_steps,
-            "action_horizon": horizon, "normalization": normalizer.convention.value, "sampler": core.sampler}
+            "action_horizon": horizon, "normalization": normalizer.convention.value, "sampler": core.sampler,
+            "quant": quant or "none"}
     init, act, stats = (lambda b: jnp.zeros((b, horizon, core.action_dims))), (lambda ps, es, k: (ps[:, k], ps)), None
     if realtime is not None and not realtime.is_default:
         from pi0_jax.sim import realtime as rt_lib
@@ -162,7 +167,8 @@ def model_policy(config, params, tok, normalizer, env, *, num_steps: int = 10, d
 
 
 def preset_policy(name: str, env, *, num_steps: int = 10, dtype: str | None = None, seed: int = 0,
-                  sampler: str = "engine", realtime=None, replan_steps: int | None = None) -> SimPolicy:
+                  sampler: str = "engine", realtime=None, replan_steps: int | None = None,
+                  quant: str | None = None) -> SimPolicy:
     """Random weights of a preset (`pi0_jax.config`), e.g. a full-size π0.5, with identity normalisation, the
     embedded model's tokenizer and LIBERO's 7 action dims: the protocol's timing without a trained checkpoint
     (the success rate is ~0)."""
@@ -175,9 +181,11 @@ def preset_policy(name: str, env, *, num_steps: int = 10, dtype: str | None = No
     config = get_config(name, **({"dtype": dtype} if dtype else {}))
     tok = PaligemmaTokenizer(find_tokenizer(Path(__file__).parents[1] / "assets" / "pi0_small"),
                              config.max_token_len)
-    return model_policy(config, pi0.random_params(config, seed), tok, nz.Normalizer.identity(), env,
-                        num_steps=num_steps, name=f"preset:{name} (random weights)", sampler=sampler,
-                        realtime=realtime, replan_steps=replan_steps)
+    normalizer = nz.Normalizer.identity()
+    params = quantize_for_suite(config, pi0.random_params(config, seed), tok, normalizer, quant)
+    return model_policy(config, params, tok, normalizer, env, num_steps=num_steps,
+                        name=f"preset:{name} (random weights)", sampler=sampler, realtime=realtime,
+                        replan_steps=replan_steps, quant=quant)
 
 
 def make_policy(spec: str, env, replan_steps: int, **kw) -> SimPolicy:
@@ -187,8 +195,45 @@ def make_policy(spec: str, env, replan_steps: int, **kw) -> SimPolicy:
     if spec == "random":
         return random_policy(replan_steps)
     if spec.startswith("preset:"):
-        kw = {k: v for k, v in kw.items() if k in ("num_steps", "dtype", "sampler", "realtime")}
+        kw = {k: v for k, v in kw.items() if k in ("num_steps", "dtype", "sampler", "realtime", "quant")}
         return preset_policy(spec.removeprefix("preset:"), env, replan_steps=replan_steps, **kw)
     if not Path(spec).is_dir():
         raise FileNotFoundError(f"--policy {spec!r}: not 'expert', 'random', 'preset:NAME' or a checkpoint directory")
     return checkpoint_policy(spec, env, replan_steps=replan_steps, **kw)
+
+
+QUANT_FORMATS = ("nvfp4", "mxfp4")     # weight-only FP4 emulation; the FP8 schemes are pi0_jax.quant.schemes.SCHEMES
+
+
+def quantize_for_suite(config, params, tok, normalizer, quant: str | None, *, calib_samples: int = 64,
+                       seed: int = 0, calib=None):
+    """params in number format `quant`: None = unchanged; an FP8 scheme of `pi0_jax.quant.schemes` (real e4m3
+    GEMMs where XLA emits them) with static activation scales, amax over `calib_samples` rendered suite observations
+    from initial states 50..99 (never evaluated); "nvfp4" / "mxfp4": weight emulation (quantised and dequantised
+    back) of every GEMM the FP8 scheme "all" covers. calib: a precomputed `calibration_observation`."""
+    if quant is None:
+        return params
+    from pi0_jax.quant import schemes
+
+    if quant in QUANT_FORMATS:
+        return jax.device_put(schemes.fake_quant_fp4_params(params, quant, "all"), jax.devices()[0])
+    if quant not in schemes.SCHEMES:
+        raise ValueError(f"unknown number format {quant!r}: {', '.join([*schemes.SCHEMES, *QUANT_FORMATS])}")
+    if calib is None:
+        calib = calibration_observation(config, tok, normalizer, calib_samples, seed)
+    amax = schemes.calibrate(config, params, [calib], "all", percentile=None)["amax"]
+    return schemes.quantize_params(config, params, quant, amax)
+
+
+def calibration_observation(config, tok, normalizer, n: int, seed: int = 0):
+    """The model's pi0.Observation of n rendered suite observations at initial states 50..99 (never evaluated)."""
+    from pi0_jax.sim import tasks
+    from pi0_jax.sim.env import Env
+    from pi0_jax.sim.render import RenderConfig
+
+    env = Env(tasks.SUITES["all"], RenderConfig(config.image_size, config.image_size), num_init_states=100)
+    t = (np.arange(n) % len(env.tasks)).astype(np.int32)
+    i = (50 + (np.arange(n) // len(env.tasks)) % 50).astype(np.int32)
+    state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.key(seed), n), t, i)
+    obs = jax.jit(jax.vmap(env.observe))(state)
+    return model_policy(config, None, tok, normalizer, env).observation(obs, state)
