@@ -107,6 +107,10 @@ def add_eval_parser(subparsers) -> argparse.ArgumentParser:
                    help="also time physics, rendering and the policy of one replan cycle apart (extra compiles), "
                         "into eval_info.json's timing.phases")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--cache-dir", type=Path, default=None, metavar="DIR",
+                   help="XLA's persistent compilation cache: a second run of the same evaluation skips compiling "
+                        "(default: $PI0_JAX_CACHE_DIR or ~/.cache/pi0_jax/xla)")
+    p.add_argument("--no-compile-cache", action="store_true", help="compile from scratch, write no cache")
     dist = p.add_argument_group("multi-host (jax.distributed)")
     dist.add_argument("--coordinator", default=None, metavar="HOST:PORT",
                       help="initialise jax.distributed with this coordinator (process 0 writes the outputs)")
@@ -160,6 +164,11 @@ def run(args: argparse.Namespace) -> int:
         jax.distributed.initialize(args.coordinator, num_processes=args.num_processes, process_id=args.process_id)
 
     from pi0_jax.sim.evaluate import EvalConfig, evaluate, format_table
+
+    if not args.no_compile_cache:
+        from pi0_jax.engine import enable_compilation_cache
+
+        enable_compilation_cache(args.cache_dir)
 
     cfg = EvalConfig(suite=args.suite, episodes_per_task=args.episodes_per_task, batch=args.batch,
                      replan_steps=args.replan_steps, max_steps=args.steps,
