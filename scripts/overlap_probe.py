@@ -29,6 +29,24 @@ import time
 from pathlib import Path
 
 
+def on_stream(f, compute_type: str):
+    """f as a call XLA runs on another stream. jax 0.11 made `compute_on` a function transform with explicit output
+    memory spaces (earlier: `compute_on2`; `compute_on` was a context manager)."""
+    import inspect
+
+    import jax
+    from jax.experimental import compute_on as co
+
+    if "out_memory_spaces" in inspect.signature(co.compute_on).parameters:
+        transform = co.compute_on
+    else:
+        transform = co.compute_on2
+    space = getattr(getattr(jax, "memory", None), "Space", None)
+    if space is None:
+        from jax._src.core import MemorySpace as space
+    return transform(f, compute_type=compute_type, out_memory_spaces=space.Device)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--model", default="pi05_libero", help="pi0_jax.config preset of the policy (random weights)")
@@ -45,7 +63,6 @@ def main(argv=None) -> int:
     import jax
     import jax.numpy as jnp
     import numpy as np
-    from jax.experimental.compute_on import compute_on
 
     import pi0_jax.sim  # noqa: F401  (XLA:CPU flags before the backend starts)
     from pi0_jax.sim import evaluate, policies, tasks
@@ -81,10 +98,10 @@ def main(argv=None) -> int:
     def both(params, obs_a, state_a, state_b, chunk_b):
         return plan(params, obs_a, state_a), physics(state_b, chunk_b)
 
+    plan_on_stream = on_stream(plan, "gpu_stream:1")
+
     def both_streams(params, obs_a, state_a, state_b, chunk_b):
-        with compute_on("gpu_stream:1"):
-            chunk = jax.jit(plan)(params, obs_a, state_a)
-        return chunk, physics(state_b, chunk_b)
+        return plan_on_stream(params, obs_a, state_a), physics(state_b, chunk_b)
 
     programs = {"physics alone": (physics, (state_b, chunk_b)),
                 "both, one stream": (both, (params, obs_a, state_a, state_b, chunk_b)),

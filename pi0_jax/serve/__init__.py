@@ -16,7 +16,15 @@ From Python (a background thread; port 0 picks a free port):
         ...                                   # clients connect to handle.url
 """
 
-from pi0_jax.serve.protocol import ProtocolError, packb, unpackb
-from pi0_jax.serve.server import Batcher, PolicyServer, ServerHandle, serve
+import importlib
 
-__all__ = ["Batcher", "PolicyServer", "ProtocolError", "ServerHandle", "packb", "serve", "unpackb"]
+_EXPORTS = {"ProtocolError": "protocol", "packb": "protocol", "unpackb": "protocol", "Batcher": "server",
+            "PolicyServer": "server", "ServerHandle": "server", "serve": "server"}
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    # Lazy: `pi0-jax eval` and the rest of the CLI import this package's parser without websockets or msgpack.
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(f"pi0_jax.serve.{_EXPORTS[name]}"), name)
+    raise AttributeError(f"module 'pi0_jax.serve' has no attribute {name!r}")
