@@ -12,7 +12,7 @@ import sys
 
 from pi0_jax.sim.evaluate import EvalConfig, evaluate
 
-ARGS = ["--policy", "expert", "--suite", "goal", "--episodes-per-task", "1", "--batch", "4", "--steps", "30",
+ARGS = ["--policy", "expert", "--suite", "goal", "--episodes-per-task", "1", "--batch", "auto", "--steps", "30",
         "--resolution", "32", "--videos", "0", "--no-progress"]
 
 
@@ -46,6 +46,7 @@ def test_two_process_eval_matches_single_process(tmp_path):
 
     info = json.loads((out / "eval_info.json").read_text())
     assert info["config"]["processes"] == 2 and info["config"]["devices"] == 2
+    assert [t["batch"] for t in info["config"]["batch_auto"]["tried"]] == [4]    # both hosts agreed on auto
     key = ("task", "init_state", "success", "length")
     assert [[e[k] for k in key] for e in info["per_episode"]] == [[e[k] for k in key] for e in ref["per_episode"]]
     outcome = {e["task"]: e["success"] for e in info["per_episode"]}

@@ -90,6 +90,15 @@ def _barrier(name: str, timeout_s: int = 3600) -> None:
         multihost_utils.sync_global_devices(name)
 
 
+def _every_process(flag: bool, name: str) -> bool:
+    """flag and-ed over processes, so that every host takes the same decision (each sees only its own devices)."""
+    if jax.process_count() == 1:
+        return flag
+    _barrier(name)
+    from jax.experimental import multihost_utils
+    return bool(np.asarray(multihost_utils.process_allgather(np.int32(flag))).min())
+
+
 def auto_ray_chunk(height: int, width: int, local_batch: int, budget: int = 1 << 22) -> int:
     """Rays per renderer chunk so that local_batch x chunk stays under `budget` rays in flight (0 = no chunking)."""
     rays = height * width
@@ -270,7 +279,10 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
         need, free = program_bytes(segment), free_device_bytes(jax.local_devices()[0])
         tried.append({"batch": batch, "program_bytes": need, "free_bytes": free,
                       "compile_s": time.perf_counter() - t0})
-        if not auto or need is None or free is None or need <= AUTO_MEMORY_FRACTION * free or batch <= n_dev:
+        if not auto or batch <= n_dev:
+            break
+        fits = need is None or free is None or need <= AUTO_MEMORY_FRACTION * free
+        if _every_process(fits, f"pi0_jax.sim.evaluate: batch {batch} fits"):
             break
         del segment, carry0
         batch = balanced_batch(n_episodes, batch // 2, n_dev)
