@@ -46,7 +46,7 @@ AUTO_MEMORY_FRACTION = 0.85     # ... and the share of the free device memory it
 class EvalConfig:
     suite: str = "all"
     episodes_per_task: int = 10
-    batch: int | str = 32             # or "auto" (`auto_batches`)
+    batch: int | str = 32             # or "auto": balanced_batch under AUTO_MAX_PER_DEVICE, halved until it fits
     replan_steps: int = 5
     max_steps: int | None = None      # None: each task's own limit (LIBERO's 220 / 280 / 300)
     resolution: int = 224
