@@ -29,7 +29,7 @@ Writes OUT/roadmap.json (every number, the command line, the device), OUT/roadma
 and OUT/roadmap.png (success against cost per control step, the Pareto front). Cells that did not fit the budget
 are listed as not run, with the command that runs them.
 
-    python scripts/roadmap_grid.py --out $OUT                        # H100: about 6 minutes with the defaults
+    python scripts/roadmap_grid.py --out $OUT                        # stops after ~6 minutes (--budget-s 330)
     python scripts/roadmap_grid.py --quick --out /tmp/roadmap_quick   # CPU smoke run: a few episodes per cell
 """
 
