@@ -75,9 +75,9 @@ def main() -> int:
         qparams = policies.quantize_for_suite(config, params, tok, normalizer, quant, calib=calib)
         quant_s = time.perf_counter() - t0
         for n in counts:
-            def make(env, qparams=qparams, n=n, scheme=scheme):
+            def make(env, qparams=qparams, n=n, scheme=scheme, quant=quant):
                 return policies.model_policy(config, qparams, tok, normalizer, env, num_steps=n, dynamic_steps=True,
-                                             name=f"{config.name}/{scheme}", quant=None if scheme == "bf16" else scheme)
+                                             name=f"{config.name}/{scheme}", quant=quant)
             cfg = EvalConfig(suite="all", episodes_per_task=args.episodes_per_task, batch=args.batch,
                              replan_steps=args.replan_steps, resolution=config.image_size, seed=args.seed, videos=0,
                              num_steps=n, max_steps=args.max_steps)

@@ -8,9 +8,10 @@
    one control step = controller + 10 MJX substeps + both cameras rendered by the JAX ray caster. Measured
    with and without rendering; compile timed separately, one warm-up call, then `--steps` steps in one jitted scan,
    block_until_ready before the clock is read. A checksum of every image is carried so rendering is not elided.
-2. Policy in the loop: `--policy-model` (default pi05_libero, full size, random weights cast to bf16) driving
-   `--policy-batch` environments through the evaluation's own segment program (pi0_jax.sim.evaluate): plan
-   (SigLIP on 3 slots, prefix, `--num-steps` Euler steps) every `--replan-steps` steps. Random weights never
+2. Policy in the loop: `--policy-model` (default pi05_libero, full size, random weights in the preset's dtype,
+   bf16, drawn once for every batch) driving `--policy-batch` environments through the evaluation's own segment
+   program (pi0_jax.sim.evaluate): plan (SigLIP on 3 slots, prefix, `--num-steps` Euler steps) every
+   `--replan-steps` steps. Random weights never
    succeed, so every episode runs `--policy-episode-steps` steps: the worst case. Reports episodes/min and the
    estimated time of LIBERO's 2000-episode protocol at the same per-step cost (its step limits average 330;
    every episode runs to its limit).
@@ -115,38 +116,48 @@ def env_throughput(env, n: int, steps: int, render: bool, sharding) -> dict:
             "compile_s": compile_s}
 
 
-def policy_throughput(args: Args, n: int, sharding) -> dict:
+def policy_weights(args: Args) -> dict:
+    """The policy's config, random weights (quantised to --policy-quant) and tokenizer: drawn once for every batch."""
+    import jax
+
+    from pi0_jax import normalize as nz
+    from pi0_jax import pi0
+    from pi0_jax.config import get_config
+    from pi0_jax.policy import find_tokenizer
+    from pi0_jax.sim import policies
+    from pi0_jax.tokenizer import PaligemmaTokenizer
+
+    config = get_config(args.policy_model)
+    t0 = time.perf_counter()
+    params = jax.block_until_ready(pi0.random_params(config, 0))
+    init_s = time.perf_counter() - t0
+    n_params = sum(x.size for x in jax.tree.leaves(params))
+    # any SentencePiece model works for timing (the prompt's content does not change the cost): the embedded model's
+    tok = PaligemmaTokenizer(find_tokenizer(Path(pi0_jax.__file__).parent / "assets" / "pi0_small"),
+                             config.max_token_len)
+    t0 = time.perf_counter()
+    params = policies.quantize_for_suite(config, params, tok, nz.Normalizer.identity(), args.policy_quant)
+    return {"config": config, "params": params, "tok": tok, "n_params": n_params, "init_s": init_s,
+            "quant_s": time.perf_counter() - t0}
+
+
+def policy_throughput(args: Args, weights: dict, n: int, sharding) -> dict:
     """Episodes per minute with a π0 / π0.5 (random weights) at batch n in the loop, through evaluate.make_segment."""
     import jax
     import jax.numpy as jnp
 
     from pi0_jax import normalize as nz
-    from pi0_jax import pi0
-    from pi0_jax.config import get_config
     from pi0_jax.sim import evaluate, policies, tasks
     from pi0_jax.sim.env import Env
     from pi0_jax.sim.render import RenderConfig
-    from pi0_jax.tokenizer import PaligemmaTokenizer
 
-    config = get_config(args.policy_model)
-    t0 = time.perf_counter()
-    params = pi0.init_params(config, jax.random.key(0))
-    if config.dtype == "bfloat16":
-        params = jax.tree.map(lambda x: x.astype(jnp.bfloat16), params)
-    params = jax.block_until_ready(params)
-    init_s = time.perf_counter() - t0
-    n_params = sum(x.size for x in jax.tree.leaves(params))
+    config, tok = weights["config"], weights["tok"]
     names = tasks.SUITES["all"]
     res = args.resolution
     env = Env(names, RenderConfig(res, res, evaluate.auto_ray_chunk(res, res, n // len(jax.local_devices()))),
               max_steps=args.policy_episode_steps)
-    # any SentencePiece model works for timing (the prompt's content does not change the cost): the embedded model's
-    tok_path = Path(pi0_jax.__file__).parent / "assets" / "pi0_small" / "tokenizer.model"
-    tok = PaligemmaTokenizer(tok_path, config.max_token_len)
-    t0 = time.perf_counter()
-    params = policies.quantize_for_suite(config, params, tok, nz.Normalizer.identity(), args.policy_quant)
-    quant_s = time.perf_counter() - t0
-    policy = policies.model_policy(config, params, tok, nz.Normalizer.identity(), env, num_steps=args.num_steps,
+    policy = policies.model_policy(config, weights["params"], tok, nz.Normalizer.identity(), env,
+                                   num_steps=args.num_steps,
                                    name=f"{args.policy_model} (random weights)", quant=args.policy_quant)
     cfg = evaluate.EvalConfig(batch=n, replan_steps=args.replan_steps, max_steps=args.policy_episode_steps,
                               resolution=res, videos=0, segment_replans=8, num_steps=args.num_steps)
@@ -188,11 +199,11 @@ def policy_throughput(args: Args, n: int, sharding) -> dict:
     ep_per_min = n / dt * 60
     step_s = dt / steps                                       # wall time of one batched step incl. its share of plans
     protocol_min = LIBERO_EPISODES / n * LIBERO_MEAN_STEPS * step_s / 60
-    return {"model": args.policy_model, "params": int(n_params), "dtype": config.dtype, "batch": n,
-            "quant": args.policy_quant or "none", "quantise_s": quant_s,
+    return {"model": args.policy_model, "params": int(weights["n_params"]), "dtype": config.dtype, "batch": n,
+            "quant": args.policy_quant or "none", "quantise_s": weights["quant_s"],
             "episode_steps": steps, "replan_steps": args.replan_steps, "num_steps": args.num_steps,
             "plan_calls_per_episode": plan_calls, "seconds": dt, "episodes_per_min": ep_per_min,
-            "plan_ms": plan_ms, "compile_s": compile_s, "init_params_s": init_s,
+            "plan_ms": plan_ms, "compile_s": compile_s, "init_params_s": weights["init_s"],
             "libero_2000_protocol_min_estimate": protocol_min}
 
 
@@ -230,9 +241,10 @@ def main(argv=None) -> int:
                   f"(compile {r['compile_s']:.0f} s)", flush=True)
             _save(args, result)
     if not args.skip_policy:
-        result["policy"] = []
+        result["policy"], weights = [], policy_weights(args)
         for n in args.policy_batch:
-            result["policy"].append(policy_throughput(args, math.ceil(n / len(devices)) * len(devices), sharding))
+            n = math.ceil(n / len(devices)) * len(devices)
+            result["policy"].append(policy_throughput(args, weights, n, sharding))
             print(json.dumps(result["policy"][-1]), flush=True)
             _save(args, result)
 
