@@ -1,0 +1,51 @@
+#!/usr/bin/env bash
+# The device runs behind BENCHMARKS' batched-evaluation section (issue 14): `pi0-jax eval` on one GPU and on every
+# GPU of the machine, same flags, and what each run wrote into eval_info.json.
+#
+#   bash scripts/gpu_eval.sh pi05-1 pi05-2          # full-size π0.5 (random weights): 264 episodes on GPU 0, then
+#                                                   # 528 on two GPUs (264 per device, the same task mix)
+#   bash scripts/gpu_eval.sh embedded-1 embedded-2  # the embedded model's 550 episodes on GPU 0, then on two GPUs
+#   DET=1 bash scripts/gpu_eval.sh embedded-1       # the same with --xla_gpu_deterministic_ops=true
+#   POLICY=preset:dummy PER_TASK=1 EXTRA="--steps 10" bash scripts/gpu_eval.sh pi05-1   # CPU smoke run
+#
+# Needs the mujoco / mujoco-mjx wheels in .simwhl (carried); writes OUT/<phase>.json (the eval_info, per_episode
+# kept) and prints each run's summary line.
+set -uo pipefail
+OUT=${OUT:-out}
+W=${WORK:-runs/gpu_eval}
+POLICY=${POLICY:-preset:pi05_libero}
+PER_TASK=${PER_TASK:-24}        # π0.5 episodes per task and per device: 11 tasks x 24 = 264
+mkdir -p "$OUT" "$W"
+python3 -c "import mujoco.mjx" 2>/dev/null ||
+  python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .simwhl/*.whl
+export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
+[ -n "${DET:-}" ] && export XLA_FLAGS="--xla_gpu_deterministic_ops=true ${XLA_FLAGS:-}"
+nvidia-smi -L; date -u
+run() {   # NAME GPUS, then eval flags
+  local name=$1 gpus=$2; shift 2
+  local t0; t0=$(date +%s.%N)
+  CUDA_VISIBLE_DEVICES=$gpus python3 -m pi0_jax.cli eval --videos 0 --no-progress --output-dir "$W/$name" "$@" ${EXTRA:-} 2>&1 |
+    grep -E "\*\*|episodes in|batch|rror" | tail -5
+  python3 - "$W/$name/eval_info.json" "$OUT/$name.json" "$t0" "$* ${EXTRA:-}" <<'EOF'
+import json, sys, time
+src, dst, t0, flags = sys.argv[1:]
+info = json.load(open(src))
+info["note"] = f"pi0-jax eval {flags}; process wall clock {time.time() - float(t0):.1f} s"
+json.dump(info, open(dst, "w"), indent=1)
+a, t = info["aggregated"], info["timing"]
+print(f"{dst}: {a['n_episodes']} episodes, {a['pc_success']:.1f} %, eval {a['eval_s']:.1f} s, first segment "
+      f"{t['first_segment_s']:.1f} s, device wait {t['device_wait_s']:.1f} s, "
+      f"{t['episodes_per_min_after_compile']:.0f} ep/min after it; {info['note']}")
+EOF
+}
+for phase in "$@"; do
+  echo "=== $phase $(date -u +%T)"
+  case $phase in
+    pi05-1) run pi05_1gpu 0 --policy "$POLICY" --episodes-per-task "$PER_TASK" --batch $((11 * PER_TASK)) ;;
+    pi05-2) run pi05_2gpu 0,1 --policy "$POLICY" --episodes-per-task $((2 * PER_TASK)) --batch $((22 * PER_TASK)) ;;
+    embedded-1) run embedded_1gpu${DET:+_det} 0 --policy pi0_jax/assets/pi0_small --episodes-per-task 50 --batch auto ;;
+    embedded-2) run embedded_2gpu${DET:+_det} 0,1 --policy pi0_jax/assets/pi0_small --episodes-per-task 50 --batch auto ;;
+    *) echo "unknown phase $phase"; exit 2 ;;
+  esac
+done
+echo "=== done $(date -u +%T)"
