@@ -2,7 +2,8 @@
 the episodes are sharded over both processes' devices, results are gathered, process 0 writes eval_info.json, and
 the per-episode outcomes equal a single-process run of the same configuration (episodes are keyed by index, not by
 where they ran). The expert with a 30-step limit gives a non-trivial pattern: it lifts in ~26 steps, and runs out of
-time on the pick-and-place tasks."""
+time on the pick-and-place tasks. Segments of 2 plans (10 steps), so each carry goes back into the ahead-compiled
+segment program with the shardings it was compiled for (MJX's zero-size fields came back replicated before)."""
 
 import json
 import os
@@ -13,7 +14,7 @@ import sys
 from pi0_jax.sim.evaluate import EvalConfig, evaluate
 
 ARGS = ["--policy", "expert", "--suite", "goal", "--episodes-per-task", "1", "--batch", "auto", "--steps", "30",
-        "--resolution", "32", "--videos", "0", "--no-progress"]
+        "--resolution", "32", "--videos", "0", "--no-progress", "--segment-replans", "2"]
 
 
 def _free_port() -> int:

@@ -150,8 +150,12 @@ def segment_replans(cfg: EvalConfig, env: Env) -> int:
     return max(1, min(cfg.segment_replans, math.ceil(int(env.max_steps.max()) / cfg.replan_steps)))
 
 
-def make_segment(env: Env, policy: SimPolicy, cfg: EvalConfig, n_video: int):
-    """A jitted (params, carry) -> (carry, frames, frame_done) running `segment_replans(cfg, env)` plans."""
+def make_segment(env: Env, policy: SimPolicy, cfg: EvalConfig, n_video: int, carry_sharding=None):
+    """A jitted (params, carry) -> (carry, frames, frame_done) running `segment_replans(cfg, env)` plans.
+
+    carry_sharding: the input carry's (every leaf batch-first). The output carry is pinned to it, since the carry
+    goes back into the same ahead-compiled program, which takes only the shardings it was compiled for; unpinned,
+    the partitioner replicates zero-size leaves (MJX's empty `Data` fields) on a mesh of several devices."""
     r, n_replans = cfg.replan_steps, segment_replans(cfg, env)
 
     def observe(state, images: bool):
@@ -184,7 +188,9 @@ def make_segment(env: Env, policy: SimPolicy, cfg: EvalConfig, n_video: int):
             frames, done = (x.reshape((-1,) + x.shape[2:]) for x in (frames, done))
         return carry, frames, done
 
-    return jax.jit(segment, donate_argnums=1)
+    if carry_sharding is None:
+        return jax.jit(segment, donate_argnums=1)
+    return jax.jit(segment, donate_argnums=1, out_shardings=(carry_sharding, None, None))
 
 
 def write_video(path: Path, frames: np.ndarray, fps: int = 20) -> None:
@@ -275,7 +281,7 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
 
         carry0 = first_carry(0)
         t0 = time.perf_counter()
-        segment = make_segment(env, policy, cfg, n_video).lower(params, carry0).compile()
+        segment = make_segment(env, policy, cfg, n_video, shard).lower(params, carry0).compile()
         need, free = program_bytes(segment), free_device_bytes(jax.local_devices()[0])
         tried.append({"batch": batch, "program_bytes": need, "free_bytes": free,
                       "compile_s": time.perf_counter() - t0})
