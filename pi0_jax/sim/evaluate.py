@@ -22,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
 import time
 from pathlib import Path
 
@@ -150,12 +151,14 @@ def segment_replans(cfg: EvalConfig, env: Env) -> int:
     return max(1, min(cfg.segment_replans, math.ceil(int(env.max_steps.max()) / cfg.replan_steps)))
 
 
-def make_segment(env: Env, policy: SimPolicy, cfg: EvalConfig, n_video: int, carry_sharding=None):
+def make_segment(env: Env, policy: SimPolicy, cfg: EvalConfig, n_video: int, mesh: Mesh | None = None):
     """A jitted (params, carry) -> (carry, frames, frame_done) running `segment_replans(cfg, env)` plans.
 
-    carry_sharding: the input carry's (every leaf batch-first). The output carry is pinned to it, since the carry
-    goes back into the same ahead-compiled program, which takes only the shardings it was compiled for; unpinned,
-    the partitioner replicates zero-size leaves (MJX's empty `Data` fields) on a mesh of several devices."""
+    mesh: the 1-D "batch" mesh the carry is sharded on (every leaf batch-first). The segment then runs as a
+    `shard_map`: each device steps, renders and plans for its own environments with no collective at all. Left to
+    the SPMD partitioner, MJX's solver loop all-reduces its stop flag on every iteration, the camera images are
+    all-gathered, and zero-size `Data` fields come back replicated, which the ahead-compiled program then refuses.
+    Videos record the first n_video environments of each device (on device 0: the first of the batch)."""
     r, n_replans = cfg.replan_steps, segment_replans(cfg, env)
 
     def observe(state, images: bool):
@@ -188,9 +191,18 @@ def make_segment(env: Env, policy: SimPolicy, cfg: EvalConfig, n_video: int, car
             frames, done = (x.reshape((-1,) + x.shape[2:]) for x in (frames, done))
         return carry, frames, done
 
-    if carry_sharding is None:
+    if mesh is None:
         return jax.jit(segment, donate_argnums=1)
-    return jax.jit(segment, donate_argnums=1, out_shardings=(carry_sharding, None, None))
+    video = P(None, "batch") if n_video else P()
+    local = jax.shard_map(segment, mesh=mesh, in_specs=(P(), P("batch")), out_specs=(P("batch"), video, video),
+                          check_vma=False)
+    return jax.jit(local, donate_argnums=1, out_shardings=(NamedSharding(mesh, P("batch")), None, None))
+
+
+def collectives(hlo: str) -> int:
+    """Cross-device collectives in an optimized HLO module's text (0 for a segment: its devices never talk)."""
+    return len(re.findall(r" (?:all-gather|all-reduce|all-to-all|collective-permute|reduce-scatter)(?:-start)?\(",
+                          hlo))
 
 
 def write_video(path: Path, frames: np.ndarray, fps: int = 20) -> None:
@@ -269,7 +281,7 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
     while True:   # the segment program compiled ahead; with --batch auto, halved until it fits in device memory
         pad = math.ceil(n_ep / batch) * batch - n_ep
         task_of_p, init_of_p = np.pad(task_of, (0, pad)), np.pad(init_of, (0, pad))
-        n_video = min(cfg.videos, batch) if output_dir is not None else 0
+        n_video = min(cfg.videos, batch // n_dev) if output_dir is not None else 0
         reset = jax.jit(lambda keys, t, i, env=env: jax.vmap(env.reset)(keys, t, i), out_shardings=shard)
         init_pstate = jax.jit(lambda b=batch: policy.init(b), out_shardings=shard)
 
@@ -281,7 +293,7 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
 
         carry0 = first_carry(0)
         t0 = time.perf_counter()
-        segment = make_segment(env, policy, cfg, n_video, shard).lower(params, carry0).compile()
+        segment = make_segment(env, policy, cfg, n_video, mesh).lower(params, carry0).compile()
         need, free = program_bytes(segment), free_device_bytes(jax.local_devices()[0])
         tried.append({"batch": batch, "program_bytes": need, "free_bytes": free,
                       "compile_s": time.perf_counter() - t0})
@@ -352,6 +364,7 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
         info["config"]["batch_auto"] = {"tried": tried, "max_per_device": AUTO_MAX_PER_DEVICE,
                                         "memory_fraction": AUTO_MEMORY_FRACTION}
     info["timing"] = timing_section(info, rollout_s, compile_s, wait_s, n_batches, steps_per_segment, cfg)
+    info["timing"]["segment_collectives"] = collectives(segment.as_text())
     if "realtime" in policy.info:
         info["realtime"] = {**policy.info["realtime"], **policy_stats}
         if policy_stats.get("plans"):
