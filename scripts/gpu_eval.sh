@@ -24,8 +24,9 @@ nvidia-smi -L; date -u
 run() {   # NAME GPUS, then eval flags
   local name=$1 gpus=$2; shift 2
   local t0; t0=$(date +%s.%N)
-  CUDA_VISIBLE_DEVICES=$gpus python3 -m pi0_jax.cli eval --videos 0 --no-progress --output-dir "$W/$name" "$@" ${EXTRA:-} 2>&1 |
-    grep -E "\*\*|episodes in|batch|rror" | tail -5
+  CUDA_VISIBLE_DEVICES=$gpus python3 -m pi0_jax.cli eval --videos 0 --no-progress --output-dir "$W/$name" "$@" ${EXTRA:-} > "$OUT/$name.log" 2>&1 ||
+    { tail -30 "$OUT/$name.log"; return 1; }
+  grep -E "\*\*|episodes in" "$OUT/$name.log"
   python3 - "$W/$name/eval_info.json" "$OUT/$name.json" "$t0" "$* ${EXTRA:-}" <<'EOF'
 import json, sys, time
 src, dst, t0, flags = sys.argv[1:]
