@@ -48,7 +48,7 @@ def test_two_process_eval_matches_single_process(tmp_path):
     info = json.loads((out / "eval_info.json").read_text())
     assert info["config"]["processes"] == 2 and info["config"]["devices"] == 2
     assert [t["batch"] for t in info["config"]["batch_auto"]["tried"]] == [4]    # both hosts agreed on auto
-    assert info["timing"]["segment_collectives"] == 0     # shard_map: no all-reduce in MJX's solver loop
+    assert info["timing"]["segment_collectives"] >= 1     # counted: MJX's solver loop all-reduces its stop flag
     key = ("task", "init_state", "success", "length")
     assert [[e[k] for k in key] for e in info["per_episode"]] == [[e[k] for k in key] for e in ref["per_episode"]]
     outcome = {e["task"]: e["success"] for e in info["per_episode"]}

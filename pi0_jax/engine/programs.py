@@ -36,8 +36,10 @@ def encode_images(config: Pi0Config, weights: dict, images: jax.Array, *, unroll
     c, b = images.shape[:2]
     module = siglip.Siglip(config.siglip, out_dim=config.paligemma.width, dtype_mm=jnp.dtype(config.dtype),
                            scan=not unroll)
-    tokens = module.apply({"params": weights["img"]}, images.reshape(c * b, *images.shape[2:]))[0]
-    return tokens.reshape(c, b, *tokens.shape[1:]).transpose(1, 0, 2, 3).reshape(b, -1, tokens.shape[-1])
+    # batch-major (B * C images): a batch sharded over devices stays sharded; merging C-major would all-gather it
+    flat = jnp.swapaxes(images, 0, 1).reshape(b * c, *images.shape[2:])
+    tokens = module.apply({"params": weights["img"]}, flat)[0]
+    return tokens.reshape(b, -1, tokens.shape[-1])
 
 
 def fill_prefix_cache(config: Pi0Config, weights: dict, image_tokens, image_masks, tokens, token_mask, *,

@@ -154,11 +154,10 @@ def segment_replans(cfg: EvalConfig, env: Env) -> int:
 def make_segment(env: Env, policy: SimPolicy, cfg: EvalConfig, n_video: int, mesh: Mesh | None = None):
     """A jitted (params, carry) -> (carry, frames, frame_done) running `segment_replans(cfg, env)` plans.
 
-    mesh: the 1-D "batch" mesh the carry is sharded on (every leaf batch-first). The segment then runs as a
-    `shard_map`: each device steps, renders and plans for its own environments with no collective at all. Left to
-    the SPMD partitioner, MJX's solver loop all-reduces its stop flag on every iteration, the camera images are
-    all-gathered, and zero-size `Data` fields come back replicated, which the ahead-compiled program then refuses.
-    Videos record the first n_video environments of each device (on device 0: the first of the batch)."""
+    mesh: the 1-D "batch" mesh the carry is sharded on (every leaf batch-first). The output carry is pinned to its
+    batch sharding, since it goes back into the same ahead-compiled program, which takes only the shardings it was
+    compiled for; unpinned, the partitioner replicates MJX's zero-size `Data` fields. (A `shard_map` segment, with no
+    collectives at all, crashed XLA's GPU compiler on two H200s with jax 0.11.2; see docs/BENCHMARKS.md.)"""
     r, n_replans = cfg.replan_steps, segment_replans(cfg, env)
 
     def observe(state, images: bool):
@@ -193,14 +192,13 @@ def make_segment(env: Env, policy: SimPolicy, cfg: EvalConfig, n_video: int, mes
 
     if mesh is None:
         return jax.jit(segment, donate_argnums=1)
-    video = P(None, "batch") if n_video else P()
-    local = jax.shard_map(segment, mesh=mesh, in_specs=(P(), P("batch")), out_specs=(P("batch"), video, video),
-                          check_vma=False)
-    return jax.jit(local, donate_argnums=1, out_shardings=(NamedSharding(mesh, P("batch")), None, None))
+    return jax.jit(segment, donate_argnums=1, out_shardings=(NamedSharding(mesh, P("batch")), None, None))
 
 
 def collectives(hlo: str) -> int:
-    """Cross-device collectives in an optimized HLO module's text (0 for a segment: its devices never talk)."""
+    """Cross-device collectives in an optimized HLO module's text. A segment's environments are independent, yet
+    the partitioner keeps two small ones: MJX's solver loop and-reduces its stop flag, and a collision top_k
+    gathers its scores."""
     return len(re.findall(r" (?:all-gather|all-reduce|all-to-all|collective-permute|reduce-scatter)(?:-start)?\(",
                           hlo))
 
@@ -281,7 +279,7 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
     while True:   # the segment program compiled ahead; with --batch auto, halved until it fits in device memory
         pad = math.ceil(n_ep / batch) * batch - n_ep
         task_of_p, init_of_p = np.pad(task_of, (0, pad)), np.pad(init_of, (0, pad))
-        n_video = min(cfg.videos, batch // n_dev) if output_dir is not None else 0
+        n_video = min(cfg.videos, batch) if output_dir is not None else 0
         reset = jax.jit(lambda keys, t, i, env=env: jax.vmap(env.reset)(keys, t, i), out_shardings=shard)
         init_pstate = jax.jit(lambda b=batch: policy.init(b), out_shardings=shard)
 

@@ -1,0 +1,44 @@
+"""The engine's fused program on a batch-sharded mesh (two CPU devices in a child process, as the simulator's eval
+runs it on several GPUs): samples are independent, so the partitioned program must hold no collective. Merging the
+camera axis in front of the sharded batch axis (the vision tower's input) once made XLA all-gather every image."""
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+CHILD = textwrap.dedent("""
+    import sys
+    import jax, jax.numpy as jnp, numpy as np
+    from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+    from pi0_jax import pi0
+    from pi0_jax.config import get_config
+    from pi0_jax.engine import programs, weights
+    from pi0_jax.engine.runtime import engine_weights
+    from pi0_jax.sim.evaluate import collectives
+
+    cfg = get_config(sys.argv[1])
+    params = pi0.random_params(cfg, 0)
+    w = engine_weights(cfg, params, unroll=True)
+    sched = jax.jit(weights.precompute_schedule, static_argnums=(0, 2))(cfg, weights.schedule_params(cfg, params), 2)
+    b, c, s, n = 4, cfg.num_cameras, cfg.image_size, cfg.max_token_len
+    mesh = Mesh(np.array(jax.devices()), ("batch",))
+    assert len(jax.devices()) == 2
+    sh = lambda *spec: NamedSharding(mesh, P(*spec))
+    args = (jnp.zeros((c, b, s, s, 3)), jnp.ones((c, b), bool), jnp.zeros((b, n), jnp.int32), jnp.ones((b, n), bool),
+            jnp.zeros((b, cfg.action_dim)), jnp.zeros((b, cfg.action_horizon, cfg.action_dim)))
+    shardings = (sh(), sh(), sh(None, "batch"), sh(None, "batch"), *(sh("batch"),) * 4)
+    fn = jax.jit(lambda w, sc, *a: programs.infer(cfg, w, sc, *a, num_steps=2, unroll=True, unroll_steps=False),
+                 in_shardings=shardings)
+    print("collectives", collectives(fn.lower(w, sched, *args).compile().as_text()))
+""")
+
+
+@pytest.mark.parametrize("preset", ["dummy", "dummy_pi05"])
+def test_engine_program_on_a_batch_mesh_has_no_collectives(preset):
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    out = subprocess.run([sys.executable, "-c", CHILD, preset], env=env, capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "collectives 0" in out.stdout, out.stdout
