@@ -7,6 +7,8 @@
 #                                                             # the machine stays warm; log in $W/suite.log
 #   EPISODES=100 bash scripts/gpu_suite.sh latency demos distill distill2l grid-extra   # RESULTS.md's other tables
 #                                                             # (teacher: $TEACHER, default the embedded model)
+#   EPISODES=100 BG=1 bash scripts/gpu_suite.sh demos h20 rtc20    # issue 15: $TEACHER fine-tuned to 20 actions per
+#                                                             # chunk ($FSTEPS steps), then the latency cells on it
 #
 # Needs the mujoco / mujoco-mjx wheels in .simwhl (see docs/BENCHMARKS.md); writes into $OUT (or ./out).
 set -uo pipefail
@@ -19,6 +21,7 @@ STOP_AT=${STOP_AT:-$STEPS}
 CONFIG=${CONFIG:-pi0_small_suite}
 TEACHER=${TEACHER:-pi0_jax/assets/pi0_small}
 DSTEPS=${DSTEPS:-3000}      # distillation steps
+FSTEPS=${FSTEPS:-4000}      # fine-tune steps of h20
 mkdir -p "$OUT" "$W"
 if [ -n "${BG:-}" ]; then
   BG= setsid nohup bash "$0" "$@" > "$W/suite.log" 2>&1 < /dev/null &
@@ -62,6 +65,14 @@ for phase in "$@"; do
         evaluate distill2l "$W/distill2l/checkpoint" --replan-steps 2 &&
         $PI0 benchmark --preset pi0_small --checkpoint "$W/distill2l/checkpoint" --cameras 2 --prompt-tokens 16 \
             --steps 1 --batch 1,64 --iters 50 --out "$OUT/latency_distill2l.json" 2>&1 | grep "^|" ;;
+    h20)   # $TEACHER's weights fine-tuned to a 20-action horizon: D = 4 then leaves RTC 11 guided actions, not 1
+      $PI0 train --config "$CONFIG" --init "$TEACHER" --horizon 20 --demos "$W/demos" --out "$W/h20" \
+          --steps "$FSTEPS" --lr 1e-4 --warmup 100 2>&1 | grep -E "data:|first step|exported|step [0-9]*000/" &&
+        cp "$W/h20/train_log.json" "$OUT/h20_log.json" ;;
+    rtc20)   # sync / naive / rtc at D = 1, 2, 4 on the 20-action model (the cost column is the 10-action one's)
+      python3 scripts/roadmap_grid.py --checkpoint "$W/h20/checkpoint" --out "$W/roadmap20" --no-timing \
+          --budget-s "${BUDGET:-500}" --cells sync,rtc,naive,rtc-d1,naive-d1,rtc-d2,naive-d2 2>&1 | grep "^|"
+      cp "$W/roadmap20/roadmap.json" "$OUT/roadmap20.json" ;;
     grid-extra)   # the cells the first grid left out (replan 2 as the grid)
       python3 scripts/results_grid.py --checkpoint "$TEACHER" --out "$W/grid_extra" --replan-steps 2 \
           --schemes prefix-all:10,vision:10,expert-weights:10,all:1,nvfp4:1,mxfp4:1 2>&1 | grep -E "steps|^\|" &&

@@ -105,6 +105,45 @@ def _check_export_loads_as_policy(straight, demos):
     np.testing.assert_array_equal(stats["actions"].mean, nz.load_openpi_norm_stats(out / "norm_stats.json")["actions"].mean)
 
 
+def test_init_fine_tunes_a_checkpoint_to_another_horizon(demos, tmp_path):
+    """`pi0-jax train --init CKPT --horizon 12`: the run starts from CKPT's weights (with a zero learning rate and no
+    EMA the export equals them; CKPT was drawn from another seed than the run's, so a fresh init would not), keeps
+    CKPT's tokenizer and norm stats, and exports a model that samples 12-action chunks."""
+    from pi0_jax import checkpoint as ckpt_lib
+    from pi0_jax import cli
+    from pi0_jax.policy import Policy
+
+    src_cfg = CFG.replace(seed=7)
+    src = tmp_path / "src"
+    src.mkdir()
+    (src / "tokenizer.model").write_bytes(data.train_tokenizer(data.suite_prompts()))
+    model = src_cfg.model_config
+    ds = data.load_demos(demos, data.suite_prompts(), src / "tokenizer.model", model.max_token_len, log=None)
+    stats = data.norm_stats(ds)
+    stats["state"] = dataclasses.replace(stats["state"], mean=stats["state"].mean + 1.0)   # not what the demos give
+    nz.save_openpi_norm_stats(src / "norm_stats.json", stats)
+    ckpt = trainer.export(src_cfg, step.init_state(src_cfg, model), src)
+
+    out = tmp_path / "run"
+    assert cli.main(["train", "--config", "dummy_smoke", "--demos", str(demos), "--out", str(out), "--init", str(ckpt),
+                     "--horizon", "12", "--steps", "2", "--lr", "0", "--ema", "0", "--log-every", "1",
+                     "--save-every", "2", "--no-augment"]) == 0
+    got_cfg, got = ckpt_lib.load_checkpoint(out / "checkpoint")
+    _, want = ckpt_lib.load_checkpoint(ckpt)
+    assert got_cfg.action_horizon == 12 and model.action_horizon != 12
+    for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(got), jax.tree.leaves(want)):
+        np.testing.assert_array_equal(a, b, err_msg=jax.tree_util.keystr(path))
+    assert (out / "tokenizer.model").read_bytes() == (src / "tokenizer.model").read_bytes()
+    np.testing.assert_array_equal(nz.load_openpi_norm_stats(out / "norm_stats.json")["state"].mean,
+                                  stats["state"].mean)
+    assert json.loads((out / "train_config.json").read_text())["init"] == str(ckpt.absolute())
+    ep = np.load(demos / "episode_000003.npz")
+    result = Policy.from_checkpoint(out / "checkpoint").infer(
+        {"observation/image": ep["agentview"][0], "observation/wrist_image": ep["wrist"][0],
+         "observation/state": ep["state"][0], "prompt": str(ep["prompt"])})
+    assert result["actions"].shape == (12, 7)
+
+
 def test_cli_help_explains_every_flag(capsys):
     from pi0_jax import cli
 
@@ -113,7 +152,7 @@ def test_cli_help_explains_every_flag(capsys):
     assert e.value.code == 0
     out = capsys.readouterr().out
     for flag in ("--config", "--demos", "--out", "--resume", "--steps", "--batch", "--lr", "--warmup", "--ema",
-                 "--no-augment", "--seed", "--log-every", "--save-every", "--stop-at", "--max-episodes"):
+                 "--no-augment", "--seed", "--log-every", "--save-every", "--stop-at", "--max-episodes", "--init", "--horizon"):
         assert flag in out
     assert "pi0_small_suite" in out
 

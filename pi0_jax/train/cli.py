@@ -25,6 +25,10 @@ Pipeline of the demo model (see pi0_jax/train/__init__.py and scripts/gpu_suite.
       --action-noise 0.2
   pi0-jax train --config pi0_small_suite --demos DEMOS --out RUN
   pi0-jax eval --policy RUN/checkpoint --resolution 112 --episodes-per-task 50
+
+A fine-tune to a longer action horizon (real-time chunking needs an overlap of the previous chunk to guide):
+  pi0-jax train --config pi0_small_suite --init pi0_jax/assets/pi0_small --horizon 20 --steps 4000 --lr 1e-4 \
+      --warmup 100 --demos DEMOS --out RUN20
 """
 
 
@@ -39,6 +43,14 @@ def add_train_parser(subparsers) -> argparse.ArgumentParser:
                    help="demonstrations directory (meta.json + episode_*.npz, scripts/sim_demos.py)")
     p.add_argument("--out", required=True, type=Path, metavar="DIR",
                    help="run directory; must hold no train state unless --resume")
+    p.add_argument("--init", type=Path, default=None, metavar="CKPT",
+                   help="fine-tune: start from the weights of a checkpoint `pi0-jax train` exported, with its model "
+                        "config, tokenizer.model and norm stats (the preset still gives the optimiser, schedule and "
+                        "batch); default: a fresh init of the preset's model")
+    p.add_argument("--horizon", type=int, default=None, metavar="H",
+                   help="action horizon (actions per chunk) of the trained model; π0's weights do not depend on it, "
+                        "so --init can fine-tune a checkpoint to another horizon; default: the preset's or the "
+                        "--init checkpoint's")
     _add_run_flags(p)
     p.set_defaults(func=run)
     return p
@@ -108,10 +120,13 @@ def run(args: argparse.Namespace) -> int:
     from pi0_jax.train.trainer import train
 
     cfg = config_from_args(args)
+    if args.horizon is not None and args.horizon < 1:
+        raise SystemExit(f"--horizon must be positive, got {args.horizon}")
+    init = args.init and str(args.init.absolute())
     if args.resume:
-        _warn_if_changed(args.out, {"train": cfg.to_json()}, ())
+        _warn_if_changed(args.out, {"train": cfg.to_json(), "init": init}, ("init",))
     summary = train(cfg, args.demos, args.out, resume=args.resume, stop_at=args.stop_at,
-                    max_episodes=args.max_episodes)
+                    max_episodes=args.max_episodes, init=args.init, horizon=args.horizon)
     print(json.dumps(summary, indent=2))
     return 0
 

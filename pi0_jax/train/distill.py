@@ -33,7 +33,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
-import shutil
 import time
 from pathlib import Path
 
@@ -43,7 +42,6 @@ import numpy as np
 from flax import traverse_util
 from jax.sharding import Mesh
 
-from pi0_jax import checkpoint as ckpt_lib
 from pi0_jax import normalize as nz
 from pi0_jax import pi0
 from pi0_jax.config import GEMMA_VARIANTS, Pi0Config
@@ -86,16 +84,6 @@ def slice_layers(params: dict, keep: tuple[int, ...]) -> dict:
     idx = np.asarray(keep)
     flat = traverse_util.flatten_dict(params)
     return traverse_util.unflatten_dict({k: v[idx] if k[: len(LAYERS)] == LAYERS else v for k, v in flat.items()})
-
-
-def load_teacher(path: Path) -> tuple[Pi0Config, dict]:
-    """(config, f32 params) of a pi0-jax checkpoint that holds the trainer's tokenizer and norm stats."""
-    for rel in ("tokenizer.model", f"assets/{trainer.ASSET_ID}/norm_stats.json"):
-        if not (path / rel).is_file():
-            raise FileNotFoundError(f"teacher {path} has no {rel}: pass a checkpoint that `pi0-jax train` exported")
-    if "quant" in ckpt_lib.read_meta(path):
-        raise ValueError(f"teacher {path} is quantised; distil from the full-precision checkpoint")
-    return ckpt_lib.load_checkpoint(path, dtype="float32")
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -157,24 +145,17 @@ def distill(cfg: DistillConfig, teacher_dir: str | Path, demos_dir: str | Path, 
     """Distil the teacher checkpoint on the demos' observations, writing OUT/ as the module docstring says.
     -> summary dict (trainer.finish's). stop_at / resume as in `trainer.train`."""
     teacher_dir = Path(teacher_dir).absolute()
-    teacher, teacher_params = load_teacher(teacher_dir)
+    teacher, teacher_params = trainer.load_trained(teacher_dir, "teacher")
     keep = layer_indices(teacher.paligemma.depth, cfg.layers or teacher.paligemma.depth)
     student = student_config(teacher, len(keep))
     out, mesh = trainer.open_run(cfg.train, out_dir, resume)
 
-    tok_path, stats_path = out / "tokenizer.model", out / "norm_stats.json"
-    for src, dst in ((teacher_dir / "tokenizer.model", tok_path),
-                     (teacher_dir / "assets" / trainer.ASSET_ID / "norm_stats.json", stats_path)):
-        if not (resume and dst.is_file()):
-            shutil.copyfile(src, dst)
+    tok_path, stats_path = trainer.copy_inputs(teacher_dir, out, resume)
     t0 = time.perf_counter()
     ds = data_lib.load_demos(demos_dir, data_lib.suite_prompts(), tok_path, student.max_token_len,
                              max_episodes=max_episodes, log=log)
     stats = nz.load_openpi_norm_stats(stats_path)
-    for key, have in ((nz.STATE, ds.state), (nz.ACTIONS, ds.actions)):
-        if stats[key].mean.shape != have.shape[1:]:
-            raise ValueError(f"the teacher's {key} norm stats are {stats[key].mean.shape[0]}-D, the demos' "
-                             f"{key} {have.shape[1]}-D")
+    trainer.check_stats(stats, ds, teacher_dir)
     (out / "train_config.json").write_text(json.dumps(
         {**cfg.to_json(), "model": student.to_json(), "teacher": str(teacher_dir), "teacher_model": teacher.to_json(),
          "teacher_layers": keep, "demos": str(demos_dir)}, indent=2) + "\n")

@@ -113,6 +113,34 @@ def export_model(model: Pi0Config, state: step_lib.TrainState, out: Path, meta: 
         extra_meta={**meta, "step": int(state.step), "weights": "ema" if state.ema is not None else "params"})
 
 
+def load_trained(path: Path, role: str) -> tuple[Pi0Config, dict]:
+    """(config, f32 params) of a pi0-jax checkpoint that holds the trainer's tokenizer and norm stats (a teacher to
+    distil from, or the start of a fine-tune)."""
+    for rel in ("tokenizer.model", f"assets/{ASSET_ID}/norm_stats.json"):
+        if not (path / rel).is_file():
+            raise FileNotFoundError(f"{role} {path} has no {rel}: pass a checkpoint that `pi0-jax train` exported")
+    if "quant" in ckpt_lib.read_meta(path):
+        raise ValueError(f"{role} {path} is quantised; start from the full-precision checkpoint")
+    return ckpt_lib.load_checkpoint(path, dtype="float32")
+
+
+def copy_inputs(src: Path, out: Path, resume: bool) -> tuple[Path, Path]:
+    """OUT/tokenizer.model and OUT/norm_stats.json from a trained checkpoint (kept on resume), so that the run reads
+    and writes the same tokens and normalised values as the model it starts from."""
+    tok_path, stats_path = out / "tokenizer.model", out / "norm_stats.json"
+    for a, b in ((src / "tokenizer.model", tok_path), (src / "assets" / ASSET_ID / "norm_stats.json", stats_path)):
+        if not (resume and b.is_file()):
+            shutil.copyfile(a, b)
+    return tok_path, stats_path
+
+
+def check_stats(stats: dict, ds: data_lib.Dataset, src: Path) -> None:
+    for key, have in ((nz.STATE, ds.state), (nz.ACTIONS, ds.actions)):
+        if stats[key].mean.shape != have.shape[1:]:
+            raise ValueError(f"{src}'s {key} norm stats are {stats[key].mean.shape[0]}-D, the demos' {key} "
+                             f"{have.shape[1]}-D")
+
+
 def export(cfg: TrainConfig, state: step_lib.TrainState, out: Path) -> Path:
     return export_model(cfg.model_config, state, out, {"trained_by": "pi0_jax.train", "train_config": cfg.to_json()})
 
@@ -221,35 +249,50 @@ def finish(cfg: TrainConfig, out: Path, mesh: Mesh, state: step_lib.TrainState, 
 
 
 def train(cfg: TrainConfig, demos_dir: str | Path, out_dir: str | Path, *, resume: bool = False,
-          stop_at: int | None = None, max_episodes: int | None = None, log=print) -> dict:
+          stop_at: int | None = None, max_episodes: int | None = None, init: str | Path | None = None,
+          horizon: int | None = None, log=print) -> dict:
     """Train `cfg` on the demos, writing OUT/ as the module docstring says. -> summary dict.
 
     stop_at: save the train state after this many steps and return without exporting (the schedule still runs to
-    cfg.steps; continue with resume=True)."""
-    model = cfg.model_config
+    cfg.steps; continue with resume=True).
+    init: a checkpoint `train` exported: start from its weights (a fine-tune); its model config, tokenizer and norm
+    stats replace the preset's model and the ones computed from the demos.
+    horizon: the action horizon of the trained model. π0's weights do not depend on it (the suffix is one token per
+    action, positions by RoPE), so a checkpoint trained at one horizon can be fine-tuned to another."""
     out, mesh = open_run(cfg, out_dir, resume)
-
-    # Tokenizer and norm stats are computed once and kept, so a resumed run sees exactly the same inputs.
-    tok_path, stats_path = out / "tokenizer.model", out / "norm_stats.json"
-    prompts = data_lib.suite_prompts()
-    if not (resume and tok_path.is_file()):
-        tok_path.write_bytes(data_lib.train_tokenizer(prompts, min(model.vocab_size, 128)))
+    init_params = None
+    if init is not None:
+        init = Path(init).absolute()
+        model, init_params = load_trained(init, "--init")
+        tok_path, stats_path = copy_inputs(init, out, resume)
+    else:
+        model = cfg.model_config
+        tok_path, stats_path = out / "tokenizer.model", out / "norm_stats.json"
+        if not (resume and tok_path.is_file()):   # computed once and kept: a resumed run sees the same inputs
+            tok_path.write_bytes(data_lib.train_tokenizer(data_lib.suite_prompts(), min(model.vocab_size, 128)))
+    if horizon is not None:
+        model = model.replace(action_horizon=horizon)
     t0 = time.perf_counter()
-    ds = data_lib.load_demos(demos_dir, prompts, tok_path, model.max_token_len, max_episodes=max_episodes, log=log)
-    if resume and stats_path.is_file():
+    ds = data_lib.load_demos(demos_dir, data_lib.suite_prompts(), tok_path, model.max_token_len,
+                             max_episodes=max_episodes, log=log)
+    if init is not None or (resume and stats_path.is_file()):
         stats = nz.load_openpi_norm_stats(stats_path)
+        check_stats(stats, ds, init or stats_path)
     else:
         stats = data_lib.norm_stats(ds)
         nz.save_openpi_norm_stats(stats_path, stats)
     (out / "train_config.json").write_text(json.dumps({"train": cfg.to_json(), "model": model.to_json(),
-                                                       "demos": str(demos_dir)}, indent=2) + "\n")
+                                                       "demos": str(demos_dir), "init": init and str(init)},
+                                                      indent=2) + "\n")
     data = step_lib.device_data(ds, stats, mesh)
     log_data(ds, mesh, cfg, time.perf_counter() - t0, log)
     del ds
 
     jitted = step_lib.jitted_step(cfg, model, mesh)
-    state, history, start, end, compile_s = run_steps(
-        cfg, out, mesh, lambda: step_lib.init_state(cfg, model), lambda s: jitted(s, data),
-        resume=resume, stop_at=stop_at, log=log)
-    return finish(cfg, out, mesh, state, history, start, end, compile_s, lambda: export(cfg, state, out),
+    start_state = ((lambda: step_lib.state_from_params(cfg, init_params)) if init_params is not None
+                   else (lambda: step_lib.init_state(cfg, model)))
+    state, history, start, end, compile_s = run_steps(cfg, out, mesh, start_state, lambda s: jitted(s, data),
+                                                      resume=resume, stop_at=stop_at, log=log)
+    meta = {"trained_by": "pi0_jax.train", "train_config": cfg.to_json(), **({"init": str(init)} if init else {})}
+    return finish(cfg, out, mesh, state, history, start, end, compile_s, lambda: export_model(model, state, out, meta),
                   f"{cfg.name} ({model.name}, batch {cfg.batch_size})", "flow-matching loss (window mean)", log)
