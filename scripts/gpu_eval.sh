@@ -6,6 +6,8 @@
 #                                                   # 528 on two GPUs (264 per device, the same task mix)
 #   bash scripts/gpu_eval.sh embedded-1 embedded-2  # the embedded model's 550 episodes on GPU 0, then on two GPUs
 #   DET=1 bash scripts/gpu_eval.sh embedded-1       # the same with --xla_gpu_deterministic_ops=true
+#   QUANT=prefix-mlp bash scripts/gpu_eval.sh pi05-fp8   # pi05-1 with FP8 weights and calibrated activation scales
+#   bash scripts/gpu_eval.sh overlap                # scripts/overlap_probe.py: physics beside the policy on 2 streams
 #   POLICY=preset:dummy PER_TASK=1 EXTRA="--steps 10" bash scripts/gpu_eval.sh pi05-1   # CPU smoke run
 #
 # Needs the mujoco / mujoco-mjx wheels in .simwhl (carried); writes OUT/<phase>.json (the eval_info, per_episode
@@ -44,6 +46,9 @@ for phase in "$@"; do
   case $phase in
     pi05-1) run pi05_1gpu 0 --policy "$POLICY" --episodes-per-task "$PER_TASK" --batch $((11 * PER_TASK)) ;;
     pi05-2) run pi05_2gpu 0,1 --policy "$POLICY" --episodes-per-task $((2 * PER_TASK)) --batch $((22 * PER_TASK)) ;;
+    pi05-fp8) run "pi05_${QUANT:-prefix-mlp}_1gpu" 0 --policy "$POLICY" --episodes-per-task "$PER_TASK" \
+                  --batch $((11 * PER_TASK)) --quant "${QUANT:-prefix-mlp}" ;;
+    overlap) python3 scripts/overlap_probe.py --json "$OUT/overlap.json" ;;
     embedded-1) run embedded_1gpu${DET:+_det} 0 --policy pi0_jax/assets/pi0_small --episodes-per-task 50 --batch auto ;;
     embedded-2) run embedded_2gpu${DET:+_det} 0,1 --policy pi0_jax/assets/pi0_small --episodes-per-task 50 --batch auto ;;
     *) echo "unknown phase $phase"; exit 2 ;;

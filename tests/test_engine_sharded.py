@@ -7,8 +7,6 @@ import subprocess
 import sys
 import textwrap
 
-import pytest
-
 CHILD = textwrap.dedent("""
     import sys
     import jax, jax.numpy as jnp, numpy as np
@@ -19,7 +17,7 @@ CHILD = textwrap.dedent("""
     from pi0_jax.engine.runtime import engine_weights
     from pi0_jax.sim.evaluate import collectives
 
-    cfg = get_config(sys.argv[1])
+    cfg = get_config("dummy_pi05")
     params = pi0.random_params(cfg, 0)
     w = engine_weights(cfg, params, unroll=True)
     sched = jax.jit(weights.precompute_schedule, static_argnums=(0, 2))(cfg, weights.schedule_params(cfg, params), 2)
@@ -36,9 +34,10 @@ CHILD = textwrap.dedent("""
 """)
 
 
-@pytest.mark.parametrize("preset", ["dummy", "dummy_pi05"])
-def test_engine_program_on_a_batch_mesh_has_no_collectives(preset):
+def test_engine_program_on_a_batch_mesh_has_no_collectives():
+    """π0.5 (adaRMS, no state token); π0's program differs only in the suffix, whose rows are per sample too."""
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
-    out = subprocess.run([sys.executable, "-c", CHILD, preset], env=env, capture_output=True, text=True, timeout=600)
+    out = subprocess.run([sys.executable, "-c", CHILD], check=False, env=env, capture_output=True, text=True,
+                         timeout=600)
     assert out.returncode == 0, out.stderr[-3000:]
     assert "collectives 0" in out.stdout, out.stdout
