@@ -28,9 +28,7 @@ import numpy as np
 import sentencepiece
 
 from pi0_jax import normalize as nz
-from pi0_jax.sim import (
-    tasks as _tasks,  # also sets XLA:CPU flags (pi0_jax.sim) before a backend starts
-)
+from pi0_jax.sim import tasks as _tasks   # also sets XLA:CPU flags (pi0_jax.sim) before a backend starts
 from pi0_jax.tokenizer import PaligemmaTokenizer, clean_text
 
 CAMERAS = ("agentview", "wrist")          # npz keys, in model slot order (base_0_rgb, left_wrist_0_rgb)
