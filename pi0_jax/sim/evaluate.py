@@ -197,8 +197,8 @@ def make_segment(env: Env, policy: SimPolicy, cfg: EvalConfig, n_video: int, mes
 
 def collectives(hlo: str) -> int:
     """Cross-device collectives in an optimized HLO module's text. A segment's environments are independent, yet
-    the partitioner keeps two small ones: MJX's solver loop and-reduces its stop flag, and a collision top_k
-    gathers its scores."""
+    the partitioner keeps small ones: MJX's solver loop and-reduces its stop flag (one on two H200s; on the CPU a
+    collision top_k also gathers its scores)."""
     return len(re.findall(r" (?:all-gather|all-reduce|all-to-all|collective-permute|reduce-scatter)(?:-start)?\(",
                           hlo))
 
