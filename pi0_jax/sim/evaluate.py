@@ -362,7 +362,7 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
         info["config"]["batch_auto"] = {"tried": tried, "max_per_device": AUTO_MAX_PER_DEVICE,
                                         "memory_fraction": AUTO_MEMORY_FRACTION}
     info["timing"] = timing_section(info, rollout_s, compile_s, wait_s, n_batches, steps_per_segment, cfg)
-    info["timing"]["segment_collectives"] = collectives(segment.as_text())
+    info["timing"]["segment_collectives"] = collectives(segment.as_text()) if n_dev > 1 else 0   # (text: MBs)
     if "realtime" in policy.info:
         info["realtime"] = {**policy.info["realtime"], **policy_stats}
         if policy_stats.get("plans"):
