@@ -13,6 +13,7 @@ import argparse
 import dataclasses
 import functools
 import json
+import os
 import sys
 import time
 import traceback
@@ -28,7 +29,7 @@ from pi0_jax.engine import Engine, layers, programs
 from pi0_jax.ops import expert_kernels as ek, layout
 
 sys.path.insert(0, str(Path(__file__).parent))
-from profile_engine import count_ops  # noqa: E402
+from profile_engine import count_ops, kernel_times  # noqa: E402
 
 
 def median_ms(fn, args, iters: int, warmup: int = 3) -> float:
@@ -81,9 +82,8 @@ def xla_stages(cfg, out, xs, w, pos, ck, cv, pmask, ys, hs, s, p, rnd, args):
         args.iters)
 
 
-# The blocks that each sweep variant changes (the defaults of `Blocks` before the sweeps set them)
-SWEEP_BASE = dict(rows=64, k=128, qkv_cols=64, out_cols=64, out_splits=1, down_splits=1, mlp_cols=64, q=64, kv=64,
-                  num_warps=4, attention_warps=8, num_stages=2)
+# The blocks that each sweep variant changes (the defaults of `Blocks`)
+SWEEP_BASE = dataclasses.asdict(ek.Blocks())
 
 
 def stages(config, args, key):
@@ -117,15 +117,17 @@ def stages(config, args, key):
     out = {"xla": {}, "pallas": {}}
     if args.xla_stages:
         xla_stages(cfg, out, xs, w, pos, ck, cv, pmask, ys, hs, s, p, rnd, args)
-    # (the first sweep, commit f0fa40a, covered warps 4/8 and attention q 16-64 x kv 32/64; these narrow it down)
+    # runs 1-3 (commits f0fa40a, 139b35b) swept warps, q / kv blocks and split-K of the residual GEMMs; run 4 the key
+    # splits of attention; these sweep the split-K GEMMs behind the norm kernels and the attention splits again
     sweeps = {
-        "norm_qkv_rope": [dict(qkv_cols=a) for a in (16, 32, 64)] + [dict(qkv_cols=32, k=256),
-                                                                     dict(qkv_cols=32, num_stages=3)],
-        "attention": [dict(q=16, kv=64, attention_warps=4), dict(q=16, kv=64, attention_warps=4, num_stages=3)],
-        "out_residual": [dict(out_cols=a, out_splits=sp) for a in (32, 64) for sp in (1, 4, 8)],
-        "norm_geglu": [dict(mlp_cols=32), dict(mlp_cols=32, k=256), dict(mlp_cols=64, k=256),
-                       dict(mlp_cols=32, num_stages=3), dict(mlp_cols=32, num_stages=4)],
-        "down_residual": [dict(out_cols=a, down_splits=sp, k=256) for a in (32, 64) for sp in (1, 4, 8)],
+        "norm_qkv_rope": [dict(qkv_cols=a, qkv_splits=sp) for a, sp in
+                          ((64, 4), (64, 8), (32, 4), (32, 8), (128, 4), (128, 8), (64, 2))],
+        "attention": [dict(q=q, kv_splits=sp, attention_warps=wp) for q, sp, wp in
+                      ((64, 8, 8), (64, 4, 8), (64, 13, 8), (16, 4, 4), (32, 8, 4), (64, 8, 4))],
+        "out_residual": [dict(out_cols=a, out_splits=sp) for a, sp in ((32, 4), (32, 8), (64, 4), (16, 4))],
+        "norm_geglu": [dict(mlp_cols=a, mlp_splits=sp) for a, sp in
+                       ((64, 4), (64, 8), (128, 4), (32, 4), (64, 2), (128, 8))] + [dict(k=256), dict(num_warps=8)],
+        "down_residual": [dict(out_cols=a, down_splits=sp) for a, sp in ((32, 8), (32, 16), (64, 8), (16, 8))],
     }
     calls = {
         "norm_qkv_rope": (lambda bl: lambda x, w: ek.norm_qkv_rope(x, scale, 0, False, w, cos, sin, width=d,
@@ -156,8 +158,8 @@ def stages(config, args, key):
         print(f"{name:14s} xla {xla_us:7.1f} us   pallas best {rows[0][0] * 1e3:7.1f} us "
               f"{rows[0][1]}", flush=True)
     # shared fields (k, num_stages, out_cols) come from the stage that reads the most bytes
-    take = {"norm_qkv_rope": ("qkv_cols",), "attention": ("q", "kv", "attention_warps"),
-            "out_residual": ("out_splits",), "norm_geglu": ("mlp_cols", "k", "num_stages", "num_warps"),
+    take = {"norm_qkv_rope": ("qkv_cols", "qkv_splits"), "attention": ("q", "kv", "kv_splits", "attention_warps"),
+            "out_residual": ("out_splits",), "norm_geglu": ("mlp_cols", "mlp_splits", "k", "num_stages", "num_warps"),
             "down_residual": ("out_cols", "down_splits")}
     fields = dict(SWEEP_BASE)
     for name, keys in take.items():
@@ -199,6 +201,19 @@ def engine_runs(config, args, blocks, out):
             r[f"compile_denoise_{steps}_s"] = time.perf_counter() - t0
             r[f"denoise_{steps}_ms"] = median_ms(lambda: den(w, sched, cache, packed[4], jnp.copy(noise)), (),
                                                  args.iters)
+            if steps == 10 and args.trace:
+                try:
+                    r["trace"] = kernel_times(lambda: den(w, sched, cache, packed[4], jnp.copy(noise)), 5)
+                    t = r["trace"]
+                    print(f"{config.name} {kernels} trace: {t['kernels_per_call']:.0f} kernels, {t['kernel_ms']:.2f} "
+                          f"ms in kernels of {t['wall_ms']:.2f} ms ({t['busy']:.0%} busy); lines "
+                          f"{t['device_lines']}", flush=True)
+                    for row in t["by_name"][:25]:
+                        print(f"   {row['us_per_call']:9.1f} us  x{row['per_call']:6.1f}  {row['name'][:90]}",
+                              flush=True)
+                except Exception:
+                    r["trace"] = traceback.format_exc()[-2000:]
+                    print(r["trace"], flush=True)
             if steps == 10:
                 actions[kernels] = np.asarray(den(w, sched, cache, packed[4], jnp.copy(noise)))
                 counts = count_ops(den.as_text())
@@ -247,16 +262,21 @@ def main():
     p.add_argument("--engine-before-s", type=float, default=150.0, help="start an engine run only before this")
     p.add_argument("--xla-stages", action="store_true", help="also time each stage's XLA ops (the first run did)")
     p.add_argument("--skip-sweep", action="store_true")
+    p.add_argument("--blocks", type=Path, default=None,
+                   help="a previous run's JSON: its best_blocks for the engine runs (with --skip-sweep)")
+    p.add_argument("--skip-parity", action="store_true", help="skip the f32 parity of the dummy presets")
+    p.add_argument("--trace", action="store_true", help="sum the 10-step denoise's GPU kernels from a profiler trace")
     p.add_argument("--max-variants", type=int, default=100, help="block variants per stage in the sweep")
     p.add_argument("--presets", default="pi0_base,pi05_base", help="engine runs (the sweep uses the first)")
     p.add_argument("--out", type=Path, default=Path("kernels.json"))
     args = p.parse_args()
     dev = jax.devices()[0]
-    out = {"device": dev.device_kind, "jax": jax.__version__,
+    out = {"device": dev.device_kind, "jax": jax.__version__, "xla_flags": os.environ.get("XLA_FLAGS", ""),
            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
     print(out, flush=True)
-    sections = [("f32_parity", lambda: f32_parity(out))]
-    blocks = ek.Blocks()
+    sections = [] if args.skip_parity else [("f32_parity", lambda: f32_parity(out))]
+    blocks = ek.Blocks(**json.loads(args.blocks.read_text())["stages"]["best_blocks"]) if args.blocks else ek.Blocks()
+    out["blocks_given"] = dataclasses.asdict(blocks)
     if not args.skip_sweep:
         def sweep():
             nonlocal blocks

@@ -2,7 +2,9 @@
 
 Counts, from the optimized HLO of each stage program: fusions (one GPU kernel each), library calls (cuBLAS GEMMs,
 cuDNN, ...) and copies, in the whole program and inside the denoise loop body (i.e. per step when the loop is
-rolled). Optionally writes a jax.profiler trace of a few fused calls (open it in TensorBoard / Perfetto).
+rolled). Optionally writes a jax.profiler trace of a few fused calls (open it in TensorBoard / Perfetto) and sums its
+GPU kernels by name (`kernel_times`): what each kernel costs inside the program, and how much of the wall time the
+GPU sat idle between kernels.
 
     python scripts/profile_engine.py --preset pi05_base --batch 1 --steps 10 [--trace DIR]
 """
@@ -10,8 +12,13 @@ rolled). Optionally writes a jax.profiler trace of a few fused calls (open it in
 from __future__ import annotations
 
 import argparse
+import collections
+import glob
+import gzip
 import json
 import re
+import tempfile
+import time
 from pathlib import Path
 
 import jax
@@ -36,6 +43,47 @@ def count_ops(hlo: str) -> dict:
             kind = m.group(1)
             counts[current][kind if kind in counts[current] else "other"] += 1
     return {k: v for k, v in counts.items() if sum(v.values())}
+
+
+def kernel_times(fn, calls: int = 5, log_dir: str | None = None) -> dict:
+    """Run fn() `calls` times under jax.profiler and sum the GPU kernels of the trace by name (numeric suffixes
+    dropped: fusion.12 and fusion.40 are one row). Per call: kernels launched, their summed time, the host-timed wall
+    time, and busy = summed / wall (1 - busy is the GPU idle between kernels: launch gaps)."""
+    jax.block_until_ready(fn())
+    log_dir = log_dir or tempfile.mkdtemp()
+    with jax.profiler.trace(log_dir, create_perfetto_trace=True):
+        start = time.perf_counter()
+        for _ in range(calls):
+            jax.block_until_ready(fn())
+        wall = (time.perf_counter() - start) / calls
+    events = json.load(gzip.open(glob.glob(f"{log_dir}/**/perfetto_trace.json.gz", recursive=True)[0]))
+    events = events["traceEvents"] if isinstance(events, dict) else events
+    procs = {e["pid"]: e["args"]["name"] for e in events if e.get("name") == "process_name"}
+    threads = {(e["pid"], e["tid"]): e["args"]["name"] for e in events if e.get("name") == "thread_name"}
+    gpu = {pid for pid, name in procs.items() if "GPU" in name.upper()}
+    # kernels sit on the device's "Stream #N" lines; other device lines (XLA Ops / Modules) repeat them as spans
+    gpu_lines = {key: name for key, name in threads.items() if key[0] in gpu}
+    streams = {key for key, name in gpu_lines.items() if name.startswith("Stream")}
+    rows = collections.defaultdict(lambda: [0, 0.0])
+    for e in events:
+        if e.get("ph") == "X" and (e["pid"], e.get("tid")) in streams:
+            name = re.sub(r"([._]\d+)+$", "", e["name"])
+            rows[name][0] += 1
+            rows[name][1] += float(e.get("dur", 0.0))
+    per_line = collections.defaultdict(lambda: [0, 0.0])
+    for e in events:
+        if e.get("ph") == "X" and (e["pid"], e.get("tid")) in gpu_lines:
+            line = per_line[gpu_lines[(e["pid"], e["tid"])]]
+            line[0] += 1
+            line[1] += float(e.get("dur", 0.0)) / 1e3 / calls
+    launched = sum(c for c, _ in rows.values()) / calls
+    busy_us = sum(t for _, t in rows.values()) / calls
+    top = sorted(rows.items(), key=lambda kv: -kv[1][1])
+    return {"calls": calls, "wall_ms": wall * 1e3, "kernels_per_call": launched, "kernel_ms": busy_us / 1e3,
+            "busy": busy_us / 1e3 / (wall * 1e3) if wall else None,
+            "device_lines": sorted(gpu_lines.values()), "stream_lines": sorted(gpu_lines[k] for k in streams),
+            "per_line_events_ms": dict(per_line),
+            "by_name": [{"name": n, "per_call": c / calls, "us_per_call": t / calls} for n, (c, t) in top[:60]]}
 
 
 def main() -> None:

@@ -79,13 +79,14 @@ def test_norm_qkv_rope_matches_xla(adaptive):
     q, k, v = layers._qkv(h, w["qkv"], CFG, positions)
     sp = layout.suffix_rows(S)
     cos, sin = layout.rope_tables(jnp.pad(positions, ((0, 0), (0, sp - S))), CFG.head_dim)
-    out = ek.norm_qkv_rope(layout.rows(x, sp), mods, row, adaptive, layout.expert_weights(w, CFG)["qkv"], cos, sin,
-                           width=CFG.width, num_heads=CFG.num_heads, num_kv_heads=CFG.num_kv_heads,
-                           head_dim=CFG.head_dim)
-    got = _unheads(out.reshape(B, sp, -1)[:, :S], CFG.num_heads + 2 * CFG.num_kv_heads)
-    np.testing.assert_allclose(got[:, :, : CFG.num_heads], q.reshape(B, S, CFG.num_heads, -1), **TOL)
-    np.testing.assert_allclose(got[:, :, CFG.num_heads: -1], k, **TOL)
-    np.testing.assert_allclose(got[:, :, -1:], v, **TOL)
+    for splits in (1, 3):  # one K chunk; three (width 48: the sums of squares and shift products of 3 chunks)
+        out = ek.norm_qkv_rope(layout.rows(x, sp), mods, row, adaptive, layout.expert_weights(w, CFG)["qkv"], cos,
+                               sin, width=CFG.width, num_heads=CFG.num_heads, num_kv_heads=CFG.num_kv_heads,
+                               head_dim=CFG.head_dim, blocks=Blocks(qkv_splits=splits))
+        got = _unheads(out.reshape(B, sp, -1)[:, :S], CFG.num_heads + 2 * CFG.num_kv_heads)
+        np.testing.assert_allclose(got[:, :, : CFG.num_heads], q.reshape(B, S, CFG.num_heads, -1), **TOL)
+        np.testing.assert_allclose(got[:, :, CFG.num_heads: -1], k, **TOL)
+        np.testing.assert_allclose(got[:, :, -1:], v, **TOL)
 
 
 def _attention_inputs(pi05):
@@ -96,7 +97,7 @@ def _attention_inputs(pi05):
     return q, k, v, ck, cv, _prefix_mask(), _suffix_mask(pi05)
 
 
-def _pallas_attention(q, k, v, ck, cv, pmask, smask):
+def _pallas_attention(q, k, v, ck, cv, pmask, smask, splits=4):
     sp, h = layout.suffix_rows(S), CFG.head_dim
     qkv = jnp.concatenate([q.reshape(B, S, -1), k.reshape(B, S, -1), v.reshape(B, S, -1)], axis=-1)
     qkv = layout.rows(layout._heads(qkv, -1, h), sp)
@@ -104,7 +105,7 @@ def _pallas_attention(q, k, v, ck, cv, pmask, smask):
     smask = jnp.pad(smask, ((0, 0), (0, sp - S), (0, sp - S))).reshape(B * sp, sp).astype(jnp.int32)
     out = ek.attention(qkv, ck.reshape(-1, ck.shape[2] * ck.shape[3]), cv.reshape(-1, cv.shape[2] * cv.shape[3]),
                        layout.cache_mask(pmask).astype(jnp.int32), smask, batch=B, num_heads=CFG.num_heads,
-                       num_kv_heads=CFG.num_kv_heads, blocks=Blocks(kv=32))
+                       num_kv_heads=CFG.num_kv_heads, blocks=Blocks(kv=32, kv_splits=splits))
     return _unheads(out.reshape(B, sp, -1)[:, :S], CFG.num_heads).reshape(B, S, -1)
 
 
@@ -112,8 +113,10 @@ def _pallas_attention(q, k, v, ck, cv, pmask, smask):
 def test_attention_matches_xla_with_masked_camera_and_padded_prompt(pi05):
     q, k, v, ck, cv, pmask, smask = _attention_inputs(pi05)
     want = layers._attend(q, [ck, k], [cv, v], [jnp.broadcast_to(pmask[:, None], (B, S, P)), smask], jnp.float32)
-    got = _pallas_attention(q, k, v, ck, cv, pmask, smask)
-    np.testing.assert_allclose(got, want, **TOL)
+    # 6 key blocks of 32: one split; 3 splits of 2 blocks (element 0's second split is all masked: its camera);
+    # 4 splits of 2 blocks (the last split lies past the cache)
+    for splits in (1, 3, 4):
+        np.testing.assert_allclose(_pallas_attention(q, k, v, ck, cv, pmask, smask, splits), want, **TOL)
     # the masks matter: a prefix mask without the masked camera, or π0.5's suffix mask for π0, changes the result
     wrong_prefix = _pallas_attention(q, k, v, ck, cv, pmask.at[0, 64:128].set(True), smask)
     assert not np.allclose(wrong_prefix, want, **TOL)
@@ -133,8 +136,10 @@ def test_mlp_kernels_match_xla(adaptive):
     down = hidden @ w["down"]
     want = x + (down if gate is None else down * gate)
     sp = layout.suffix_rows(S)
-    got_hidden = ek.norm_geglu(layout.rows(x, sp), mods, row, adaptive, wk["gate_up"], width=CFG.width)
-    np.testing.assert_allclose(_unrows(got_hidden, CFG.mlp_dim), hidden, **TOL)
+    for splits in (3, 1):
+        got_hidden = ek.norm_geglu(layout.rows(x, sp), mods, row, adaptive, wk["gate_up"], width=CFG.width,
+                                   blocks=Blocks(mlp_splits=splits))
+        np.testing.assert_allclose(_unrows(got_hidden, CFG.mlp_dim), hidden, **TOL)
     for splits in (1, 2):  # one kernel, and split-K (96 = 2 x 48)
         got = ek.matmul_residual(got_hidden, wk["down"], layout.rows(x, sp), mods, gate_row, splits=splits)
         np.testing.assert_allclose(_unrows(got, CFG.width), want, **TOL)

@@ -135,8 +135,9 @@ def run_layers(layer_fn, weights, x, per_layer=(), *, unroll: bool):
 
 def suffix_layers_pallas(cfg: GemmaConfig, weights, x, positions, cache_k, cache_v, prefix_mask, suffix_mask,
                          mods=None, blocks: expert_kernels.Blocks = expert_kernels.Blocks()):
-    """All action-expert layers as fused Pallas kernels (`pi0_jax.ops`), five kernels per layer (plus the split-K
-    sums); the same function as `suffix_layer` applied layer by layer.
+    """All action-expert layers as Pallas kernels (`pi0_jax.ops`): per layer four split-K GEMMs and the attention,
+    each followed by one XLA fusion (norm, RoPE, GeGLU, residuals, the split merges); the same function as
+    `suffix_layer` applied layer by layer.
 
     weights: per-layer dicts in kernel layout (`ops.layout.expert_weights`); cache_k/v: per layer (B, Pp, K, 2hp)
     and prefix_mask (B, Pp) in kernel layout (`ops.layout.cache_kv`); x (B, S, D); positions (B, S); suffix_mask

@@ -1,22 +1,31 @@
-"""Fused Pallas kernels for one action-expert layer of the denoise step (Triton on GPU, interpret mode on CPU).
+"""Pallas kernels for one action-expert layer of the denoise step (Triton on GPU, interpret mode on CPU).
 
-One expert layer is five kernels (seven launches with split-K) instead of ~23 XLA kernels:
-  norm_qkv_rope    RMSNorm / adaRMS + the fused q/k/v GEMM + RoPE + q scaling
-  attention        the suffix queries over [cached prefix | suffix] keys, one online softmax
-  matmul_residual  out-projection + (gated) residual; again for the MLP's down-projection + (gated) residual
-                   (split-K: f32 partials, then one XLA fusion for the sum, gate and residual)
-  norm_geglu       RMSNorm / adaRMS + the gate/up GEMM + GELU-tanh(gate) * up
+At B = 1 the step is 64 rows against 35 MB of weights per layer: every GEMM streams its weights, and what costs is
+latency (few programs walking a long K loop), not FLOPs. So every GEMM is one kernel, split over output columns and
+over K (hundreds of short programs, f32 partials), and the cheap elementwise work lands in one XLA fusion after it:
+
+  matmul_partials  [x * (1 + scale)] @ w over one K chunk, plus the chunk's sum of squares (the norm's statistics)
+                   and adaRMS's shift @ w: the norm is applied after the GEMM, as a per-row 1 / rms
+  attention        the suffix queries over [cached prefix | suffix] keys: an online softmax over each of several key
+                   splits in parallel (flash-decoding), merged by their log-sum-exp
+
+  norm_qkv_rope    = matmul_partials, then (XLA) the split sum, 1 / rms, RoPE and q's scaling
+  norm_geglu       = matmul_partials, then (XLA) the split sum, 1 / rms, GELU-tanh(gate) * up
+  matmul_residual  = matmul_partials, then (XLA) the split sum, adaRMS's gate and the residual
 
 Kernel layout (`pi0_jax.ops.layout`): rows are (batch, suffix padded to Sp) flattened; each head is stored as
-[x1 | 0 | x2 | 0], the two RoPE halves each padded to hp (a multiple of 16), so the program that owns a block of x1
-columns also owns the matching x2 columns; widths are multiples of 16 (Triton's smallest dot). Padding is zeros and
-padded keys are masked, so every valid number is the one the XLA path computes.
+[x1 | 0 | x2 | 0], the two RoPE halves each padded to hp (a multiple of 16); widths are multiples of 16 (Triton's
+smallest dot). Padding is zeros and padded keys are masked, so every valid number is the one the XLA path computes.
 
 Numerics as `pi0_jax.engine.layers`: f32 norm statistics, f32 RoPE, f32 logits and softmax with the same big-negative
 fill; every GEMM output is rounded to the activation dtype before its epilogue, as XLA's `x @ w` is, and each
-epilogue op rounds where the XLA op would.
+epilogue op rounds where the XLA op would. Three reorderings, each within bf16 rounding of the XLA path and within f32
+rounding in f32: x * (1 + scale) enters the GEMM and the row's 1 / rms multiplies its f32 result; adaRMS's shift
+enters as its own product shift @ w; attention rounds each key split's normalised output to the dtype and merges the
+splits in f32.
 
-Axis legend: M rows (B * Sp), D width, F MLP hidden, N query heads, K kv heads, hp half head dim (padded), P keys.
+Axis legend: M rows (B * Sp), D width, F MLP hidden, N query heads, K kv heads, hp half head dim (padded), P keys,
+S splits.
 """
 
 from __future__ import annotations
@@ -37,20 +46,24 @@ ALIGN = 16  # Triton's smallest dot dimension
 
 @dataclasses.dataclass(frozen=True)
 class Blocks:
-    """Tile sizes (powers of two; each is shrunk to divide its padded dimension) and Triton launch parameters.
-    Defaults: the fastest of a sweep at π0 full size, B=1, on an H200 (docs/BENCHMARKS.md, "Fused kernels")."""
+    """Tile sizes (powers of two; each is shrunk to divide its padded dimension), split counts and Triton launch
+    parameters. Defaults: the fastest of the sweeps at π0 full size, B=1, on an H200 (docs/BENCHMARKS.md, "Fused
+    kernels")."""
 
     rows: int = 64  # GEMM rows per program
-    k: int = 128  # GEMM contraction chunk
-    qkv_cols: int = 32  # columns of each RoPE half per norm_qkv_rope program
-    out_cols: int = 64  # output columns per matmul_residual program
-    out_splits: int = 8  # split-K programs of the out-projection (partials summed by XLA with the residual)
-    down_splits: int = 8  # the same for the down-projection
-    mlp_cols: int = 32  # hidden columns (of gate and of up) per norm_geglu program
-    q: int = 16  # attention queries per program
+    k: int = 256  # GEMM contraction chunk per loop step
+    qkv_cols: int = 128  # output columns per program of the q/k/v GEMM
+    qkv_splits: int = 8  # split-K programs per output tile of the q/k/v GEMM
+    mlp_cols: int = 64  # the same for the gate/up GEMM
+    mlp_splits: int = 4
+    out_cols: int = 64  # the same for the out-projection and the down-projection
+    out_splits: int = 4
+    down_splits: int = 8
+    q: int = 64  # attention queries per program
     kv: int = 64  # attention keys per loop step
-    num_warps: int = 4  # the GEMM kernels'
-    attention_warps: int = 4
+    kv_splits: int = 13  # programs that share one query block's prefix keys (+ one for the suffix keys)
+    num_warps: int = 4  # the GEMM kernel's
+    attention_warps: int = 8
     num_stages: int = 3
 
 
@@ -69,25 +82,11 @@ def _call(kernel, grid, out_shape, blocks: Blocks, name: str, num_warps: int | N
                           name=name)
 
 
-def _inv_rms(x_ref, rows, bm, width, bk, n_true):
-    """1 / sqrt(mean(x^2) + eps) per row, in f32 over the true width (padded columns are zero)."""
-
-    def body(i, acc):
-        x = x_ref[rows, pl.ds(i * bk, bk)].astype(jnp.float32)
-        return acc + jnp.sum(x * x, axis=1)
-
-    ss = jax.lax.fori_loop(0, width // bk, body, jnp.zeros((bm,), jnp.float32))
-    return jax.lax.rsqrt(ss / n_true + EPS)[:, None]
-
-
-def _normed(x_ref, mod_ref, rows, cols, inv, mod_row, adaptive, dtype):
-    """(x * inv) * (1 + scale) [+ shift] in f32, then the activation dtype: `layers.rms_norm` on one tile.
-    (1 + scale) is formed in the scale's dtype first, as the reference does."""
-    h = x_ref[rows, cols].astype(jnp.float32) * inv
-    h = h * (1 + mod_ref[pl.ds(mod_row, 1), cols]).astype(jnp.float32)
-    if adaptive:
-        h = h + mod_ref[pl.ds(mod_row + 1, 1), cols].astype(jnp.float32)
-    return h.astype(dtype)
+def _scaled(x_ref, mod_ref, rows, cols, mod_row, dtype):
+    """One tile of x in f32 (for the statistics) and of x * (1 + scale) in the dtype (the GEMM input of a norm, before
+    the row's 1 / rms). (1 + scale) is formed in the scale's dtype first, as the reference does."""
+    x = x_ref[rows, cols].astype(jnp.float32)
+    return x, (x * (1 + mod_ref[pl.ds(mod_row, 1), cols]).astype(jnp.float32)).astype(dtype)
 
 
 def _dot(a, b, trans_b: bool = False):
@@ -101,33 +100,73 @@ def _round(acc, dtype):
     return acc.astype(dtype).astype(jnp.float32)
 
 
-# -- norm + q/k/v GEMM + RoPE -----------------------------------------------------------------------------------------
-def _norm_qkv_rope_kernel(x_ref, mod_ref, w_ref, cos_ref, sin_ref, o_ref, *, m, bm, bk, bh, hp, width, n_true,
-                          mod_row, adaptive, num_heads, num_kv_heads, q_scale):
-    i, n, j = pl.program_id(0), pl.program_id(1), pl.program_id(2)
-    rows = pl.ds(i * bm, bm)
-    dtype = x_ref.dtype
-    inv = _inv_rms(x_ref, rows, bm, width, bk, n_true)
-    c1, c2 = (2 * n) * hp + j * bh, (2 * n + 1) * hp + j * bh
+# -- split-K GEMM (with a norm's prologue) --------------------------------------------------------------------------
+def _partials_kernel(y_ref, mod_ref, w_ref, o_ref, *side, m, bm, bn, bk, chunk, mod_row, scaled, adaptive):
+    """Program (i, j, s): rows block i, columns block j, K chunk s -> o[s] = y' @ w over the chunk, y' = y, or
+    y * (1 + scale) (scaled). Side outputs: the chunk's sum of squares of y per row (scaled; by the j = 0 programs)
+    and shift @ w over the chunk (adaptive; by the i = 0 programs, 16 equal rows: a dot needs 16)."""
+    i, j, s = pl.program_id(0), pl.program_id(1), pl.program_id(2)
+    rows, cols = pl.ds(i * bm, bm), pl.ds(j * bn, bn)
+    dtype = y_ref.dtype
 
     def body(kk, acc):
-        ks = pl.ds(kk * bk, bk)
-        h = _normed(x_ref, mod_ref, rows, ks, inv, mod_row, adaptive, dtype)
-        return acc[0] + _dot(h, w_ref[ks, pl.ds(c1, bh)]), acc[1] + _dot(h, w_ref[ks, pl.ds(c2, bh)])
+        ks = pl.ds(s * chunk + kk * bk, bk)
+        w = w_ref[ks, cols]
+        if not scaled:
+            return (acc[0] + _dot(y_ref[rows, ks], w),)
+        x, h = _scaled(y_ref, mod_ref, rows, ks, mod_row, dtype)
+        acc = (acc[0] + _dot(h, w), acc[1] + jnp.sum(x * x, axis=1), *acc[2:])
+        if adaptive:
+            shift = jnp.broadcast_to(mod_ref[pl.ds(mod_row + 1, 1), ks], (ALIGN, bk))
+            acc = (*acc[:2], acc[2] + _dot(shift, w))
+        return acc
 
-    zero = jnp.zeros((bm, bh), jnp.float32)
-    a1, a2 = jax.lax.fori_loop(0, width // bk, body, (zero, zero))
-    a1, a2 = _round(a1, dtype), _round(a2, dtype)
-    # RoPE in f32, then the dtype; v heads read the tables' identity rows (cos 1, sin 0: a1, a2 come back exactly).
-    # q is then scaled in the dtype: the blend 1 + (q_scale - 1) * is_q is exact (q_scale is a dtype value in (0, 1]).
-    # Integer arithmetic on the head index, not selects: Triton rejects a select with a scalar predicate.
-    is_v = jnp.minimum(jnp.maximum(n - (num_heads + num_kv_heads) + 1, 0), 1)
-    is_q = jnp.minimum(jnp.maximum(num_heads - n, 0), 1)
-    t_rows = pl.ds(is_v * m + i * bm, bm)
-    cos, sin = cos_ref[t_rows, pl.ds(j * bh, bh)], sin_ref[t_rows, pl.ds(j * bh, bh)]
-    scale = 1.0 + (q_scale - 1.0) * is_q.astype(jnp.float32)
-    o_ref[rows, pl.ds(c1, bh)] = (_round(a1 * cos - a2 * sin, dtype) * scale).astype(o_ref.dtype)
-    o_ref[rows, pl.ds(c2, bh)] = (_round(a2 * cos + a1 * sin, dtype) * scale).astype(o_ref.dtype)
+    init = (jnp.zeros((bm, bn), jnp.float32),)
+    init += (jnp.zeros((bm,), jnp.float32),) if scaled else ()
+    init += (jnp.zeros((ALIGN, bn), jnp.float32),) if adaptive else ()
+    acc = jax.lax.fori_loop(0, chunk // bk, body, init)
+    o_ref[pl.ds(s * m + i * bm, bm), cols] = acc[0]
+    if scaled:
+        @pl.when(j == 0)
+        def _():
+            side[0][pl.ds(s * m + i * bm, bm)] = acc[1]
+    if adaptive:
+        @pl.when(i == 0)
+        def _():
+            side[1][pl.ds(s * ALIGN, ALIGN), cols] = acc[2]
+
+
+def matmul_partials(y, w, mods=None, mod_row: int = 0, *, scaled: bool = False, adaptive: bool = False,
+                    cols: int, splits: int, blocks: Blocks = Blocks()):
+    """y (M, E) @ w (E, N) as `splits` f32 partials over K chunks -> (parts (S, M, N), sums of squares (S, M) or None,
+    shift products (S, N) or None). scaled: y * (1 + mods[mod_row]) enters the GEMM (a norm's scale; mods (R, E));
+    adaptive: also mods[mod_row + 1] @ w (adaRMS's shift). splits falls back to 1 where E does not split into
+    multiples of 16."""
+    m, e = y.shape
+    n = w.shape[1]
+    splits = splits if e % (ALIGN * splits) == 0 else 1
+    chunk = e // splits
+    bm, bn, bk = _fit(blocks.rows, m), _fit(cols, n), _fit(blocks.k, chunk)
+    kernel = functools.partial(_partials_kernel, m=m, bm=bm, bn=bn, bk=bk, chunk=chunk, mod_row=mod_row,
+                               scaled=scaled, adaptive=adaptive)
+    out = [jax.ShapeDtypeStruct((splits * m, n), jnp.float32)]
+    out += [jax.ShapeDtypeStruct((splits * m,), jnp.float32)] if scaled else []
+    out += [jax.ShapeDtypeStruct((splits * ALIGN, n), jnp.float32)] if adaptive else []
+    mods = jnp.zeros((1, ALIGN), y.dtype) if mods is None else mods
+    res = _call(kernel, (m // bm, n // bn, splits), out, blocks, "matmul_partials")(y, mods, w)
+    parts = res[0].reshape(splits, m, n)
+    ss = res[1].reshape(splits, m) if scaled else None
+    shift = res[-1].reshape(splits, ALIGN, n)[:, 0] if adaptive else None
+    return parts, ss, shift
+
+
+def _normed_product(x, mods, mod_row, adaptive, w, *, width, cols, splits, blocks):
+    """norm(x) @ w as the GEMM's f32 result (before rounding): the split sum times 1 / rms, plus shift @ w."""
+    parts, ss, shift = matmul_partials(x, w, mods, mod_row, scaled=True, adaptive=adaptive, cols=cols,
+                                       splits=splits, blocks=blocks)
+    inv = jax.lax.rsqrt(sum(list(ss)) / width + EPS)[:, None]
+    acc = sum(list(parts)) * inv
+    return acc + sum(list(shift))[None] if adaptive else acc
 
 
 def norm_qkv_rope(x, mods, mod_row: int, adaptive: bool, w_qkv, cos, sin, *, width: int, num_heads: int,
@@ -135,50 +174,69 @@ def norm_qkv_rope(x, mods, mod_row: int, adaptive: bool, w_qkv, cos, sin, *, wid
     """x (M, D) -> qkv (M, (N + 2K) * 2hp): normed, projected, q/k rotated, q scaled by head_dim^-0.5.
 
     mods (R, D): row mod_row is the norm scale, +1 the adaRMS shift (adaptive); w_qkv (D, (N + 2K) * 2hp);
-    cos / sin (2M, hp) f32 (`layout.rope_tables`: the rows' angles, then identity rows); width: the true D (the
-    mean's divisor).
+    cos / sin (M, hp) f32 (`layout.rope_tables`); width: the true D (the mean's divisor).
     """
-    m, d = x.shape
-    hp = cos.shape[1]
-    heads = num_heads + 2 * num_kv_heads
-    bm, bk, bh = _fit(blocks.rows, m), _fit(blocks.k, d), _fit(blocks.qkv_cols, hp)
-    q_scale = float(np.asarray(head_dim**-0.5, x.dtype))  # the reference scales q in the activation dtype
-    kernel = functools.partial(_norm_qkv_rope_kernel, m=m, bm=bm, bk=bk, bh=bh, hp=hp, width=d, n_true=width,
-                               mod_row=mod_row, adaptive=adaptive, num_heads=num_heads, num_kv_heads=num_kv_heads,
-                               q_scale=q_scale)
-    out = jax.ShapeDtypeStruct((m, heads * 2 * hp), x.dtype)
-    return _call(kernel, (m // bm, heads, hp // bh), out, blocks, "norm_qkv_rope")(x, mods, w_qkv, cos, sin)
+    m, dtype = x.shape[0], x.dtype
+    heads, hp = num_heads + 2 * num_kv_heads, cos.shape[1]
+    acc = _normed_product(x, mods, mod_row, adaptive, w_qkv, width=width, cols=blocks.qkv_cols,
+                          splits=blocks.qkv_splits, blocks=blocks)
+    a = _round(acc, dtype).reshape(m, heads, 2, hp)
+    a1, a2, c, s = a[:, :, 0], a[:, :, 1], cos[:, None], sin[:, None]
+    # RoPE in f32, then the dtype, for q and k heads; q is then scaled in the dtype (q_scale is a dtype value)
+    rotary = (jnp.arange(heads) < num_heads + num_kv_heads)[None, :, None]
+    r1 = jnp.where(rotary, _round(a1 * c - a2 * s, dtype), a1)
+    r2 = jnp.where(rotary, _round(a2 * c + a1 * s, dtype), a2)
+    q_scale = float(np.asarray(head_dim**-0.5, dtype))
+    scale = jnp.where(jnp.arange(heads) < num_heads, q_scale, 1.0)[None, :, None, None]
+    return (jnp.stack([r1, r2], axis=2) * scale).astype(dtype).reshape(m, heads * 2 * hp)
 
 
 # -- attention over [cached prefix | suffix] ---------------------------------------------------------------------------
-def _attention_kernel(qkv_ref, ck_ref, cv_ref, pmask_ref, smask_ref, o_ref, *, bq, bkv, sp, pp, hd, num_heads,
-                      num_kv_heads):
-    b, n, qi = pl.program_id(0), pl.program_id(1), pl.program_id(2)
+def _attention_kernel(qkv_ref, ck_ref, cv_ref, pmask_ref, smask_ref, o_ref, lse_ref, *, m, bq, bkv, sp, pp, hd,
+                      num_heads, num_kv_heads, splits, per_split):
+    """Program (b, n, qi, s): query block qi of head n over prefix key blocks [s * per_split, (s + 1) * per_split)
+    (s < splits; blocks past the cache are masked), or over the suffix keys (s == splits). Writes the split's
+    normalised output (in the dtype) and its log-sum-exp (f32)."""
+    b, n, qi, s = pl.program_id(0), pl.program_id(1), pl.program_id(2), pl.program_id(3)
     kh = jax.lax.div(n, num_heads // num_kv_heads) if num_kv_heads > 1 else 0  # this query head's kv head
     rows = pl.ds(b * sp + qi * bq, bq)
     q = qkv_ref[rows, pl.ds(n * hd, hd)]
     dtype = q.dtype
+    blocks = pp // bkv
 
     def update(carry, k, v, valid):
-        o, m, l = carry
+        o, mx, l = carry
         logits = jnp.where(valid, _dot(q, k, trans_b=True), BIG_NEG)  # f32
-        m_new = jnp.maximum(m, jnp.max(logits, axis=1))
-        corr = jnp.exp(m - m_new)
+        m_new = jnp.maximum(mx, jnp.max(logits, axis=1))
+        corr = jnp.exp(mx - m_new)
         p = jnp.exp(logits - m_new[:, None])
         return o * corr[:, None] + _dot(p.astype(dtype), v), m_new, l * corr + jnp.sum(p, axis=1)
 
-    def prefix_block(t, carry):
-        keys = pl.ds(b * pp + t * bkv, bkv)
-        valid = pmask_ref[pl.ds(b, 1), pl.ds(t * bkv, bkv)] != 0
-        return update(carry, ck_ref[keys, pl.ds(kh * hd, hd)], cv_ref[keys, pl.ds(kh * hd, hd)], valid)
+    def write(carry):
+        o, mx, l = carry
+        out_rows = pl.ds(s * m + b * sp + qi * bq, bq)
+        o_ref[out_rows, pl.ds(n * hd, hd)] = (o / l[:, None]).astype(o_ref.dtype)
+        lse_ref[out_rows, pl.ds(n, 1)] = (mx + jnp.log(l))[:, None]
 
     init = (jnp.zeros((bq, hd), jnp.float32), jnp.full((bq,), BIG_NEG, jnp.float32), jnp.zeros((bq,), jnp.float32))
-    carry = jax.lax.fori_loop(0, pp // bkv, prefix_block, init)
-    suffix = pl.ds(b * sp, sp)
-    k_col, v_col = (num_heads + kh) * hd, (num_heads + num_kv_heads + kh) * hd
-    o, _, l = update(carry, qkv_ref[suffix, pl.ds(k_col, hd)], qkv_ref[suffix, pl.ds(v_col, hd)],
-                     smask_ref[rows, :] != 0)
-    o_ref[rows, pl.ds(n * hd, hd)] = (o / l[:, None]).astype(o_ref.dtype)
+
+    @pl.when(s < splits)
+    def _prefix():
+        def block(t, carry):
+            t = s * per_split + t
+            tc = jnp.minimum(t, blocks - 1)  # a block past the cache reads the last one, all masked
+            keys = pl.ds(b * pp + tc * bkv, bkv)
+            valid = (pmask_ref[pl.ds(b, 1), pl.ds(tc * bkv, bkv)] != 0) & (t < blocks)
+            return update(carry, ck_ref[keys, pl.ds(kh * hd, hd)], cv_ref[keys, pl.ds(kh * hd, hd)], valid)
+
+        write(jax.lax.fori_loop(0, per_split, block, init))
+
+    @pl.when(s == splits)
+    def _suffix():
+        suffix = pl.ds(b * sp, sp)
+        k_col, v_col = (num_heads + kh) * hd, (num_heads + num_kv_heads + kh) * hd
+        write(update(init, qkv_ref[suffix, pl.ds(k_col, hd)], qkv_ref[suffix, pl.ds(v_col, hd)],
+                     smask_ref[rows, :] != 0))
 
 
 def attention(qkv, cache_k, cache_v, prefix_mask, suffix_mask, *, batch: int, num_heads: int, num_kv_heads: int,
@@ -186,96 +244,44 @@ def attention(qkv, cache_k, cache_v, prefix_mask, suffix_mask, *, batch: int, nu
     """Softmax attention of the suffix queries over [cached prefix | suffix] keys -> (M, N * 2hp).
 
     qkv (M, (N + 2K) * 2hp) from `norm_qkv_rope`; cache_k / cache_v (B * P, K * 2hp); prefix_mask (B, P) int32, the
-    same for every query; suffix_mask (M, Sp) int32, query row -> suffix key.
+    same for every query; suffix_mask (M, Sp) int32, query row -> suffix key. The prefix keys are split over
+    `blocks.kv_splits` programs per query block, the suffix keys take one more; the splits' softmaxes are merged
+    by their log-sum-exp. A split whose keys are all masked has a log-sum-exp of about BIG_NEG and weight 0.
     """
     m, sp = suffix_mask.shape
     hd = qkv.shape[1] // (num_heads + 2 * num_kv_heads)
     pp = prefix_mask.shape[1]
     bq, bkv = _fit(blocks.q, sp), _fit(blocks.kv, pp)
-    kernel = functools.partial(_attention_kernel, bq=bq, bkv=bkv, sp=sp, pp=pp, hd=hd, num_heads=num_heads,
-                               num_kv_heads=num_kv_heads)
-    out = jax.ShapeDtypeStruct((m, num_heads * hd), qkv.dtype)
-    return _call(kernel, (batch, num_heads, sp // bq), out, blocks, "expert_attention", blocks.attention_warps)(
-        qkv, cache_k, cache_v, prefix_mask, suffix_mask)
+    splits = max(1, min(blocks.kv_splits, pp // bkv))
+    per_split = -(-(pp // bkv) // splits)
+    kernel = functools.partial(_attention_kernel, m=m, bq=bq, bkv=bkv, sp=sp, pp=pp, hd=hd, num_heads=num_heads,
+                               num_kv_heads=num_kv_heads, splits=splits, per_split=per_split)
+    out = (jax.ShapeDtypeStruct(((splits + 1) * m, num_heads * hd), qkv.dtype),
+           jax.ShapeDtypeStruct(((splits + 1) * m, num_heads), jnp.float32))
+    o, lse = _call(kernel, (batch, num_heads, sp // bq, splits + 1), out, blocks, "expert_attention",
+                   blocks.attention_warps)(qkv, cache_k, cache_v, prefix_mask, suffix_mask)
+    # merge, elementwise over the splits (one XLA fusion): sum_s exp(lse_s - max) o_s / sum_s exp(lse_s - max)
+    o = list(o.reshape(splits + 1, m, num_heads, hd).astype(jnp.float32))
+    lse = list(lse.reshape(splits + 1, m, num_heads, 1))
+    top = functools.reduce(jnp.maximum, lse)
+    weights = [jnp.exp(x - top) for x in lse]
+    merged = sum(w * x for w, x in zip(weights, o)) / sum(weights)
+    return merged.astype(qkv.dtype).reshape(m, num_heads * hd)
 
 
-# -- GEMM + (gated) residual -------------------------------------------------------------------------------------------
-def _matmul_residual_kernel(y_ref, w_ref, x_ref, mod_ref, o_ref, *, bm, bn, bk, depth, gate_row):
-    i, j = pl.program_id(0), pl.program_id(1)
-    rows, cols = pl.ds(i * bm, bm), pl.ds(j * bn, bn)
-
-    def body(kk, acc):
-        ks = pl.ds(kk * bk, bk)
-        return acc + _dot(y_ref[rows, ks], w_ref[ks, cols])
-
-    dtype = x_ref.dtype
-    y = _round(jax.lax.fori_loop(0, depth // bk, body, jnp.zeros((bm, bn), jnp.float32)), dtype)
-    if gate_row is not None:
-        y = _round(y * mod_ref[pl.ds(gate_row, 1), cols].astype(jnp.float32), dtype)
-    o_ref[rows, cols] = (x_ref[rows, cols].astype(jnp.float32) + y).astype(o_ref.dtype)
-
-
-def _matmul_partial_kernel(y_ref, w_ref, o_ref, *, m, bm, bn, bk, chunk):
-    i, j, s = pl.program_id(0), pl.program_id(1), pl.program_id(2)
-    rows, cols = pl.ds(i * bm, bm), pl.ds(j * bn, bn)
-
-    def body(kk, acc):
-        ks = pl.ds(s * chunk + kk * bk, bk)
-        return acc + _dot(y_ref[rows, ks], w_ref[ks, cols])
-
-    o_ref[pl.ds(s * m + i * bm, bm), cols] = jax.lax.fori_loop(0, chunk // bk, body, jnp.zeros((bm, bn), jnp.float32))
-
-
-def matmul_residual(y, w, x, mods=None, gate_row: int | None = None, *, splits: int = 1,
-                    blocks: Blocks = Blocks()):
+# -- GEMM + (gated) residual, norm + gate/up GEMM + GeGLU --------------------------------------------------------------
+def matmul_residual(y, w, x, mods=None, gate_row: int | None = None, *, splits: int, blocks: Blocks = Blocks()):
     """x + (y @ w) [* mods[gate_row]]: y (M, E), w (E, D), x (M, D); the π0.5 adaRMS gate is a row of mods (R, D).
-
-    splits > 1 (where E splits into multiples of 16): split-K, so that a B=1 GEMM fills the GPU; the kernel writes
-    f32 partials and one XLA fusion sums them, rounds to the dtype and applies the gate and the residual (the XLA
-    path's ops, in its order).
-    """
-    m, e = y.shape
-    d = w.shape[1]
-    if splits > 1 and e % (ALIGN * splits) == 0:
-        chunk = e // splits
-        bm, bn, bk = _fit(blocks.rows, m), _fit(blocks.out_cols, d), _fit(blocks.k, chunk)
-        kernel = functools.partial(_matmul_partial_kernel, m=m, bm=bm, bn=bn, bk=bk, chunk=chunk)
-        out = jax.ShapeDtypeStruct((splits * m, d), jnp.float32)
-        part = _call(kernel, (m // bm, d // bn, splits), out, blocks, "matmul_partial")(y, w)
-        z = part.reshape(splits, m, d).sum(axis=0).astype(x.dtype)
-        return x + (z if gate_row is None else z * mods[gate_row])
-    bm, bn, bk = _fit(blocks.rows, m), _fit(blocks.out_cols, d), _fit(blocks.k, e)
-    kernel = functools.partial(_matmul_residual_kernel, bm=bm, bn=bn, bk=bk, depth=e, gate_row=gate_row)
-    mods = jnp.zeros((1, d), x.dtype) if mods is None else mods
-    out = jax.ShapeDtypeStruct(x.shape, x.dtype)
-    return _call(kernel, (m // bm, d // bn), out, blocks, "matmul_residual")(y, w, x, mods)
-
-
-# -- norm + gate/up GEMM + GeGLU ---------------------------------------------------------------------------------------
-def _norm_geglu_kernel(x_ref, mod_ref, w_ref, o_ref, *, bm, bn, bk, width, n_true, hidden, mod_row, adaptive):
-    i, j = pl.program_id(0), pl.program_id(1)
-    rows = pl.ds(i * bm, bm)
-    dtype = x_ref.dtype
-    inv = _inv_rms(x_ref, rows, bm, width, bk, n_true)
-
-    def body(kk, acc):
-        ks = pl.ds(kk * bk, bk)
-        h = _normed(x_ref, mod_ref, rows, ks, inv, mod_row, adaptive, dtype)
-        return (acc[0] + _dot(h, w_ref[ks, pl.ds(j * bn, bn)]),
-                acc[1] + _dot(h, w_ref[ks, pl.ds(hidden + j * bn, bn)]))
-
-    zero = jnp.zeros((bm, bn), jnp.float32)
-    gate, up = jax.lax.fori_loop(0, width // bk, body, (zero, zero))
-    gate = _round(jax.nn.gelu(_round(gate, dtype), approximate=True), dtype)
-    o_ref[rows, pl.ds(j * bn, bn)] = (gate * _round(up, dtype)).astype(o_ref.dtype)
+    The split sum is rounded to the dtype, then the gate and the residual (the XLA path's ops, in its order)."""
+    parts, _, _ = matmul_partials(y, w, cols=blocks.out_cols, splits=splits, blocks=blocks)
+    z = sum(list(parts)).astype(x.dtype)
+    return x + (z if gate_row is None else z * mods[gate_row])
 
 
 def norm_geglu(x, mods, mod_row: int, adaptive: bool, w_gate_up, *, width: int, blocks: Blocks = Blocks()):
     """gelu_tanh(h @ w_gate) * (h @ w_up) with h = norm(x): x (M, D), w_gate_up (D, 2F) = [gate | up] -> (M, F)."""
-    m, d = x.shape
-    hidden = w_gate_up.shape[1] // 2
-    bm, bn, bk = _fit(blocks.rows, m), _fit(blocks.mlp_cols, hidden), _fit(blocks.k, d)
-    kernel = functools.partial(_norm_geglu_kernel, bm=bm, bn=bn, bk=bk, width=d, n_true=width, hidden=hidden,
-                               mod_row=mod_row, adaptive=adaptive)
-    out = jax.ShapeDtypeStruct((m, hidden), x.dtype)
-    return _call(kernel, (m // bm, hidden // bn), out, blocks, "norm_geglu")(x, mods, w_gate_up)
+    dtype, hidden = x.dtype, w_gate_up.shape[1] // 2
+    acc = _normed_product(x, mods, mod_row, adaptive, w_gate_up, width=width, cols=blocks.mlp_cols,
+                          splits=blocks.mlp_splits, blocks=blocks)
+    gate = _round(jax.nn.gelu(_round(acc[:, :hidden], dtype), approximate=True), dtype)
+    return (gate * _round(acc[:, hidden:], dtype)).astype(dtype)

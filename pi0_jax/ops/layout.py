@@ -93,11 +93,8 @@ def mods(m, width: int):
 
 
 def rope_tables(positions, head_dim: int, max_wavelength: float = 10_000):
-    """positions (B, Sp) -> cos, sin (2 B Sp, hp) f32: the angles of `pi0_jax.gemma.apply_rope` for each row, then
-    as many identity rows (cos 1, sin 0) that v heads read, so one kernel body serves q, k and v."""
+    """positions (B, Sp) -> cos, sin (B Sp, hp) f32: the angles of `pi0_jax.gemma.apply_rope` for each row."""
     half = head_dim // 2
     timescale = max_wavelength ** ((2.0 / head_dim) * jnp.arange(half, dtype=jnp.float32))
     radians = positions.reshape(-1)[:, None].astype(jnp.float32) / timescale
-    cos = jnp.concatenate([jnp.cos(radians), jnp.ones_like(radians)])
-    sin = jnp.concatenate([jnp.sin(radians), jnp.zeros_like(radians)])
-    return _pad(cos, 1, half_dim(head_dim)), _pad(sin, 1, half_dim(head_dim))
+    return _pad(jnp.cos(radians), 1, half_dim(head_dim)), _pad(jnp.sin(radians), 1, half_dim(head_dim))
