@@ -413,3 +413,16 @@ def test_cli_serves_and_exits_cleanly_on_sigterm(ckpt):
         if proc.poll() is None:
             proc.kill()
             proc.wait(10)
+
+
+def test_serve_cli_passes_the_kernel_path_to_the_policy():
+    import argparse
+
+    from pi0_jax.serve import cli as serve_cli
+
+    parser = argparse.ArgumentParser()
+    serve_cli.add_serve_parser(parser.add_subparsers())
+    assert serve_cli._policy_kwargs(parser.parse_args(["serve"]))["kernels"] == "xla"
+    assert serve_cli._policy_kwargs(parser.parse_args(["serve", "--kernels", "pallas"]))["kernels"] == "pallas"
+    with pytest.raises(SystemExit):
+        parser.parse_args(["serve", "--kernels", "triton"])

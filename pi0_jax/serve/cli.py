@@ -69,6 +69,11 @@ def add_serve_parser(subparsers) -> None:
     pol.add_argument("--dtype", choices=("float32", "bfloat16"), default=None,
                      help="param and compute dtype (default: float32 on CPU, where XLA only emulates bfloat16; "
                           "the checkpoint's on an accelerator)")
+    pol.add_argument("--kernels", choices=("xla", "pallas"), default="xla",
+                     help="the action expert's layers in the denoise step: XLA ops, or the Pallas kernels of "
+                          "pi0_jax.ops (on an H200 at batch 1: 0.83 against 1.09 ms per flow step, docs/BENCHMARKS.md "
+                          "'Fused kernels'; tuned for small batches; on a CPU they run interpreted, slowly). "
+                          "Default: %(default)s")
     pol.add_argument("--tokenizer", type=Path, default=None, metavar="FILE",
                      help="PaliGemma SentencePiece model (default: CHECKPOINT/tokenizer.model, then "
                           "CHECKPOINT/assets/tokenizer.model)")
@@ -91,7 +96,7 @@ def _policy_kwargs(args: argparse.Namespace) -> dict:
     """The keyword arguments for `Policy.from_checkpoint`; the optional ones only when given."""
     import jax
 
-    kwargs = {"num_steps": args.num_steps, "seed": args.seed, "max_batch": args.max_batch,
+    kwargs = {"num_steps": args.num_steps, "seed": args.seed, "max_batch": args.max_batch, "kernels": args.kernels,
               "dtype": args.dtype if args.dtype or jax.default_backend() != "cpu" else "float32"}
     optional = {"tokenizer_path": args.tokenizer, "norm_stats": args.norm_stats, "strict": args.strict}
     return {**kwargs, **{k: v for k, v in optional.items() if v is not None}}
