@@ -71,8 +71,9 @@ def add_serve_parser(subparsers) -> None:
                           "the checkpoint's on an accelerator)")
     pol.add_argument("--kernels", choices=("xla", "pallas"), default="xla",
                      help="the action expert's layers in the denoise step: XLA ops, or the Pallas kernels of "
-                          "pi0_jax.ops (on an H200 at batch 1: 0.83 against 1.09 ms per flow step, docs/BENCHMARKS.md "
-                          "'Fused kernels'; tuned for small batches; on a CPU they run interpreted, slowly). "
+                          "pi0_jax.ops. On an H200, Pallas is faster for a batch of 1 (0.83 against 1.09 ms per "
+                          "flow step) and slower for a batch of 8 (3.9 against 2.5 ms): docs/BENCHMARKS.md, 'Fused "
+                          "kernels'. On a CPU they run interpreted, slowly. "
                           "Default: %(default)s")
     pol.add_argument("--tokenizer", type=Path, default=None, metavar="FILE",
                      help="PaliGemma SentencePiece model (default: CHECKPOINT/tokenizer.model, then "
