@@ -82,10 +82,6 @@ def xla_stages(cfg, out, xs, w, pos, ck, cv, pmask, ys, hs, s, p, rnd, args):
         args.iters)
 
 
-# The blocks that each sweep variant changes (the defaults of `Blocks`)
-SWEEP_BASE = dataclasses.asdict(ek.Blocks())
-
-
 def stages(config, args, key):
     """Per-stage timings of one expert layer at full size (B=1): XLA ops vs each kernel over a block sweep."""
     cfg, dt = config.action_expert, jnp.bfloat16
@@ -148,7 +144,7 @@ def stages(config, args, key):
         rows = []
         for v in variants[: args.max_variants]:
             try:
-                rows.append((stage_ms(make(ek.Blocks(**{**SWEEP_BASE, **v})), varying, fixed, args.iters), v))
+                rows.append((stage_ms(make(dataclasses.replace(ek.Blocks(), **v)), varying, fixed, args.iters), v))
             except Exception as e:  # a variant Triton rejects (e.g. out of shared memory) is reported, not fatal
                 rows.append((float("inf"), {**v, "error": f"{type(e).__name__}: {str(e)[:200]}"}))
         rows.sort(key=lambda r: r[0])
@@ -161,10 +157,10 @@ def stages(config, args, key):
     take = {"norm_qkv_rope": ("qkv_cols", "qkv_splits"), "attention": ("q", "kv", "kv_splits", "attention_warps"),
             "out_residual": ("out_splits",), "norm_geglu": ("mlp_cols", "mlp_splits", "k", "num_stages", "num_warps"),
             "down_residual": ("out_cols", "down_splits")}
-    fields = dict(SWEEP_BASE)
+    fields = {}
     for name, keys in take.items():
         fields.update({k: v for k, v in best[name][1].items() if k in keys})
-    blocks = ek.Blocks(**fields)
+    blocks = dataclasses.replace(ek.Blocks(), **fields)
     out["best_blocks"] = dataclasses.asdict(blocks)
     print("best blocks", blocks, flush=True)
     return out, blocks

@@ -63,26 +63,17 @@ def kernel_times(fn, calls: int = 5, log_dir: str | None = None) -> dict:
     gpu = {pid for pid, name in procs.items() if "GPU" in name.upper()}
     # kernels sit on the device's "Stream #N" lines; other device lines (XLA Ops / Modules) repeat them as spans
     gpu_lines = {key: name for key, name in threads.items() if key[0] in gpu}
-    streams = {key for key, name in gpu_lines.items() if name.startswith("Stream")}
     rows = collections.defaultdict(lambda: [0, 0.0])
     for e in events:
-        if e.get("ph") == "X" and (e["pid"], e.get("tid")) in streams:
+        if e.get("ph") == "X" and gpu_lines.get((e["pid"], e.get("tid")), "").startswith("Stream"):
             name = re.sub(r"([._]\d+)+$", "", e["name"])
             rows[name][0] += 1
             rows[name][1] += float(e.get("dur", 0.0))
-    per_line = collections.defaultdict(lambda: [0, 0.0])
-    for e in events:
-        if e.get("ph") == "X" and (e["pid"], e.get("tid")) in gpu_lines:
-            line = per_line[gpu_lines[(e["pid"], e["tid"])]]
-            line[0] += 1
-            line[1] += float(e.get("dur", 0.0)) / 1e3 / calls
     launched = sum(c for c, _ in rows.values()) / calls
     busy_us = sum(t for _, t in rows.values()) / calls
     top = sorted(rows.items(), key=lambda kv: -kv[1][1])
     return {"calls": calls, "wall_ms": wall * 1e3, "kernels_per_call": launched, "kernel_ms": busy_us / 1e3,
-            "busy": busy_us / 1e3 / (wall * 1e3) if wall else None,
-            "device_lines": sorted(gpu_lines.values()), "stream_lines": sorted(gpu_lines[k] for k in streams),
-            "per_line_events_ms": dict(per_line),
+            "busy": busy_us / 1e3 / (wall * 1e3) if wall else None, "device_lines": sorted(gpu_lines.values()),
             "by_name": [{"name": n, "per_call": c / calls, "us_per_call": t / calls} for n, (c, t) in top[:60]]}
 
 
