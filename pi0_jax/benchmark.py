@@ -59,11 +59,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "quantised --checkpoint is used as stored")
     p.add_argument("--no-unroll", action="store_true", help="scan over layers instead of unrolling them")
     p.add_argument("--unroll-steps", action="store_true", help="unroll the denoise loop as well")
-    p.add_argument("--attention", choices=["xla", "cudnn"], default="xla",
-                   help="denoise attention: XLA ops or one cuDNN fused kernel (GPU) (default: %(default)s)")
-    p.add_argument("--kernels", choices=["xla", "pallas"], default="xla",
-                   help="the action expert's layers as XLA ops or as the fused Pallas kernels of pi0_jax.ops "
-                        "(Triton on GPU) (default: %(default)s)")
+    p.add_argument("--attention", default="auto",
+                   help="each stage's attention: xla (the reference's ops), cudnn (one fused flash kernel), auto "
+                        "(the faster per stage on a GPU: cuDNN in vision and the prefix, XLA in the denoise step; "
+                        "XLA on a CPU), or per stage, e.g. vision=cudnn,prefix=xla,denoise=xla (default: %(default)s)")
+    p.add_argument("--kernels", choices=["auto", "xla", "pallas"], default="auto",
+                   help="the action expert's layers as XLA ops, as the fused Pallas kernels of pi0_jax.ops "
+                        "(Triton on GPU), or auto: the kernels at batch 1 on a GPU, XLA otherwise; each row "
+                        "records the path it ran (default: %(default)s)")
     p.add_argument("--reference", action="store_true",
                    help="also time the reference model (pi0_jax.pi0.sample_actions: openpi's structure, layers "
                         "scanned, one jit) at each batch for the largest step count")
@@ -142,7 +145,6 @@ def bench_engine(engine: Engine, args, batch: int) -> list[dict]:
     cfg = engine.config
     sets = [make_inputs(cfg, batch, args.cameras, args.prompt_tokens, args.seed + i) for i in range(args.input_sets)]
     cameras, bucket = engine.plan(sets[0][0])
-    attention = engine.attention_for(sets[0][0], cameras)
     packed = [engine.pack(obs, cameras, bucket) for obs, _ in sets]
     w = engine.weights
     enc = engine.executable("encode_images", batch, 0, cameras, bucket)
@@ -154,19 +156,19 @@ def bench_engine(engine: Engine, args, batch: int) -> list[dict]:
     rows = []
     for steps in args.steps:
         sched = engine.schedule(steps)
-        den = engine.executable("denoise", batch, steps, cameras, bucket, attention)
+        den = engine.executable("denoise", batch, steps, cameras, bucket)
         # denoise donates its noise argument: hand it a fresh copy each call
         t_den = time_calls(lambda c, p, n: den(w, sched, c, p[4], jnp.copy(n)),
                            [(c, p, n) for c, p, (_, n) in zip(caches, packed, sets)], args.iters, args.warmup)
         row = {"dtype": cfg.dtype, "batch": batch, "steps": steps, "cameras": len(cameras), "prompt_bucket": bucket,
-               "attention": attention, "kernels": engine.kernels,
+               "attention": str(engine.attention), "kernels": engine.kernels_for(batch),
                "vision": t_vis, "prefix": t_pre, "denoise": t_den,
                "denoise_per_step_ms": t_den["median_ms"] / steps}
         if args.fused_steps is None or steps in args.fused_steps:
-            fused = engine.executable("infer", batch, steps, cameras, bucket, attention)
+            fused = engine.executable("infer", batch, steps, cameras, bucket)
             row["total"] = time_calls(lambda p, n: fused(w, sched, *p, jnp.copy(n)),
                                       [(p, n) for p, (_, n) in zip(packed, sets)], args.iters, args.warmup)
-            key = ("infer", batch, steps, cameras, bucket, attention)
+            key = ("infer", batch, steps, cameras, bucket)
             row["compile_s"] = engine.compile_seconds.get(key)
         total = row.get("total", {}).get("median_ms") or (t_vis["median_ms"] + t_pre["median_ms"] + t_den["median_ms"])
         row["total_ms"], row["hz"], row["samples_per_s"] = total, 1e3 / total, 1e3 * batch / total
@@ -200,7 +202,8 @@ from pi0_jax.config import get_config
 from pi0_jax.engine import Engine
 cfg = get_config(sys.argv[1], dtype=sys.argv[2])
 params = benchmark.random_params(cfg, 0)
-engine = Engine(cfg, params, unroll=sys.argv[4] == "1", kernels=sys.argv[8], cache_dir=sys.argv[3])
+engine = Engine(cfg, params, unroll=sys.argv[4] == "1", kernels=sys.argv[8], attention=sys.argv[9],
+                cache_dir=sys.argv[3])
 obs, noise = benchmark.make_inputs(cfg, 1, int(sys.argv[5]), int(sys.argv[6]), 0)
 start = time.perf_counter()
 engine.executable("infer", 1, int(sys.argv[7]), *engine.plan(obs))
@@ -211,7 +214,7 @@ print(json.dumps({"warm_compile_s": time.perf_counter() - start, "process_s": ti
 def measure_warm_start(config: Pi0Config, args, cache_dir: Path, steps: int) -> dict:
     out = subprocess.run([sys.executable, "-c", _WARM_CHILD, config.name, config.dtype, str(cache_dir),
                           "0" if args.no_unroll else "1", str(args.cameras), str(args.prompt_tokens), str(steps),
-                          args.kernels],
+                          args.kernels, args.attention],
                          capture_output=True, text=True, check=True).stdout
     return json.loads(out.strip().splitlines()[-1])
 
@@ -228,6 +231,7 @@ TABLE_HEADER = ("| dtype | batch | steps | total ms | Hz | vision ms | prefix KV
 
 def markdown(results: dict) -> str:
     lines = [f"{results['env']['device']} · {results['preset']} · kernels {results['env'].get('kernels', 'xla')} · "
+             f"attention {results['env'].get('attention', 'xla')} · "
              f"{results['env']['date']} · commit {results['env']['commit']}", "", TABLE_HEADER]
     lines += [_row_line(r) for r in results["rows"]]
     for peer in results.get("peers", []):
@@ -271,7 +275,8 @@ def chart(results: dict, path: Path) -> None:
 
 def run(args: argparse.Namespace) -> dict:
     cache_dir = args.cache_dir or Path(tempfile.mkdtemp(prefix="pi0-jax-xla-"))
-    results = {"preset": args.preset, "env": {**environment(), "kernels": args.kernels}, "rows": [], "peers": [],
+    results = {"preset": args.preset, "env": {**environment(), "kernels": args.kernels, "attention": args.attention},
+               "rows": [], "peers": [],
                "compile": {},
                "args": {k: str(v) for k, v in vars(args).items() if k != "func"}}
     print(f"{results['env']['device']} · jax {jax.__version__}\n\n{TABLE_HEADER}", flush=True)

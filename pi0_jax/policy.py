@@ -68,7 +68,7 @@ class PolicyCore:
 
     def __init__(self, config: Pi0Config, params: dict | None, tokenizer: PaligemmaTokenizer,
                  normalizer: _norm.Normalizer, *, num_steps: int = 10, action_dims: int | None = None,
-                 sampler: str = "engine", unroll: bool = True, kernels: str = "xla"):
+                 sampler: str = "engine", unroll: bool = True, kernels: str = "auto", attention: str = "auto"):
         if tokenizer.max_len != config.max_token_len:
             raise ValueError(f"tokenizer max_len {tokenizer.max_len} != config.max_token_len {config.max_token_len}")
         if sampler not in SAMPLERS:
@@ -79,7 +79,10 @@ class PolicyCore:
             raise ValueError(f"action_dims must be in [1, {config.action_dim}], got {action_dims}")
         self.config, self.tokenizer, self.normalizer = config, tokenizer, normalizer
         self.num_steps, self.action_dims, self.sampler, self.unroll = int(num_steps), int(action_dims), sampler, unroll
-        self.kernels = kernels   # the engine's expert layers: "xla" ops or the fused Pallas kernels (pi0_jax.ops)
+        # the engine's expert layers ("xla" ops, the fused Pallas kernels of pi0_jax.ops, or "auto": by batch size)
+        # and each stage's attention (`programs.Attention.parse`)
+        programs.expert_path(kernels, 1, [])
+        self.kernels, self.attention = kernels, programs.Attention.parse(attention)
         self.slots = IMAGE_KEYS[: config.num_cameras]
         # The state's dims as the stats know them (None: no stats, so only <= action_dim can be checked).
         self.state_dim = normalizer.dim(_norm.STATE)
@@ -172,7 +175,8 @@ class PolicyCore:
         if self.sampler == "engine":
             actions = programs.infer(cfg, model["weights"], self._schedule(model, num_steps), jnp.stack(pixels),
                                      image_masks, tokens, token_mask, state, noise, num_steps=num_steps,
-                                     unroll=self.unroll, unroll_steps=False, kernels=self.kernels)
+                                     unroll=self.unroll, unroll_steps=False, kernels=self.kernels,
+                                     attention=self.attention)
         else:
             b = noise.shape[0]
             black = jnp.full((b, size, size, 3), -1.0, jnp.float32)
@@ -191,19 +195,20 @@ class Policy:
 
     strict: unknown observation keys are an error (False: ignored). optional_cameras: camera slots that may be
     missing (masked, as LIBERO's absent right wrist); default `observation.DEFAULT_OPTIONAL_CAMERAS`. max_batch: the
-    largest batch one device call takes (`infer_batch` and the server split larger ones).
+    largest batch one device call takes (`infer_batch` and the server split larger ones). kernels, attention: the
+    engine's paths (`pi0_jax.engine.Engine`); the defaults pick the faster on this device for each batch size.
     """
 
     def __init__(self, config: Pi0Config, params, tokenizer: PaligemmaTokenizer, normalizer: _norm.Normalizer, *,
                  num_steps: int = 10, camera_map: Mapping[str, str | None] | None = None,
                  action_dims: int | None = None, seed: int = 0, default_prompt: str | None = None,
                  sampler: str = "engine", strict: bool = True, optional_cameras: Sequence[str] | None = None,
-                 ignore_keys: Sequence[str] = (), max_batch: int = 8, kernels: str = "xla",
-                 cache_dir: str | os.PathLike | None | bool = None):
+                 ignore_keys: Sequence[str] = (), max_batch: int = 8, kernels: str = "auto",
+                 attention: str = "auto", cache_dir: str | os.PathLike | None | bool = None):
         if cache_dir is not False:
             enable_compilation_cache(None if cache_dir in (None, True) else cache_dir)
         self.core = PolicyCore(config, params, tokenizer, normalizer, num_steps=num_steps, action_dims=action_dims,
-                               sampler=sampler, kernels=kernels)
+                               sampler=sampler, kernels=kernels, attention=attention)
         self.validator = Validator(self.core, camera_map=camera_map, default_prompt=default_prompt, strict=strict,
                                    optional_cameras=DEFAULT_OPTIONAL_CAMERAS if optional_cameras is None
                                    else optional_cameras, ignore_keys=ignore_keys)
@@ -356,7 +361,7 @@ class Policy:
         return {"name": cfg.name, "pi05": cfg.pi05, "action_horizon": cfg.action_horizon,
                 "action_dims": self.action_dims, "num_steps": self.num_steps, "dtype": cfg.dtype,
                 "normalization": self.normalizer.convention.value, "sampler": self.core.sampler,
-                "kernels": self.core.kernels,
+                "kernels": self.core.kernels, "attention": str(self.core.attention),
                 "image_size": cfg.image_size, "state_dim": self.core.state_dim, "max_batch": self.batch_buckets[-1],
                 **self.validator.describe()}
 

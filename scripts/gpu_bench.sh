@@ -11,6 +11,11 @@ nvidia-smi -L; date -u; git rev-parse --short HEAD 2>/dev/null
 for phase in "$@"; do
   echo "=== $phase"; start=$(date +%s)
   case $phase in
+    stages_b1) python3 scripts/profile_engine.py --preset pi0_base --batch 1 --prompt-tokens 48 --attention xla \
+               --attention vision=cudnn --attention vision=cudnn,prefix=cudnn --attention cudnn --time --iters 30 \
+               --trace-stages --out "$OUT/stages_b1.json" ;;
+    stages_b8) python3 scripts/profile_engine.py --preset pi0_base --batch 8 --prompt-tokens 48 --attention xla \
+               --attention vision=cudnn,prefix=cudnn --time --iters 20 --out "$OUT/stages_b8.json" ;;
     hlo_pi05) python3 scripts/profile_engine.py --preset pi05_base --steps 10 --out "$OUT/hlo_pi05.json" ;;
     pi05_b1) python3 -m pi0_jax.cli benchmark --preset pi05_base --steps 1,10 --batch 1 --reference --warm-start \
                --compare lerobot --iters 50 --out "$OUT/pi05_b1.json" ;;

@@ -7,6 +7,8 @@ GPU kernels by name (`kernel_times`): what each kernel costs inside the program,
 GPU sat idle between kernels.
 
     python scripts/profile_engine.py --preset pi05_base --batch 1 --steps 10 [--trace DIR]
+    python scripts/profile_engine.py --preset pi0_base --attention xla --attention auto --time --trace-stages \
+        --out profile.json        # two engines on the same weights: counts, stage times, per-kernel traces
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from pi0_jax import benchmark
 from pi0_jax.config import get_config
@@ -77,9 +80,22 @@ def kernel_times(fn, calls: int = 5, log_dir: str | None = None) -> dict:
             "by_name": [{"name": n, "per_call": c / calls, "us_per_call": t / calls} for n, (c, t) in top[:60]]}
 
 
+def stage_calls(engine: Engine, batch: int, steps: int, cameras, bucket, packed, noise) -> dict:
+    """Each stage program as a no-argument call on fixed inputs (the denoise gets a fresh copy of the noise)."""
+    w, sched = engine.weights, engine.schedule(steps)
+    enc, pre, den, fused = (engine.executable(s, batch, steps, cameras, bucket)
+                            for s in ("encode_images", "fill_prefix_cache", "denoise", "infer"))
+    tokens = enc(w, packed[0])
+    cache = pre(w, tokens, *packed[1:4])
+    return {"encode_images": lambda: enc(w, packed[0]),
+            "fill_prefix_cache": lambda: pre(w, tokens, *packed[1:4]),
+            "denoise": lambda: den(w, sched, cache, packed[4], jnp.copy(noise)),
+            "infer": lambda: fused(w, sched, *packed, jnp.copy(noise))}
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--preset", default="pi05_base")
+    p.add_argument("--preset", default="pi05_base", help="model preset, random weights (default: %(default)s)")
     p.add_argument("--dtype", default="bfloat16")
     p.add_argument("--batch", type=int, default=1)
     p.add_argument("--steps", type=int, default=10)
@@ -87,35 +103,64 @@ def main() -> None:
     p.add_argument("--prompt-tokens", type=int, default=20)
     p.add_argument("--no-unroll", action="store_true")
     p.add_argument("--unroll-steps", action="store_true")
-    p.add_argument("--kernels", choices=["xla", "pallas"], default="xla", help="the expert's layers: XLA or Pallas")
+    p.add_argument("--kernels", choices=["auto", "xla", "pallas"], default="auto",
+                   help="the expert's layers: XLA, Pallas, or auto (by batch size)")
+    p.add_argument("--attention", action="append", default=None,
+                   help="each stage's attention (Engine's `attention`); repeat it to compare several engines on the "
+                        "same weights and inputs in one process (default: auto)")
+    p.add_argument("--time", action="store_true", help="median ms of each stage program (and the fused one)")
+    p.add_argument("--iters", type=int, default=30, help="timed calls per program with --time")
+    p.add_argument("--trace-stages", action="store_true",
+                   help="sum each stage program's GPU kernels from a profiler trace (`kernel_times`)")
     p.add_argument("--trace", type=Path, default=None, help="write a jax.profiler trace of 3 fused calls here")
-    p.add_argument("--out", type=Path, default=None, help="JSON of the counts")
+    p.add_argument("--out", type=Path, default=None, help="JSON of the counts, times and traces")
     args = p.parse_args()
 
     config = get_config(args.preset, dtype=args.dtype)
-    engine = Engine(config, benchmark.random_params(config, 0), unroll=not args.no_unroll,
-                    unroll_steps=args.unroll_steps, kernels=args.kernels, cache_dir=False)
+    params = benchmark.random_params(config, 0)
     obs, noise = benchmark.make_inputs(config, args.batch, args.cameras, args.prompt_tokens, 0)
-    cameras, bucket = engine.plan(obs)
-    report = {"kernels": args.kernels}
-    for stage in ("encode_images", "fill_prefix_cache", "denoise", "infer"):
-        exe = engine.executable(stage, args.batch, args.steps, cameras, bucket)
-        counts = count_ops(exe.as_text())
-        report[stage] = counts
-        print(f"== {stage}")
-        for comp, c in counts.items():
-            if comp.startswith("ENTRY") or c["fusion"] + c["custom-call"] > 20:
-                print(f"   {comp[:60]:60s} {json.dumps(c)}")
-    if args.trace:
+    report = {"preset": args.preset, "batch": args.batch, "steps": args.steps, "env": benchmark.environment(),
+              "variants": []}
+    outputs = {}
+    for attention in args.attention or ["auto"]:
+        engine = Engine(config, params, unroll=not args.no_unroll, unroll_steps=args.unroll_steps,
+                        kernels=args.kernels, attention=attention, cache_dir=False)
+        cameras, bucket = engine.plan(obs)
         packed = engine.pack(obs, cameras, bucket)
-        fused = engine.executable("infer", args.batch, args.steps, cameras, bucket)
-        sched = engine.schedule(args.steps)
-        jax.block_until_ready(fused(engine.weights, sched, *packed, jnp.copy(noise)))
-        with jax.profiler.trace(str(args.trace)):
-            for _ in range(3):
-                jax.block_until_ready(fused(engine.weights, sched, *packed, jnp.copy(noise)))
-        print(f"trace in {args.trace}")
+        var = {"attention": str(engine.attention), "kernels": engine.kernels_for(args.batch), "counts": {},
+               "median_ms": {}, "trace": {}}
+        print(f"== attention {var['attention']}, kernels {var['kernels']}", flush=True)
+        for stage in ("encode_images", "fill_prefix_cache", "denoise", "infer"):
+            exe = engine.executable(stage, args.batch, args.steps, cameras, bucket)
+            counts = var["counts"][stage] = count_ops(exe.as_text())
+            for comp, c in counts.items():
+                if comp.startswith("ENTRY") or c["fusion"] + c["custom-call"] > 20:
+                    print(f"   {stage:18s} {comp[:50]:50s} {json.dumps(c)}", flush=True)
+        calls = stage_calls(engine, args.batch, args.steps, cameras, bucket, packed, noise)
+        outputs[var["attention"]] = np.asarray(calls["infer"](), np.float64)
+        for stage, fn in calls.items():
+            if args.time:
+                var["median_ms"][stage] = benchmark.time_calls(fn, [()], args.iters, 3)["median_ms"]
+            if args.trace_stages:
+                t = var["trace"][stage] = kernel_times(fn, 5)
+                print(f"   {stage:18s} {t['kernels_per_call']:.0f} kernels, {t['kernel_ms']:.3f} ms in kernels of "
+                      f"{t['wall_ms']:.3f} ms ({t['busy']:.0%} busy)", flush=True)
+                for row in t["by_name"][:12]:
+                    print(f"      {row['us_per_call']:9.1f} us  x{row['per_call']:6.1f}  {row['name'][:80]}", flush=True)
+        if var["median_ms"]:
+            print("   median ms: " + json.dumps({k: round(v, 3) for k, v in var["median_ms"].items()}), flush=True)
+        report["variants"].append(var)
+        if args.trace:
+            fn = calls["infer"]
+            with jax.profiler.trace(str(args.trace / var["attention"].replace(",", "_").replace("=", "-"))):
+                for _ in range(3):
+                    jax.block_until_ready(fn())
+        del engine, calls
+    first = next(iter(outputs.values()))
+    report["rel_l2_vs_first"] = {k: float(np.linalg.norm(v - first) / np.linalg.norm(first)) for k, v in outputs.items()}
+    print("actions, relative L2 against the first variant:", json.dumps(report["rel_l2_vs_first"]), flush=True)
     if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(report, indent=2))
 
 

@@ -106,15 +106,14 @@ def stage_timings(preset: str, num_steps: int, other_steps: list[int], drop_frac
     from pi0_jax.pi0 import random_params
 
     def engine_stages(config, guided: bool, extra_steps=()) -> dict:
-        engine = Engine(config, random_params(config, 0))
+        engine = Engine(config, random_params(config, 0), kernels="xla")   # guided denoise has no Pallas path
         sets = [make_inputs(config, 1, 2, 20, seed) for seed in range(2)]
         cameras, bucket = engine.plan(sets[0][0])
-        attention = engine.attention_for(sets[0][0], cameras)
         packed = [engine.pack(obs, cameras, bucket) for obs, _ in sets]
         w, sched = engine.weights, engine.schedule(num_steps)
         enc = engine.executable("encode_images", 1, 0, cameras, bucket)
         pre = engine.executable("fill_prefix_cache", 1, 0, cameras, bucket)
-        den = engine.executable("denoise", 1, num_steps, cameras, bucket, attention)
+        den = engine.executable("denoise", 1, num_steps, cameras, bucket)
         out = {"vision": time_calls(lambda im: enc(w, im), [(p[0],) for p in packed], iters, 2)["median_ms"]}
         tokens = [enc(w, p[0]) for p in packed]
         out["prefix"] = time_calls(lambda t, p: pre(w, t, p[1], p[2], p[3]), list(zip(tokens, packed)), iters,
@@ -124,15 +123,16 @@ def stage_timings(preset: str, num_steps: int, other_steps: list[int], drop_frac
         out["denoise"] = time_calls(lambda c, p, n: den(w, sched, c, p[4], jnp.copy(n)), args, iters, 2)["median_ms"]
         out["denoise_at"] = {str(num_steps): out["denoise"]}
         for n_steps in extra_steps:
-            d_n, s_n = engine.executable("denoise", 1, n_steps, cameras, bucket, attention), engine.schedule(n_steps)
+            d_n, s_n = engine.executable("denoise", 1, n_steps, cameras, bucket), engine.schedule(n_steps)
             out["denoise_at"][str(n_steps)] = time_calls(lambda c, p, n: d_n(w, s_n, c, p[4], jnp.copy(n)), args,
                                                          iters, 2)["median_ms"]
-        out.update(attention=attention, prefix_tokens=int(caches[0].mask.shape[1]), depth=config.paligemma.depth)
+        out.update(attention=str(engine.attention), prefix_tokens=int(caches[0].mask.shape[1]), depth=config.paligemma.depth)
         if guided:
             h, a = config.action_horizon, config.action_dim
             weight = jnp.broadcast_to(jnp.linspace(1.0, 0.0, h)[None, :, None], (1, h, a))
             fn = jax.jit(lambda c, s, n, y: programs.guided_denoise(config, w, sched, c, s, n, y, weight,
-                                                                    num_steps=num_steps, unroll=True))
+                                                                    num_steps=num_steps, unroll=True,
+                                                                    attention=engine.attention))
             out["guided_denoise"] = time_calls(lambda c, p, n: fn(c, p[4], n, n), args, iters, 2)["median_ms"]
         return out
 
@@ -146,7 +146,7 @@ def stage_timings(preset: str, num_steps: int, other_steps: list[int], drop_frac
                                action_expert_variant=f"{config.action_expert_variant}_{depth - n_drop}l")
         pruned = engine_stages(small, guided=False)
     return {"preset": preset, "dtype": dtype, "num_steps": num_steps, "batch": 1, "cameras": 2, "prompt_tokens": 20,
-            "full": full, "pruned": pruned, "guided_attention": "xla"}
+            "full": full, "pruned": pruned}
 
 
 def cost_per_step(row: dict, t: dict, replan: int) -> float | None:

@@ -70,6 +70,47 @@ def test_masked_camera_and_padding_are_skipped_exactly(model):
     np.testing.assert_allclose(engine.sample_actions(obs, jnp.array(noise), 2), ref, rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.parametrize("attention", ["cudnn", "vision=cudnn", "prefix=cudnn", "denoise=cudnn"])
+def test_fused_attention_matches_reference_with_holes_in_the_prefix(model, attention):
+    """The fused attention (cuDNN on a GPU; here its XLA form, the same code path) masks by lengths, so the prefix
+    fill moves each element's valid tokens to the front. Element 1's last camera is masked (a hole mid-prefix) and
+    the prompts are padded to different lengths: without the move the lengths would cut valid keys."""
+    config, params = model
+    obs = make_obs(config, valid_lens=(13, 21))
+    noise = jax.random.normal(jax.random.key(1), (2, config.action_horizon, config.action_dim))
+    ref = sample_ref(config, params, obs, noise, 3)
+    engine = Engine(config, params, attention=attention, cache_dir=False)
+    np.testing.assert_allclose(engine.sample_actions(obs, jnp.array(noise), 3), ref, rtol=1e-5, atol=1e-5)
+    _, cache, staged = engine.run_stages(obs, jnp.array(noise), 3)
+    np.testing.assert_allclose(staged, ref, rtol=1e-5, atol=1e-5)
+    mask = np.asarray(cache.mask)
+    if attention != "vision=cudnn":   # valid keys first: each row of the mask is one run from the front
+        assert (np.diff(mask.astype(np.int8), axis=1) <= 0).all() and mask.sum(1).tolist() == [3 * 256 + 13, 2 * 256 + 21]
+
+
+def test_attention_and_kernel_choices():
+    from pi0_jax.engine import programs
+    from pi0_jax.ops import formats
+
+    A = programs.Attention
+    assert A.parse("auto", platform="cpu") == A() and A.parse("auto", platform="gpu") == programs.AUTO_GPU
+    assert A.parse("cudnn") == A("cudnn", "cudnn", "cudnn") and A.parse("prefix=cudnn") == A(prefix="cudnn")
+    assert str(A.parse(str(programs.AUTO_GPU))) == str(programs.AUTO_GPU)
+    for bad in ("flash", "prefix=flash", "decoder=cudnn", "prefix"):
+        with pytest.raises(ValueError, match="attention"):
+            A.parse(bad)
+    layers = [{"qkv": jnp.zeros((4, 4))}]
+    assert programs.expert_path("auto", 1, layers, platform="gpu") == "pallas"
+    assert programs.expert_path("auto", 2, layers, platform="gpu") == "xla"      # measured slower at B = 8
+    assert programs.expert_path("auto", 1, layers, platform="cpu") == "xla"      # interpreted on a CPU
+    assert programs.expert_path("auto", 1, layers[0], platform="gpu") == "xla"   # scanned layers
+    quantised = [{"qkv": formats.quantize_fp8(jnp.ones((4, 4)))}]
+    assert programs.expert_path("auto", 1, quantised, platform="gpu") == "xla"
+    assert programs.expert_path("pallas", 8, layers, platform="cpu") == "pallas"
+    with pytest.raises(ValueError, match="kernels must be"):
+        programs.expert_path("triton", 1, layers)
+
+
 def test_no_recompilation_when_only_values_change(model):
     config, params = model
     engine = Engine(config, params, cache_dir=False)

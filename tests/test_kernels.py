@@ -165,6 +165,7 @@ def test_engine_with_kernels_matches_reference(model):
 
 
 def test_engine_with_kernels_skips_a_camera_masked_everywhere():
+    """Also with the fused prefix attention, whose cache puts each element's valid keys first."""
     config = get_config("dummy")
     params = randomize(pi0.init_params(config, jax.random.key(0)))
     obs = make_obs(config, valid_lens=(5, 21))
@@ -172,7 +173,8 @@ def test_engine_with_kernels_skips_a_camera_masked_everywhere():
     obs = obs.replace(image_masks={**obs.image_masks, last: jnp.zeros((2,), bool)})
     noise = jax.random.normal(jax.random.key(2), (2, config.action_horizon, config.action_dim))
     ref = jax.jit(pi0.sample_actions, static_argnums=(0, 4))(config, params, obs, noise, 2)
-    got = Engine(config, params, kernels="pallas", cache_dir=False).sample_actions(obs, jnp.array(noise), 2)
+    got = Engine(config, params, kernels="pallas", attention="prefix=cudnn", cache_dir=False).sample_actions(
+        obs, jnp.array(noise), 2)
     np.testing.assert_allclose(got, ref, **TOL)
 
 

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 
 from pi0_jax.config import GemmaConfig
 from pi0_jax.gemma import _BIG_NEG, apply_rope
-from pi0_jax.ops import expert_kernels, layout
+from pi0_jax.ops import attention, expert_kernels, layout
 from pi0_jax.ops.matmul import matmul
 
 
@@ -65,29 +65,36 @@ def _attend(q, ks, vs, masks, dtype):
     return einops.rearrange(out, "B T K G H -> B T (K G H)")
 
 
-def prefix_layer(cfg: GemmaConfig, w, x, positions, mask):
-    """One VLM layer over the prefix. x (B,P,D); mask (B,P,P). Returns (x, k, v) with k, v (B,P,K,H) post-RoPE."""
+def _attend_fused(q, keys, values, kv_len, mask=None):
+    """One fused attention (`ops.attention.fused`: cuDNN on a GPU) over keys masked by length: each element attends
+    its first kv_len keys, and a boolean mask (B, T, S) removes more. q (B,T,K,G,H), pre-scaled."""
+    q = einops.rearrange(q, "B T K G H -> B T (K G) H")
+    out = attention.fused(q, keys, values, scale=1.0, kv_len=kv_len, mask=None if mask is None else mask[:, None])
+    return einops.rearrange(out, "B T N H -> B T (N H)")
+
+
+def prefix_layer(cfg: GemmaConfig, w, x, positions, mask, kv_len=None):
+    """One VLM layer over the prefix. x (B,P,D); mask (B,P,P). Returns (x, k, v) with k, v (B,P,K,H) post-RoPE.
+    kv_len: None for XLA attention under `mask`, else (B,) lengths for the fused kernel (the valid tokens are then
+    each element's first kv_len, see `programs.fill_prefix_cache`)."""
     h, _ = rms_norm(x, w["pre_attn"])
     q, k, v = _qkv(h, w["qkv"], cfg, positions)
-    x = x + _mm(_attend(q, [k], [v], [mask], x.dtype), w["attn_out"])
+    y = _attend(q, [k], [v], [mask], x.dtype) if kv_len is None else _attend_fused(q, k, v, kv_len)
+    x = x + _mm(y, w["attn_out"])
     h, _ = rms_norm(x, w["pre_ffw"])
     return x + _mlp(h, w), k, v
 
 
-def _attend_cudnn(q, k, v, cache_k, cache_v, kv_len, suffix_mask):
-    """cuDNN fused attention over keys [suffix | prefix]: putting the suffix first makes every element's invalid
-    prefix tokens a tail, cut off by `kv_len` = S + valid prefix tokens (requires a contiguous valid prefix).
+def _attend_suffix_fused(q, k, v, cache_k, cache_v, kv_len, suffix_mask):
+    """Fused attention over keys [suffix | prefix]: putting the suffix first makes every element's invalid prefix
+    tokens a tail, cut off by `kv_len` = S + valid prefix tokens (the valid prefix must be a run from the front).
     suffix_mask (B,S,S) is applied only where it masks something (π0's state token), as a boolean mask."""
     b, s = q.shape[:2]
-    q = einops.rearrange(q, "B T K G H -> B T (K G) H")
     keys, values = jnp.concatenate([k, cache_k], axis=1), jnp.concatenate([v, cache_v], axis=1)
     mask = None
     if suffix_mask is not None:
-        full = jnp.ones((b, s, keys.shape[1]), bool).at[:, :, :s].set(suffix_mask)
-        mask = full[:, None]
-    out = jax.nn.dot_product_attention(q, keys, values, mask=mask, scale=1.0, key_value_seq_lengths=kv_len,
-                                       implementation="cudnn")
-    return einops.rearrange(out, "B T N H -> B T (N H)")
+        mask = jnp.ones((b, s, keys.shape[1]), bool).at[:, :, :s].set(suffix_mask)
+    return _attend_fused(q, keys, values, kv_len, mask)
 
 
 def suffix_layer(cfg: GemmaConfig, w, x, positions, cache_k, cache_v, prefix_mask, suffix_mask, mods=None,
@@ -95,7 +102,7 @@ def suffix_layer(cfg: GemmaConfig, w, x, positions, cache_k, cache_v, prefix_mas
     """One action-expert layer over the suffix, attending to [cached prefix | suffix].
 
     cache_k/v (B,P,K,H); prefix_mask (B,S,P); suffix_mask (B,S,S); mods: None (π0) or (attn, ffw) adaRMS outputs.
-    kv_len: None for XLA attention, else (B,) key lengths for the cuDNN kernel (see `_attend_cudnn`).
+    kv_len: None for XLA attention, else (B,) key lengths for the fused kernel (see `_attend_suffix_fused`).
     """
     mod_attn, mod_ffw = mods if mods is not None else (None, None)
     h, gate = rms_norm(x, w.get("pre_attn"), mod_attn)
@@ -103,7 +110,7 @@ def suffix_layer(cfg: GemmaConfig, w, x, positions, cache_k, cache_v, prefix_mas
     if kv_len is None:
         y = _attend(q, [cache_k, k], [cache_v, v], [prefix_mask, suffix_mask], x.dtype)
     else:
-        y = _attend_cudnn(q, k, v, cache_k, cache_v, kv_len, suffix_mask)
+        y = _attend_suffix_fused(q, k, v, cache_k, cache_v, kv_len, suffix_mask)
     y = _mm(y, w["attn_out"])
     x = x + (y if gate is None else y * gate)
     h, gate = rms_norm(x, w.get("pre_ffw"), mod_ffw)
@@ -139,7 +146,8 @@ def suffix_layers_pallas(cfg: GemmaConfig, weights, x, positions, cache_k, cache
     each followed by one XLA fusion (norm, RoPE, GeGLU, residuals, the split merges); the same function as
     `suffix_layer` applied layer by layer.
 
-    weights: per-layer dicts in kernel layout (`ops.layout.expert_weights`); cache_k/v: per layer (B, Pp, K, 2hp)
+    weights: the engine's per-layer dicts, laid out for the kernels here (`ops.layout.expert_weights`: reshapes that
+    XLA makes free at full size, where nothing is padded); cache_k/v: per layer (B, Pp, K, 2hp)
     and prefix_mask (B, Pp) in kernel layout (`ops.layout.cache_kv`); x (B, S, D); positions (B, S); suffix_mask
     (B, S, S); mods: None (π0) or a step's π0.5 adaRMS outputs (attn, ffw), (L, 3D) each. Returns x (B, S, D).
     """
@@ -154,6 +162,7 @@ def suffix_layers_pallas(cfg: GemmaConfig, weights, x, positions, cache_k, cache
     if adaptive:
         mods_attn, mods_ffw = layout.mods(mods[0], d), layout.mods(mods[1], d)
     for i, w in enumerate(weights):
+        w = layout.expert_weights(w, cfg)
         if adaptive:  # layer i's rows of the step's table: scale 3i, shift 3i + 1, gate 3i + 2
             (ma, ra, ga), (mf, rf, gf) = (mods_attn, 3 * i, 3 * i + 2), (mods_ffw, 3 * i, 3 * i + 2)
         else:

@@ -1,13 +1,15 @@
 """The three inference stages and the fused program, as pure functions of (engine weights, inputs).
 
 Static per compiled program: the config, batch size, the active cameras (a camera masked for every element is not
-encoded at all), the prompt bucket length, num_steps, whether layers are unrolled, and the expert's kernels ("xla":
-`layers.suffix_layer`; "pallas": the fused kernels of `pi0_jax.ops`, with the prefix cache in their layout).
-Masked-out tokens never advance positions, so skipping them leaves every number as it was.
+encoded at all), the prompt bucket length, num_steps, whether layers are unrolled, each stage's attention
+(`Attention`) and the expert's kernels ("xla": `layers.suffix_layer`; "pallas": the fused kernels of
+`pi0_jax.ops`, with the prefix cache in their layout; "auto": `expert_path`). Masked-out tokens never advance
+positions, so skipping them leaves every number as it was.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import flax.struct
@@ -17,7 +19,69 @@ import jax.numpy as jnp
 from pi0_jax import pi0, siglip
 from pi0_jax.config import Pi0Config
 from pi0_jax.engine import layers
-from pi0_jax.ops import layout
+from pi0_jax.ops import attention as ops_attention, layout
+from pi0_jax.ops import matmul as quant
+
+# The batch sizes at which kernels="auto" runs the expert's Pallas kernels on a GPU: measured faster than XLA at
+# B = 1 and slower at B = 8 (H200, docs/BENCHMARKS.md); their 64-row blocks stream the weights once per row block.
+PALLAS_MAX_BATCH = 1
+
+
+def expert_path(kernels: str, batch: int, expert_weights, platform: str | None = None) -> str:
+    """The action expert's path for one program: "xla" or "pallas" as asked; "auto" picks the faster at this batch
+    on this platform: the Pallas kernels on a GPU up to PALLAS_MAX_BATCH (with unrolled, unquantised layers),
+    else XLA (on a CPU the kernels run interpreted)."""
+    if kernels not in ("auto", "xla", "pallas"):
+        raise ValueError(f"kernels must be 'auto', 'xla' or 'pallas', got {kernels!r}")
+    if kernels != "auto":
+        return kernels
+    platform = platform or jax.default_backend()
+    quantised = any(quant.is_quant(x) for x in jax.tree.leaves(expert_weights, is_leaf=quant.is_quant))
+    unrolled = isinstance(expert_weights, (list, tuple))
+    return "pallas" if platform == "gpu" and batch <= PALLAS_MAX_BATCH and unrolled and not quantised else "xla"
+
+
+@dataclasses.dataclass(frozen=True)
+class Attention:
+    """Each stage's attention: "xla" (the reference's ops: logits, softmax, weighted sum) or "cudnn" (one fused
+    flash kernel, `ops.attention.fused`: cuDNN on a GPU, its XLA form elsewhere; masks by lengths, so the prefix
+    fill puts each element's valid tokens first). The denoise step's is unused by the Pallas kernels."""
+
+    vision: str = "xla"
+    prefix: str = "xla"
+    denoise: str = "xla"
+
+    def __post_init__(self):
+        for stage, value in dataclasses.asdict(self).items():
+            if value not in ("xla", "cudnn"):
+                raise ValueError(f"attention for {stage} must be 'xla' or 'cudnn', got {value!r}")
+
+    @classmethod
+    def parse(cls, spec, platform: str | None = None) -> Attention:
+        """"xla" | "cudnn" (every stage) | "auto" (`AUTO_GPU` on a GPU, else "xla") | "vision=cudnn,prefix=xla"
+        (unnamed stages "xla") | an Attention."""
+        if isinstance(spec, cls):
+            return spec
+        if spec == "auto":
+            return AUTO_GPU if (platform or jax.default_backend()) == "gpu" else cls()
+        if spec in ("xla", "cudnn"):
+            return cls(spec, spec, spec)
+        fields = {f.name for f in dataclasses.fields(cls)}
+        kw = {}
+        for part in str(spec).split(","):
+            stage, _, value = part.partition("=")
+            if stage not in fields or not value:
+                raise ValueError(f"attention: expected 'xla', 'cudnn', 'auto' or stage=impl pairs over {sorted(fields)}, "
+                                 f"got {spec!r}")
+            kw[stage] = value
+        return cls(**kw)
+
+    def __str__(self) -> str:
+        return ",".join(f"{k}={v}" for k, v in dataclasses.asdict(self).items())
+
+
+# attention="auto" on a GPU: per stage, the faster on an H200 (docs/BENCHMARKS.md)
+AUTO_GPU = Attention(vision="cudnn", prefix="cudnn", denoise="xla")
 
 
 @flax.struct.dataclass
@@ -30,12 +94,13 @@ class PrefixCache:
     mask: jax.Array
 
 
-def encode_images(config: Pi0Config, weights: dict, images: jax.Array, *, unroll: bool = False) -> jax.Array:
+def encode_images(config: Pi0Config, weights: dict, images: jax.Array, *, unroll: bool = False,
+                  attention: Attention = Attention()) -> jax.Array:
     """images (C, B, H, W, 3) f32 in [-1, 1] for the C active cameras -> (B, C * 256, VLM width), camera-major.
     unroll: the weights' SigLIP blocks are per layer (`siglip.unstack_blocks`), and so are the layers."""
     c, b = images.shape[:2]
     module = siglip.Siglip(config.siglip, out_dim=config.paligemma.width, dtype_mm=jnp.dtype(config.dtype),
-                           scan=not unroll)
+                           scan=not unroll, attention=attention.vision)
     # batch-major (B * C images): a batch sharded over devices stays sharded; merging C-major would all-gather it
     flat = jnp.swapaxes(images, 0, 1).reshape(b * c, *images.shape[2:])
     tokens = module.apply({"params": weights["img"]}, flat)[0]
@@ -43,8 +108,12 @@ def encode_images(config: Pi0Config, weights: dict, images: jax.Array, *, unroll
 
 
 def fill_prefix_cache(config: Pi0Config, weights: dict, image_tokens, image_masks, tokens, token_mask, *,
-                      unroll: bool, kernels: str = "xla") -> PrefixCache:
-    """image_tokens (B, C*256, D); image_masks (C, B) bool; tokens / token_mask (B, L). The prefix is bidirectional."""
+                      unroll: bool, kernels: str = "xla", attention: Attention = Attention()) -> PrefixCache:
+    """image_tokens (B, C*256, D); image_masks (C, B) bool; tokens / token_mask (B, L). The prefix is bidirectional.
+
+    With a fused attention in the prefix or the denoise step (masks by lengths), each element's valid tokens are
+    moved to the front first, in order: positions are computed before and travel with them, and attention does
+    not depend on the order of its keys, so the cache holds the same keys, in that order, with a run of a mask."""
     dtype = jnp.dtype(config.dtype)
     n_img = image_tokens.shape[1] // image_masks.shape[0]
     text = weights["embedding"][tokens]
@@ -52,18 +121,25 @@ def fill_prefix_cache(config: Pi0Config, weights: dict, image_tokens, image_mask
     x = jnp.concatenate([image_tokens.astype(dtype), text.astype(dtype)], axis=1)
     mask = jnp.concatenate([jnp.repeat(image_masks.T, n_img, axis=1), token_mask], axis=1)
     positions = jnp.cumsum(mask, axis=1) - 1
+    kv_len = None
+    if "cudnn" in (attention.prefix, attention.denoise):
+        order = jnp.argsort(~mask, axis=1, stable=True)
+        x = jnp.take_along_axis(x, order[..., None], axis=1)
+        positions, mask = (jnp.take_along_axis(a, order, axis=1) for a in (positions, mask))
+        if attention.prefix == "cudnn":
+            kv_len = jnp.sum(mask, axis=1, dtype=jnp.int32)
     attn_mask = mask[:, None, :] & mask[:, :, None]
-    layer = functools.partial(_prefix_layer, config, positions=positions, mask=attn_mask)
+    layer = functools.partial(_prefix_layer, config, positions=positions, mask=attn_mask, kv_len=kv_len)
     _, (k, v) = layers.run_layers(layer, weights["vlm"], x, unroll=unroll)
-    if kernels == "pallas":  # once per call, so that no denoise step pads
+    if expert_path(kernels, x.shape[0], weights["expert"]) == "pallas":  # once per call: no denoise step pads
         head_dim = config.paligemma.head_dim
         k, v = (tuple(layout.cache_kv(a, head_dim) for a in c) for c in (k, v))
         mask = layout.cache_mask(mask)
     return PrefixCache(k=k, v=v, mask=mask)
 
 
-def _prefix_layer(config, w, x, *, positions, mask):
-    x, k, v = layers.prefix_layer(config.paligemma, w, x, positions, mask)
+def _prefix_layer(config, w, x, *, positions, mask, kv_len):
+    x, k, v = layers.prefix_layer(config.paligemma, w, x, positions, mask, kv_len)
     return x, k, v
 
 
@@ -72,8 +148,9 @@ def _dense(p, x):
 
 
 def velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, cache: PrefixCache, state, x_t, *,
-             unroll: bool, attention: str = "xla", kernels: str = "xla") -> jax.Array:
-    """v(x_t, t_step) over the cache. `sched` is `weights.precompute_schedule` output, indexed by the step number."""
+             unroll: bool, attention: Attention = Attention(), kernels: str = "xla") -> jax.Array:
+    """v(x_t, t_step) over the cache. `sched` is `weights.precompute_schedule` output, indexed by the step number.
+    attention.denoise "cudnn" needs a cache filled with the same `attention` (its valid keys first)."""
     dtype = jnp.dtype(config.dtype)
     top, horizon = weights["top"], config.action_horizon
     b = x_t.shape[0]
@@ -95,14 +172,14 @@ def velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, cac
     suffix_mask = jnp.broadcast_to(pi0.make_attn_mask(jnp.ones((1, s), bool), ar), (b, s, s))
     positions = jnp.sum(cache.mask, axis=-1, keepdims=True) + jnp.arange(s)[None, :]
 
-    if kernels == "pallas":
+    if expert_path(kernels, b, weights["expert"]) == "pallas":
         x = layers.suffix_layers_pallas(config.action_expert, weights["expert"], x, positions, cache.k, cache.v,
                                         cache.mask, suffix_mask, mods)
         return _top(config, weights, sched, step, x)
 
     prefix_mask = jnp.broadcast_to(cache.mask[:, None, :], (b, s, cache.mask.shape[1]))
     kv_len = None
-    if attention == "cudnn":
+    if attention.denoise == "cudnn":
         kv_len = (s + jnp.sum(cache.mask, axis=-1)).astype(jnp.int32)
         suffix_mask = None if config.pi05 else suffix_mask  # π0.5's suffix attends everywhere
 
@@ -132,7 +209,7 @@ def _by_layer(x, unroll):
 
 
 def denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixCache, state, noise, *, num_steps: int,
-            unroll: bool, unroll_steps: bool, attention: str = "xla", kernels: str = "xla") -> jax.Array:
+            unroll: bool, unroll_steps: bool, attention: Attention = Attention(), kernels: str = "xla") -> jax.Array:
     """num_steps Euler steps from noise (t = 1) to actions (t = 0): a fixed trip count for a Python int, a while
     loop for a traced int32 (then `sched` must hold at least num_steps entries)."""
     dt = -1.0 / num_steps
@@ -148,17 +225,19 @@ def denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixCache, s
 
 
 def infer(config: Pi0Config, weights: dict, sched: dict, images, image_masks, tokens, token_mask, state, noise, *,
-          num_steps: int, unroll: bool, unroll_steps: bool, attention: str = "xla", kernels: str = "xla") -> jax.Array:
+          num_steps: int, unroll: bool, unroll_steps: bool, attention: Attention = Attention(),
+          kernels: str = "xla") -> jax.Array:
     """The fused program: vision -> prefix cache -> denoise, one XLA executable, no host round trip."""
-    image_tokens = encode_images(config, weights, images, unroll=unroll)
+    image_tokens = encode_images(config, weights, images, unroll=unroll, attention=attention)
     cache = fill_prefix_cache(config, weights, image_tokens, image_masks, tokens, token_mask, unroll=unroll,
-                              kernels=kernels)
+                              kernels=kernels, attention=attention)
     return denoise(config, weights, sched, cache, state, noise, num_steps=num_steps, unroll=unroll,
                    unroll_steps=unroll_steps, attention=attention, kernels=kernels)
 
 
 def guided_denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixCache, state, noise, target,
-                   weight, *, num_steps: int, beta: float = 5.0, unroll: bool, attention: str = "xla") -> jax.Array:
+                   weight, *, num_steps: int, beta: float = 5.0, unroll: bool,
+                   attention: Attention = Attention()) -> jax.Array:
     """Real-time chunking (Black, Galliker, Levine 2025, arXiv 2506.07339): `denoise` with ΠGDM-style inpainting
     guidance towards `target` (B, H, action_dim), weighted per action and dim by `weight` (B, H, action_dim) in
     [0, 1] (1: frozen, 0: free), in normalised model space.

@@ -20,7 +20,6 @@ import numpy as np
 from pi0_jax import pi0, siglip
 from pi0_jax.config import IMAGE_KEYS, Pi0Config
 from pi0_jax.engine import programs, weights as weights_lib
-from pi0_jax.ops import layout
 from pi0_jax.ops import matmul as quant
 
 PROMPT_BUCKETS = (16, 32, 48, 64, 96, 128, 160, 200)
@@ -49,20 +48,21 @@ def prompt_bucket(valid_len: int, max_len: int) -> int:
     return max_len
 
 
-def engine_weights(config: Pi0Config, params: dict, *, unroll: bool = True, kernels: str = "xla") -> dict:
-    """The programs' weights (`weights.prepare`, on device); unroll: per-layer buffers for unrolled layers;
-    kernels="pallas": the expert's layers in the fused kernels' layout (`pi0_jax.ops.layout`)."""
+def engine_weights(config: Pi0Config, params: dict, *, unroll: bool = True, kernels: str = "auto") -> dict:
+    """The programs' weights (`weights.prepare`, on device); unroll: per-layer buffers for unrolled layers.
+    kernels: only checked here ("pallas" needs unrolled, unquantised expert layers; their layout is made inside
+    the programs)."""
     w = jax.jit(functools.partial(weights_lib.prepare, config))(params)
     if unroll:
         depth = config.paligemma.depth
         w["vlm"] = weights_lib.unstack(w["vlm"], depth)
         w["expert"] = weights_lib.unstack(w["expert"], depth)
-        if kernels == "pallas":
-            if any(quant.is_quant(x) for x in jax.tree.leaves(w["expert"], is_leaf=quant.is_quant)):
-                raise ValueError("kernels='pallas' needs unquantised expert weights")
-            layout_fn = jax.jit(functools.partial(layout.expert_weights, cfg=config.action_expert))
-            w["expert"] = [layout_fn(x) for x in w["expert"]]
         w["img"] = siglip.unstack_blocks(w["img"], config.siglip.depth)
+    if kernels == "pallas":
+        if not unroll:
+            raise ValueError("kernels='pallas' needs unroll=True")
+        if any(quant.is_quant(x) for x in jax.tree.leaves(w["expert"], is_leaf=quant.is_quant)):
+            raise ValueError("kernels='pallas' needs unquantised expert weights")
     return w
 
 
@@ -73,21 +73,18 @@ class Engine:
     >>> actions = engine.sample_actions(observation, noise, num_steps=10)   # picks cameras / bucket, compiles once
 
     unroll: layers unrolled (separate per-layer weight buffers) instead of `lax.scan`; unroll_steps: the denoise
-    loop unrolled; attention: "xla" or "cudnn" (the denoise attention as one cuDNN kernel; GPU only, and used only
-    when every element's valid prefix is contiguous, else the call falls back to "xla"); kernels: the action
-    expert's layers as XLA ops ("xla") or as the fused Pallas kernels of `pi0_jax.ops` ("pallas": Triton on GPU,
-    interpret mode on CPU; needs unrolled layers and unquantised expert weights).
+    loop unrolled; attention: each stage's attention (`programs.Attention.parse`: "xla", "cudnn", "auto" = the
+    faster per stage on a GPU, XLA elsewhere, or "vision=cudnn,prefix=cudnn,denoise=xla"); kernels: the action
+    expert's layers as XLA ops ("xla"), as the fused Pallas kernels of `pi0_jax.ops` ("pallas": Triton on GPU,
+    interpret mode on CPU; needs unrolled layers and unquantised expert weights), or "auto" (per batch size,
+    `programs.expert_path`: the kernels at B = 1 on a GPU, XLA otherwise).
     """
 
     def __init__(self, config: Pi0Config, params: dict, *, unroll: bool = True, unroll_steps: bool = False,
-                 attention: str = "xla", kernels: str = "xla", cache_dir: str | os.PathLike | None | bool = None):
-        if attention not in ("xla", "cudnn"):
-            raise ValueError(f"attention must be 'xla' or 'cudnn', got {attention!r}")
-        if kernels not in ("xla", "pallas"):
-            raise ValueError(f"kernels must be 'xla' or 'pallas', got {kernels!r}")
-        if kernels == "pallas" and (not unroll or attention != "xla"):
-            raise ValueError("kernels='pallas' needs unroll=True and attention='xla' (it brings its own attention)")
-        self.attention = attention
+                 attention: str | programs.Attention = "auto", kernels: str = "auto",
+                 cache_dir: str | os.PathLike | None | bool = None):
+        self.attention = programs.Attention.parse(attention)
+        programs.expert_path(kernels, 1, [])   # validates the name
         self.kernels = kernels
         if cache_dir is not False:
             self.cache_dir = enable_compilation_cache(None if cache_dir in (None, True) else cache_dir)
@@ -111,24 +108,26 @@ class Engine:
     def num_compiled(self) -> int:
         return len(self._executables)
 
-    def executable(self, stage: str, batch: int, num_steps: int, cameras: Sequence[str], prompt_len: int,
-                   attention: str | None = None):
+    def kernels_for(self, batch: int) -> str:
+        """The expert's path at this batch size: "xla" or "pallas" (`programs.expert_path`)."""
+        return programs.expert_path(self.kernels, batch, self.weights["expert"])
+
+    def executable(self, stage: str, batch: int, num_steps: int, cameras: Sequence[str], prompt_len: int):
         """The compiled program for a stage and static shape (compiled on first use, then kept)."""
         cameras = tuple(cameras)
-        attention = attention or self.attention
         if stage in ("encode_images", "fill_prefix_cache"):
-            num_steps, attention = 0, "xla"  # these programs do not depend on the step count
+            num_steps = 0  # these programs do not depend on the step count
         if stage == "encode_images":
             prompt_len = 0
-        key = (stage, batch, num_steps, cameras, prompt_len, attention)
+        key = (stage, batch, num_steps, cameras, prompt_len)
         if key not in self._executables:
             start = time.perf_counter()
-            fn, args, donate = self._stage(stage, batch, num_steps, cameras, prompt_len, attention)
+            fn, args, donate = self._stage(stage, batch, num_steps, cameras, prompt_len)
             self._executables[key] = jax.jit(fn, donate_argnums=donate).lower(*args).compile()
             self.compile_seconds[key] = time.perf_counter() - start
         return self._executables[key]
 
-    def _stage(self, stage, batch, num_steps, cameras, prompt_len, attention):
+    def _stage(self, stage, batch, num_steps, cameras, prompt_len):
         cfg, s = self.config, self.config.image_size
         f32, dtype = jnp.float32, jnp.dtype(cfg.dtype)
         spec = jax.ShapeDtypeStruct
@@ -140,9 +139,8 @@ class Engine:
         noise = spec((batch, cfg.action_horizon, cfg.action_dim), f32)
         w = jax.tree.map(lambda x: spec(x.shape, x.dtype), self.weights)
         sched = jax.tree.map(lambda x: spec(x.shape, x.dtype), self.schedule(num_steps)) if num_steps else None
-        kw = {"unroll": self.unroll}
-        denoise_kw = {**kw, "num_steps": num_steps, "unroll_steps": self.unroll_steps, "attention": attention,
-                      "kernels": self.kernels}
+        kw = {"unroll": self.unroll, "attention": self.attention}
+        denoise_kw = {**kw, "num_steps": num_steps, "unroll_steps": self.unroll_steps, "kernels": self.kernels}
         if stage == "encode_images":
             return functools.partial(programs.encode_images, cfg, **kw), (w, images), ()
         image_tokens = spec((batch, c * cfg.siglip.num_patches, cfg.paligemma.width), dtype)
@@ -168,16 +166,6 @@ class Engine:
         valid = int(np.asarray(obs.tokenized_prompt_mask).sum(axis=1).max(initial=0))
         return cameras, prompt_bucket(valid, obs.tokenized_prompt.shape[1])
 
-    def attention_for(self, obs: pi0.Observation, cameras: Sequence[str]) -> str:
-        """The engine's attention, or "xla" where cuDNN's length-based masking cannot express the prefix mask
-        (an active camera masked for some element, or a prompt mask that is not a right-padded run)."""
-        if self.attention == "xla":
-            return "xla"
-        mask = np.asarray(obs.tokenized_prompt_mask)
-        right_padded = (np.diff(mask.astype(np.int8), axis=1) <= 0).all()
-        cams_full = all(np.asarray(obs.image_masks[k]).all() for k in cameras)
-        return self.attention if right_padded and cams_full else "xla"
-
     def pack(self, obs: pi0.Observation, cameras: Sequence[str], prompt_len: int):
         """pi0.Observation -> the arrays the programs take (cameras stacked, prompt cut to its bucket)."""
         mask = np.asarray(obs.tokenized_prompt_mask)
@@ -193,7 +181,7 @@ class Engine:
         """The fused program. The noise buffer is donated (do not reuse it after the call)."""
         cameras, prompt_len = self.plan(obs)
         images, image_masks, tokens, token_mask, state = self.pack(obs, cameras, prompt_len)
-        exe = self.executable("infer", noise.shape[0], num_steps, cameras, prompt_len, self.attention_for(obs, cameras))
+        exe = self.executable("infer", noise.shape[0], num_steps, cameras, prompt_len)
         return exe(self.weights, self.schedule(num_steps), images, image_masks, tokens, token_mask, state,
                    jnp.asarray(noise, jnp.float32))
 
@@ -205,6 +193,6 @@ class Engine:
         image_tokens = self.executable("encode_images", b, num_steps, cameras, prompt_len)(self.weights, images)
         cache = self.executable("fill_prefix_cache", b, num_steps, cameras, prompt_len)(
             self.weights, image_tokens, image_masks, tokens, token_mask)
-        actions = self.executable("denoise", b, num_steps, cameras, prompt_len, self.attention_for(obs, cameras))(
+        actions = self.executable("denoise", b, num_steps, cameras, prompt_len)(
             self.weights, self.schedule(num_steps), cache, state, jnp.asarray(noise, jnp.float32))
         return image_tokens, cache, actions

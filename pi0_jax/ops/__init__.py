@@ -1,6 +1,7 @@
 """Low-level ops the model, engine and quant modules build on.
 
 matmul: the one entry point of every weighted matmul (plain, FP8 `QArray`, calibration `Tap`) and SigLIP's Dense
-hook. formats: FP8 / FP4 number formats, `QArray`, its checkpoint storage. expert_kernels, layout: the action
-expert's fused Pallas kernels and their data layout (imported on use: Pallas is not needed otherwise).
+hook. attention: fused (flash) attention, cuDNN's kernel on a GPU. formats: FP8 / FP4 number formats, `QArray`,
+its checkpoint storage. expert_kernels, layout: the action expert's fused Pallas kernels and their data layout
+(imported on use: Pallas is not needed otherwise).
 """

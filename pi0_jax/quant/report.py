@@ -55,7 +55,7 @@ class Variants:
                 params = sch.fake_quant_fp4_params(self.params, name, "all")
             else:
                 params = self.params
-            self.engines[key] = Engine(self.config, params, cache_dir=False)
+            self.engines[key] = Engine(self.config, params, kernels="xla", cache_dir=False)   # one cache layout
         return self.engines[key]
 
     def drop(self, name: str | None = None) -> None:
@@ -71,7 +71,7 @@ class Variants:
         prog = name if name not in FP4_FORMATS else "bf16"
         key = (prog, stage, batch, steps if stage == "denoise" else 0, tuple(cameras), bucket)
         if key not in self.executables:
-            self.executables[key] = engine.executable(stage, batch, steps, cameras, bucket, "xla")
+            self.executables[key] = engine.executable(stage, batch, steps, cameras, bucket)
         return self.executables[key], engine
 
     def run(self, scheme: str, obs, noise, steps: int, method: str = "amax") -> dict:

@@ -69,12 +69,16 @@ def add_serve_parser(subparsers) -> None:
     pol.add_argument("--dtype", choices=("float32", "bfloat16"), default=None,
                      help="param and compute dtype (default: float32 on CPU, where XLA only emulates bfloat16; "
                           "the checkpoint's on an accelerator)")
-    pol.add_argument("--kernels", choices=("xla", "pallas"), default="xla",
-                     help="the action expert's layers in the denoise step: XLA ops, or the Pallas kernels of "
-                          "pi0_jax.ops. On an H200, Pallas is faster for a batch of 1 (0.83 against 1.09 ms per "
-                          "flow step) and slower for a batch of 8 (3.9 against 2.5 ms): docs/BENCHMARKS.md, 'Fused "
-                          "kernels'. On a CPU they run interpreted, slowly. "
-                          "Default: %(default)s")
+    pol.add_argument("--kernels", choices=("auto", "xla", "pallas"), default="auto",
+                     help="the action expert's layers in the denoise step: XLA ops, the Pallas kernels of "
+                          "pi0_jax.ops, or auto: the kernels for a batch of 1 on a GPU, XLA for larger batches and "
+                          "on a CPU (where the kernels run interpreted, slowly). On an H200 the kernels are faster "
+                          "at batch 1 (0.83 against 1.09 ms per flow step) and slower at batch 8 (3.9 against "
+                          "2.5 ms): docs/BENCHMARKS.md, 'Fused kernels'. Default: %(default)s")
+    pol.add_argument("--attention", default="auto",
+                     help="each stage's attention: xla, cudnn (one fused flash kernel), auto (the faster per stage "
+                          "on a GPU, XLA on a CPU), or per stage, e.g. vision=cudnn,prefix=cudnn,denoise=xla "
+                          "(default: %(default)s)")
     pol.add_argument("--tokenizer", type=Path, default=None, metavar="FILE",
                      help="PaliGemma SentencePiece model (default: CHECKPOINT/tokenizer.model, then "
                           "CHECKPOINT/assets/tokenizer.model)")
@@ -98,6 +102,7 @@ def _policy_kwargs(args: argparse.Namespace) -> dict:
     import jax
 
     kwargs = {"num_steps": args.num_steps, "seed": args.seed, "max_batch": args.max_batch, "kernels": args.kernels,
+              "attention": args.attention,
               "dtype": args.dtype if args.dtype or jax.default_backend() != "cpu" else "float32"}
     optional = {"tokenizer_path": args.tokenizer, "norm_stats": args.norm_stats, "strict": args.strict}
     return {**kwargs, **{k: v for k, v in optional.items() if v is not None}}

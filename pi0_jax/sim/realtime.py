@@ -145,9 +145,9 @@ def make_model_callbacks(core, rt: Realtime, replan_steps: int, inputs, cameras,
     `bucket` the prompt length `inputs` returns)."""
     from pi0_jax.engine import programs
 
-    if core.sampler != "engine" or getattr(core, "kernels", "xla") != "xla":
+    if core.sampler != "engine" or core.kernels == "pallas":
         raise ValueError("--execution / --latency-steps / --reuse-prefix run on the engine sampler with XLA "
-                         f"kernels, not {core.sampler!r} / {getattr(core, 'kernels', 'xla')!r}")
+                         f"kernels, not {core.sampler!r} / {core.kernels!r}")
     cfg, horizon, adim, dims = core.config, core.config.action_horizon, core.config.action_dim, core.action_dims
     r, d = replan_steps, rt.delay
     rt.check(r, horizon)
@@ -157,8 +157,9 @@ def make_model_callbacks(core, rt: Realtime, replan_steps: int, inputs, cameras,
 
     def prefix(model, pixels, image_masks, tokens, token_mask):
         w = model["weights"]
-        image_tokens = programs.encode_images(cfg, w, pixels, unroll=core.unroll)
-        return programs.fill_prefix_cache(cfg, w, image_tokens, image_masks, tokens, token_mask, unroll=core.unroll)
+        image_tokens = programs.encode_images(cfg, w, pixels, unroll=core.unroll, attention=core.attention)
+        return programs.fill_prefix_cache(cfg, w, image_tokens, image_masks, tokens, token_mask, unroll=core.unroll,
+                                          attention=core.attention)
 
     def init(b: int) -> dict:
         ps = {"chunk": hold_chunk(b, horizon, dims), "count": jnp.zeros((b,), jnp.int32),
@@ -208,13 +209,14 @@ def make_model_callbacks(core, rt: Realtime, replan_steps: int, inputs, cameras,
             weight = (jnp.asarray(rtc_weights(horizon, d, r))[None, :, None]
                       * (jnp.arange(adim) < dims)[None, None, :] * ps["fresh"][:, None, None])
             raw = programs.guided_denoise(cfg, model["weights"], sched, cache, state, noise, target, weight,
-                                          num_steps=num_steps, beta=rt.rtc_beta, unroll=core.unroll)
+                                          num_steps=num_steps, beta=rt.rtc_beta, unroll=core.unroll,
+                                          attention=core.attention)
             frozen = (jnp.arange(horizon) < d)[None, :, None] & ps["fresh"][:, None, None]
             raw = jnp.where(frozen, target, raw)
             out["raw"], out["fresh"] = raw, jnp.ones_like(ps["fresh"])
         else:
             raw = programs.denoise(cfg, model["weights"], sched, cache, state, noise, num_steps=num_steps,
-                                   unroll=core.unroll, unroll_steps=False)
+                                   unroll=core.unroll, unroll_steps=False, attention=core.attention)
         if d:
             out["prev"] = ps["chunk"]
         out["chunk"] = raw[..., :dims].astype(jnp.float32) * norm["action_scale"] + norm["action_offset"]
