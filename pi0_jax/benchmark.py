@@ -32,6 +32,7 @@ from pi0_jax import pi0
 from pi0_jax.pi0 import random_params
 from pi0_jax.config import IMAGE_KEYS, PRESETS, Pi0Config, get_config
 from pi0_jax.engine import Engine
+from pi0_jax.engine.programs import attention_spec
 
 
 def _ints(s: str) -> list[int]:
@@ -59,13 +60,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "quantised --checkpoint is used as stored")
     p.add_argument("--no-unroll", action="store_true", help="scan over layers instead of unrolling them")
     p.add_argument("--unroll-steps", action="store_true", help="unroll the denoise loop as well")
-    p.add_argument("--attention", default="auto",
+    p.add_argument("--attention", default="auto", type=attention_spec,
                    help="each stage's attention: xla (the reference's ops), cudnn (one fused flash kernel), auto "
                         "(the faster per stage on a GPU: cuDNN in vision and the prefix, XLA in the denoise step; "
                         "XLA on a CPU), or per stage, e.g. vision=cudnn,prefix=xla,denoise=xla (default: %(default)s)")
     p.add_argument("--kernels", choices=["auto", "xla", "pallas"], default="auto",
                    help="the action expert's layers as XLA ops, as the fused Pallas kernels of pi0_jax.ops "
-                        "(Triton on GPU), or auto: the kernels at batch 1 on a GPU, XLA otherwise; each row "
+                        "(Triton on GPU), or auto: the kernels at batch 1 and 2 on a GPU, XLA otherwise; each row "
                         "records the path it ran (default: %(default)s)")
     p.add_argument("--reference", action="store_true",
                    help="also time the reference model (pi0_jax.pi0.sample_actions: openpi's structure, layers "
@@ -200,6 +201,7 @@ t0 = time.perf_counter()
 from pi0_jax import benchmark
 from pi0_jax.config import get_config
 from pi0_jax.engine import Engine
+from pi0_jax.engine.programs import attention_spec
 cfg = get_config(sys.argv[1], dtype=sys.argv[2])
 params = benchmark.random_params(cfg, 0)
 engine = Engine(cfg, params, unroll=sys.argv[4] == "1", kernels=sys.argv[8], attention=sys.argv[9],

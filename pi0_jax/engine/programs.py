@@ -23,8 +23,9 @@ from pi0_jax.ops import attention as ops_attention, layout
 from pi0_jax.ops import matmul as quant
 
 # The batch sizes at which kernels="auto" runs the expert's Pallas kernels on a GPU: measured faster than XLA at
-# B = 1 and slower at B = 8 (H200, docs/BENCHMARKS.md); their 64-row blocks stream the weights once per row block.
-PALLAS_MAX_BATCH = 1
+# B = 1 and 2 and slower at B = 4 and 8 (H200, docs/BENCHMARKS.md); their 64-row blocks stream the weights once
+# per row block.
+PALLAS_MAX_BATCH = 2
 
 
 def expert_path(kernels: str, batch: int, expert_weights, platform: str | None = None) -> str:
@@ -78,6 +79,12 @@ class Attention:
 
     def __str__(self) -> str:
         return ",".join(f"{k}={v}" for k, v in dataclasses.asdict(self).items())
+
+
+def attention_spec(spec: str) -> str:
+    """`Attention.parse`'s check for command lines (argparse `type=`): returns spec unchanged, or raises."""
+    Attention.parse(spec, platform="cpu")
+    return spec
 
 
 # attention="auto" on a GPU: per stage, the faster on an H200 (docs/BENCHMARKS.md)

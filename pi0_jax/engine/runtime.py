@@ -77,7 +77,7 @@ class Engine:
     faster per stage on a GPU, XLA elsewhere, or "vision=cudnn,prefix=cudnn,denoise=xla"); kernels: the action
     expert's layers as XLA ops ("xla"), as the fused Pallas kernels of `pi0_jax.ops` ("pallas": Triton on GPU,
     interpret mode on CPU; needs unrolled layers and unquantised expert weights), or "auto" (per batch size,
-    `programs.expert_path`: the kernels at B = 1 on a GPU, XLA otherwise).
+    `programs.expert_path`: the kernels at B <= 2 on a GPU, XLA otherwise).
     """
 
     def __init__(self, config: Pi0Config, params: dict, *, unroll: bool = True, unroll_steps: bool = False,

@@ -71,11 +71,11 @@ def add_serve_parser(subparsers) -> None:
                           "the checkpoint's on an accelerator)")
     pol.add_argument("--kernels", choices=("auto", "xla", "pallas"), default="auto",
                      help="the action expert's layers in the denoise step: XLA ops, the Pallas kernels of "
-                          "pi0_jax.ops, or auto: the kernels for a batch of 1 on a GPU, XLA for larger batches and "
+                          "pi0_jax.ops, or auto: the kernels for batches of 1 and 2 on a GPU, XLA for larger ones and "
                           "on a CPU (where the kernels run interpreted, slowly). On an H200 the kernels are faster "
                           "at batch 1 (0.83 against 1.09 ms per flow step) and slower at batch 8 (3.9 against "
                           "2.5 ms): docs/BENCHMARKS.md, 'Fused kernels'. Default: %(default)s")
-    pol.add_argument("--attention", default="auto",
+    pol.add_argument("--attention", default="auto", type=_attention,
                      help="each stage's attention: xla, cudnn (one fused flash kernel), auto (the faster per stage "
                           "on a GPU, XLA on a CPU), or per stage, e.g. vision=cudnn,prefix=cudnn,denoise=xla "
                           "(default: %(default)s)")
@@ -95,6 +95,12 @@ def add_serve_parser(subparsers) -> None:
                    help="logging level: INFO logs one line per connection opened / closed and per failed request "
                         "(default: %(default)s)")
     p.set_defaults(func=run)
+
+
+def _attention(spec: str) -> str:
+    from pi0_jax.engine.programs import attention_spec   # jax on use: --help stays light
+
+    return attention_spec(spec)
 
 
 def _policy_kwargs(args: argparse.Namespace) -> dict:
