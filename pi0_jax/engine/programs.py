@@ -19,7 +19,7 @@ import jax.numpy as jnp
 from pi0_jax import pi0, siglip
 from pi0_jax.config import Pi0Config
 from pi0_jax.engine import layers
-from pi0_jax.ops import attention as ops_attention, layout
+from pi0_jax.ops import layout
 from pi0_jax.ops import matmul as quant
 
 # The batch sizes at which kernels="auto" runs the expert's Pallas kernels on a GPU: measured faster than XLA at
