@@ -32,7 +32,7 @@ from pi0_jax import pi0
 from pi0_jax.pi0 import random_params
 from pi0_jax.config import IMAGE_KEYS, PRESETS, Pi0Config, get_config
 from pi0_jax.engine import Engine
-from pi0_jax.engine.programs import attention_spec
+from pi0_jax.engine.programs import KERNELS, attention_spec
 
 
 def _ints(s: str) -> list[int]:
@@ -64,7 +64,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="each stage's attention: xla (the reference's ops), cudnn (one fused flash kernel), auto "
                         "(the faster per stage on a GPU: cuDNN in vision and the prefix, XLA in the denoise step; "
                         "XLA on a CPU), or per stage, e.g. vision=cudnn,prefix=xla,denoise=xla (default: %(default)s)")
-    p.add_argument("--kernels", choices=["auto", "xla", "pallas"], default="auto",
+    p.add_argument("--kernels", choices=KERNELS, default="auto",
                    help="the action expert's layers as XLA ops, as the fused Pallas kernels of pi0_jax.ops "
                         "(Triton on GPU), or auto: the kernels at batch 1 and 2 on a GPU, XLA otherwise; each row "
                         "records the path it ran (default: %(default)s)")

@@ -29,7 +29,7 @@ import numpy as np
 
 from pi0_jax import benchmark
 from pi0_jax.config import get_config
-from pi0_jax.engine import Engine
+from pi0_jax.engine import Engine, programs
 
 
 def count_ops(hlo: str) -> dict:
@@ -103,7 +103,7 @@ def main() -> None:
     p.add_argument("--prompt-tokens", type=int, default=20)
     p.add_argument("--no-unroll", action="store_true")
     p.add_argument("--unroll-steps", action="store_true")
-    p.add_argument("--kernels", choices=["auto", "xla", "pallas"], default="auto",
+    p.add_argument("--kernels", choices=programs.KERNELS, default="auto",
                    help="the expert's layers: XLA, Pallas, or auto (by batch size)")
     p.add_argument("--attention", action="append", default=None,
                    help="each stage's attention (Engine's `attention`); repeat it to compare several engines on the "

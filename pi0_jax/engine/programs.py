@@ -28,18 +28,30 @@ from pi0_jax.ops import matmul as quant
 PALLAS_MAX_BATCH = 2
 
 
+KERNELS = ("auto", "xla", "pallas")
+
+
+def check_kernels(kernels: str) -> str:
+    if kernels not in KERNELS:
+        raise ValueError(f"kernels must be one of {KERNELS}, got {kernels!r}")
+    return kernels
+
+
+def is_quantised(tree) -> bool:
+    """Whether any weight in tree is quantised (an FP8 `QArray` or a calibration `Tap`)."""
+    return any(quant.is_quant(x) for x in jax.tree.leaves(tree, is_leaf=quant.is_quant))
+
+
 def expert_path(kernels: str, batch: int, expert_weights, platform: str | None = None) -> str:
     """The action expert's path for one program: "xla" or "pallas" as asked; "auto" picks the faster at this batch
     on this platform: the Pallas kernels on a GPU up to PALLAS_MAX_BATCH (with unrolled, unquantised layers),
     else XLA (on a CPU the kernels run interpreted)."""
-    if kernels not in ("auto", "xla", "pallas"):
-        raise ValueError(f"kernels must be 'auto', 'xla' or 'pallas', got {kernels!r}")
-    if kernels != "auto":
+    if check_kernels(kernels) != "auto":
         return kernels
     platform = platform or jax.default_backend()
-    quantised = any(quant.is_quant(x) for x in jax.tree.leaves(expert_weights, is_leaf=quant.is_quant))
     unrolled = isinstance(expert_weights, (list, tuple))
-    return "pallas" if platform == "gpu" and batch <= PALLAS_MAX_BATCH and unrolled and not quantised else "xla"
+    gpu_batch = platform == "gpu" and batch <= PALLAS_MAX_BATCH
+    return "pallas" if gpu_batch and unrolled and not is_quantised(expert_weights) else "xla"
 
 
 @dataclasses.dataclass(frozen=True)

@@ -20,7 +20,6 @@ import numpy as np
 from pi0_jax import pi0, siglip
 from pi0_jax.config import IMAGE_KEYS, Pi0Config
 from pi0_jax.engine import programs, weights as weights_lib
-from pi0_jax.ops import matmul as quant
 
 PROMPT_BUCKETS = (16, 32, 48, 64, 96, 128, 160, 200)
 STAGES = ("encode_images", "fill_prefix_cache", "denoise", "infer")
@@ -61,7 +60,7 @@ def engine_weights(config: Pi0Config, params: dict, *, unroll: bool = True, kern
     if kernels == "pallas":
         if not unroll:
             raise ValueError("kernels='pallas' needs unroll=True")
-        if any(quant.is_quant(x) for x in jax.tree.leaves(w["expert"], is_leaf=quant.is_quant)):
+        if programs.is_quantised(w["expert"]):
             raise ValueError("kernels='pallas' needs unquantised expert weights")
     return w
 
@@ -84,8 +83,7 @@ class Engine:
                  attention: str | programs.Attention = "auto", kernels: str = "auto",
                  cache_dir: str | os.PathLike | None | bool = None):
         self.attention = programs.Attention.parse(attention)
-        programs.expert_path(kernels, 1, [])   # validates the name
-        self.kernels = kernels
+        self.kernels = programs.check_kernels(kernels)
         if cache_dir is not False:
             self.cache_dir = enable_compilation_cache(None if cache_dir in (None, True) else cache_dir)
         self.config = config
