@@ -41,6 +41,7 @@ from pi0_jax.engine import engine_weights, enable_compilation_cache, prompt_buck
 from pi0_jax.engine import programs
 from pi0_jax.engine import weights as weights_lib
 from pi0_jax.observation import DEFAULT_OPTIONAL_CAMERAS, ObservationError, Prepared, Validator
+from pi0_jax.ops import formats
 from pi0_jax.preprocess import resize_with_pad
 from pi0_jax.tokenizer import PaligemmaTokenizer
 
@@ -333,7 +334,8 @@ class Policy:
                 def fn(model, norm, images, image_masks, tokens, token_mask, state, noise):
                     return core.program(model, norm, images, cameras, image_masks, tokens, token_mask, state, noise)
 
-                self._executables[key] = jax.jit(fn).lower(core.model, self._norm, *spec).compile()
+                lowered = jax.jit(fn).lower(core.model, self._norm, *spec)
+                self._executables[key] = lowered.compile(formats.compiler_options(core.model))
                 self.compile_seconds[key] = time.perf_counter() - start
             return self._executables[key]
 

@@ -20,6 +20,7 @@ import numpy as np
 from pi0_jax import pi0, siglip
 from pi0_jax.config import IMAGE_KEYS, Pi0Config
 from pi0_jax.engine import programs, weights as weights_lib
+from pi0_jax.ops import formats
 
 PROMPT_BUCKETS = (16, 32, 48, 64, 96, 128, 160, 200)
 STAGES = ("encode_images", "fill_prefix_cache", "denoise", "infer")
@@ -121,7 +122,8 @@ class Engine:
         if key not in self._executables:
             start = time.perf_counter()
             fn, args, donate = self._stage(stage, batch, num_steps, cameras, prompt_len)
-            self._executables[key] = jax.jit(fn, donate_argnums=donate).lower(*args).compile()
+            lowered = jax.jit(fn, donate_argnums=donate).lower(*args)
+            self._executables[key] = lowered.compile(formats.compiler_options(self.weights))
             self.compile_seconds[key] = time.perf_counter() - start
         return self._executables[key]
 

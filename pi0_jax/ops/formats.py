@@ -8,8 +8,13 @@ Conventions:
 - Every stacked leaf carries the layer axis first, act_scale included, so scans and `x[i]` slice all fields alike.
 - real value = q * scale. Scales are amax / format max, so the largest magnitude maps to the format's largest
   finite value (e4m3fn: 448, e2m1: 6); values are clipped first (e4m3fn has no inf: overflow would be NaN).
-- `qmatmul` writes the pattern XLA's GPU GEMM rewriter turns into a cuBLASLt FP8 GEMM when both operands are FP8:
-  convert(fp8 -> f32) -> multiply by a scalar -> dot (f32). Per-channel weight scales are applied to its output.
+- `qmatmul` hands XLA the two e4m3 operands themselves, contracted with the activation dtype as the result type:
+  on Hopper that is one cuBLASLt FP8 GEMM writing bf16 (`__cublas$lt$matmul$f8`). The scales (activation x
+  per-channel weight) multiply its output in f32, an elementwise op that XLA fuses into the GEMM's consumer. The
+  older form (operands dequantised to f32, an f32 dot) is rewritten too, but its f32 output and separate scaling
+  pass cost more than FP8 saves (docs/BENCHMARKS.md, "FP8 that pays").
+- XLA's GPU autotuner also tries Triton for FP8 GEMMs: ~150 s of compiling per GEMM shape, for cuBLASLt in the end.
+  `compiler_options` turns Triton GEMMs off for programs that hold FP8 weights (compiles in seconds, same GEMMs).
 """
 
 from __future__ import annotations
@@ -116,9 +121,9 @@ def _output_scale(eqn: str, w: QArray, dtype) -> jax.Array:
 def qmatmul(eqn: str, x: jax.Array, w: QArray) -> jax.Array:
     """einsum(eqn, x, w) with an FP8 weight; output in x.dtype.
 
-    With an act_scale: x quantised to e4m3 with it, both operands dequantised to f32 by scalars and the dot
-    accumulating in f32, then per-channel scales: the form XLA (jax 0.11) rewrites into a cuBLASLt FP8 GEMM
-    (measured: a bf16 dequantisation is not rewritten). Weight-only: the weight dequantised to x.dtype."""
+    With an act_scale: x quantised to e4m3 with it, e4m3 x e4m3 contracted straight into x.dtype (accumulation in
+    f32 inside the GEMM), then (act_scale x weight scale) applied in f32. Weight-only: the weight dequantised to
+    x.dtype (no FP8 tensor cores: bf16 x FP8 is not an FP8 GEMM)."""
     dtype = x.dtype
     per_tensor = w.scale.size == 1
     if w.act_scale is None:
@@ -128,13 +133,22 @@ def qmatmul(eqn: str, x: jax.Array, w: QArray) -> jax.Array:
         return jnp.einsum(eqn, x, wq) * _output_scale(eqn, w, dtype)
     s = w.act_scale.astype(jnp.float32)
     xq = jnp.clip(x.astype(jnp.float32) / s, -E4M3_MAX, E4M3_MAX).astype(E4M3)
-    wq = w.q.astype(jnp.float32)
-    if per_tensor:
-        wq = wq * w.scale.reshape(())
-    y = jnp.einsum(eqn, xq.astype(jnp.float32) * s, wq, preferred_element_type=jnp.float32)
-    if not per_tensor:
-        y = y * _output_scale(eqn, w, jnp.float32)
-    return y.astype(dtype)
+    y = jnp.einsum(eqn, xq, w.q, preferred_element_type=dtype)
+    scale = s * (w.scale.reshape(()) if per_tensor else _output_scale(eqn, w, jnp.float32))
+    return (y.astype(jnp.float32) * scale).astype(dtype)
+
+
+def has_fp8(tree) -> bool:
+    """Whether the pytree holds an FP8 weight (`QArray`)."""
+    return any(isinstance(x, QArray) for x in jax.tree.leaves(tree, is_leaf=lambda v: isinstance(v, QArray)))
+
+
+def compiler_options(tree, platform: str | None = None) -> dict | None:
+    """XLA options for compiling a program over `tree`: on a GPU with FP8 weights, no Triton GEMMs (see the module
+    doc: the autotuner compiles Triton FP8 GEMMs for minutes, then picks cuBLASLt); otherwise XLA's defaults."""
+    if (platform or jax.default_backend()) == "gpu" and has_fp8(tree):
+        return {"xla_gpu_enable_triton_gemm": False}
+    return None
 
 
 def rearrange(w: QArray, pattern: str, contract=(-2,), **sizes) -> QArray:
