@@ -1,5 +1,8 @@
 """FP8 / FP4 quantisation: formats against ml_dtypes' rounding, block layout, calibration, checkpoints, report."""
 
+import functools
+import re
+
 import jax
 import jax.numpy as jnp
 import ml_dtypes
@@ -8,6 +11,7 @@ import pytest
 
 from pi0_jax import benchmark, checkpoint, pi0
 from pi0_jax.config import get_config
+from pi0_jax.engine import Engine, programs
 from pi0_jax.ops import formats
 from pi0_jax.quant import report, schemes
 
@@ -130,6 +134,42 @@ def test_quantized_checkpoint_round_trips(dummy, tmp_path):
     assert not np.array_equal(np.asarray(plain), np.asarray(on_the_fly))  # the quantised weights are in use
     with pytest.raises(FileExistsError):
         checkpoint.save_checkpoint(tmp_path / "q", qp, config)
+
+
+def test_engine_fp8_equals_the_reference_with_the_same_weights_and_hands_xla_fp8_dots():
+    """The engine's FP8 path (fused, re-laid-out QArrays) computes what the reference model computes with the same
+    quantised params; its prefix hands XLA e4m3 x e4m3 dots that contract the weight's last axis (the (out, in)
+    layout cuBLASLt's FP8 GEMM reads without transposing the weight)."""
+    config = get_config("dummy", dtype="float32")
+    params = benchmark.random_params(config, 0)
+    calib = schemes.sample_observations(config, 2, seed=1)
+    qp = schemes.quantize_params(config, params, "all", schemes.calibrate(config, params, calib, "all",
+                                                                           percentile=None)["amax"])
+    engine = Engine(config, qp, cache_dir=False)
+    noise = jnp.asarray(np.random.default_rng(0).normal(size=(1, config.action_horizon, config.action_dim)),
+                        jnp.float32)
+    got = np.asarray(engine.sample_actions(calib[1], jnp.copy(noise), num_steps=2))
+    sample = jax.jit(pi0.sample_actions, static_argnums=(0, 4))
+    want = np.asarray(sample(config, qp, calib[1], noise, 2))
+    plain = np.asarray(sample(config, params, calib[1], noise, 2))
+    assert np.linalg.norm(got - want) / np.linalg.norm(want) < 1e-5
+    assert np.linalg.norm(want - plain) / np.linalg.norm(plain) > 1e-3  # FP8 is in use
+
+    cameras, bucket = engine.plan(calib[1])
+    spec = jax.ShapeDtypeStruct
+    weights = jax.tree.map(lambda x: spec(x.shape, x.dtype), engine.weights)
+    image_tokens = spec((1, len(cameras) * config.siglip.num_patches, config.paligemma.width), jnp.float32)
+    text = jax.jit(functools.partial(programs.fill_prefix_cache, config, unroll=True)).lower(
+        weights, image_tokens, spec((len(cameras), 1), bool), spec((1, bucket), jnp.int32),
+        spec((1, bucket), bool)).as_text()
+    dots = [line for line in text.splitlines() if "dot_general" in line and "f8E4M3FN" in line]
+    depth = config.paligemma.depth  # q/k/v, attention out, gate/up, down per layer; the last layer's K/V is all
+    assert len(dots) == depth + 3 * (depth - 1)  # the prefix returns, so the rest of that layer is dead code
+    for line in dots:
+        operands = re.search(r"\(tensor<([^>]*)>, tensor<([^>]*)>\)", line).groups()
+        assert all(o.endswith("f8E4M3FN") for o in operands), line
+        rhs_rank = operands[1].count("x")
+        assert re.search(rf"contracting_dims = \[\d+\] x \[{rhs_rank - 1}\]", line), line
 
 
 def test_activation_schemes_need_calibration(dummy):

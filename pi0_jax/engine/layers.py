@@ -18,6 +18,7 @@ import jax.numpy as jnp
 from pi0_jax.config import GemmaConfig
 from pi0_jax.gemma import _BIG_NEG, apply_rope
 from pi0_jax.ops import attention, expert_kernels, layout
+from pi0_jax.ops.formats import QArray
 from pi0_jax.ops.matmul import matmul
 
 
@@ -33,8 +34,10 @@ def rms_norm(x, scale=None, mod=None):
 
 
 def _mm(x, w):
-    """x @ w through the one matmul entry point (a quantised weight takes its own op: FP8 GEMM on Hopper)."""
-    return matmul("...D,DF->...F", x, w)
+    """x @ w through the one matmul entry point (a quantised weight takes its own op: FP8 GEMM on Hopper). Plain
+    weights are (in, out); FP8 ones (out, in), contracted on their last axis (`weights._rearrange`)."""
+    fp8_layout = isinstance(w, QArray) and w.contract == (-1,)
+    return matmul("...D,FD->...F" if fp8_layout else "...D,DF->...F", x, w)
 
 
 def _qkv(h, w, cfg: GemmaConfig, positions):

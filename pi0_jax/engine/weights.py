@@ -14,6 +14,8 @@ Axis legend: L layers, D width, N query heads, K kv heads, H head dim, F MLP hid
 
 from __future__ import annotations
 
+import re
+
 import einops
 import jax
 import jax.numpy as jnp
@@ -42,11 +44,20 @@ def step_times(num_steps, length: int | None = None):
 
 
 def _rearrange(w, pattern: str, dtype):
-    """Quantised weights (`pi0_jax.ops.formats.QArray`) keep their storage dtype and scales; fused after quantising, so
-    their scales are per output channel of the fused matrix."""
+    """A plain weight rearranged to (in, out) and cast; a quantised one (`pi0_jax.ops.formats.QArray`, fused after
+    quantising, so its scales are per output channel of the fused matrix) keeps its storage dtype and is laid out
+    (out, in): the operand layout cuBLASLt's FP8 GEMM reads as is (an (in, out) FP8 weight is transposed by XLA
+    before every GEMM, a full copy of it). `pattern` names the (in, out) target; its output is swapped here."""
     if isinstance(w, quant.QArray):
-        return quant.rearrange(w, pattern)
+        src, dst = pattern.split("->")
+        *lead, d_in, d_out = _groups(dst)
+        return quant.rearrange(w, f"{src}-> {' '.join(lead)} {d_out} {d_in}", contract=(-1,))
     return einops.rearrange(w, pattern).astype(dtype)
+
+
+def _groups(spec: str) -> list[str]:
+    """einops axis groups of one side: "L D (N H)" -> ["L", "D", "(N H)"]."""
+    return re.findall(r"\([^)]*\)|[^\s()]+", spec)
 
 
 def _expert_weights(attn: dict, mlp: dict, suffix: str, dtype) -> dict:
@@ -54,17 +65,16 @@ def _expert_weights(attn: dict, mlp: dict, suffix: str, dtype) -> dict:
     kv = attn[f"kv_einsum{suffix}"]["w"]  # (L, 2, K, D, H)
     if isinstance(q, quant.QArray):
         qkv = quant.concat([_rearrange(q, "L N D H -> L D (N H)", dtype),
-                            _rearrange(kv, "L two K D H -> L D (two K H)", dtype)])
+                            _rearrange(kv, "L two K D H -> L D (two K H)", dtype)], axis=-2)
     else:
         qkv = jnp.concatenate(
             [einops.rearrange(q, "L N D H -> L D (N H)"), einops.rearrange(kv, "L two K D H -> L D (two K H)")],
             axis=-1).astype(dtype)
-    down = mlp["linear"]
     return {
         "qkv": qkv,
         "attn_out": _rearrange(attn[f"attn_vec_einsum{suffix}"]["w"], "L N H D -> L (N H) D", dtype),
         "gate_up": _rearrange(mlp["gating_einsum"], "L two D F -> L D (two F)", dtype),
-        "down": down if isinstance(down, quant.QArray) else down.astype(dtype),
+        "down": _rearrange(mlp["linear"], "L F D -> L F D", dtype),
     }
 
 
