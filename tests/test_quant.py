@@ -172,6 +172,15 @@ def test_engine_fp8_equals_the_reference_with_the_same_weights_and_hands_xla_fp8
         assert re.search(rf"contracting_dims = \[\d+\] x \[{rhs_rank - 1}\]", line), line
 
 
+def test_fp8_programs_compile_without_triton_gemms_on_a_gpu_only():
+    """XLA's autotuner spends minutes on Triton FP8 GEMMs (then picks cuBLASLt): programs holding FP8 weights turn
+    Triton GEMMs off on a GPU; anything else keeps XLA's defaults."""
+    tree = {"a": jnp.ones((2, 2)), "b": [formats.quantize_fp8(jnp.ones((4, 4)), act_scale=0.1)]}
+    assert formats.compiler_options(tree, "gpu") == {"xla_gpu_enable_triton_gemm": False}
+    assert formats.compiler_options(tree, "cpu") is None
+    assert formats.compiler_options({"a": jnp.ones((2, 2))}, "gpu") is None
+
+
 def test_activation_schemes_need_calibration(dummy):
     config, params, _, _ = dummy
     with pytest.raises(ValueError, match="calibrate"):
