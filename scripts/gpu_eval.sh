@@ -7,6 +7,7 @@
 #   bash scripts/gpu_eval.sh embedded-1 embedded-2  # the embedded model's 550 episodes on GPU 0, then on two GPUs
 #   DET=1 bash scripts/gpu_eval.sh embedded-1       # the same with --xla_gpu_deterministic_ops=true
 #   QUANT=prefix-mlp bash scripts/gpu_eval.sh pi05-fp8   # pi05-1 with FP8 weights and calibrated activation scales
+#   QUANT=prefix-mlp bash scripts/gpu_eval.sh embedded-fp8   # embedded-1 likewise (task success under FP8)
 #   bash scripts/gpu_eval.sh overlap                # scripts/overlap_probe.py: physics beside the policy on 2 streams
 #   POLICY=preset:dummy PER_TASK=1 EXTRA="--steps 10" bash scripts/gpu_eval.sh pi05-1   # CPU smoke run
 #
@@ -50,6 +51,8 @@ for phase in "$@"; do
                   --batch $((11 * PER_TASK)) --quant "${QUANT:-prefix-mlp}" ;;
     overlap) python3 scripts/overlap_probe.py --json "$OUT/overlap.json" ;;
     embedded-1) run embedded_1gpu${DET:+_det} 0 --policy pi0_jax/assets/pi0_small --episodes-per-task 50 --batch auto ;;
+    embedded-fp8) run "embedded_${QUANT:-prefix-mlp}_1gpu" 0 --policy pi0_jax/assets/pi0_small --episodes-per-task 50 \
+                  --batch auto --quant "${QUANT:-prefix-mlp}" ;;
     embedded-2) run embedded_2gpu${DET:+_det} 0,1 --policy pi0_jax/assets/pi0_small --episodes-per-task 50 --batch auto ;;
     *) echo "unknown phase $phase"; exit 2 ;;
   esac
