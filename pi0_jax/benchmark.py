@@ -162,7 +162,7 @@ def bench_engine(engine: Engine, args, batch: int) -> list[dict]:
         t_den = time_calls(lambda c, p, n: den(w, sched, c, p[4], jnp.copy(n)),
                            [(c, p, n) for c, p, (_, n) in zip(caches, packed, sets)], args.iters, args.warmup)
         row = {"dtype": cfg.dtype, "batch": batch, "steps": steps, "cameras": len(cameras), "prompt_bucket": bucket,
-               "attention": str(engine.attention), "kernels": engine.kernels_for(batch),
+               "attention": str(engine.attention.at_batch(batch)), "kernels": engine.kernels_for(batch),
                "vision": t_vis, "prefix": t_pre, "denoise": t_den,
                "denoise_per_step_ms": t_den["median_ms"] / steps}
         if args.fused_steps is None or steps in args.fused_steps:

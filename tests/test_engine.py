@@ -70,11 +70,16 @@ def test_masked_camera_and_padding_are_skipped_exactly(model):
     np.testing.assert_allclose(engine.sample_actions(obs, jnp.array(noise), 2), ref, rtol=1e-5, atol=1e-5)
 
 
-@pytest.mark.parametrize("attention", ["cudnn", "vision=cudnn", "prefix=cudnn", "denoise=cudnn"])
-def test_fused_attention_matches_reference_with_holes_in_the_prefix(model, attention):
+@pytest.mark.parametrize("attention", ["cudnn", "vision=cudnn", "prefix=cudnn", "denoise=cudnn", "denoise=auto"])
+def test_fused_attention_matches_reference_with_holes_in_the_prefix(model, attention, monkeypatch):
     """The fused attention (cuDNN on a GPU; here its XLA form, the same code path) masks by lengths, so the prefix
     fill moves each element's valid tokens to the front. Element 1's last camera is masked (a hole mid-prefix) and
-    the prompts are padded to different lengths: without the move the lengths would cut valid keys."""
+    the prompts are padded to different lengths: without the move the lengths would cut valid keys. "denoise=auto"
+    is the fused kernel from CUDNN_DENOISE_MIN_BATCH on: lowered to this test's batch of 2, the prefix fill must see
+    it too (the move)."""
+    from pi0_jax.engine import programs
+
+    monkeypatch.setattr(programs, "CUDNN_DENOISE_MIN_BATCH", 2)
     config, params = model
     obs = make_obs(config, valid_lens=(13, 21))
     noise = jax.random.normal(jax.random.key(1), (2, config.action_horizon, config.action_dim))
@@ -96,7 +101,11 @@ def test_attention_and_kernel_choices():
     assert A.parse("auto", platform="cpu") == A() and A.parse("auto", platform="gpu") == programs.AUTO_GPU
     assert A.parse("cudnn") == A("cudnn", "cudnn", "cudnn") and A.parse("prefix=cudnn") == A(prefix="cudnn")
     assert str(A.parse(str(programs.AUTO_GPU))) == str(programs.AUTO_GPU)
-    for bad in ("flash", "prefix=flash", "decoder=cudnn", "prefix"):
+    big, small = programs.CUDNN_DENOISE_MIN_BATCH, programs.CUDNN_DENOISE_MIN_BATCH - 1   # measured: 8 faster, 1 slower
+    assert programs.AUTO_GPU.at_batch(big) == A("cudnn", "cudnn", "cudnn") and big <= 8
+    assert programs.AUTO_GPU.at_batch(small) == A("cudnn", "cudnn", "xla") and small >= 1
+    assert A.parse("cudnn").at_batch(1) == A.parse("cudnn")
+    for bad in ("flash", "prefix=flash", "decoder=cudnn", "prefix", "vision=auto"):
         with pytest.raises(ValueError, match="attention"):
             A.parse(bad)
     layers = [{"qkv": jnp.zeros((4, 4))}]

@@ -27,6 +27,11 @@ from pi0_jax.ops import matmul as quant
 # per row block.
 PALLAS_MAX_BATCH = 2
 
+# The batch from which the denoise step's attention="auto" is cuDNN's fused kernel on a GPU: measured 14 % and 13 %
+# faster than XLA's ops at B = 8 and 64 (π0.5, H200, docs/BENCHMARKS.md), slower at B = 1; below it XLA's ops (or
+# the Pallas expert, which has its own attention).
+CUDNN_DENOISE_MIN_BATCH = 8
+
 
 KERNELS = ("auto", "xla", "pallas")
 
@@ -58,7 +63,9 @@ def expert_path(kernels: str, batch: int, expert_weights, platform: str | None =
 class Attention:
     """Each stage's attention: "xla" (the reference's ops: logits, softmax, weighted sum) or "cudnn" (one fused
     flash kernel, `ops.attention.fused`: cuDNN on a GPU, its XLA form elsewhere; masks by lengths, so the prefix
-    fill puts each element's valid tokens first). The denoise step's is unused by the Pallas kernels."""
+    fill puts each element's valid tokens first). The denoise step's may also be "auto": "cudnn" from
+    CUDNN_DENOISE_MIN_BATCH on, else "xla" (`at_batch` resolves it; the programs do). It is unused by the Pallas
+    kernels."""
 
     vision: str = "xla"
     prefix: str = "xla"
@@ -66,8 +73,15 @@ class Attention:
 
     def __post_init__(self):
         for stage, value in dataclasses.asdict(self).items():
-            if value not in ("xla", "cudnn"):
-                raise ValueError(f"attention for {stage} must be 'xla' or 'cudnn', got {value!r}")
+            if value not in ("xla", "cudnn") and not (stage == "denoise" and value == "auto"):
+                raise ValueError(f"attention for {stage} must be 'xla' or 'cudnn'{' or auto' * (stage == 'denoise')}"
+                                 f", got {value!r}")
+
+    def at_batch(self, batch: int) -> Attention:
+        """The concrete choice of every stage for a program of this batch size."""
+        if self.denoise != "auto":
+            return self
+        return dataclasses.replace(self, denoise="cudnn" if batch >= CUDNN_DENOISE_MIN_BATCH else "xla")
 
     @classmethod
     def parse(cls, spec, platform: str | None = None) -> Attention:
@@ -99,8 +113,8 @@ def attention_spec(spec: str) -> str:
     return spec
 
 
-# attention="auto" on a GPU: per stage, the faster on an H200 (docs/BENCHMARKS.md)
-AUTO_GPU = Attention(vision="cudnn", prefix="cudnn", denoise="xla")
+# attention="auto" on a GPU: per stage (and, in the denoise step, per batch), the faster on an H200 (docs/BENCHMARKS.md)
+AUTO_GPU = Attention(vision="cudnn", prefix="cudnn", denoise="auto")
 
 
 @flax.struct.dataclass
@@ -134,6 +148,7 @@ def fill_prefix_cache(config: Pi0Config, weights: dict, image_tokens, image_mask
     moved to the front first, in order: positions are computed before and travel with them, and attention does
     not depend on the order of its keys, so the cache holds the same keys, in that order, with a run of a mask."""
     dtype = jnp.dtype(config.dtype)
+    attention = attention.at_batch(image_tokens.shape[0])
     n_img = image_tokens.shape[1] // image_masks.shape[0]
     text = weights["embedding"][tokens]
     text = text * jnp.sqrt(config.paligemma.width).astype(text.dtype)  # sqrt(width) cast to the table dtype first
@@ -173,6 +188,7 @@ def velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, cac
     dtype = jnp.dtype(config.dtype)
     top, horizon = weights["top"], config.action_horizon
     b = x_t.shape[0]
+    attention = attention.at_batch(b)
     action_tokens = _dense(top["action_in_proj"], x_t)  # f32: the projections run in the promoted dtype
     if config.pi05:
         x = action_tokens
