@@ -33,6 +33,7 @@ from pi0_jax.pi0 import random_params
 from pi0_jax.config import IMAGE_KEYS, PRESETS, Pi0Config, get_config
 from pi0_jax.engine import Engine
 from pi0_jax.engine.programs import KERNELS, attention_spec
+from pi0_jax.quant.schemes import SCHEMES
 
 
 def _ints(s: str) -> list[int]:
@@ -55,9 +56,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="valid prompt tokens; the rest of max_token_len is padding (default: %(default)s)")
     p.add_argument("--fused-steps", type=_ints, default=None,
                    help="steps at which the fused program is also timed (default: all of --steps)")
-    p.add_argument("--quant", default=None, choices=["prefix-mlp", "prefix-all", "vision", "expert-weights", "all"],
+    p.add_argument("--quant", default=None, choices=sorted(SCHEMES),
                    help="FP8 scheme applied to the random weights (calibrated on synthetic observations); a "
-                        "quantised --checkpoint is used as stored")
+                        "quantised --checkpoint is used as stored. prefix-vision: every FP8 x FP8 GEMM (the "
+                        "prefix's and SigLIP's), for large batches")
     p.add_argument("--no-unroll", action="store_true", help="scan over layers instead of unrolling them")
     p.add_argument("--unroll-steps", action="store_true", help="unroll the denoise loop as well")
     p.add_argument("--attention", default="auto", type=attention_spec,

@@ -8,12 +8,11 @@ Param names and the scanned (stacked) layer layout mirror openpi / big_vision, s
 from __future__ import annotations
 
 import flax.linen as nn
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 from pi0_jax.config import SiglipConfig
-from pi0_jax.ops import attention as ops_attention, matmul as ops_matmul
+from pi0_jax.ops import matmul as ops_matmul
 
 
 class MlpBlock(nn.Module):
@@ -29,31 +28,19 @@ class MlpBlock(nn.Module):
         return nn.Dense(d, dtype=self.dtype_mm, **inits)(x)
 
 
-def fused_attention(query, key, value, mask=None):
-    """Flax `attention_fn` as one fused (flash) attention (`ops.attention.fused`: cuDNN on a GPU): softmax(q k^T /
-    sqrt(H)) v with f32 statistics inside the kernel, where Flax's default materialises the logits in the
-    activation dtype."""
-    if mask is not None:
-        raise ValueError("fused_attention takes no mask (SigLIP attends everywhere)")
-    return ops_attention.fused(query, key, value)
-
-
 class Encoder1DBlock(nn.Module):
-    """Pre-LN block. LayerNorm statistics are computed in >= f32 by Flax; eps 1e-6.
-    attention: "xla" (Flax's `dot_product_attention`, openpi's) or "cudnn" (`fused_attention`)."""
+    """Pre-LN block. LayerNorm statistics are computed in >= f32 by Flax; eps 1e-6."""
 
     mlp_dim: int
     num_heads: int
     dtype_mm: jnp.dtype
-    attention: str = "xla"
 
     @nn.compact
     def __call__(self, x, _):
         y = nn.LayerNorm(dtype=self.dtype_mm)(x)
-        fn = {"attention_fn": fused_attention} if self.attention == "cudnn" else {}
         y = nn.MultiHeadDotProductAttention(
             num_heads=self.num_heads, kernel_init=nn.initializers.xavier_uniform(), deterministic=True,
-            dtype=self.dtype_mm, **fn,
+            dtype=self.dtype_mm,
         )(y, y)
         x = x + y
         y = nn.LayerNorm(dtype=self.dtype_mm)(x)
@@ -62,41 +49,30 @@ class Encoder1DBlock(nn.Module):
 
 
 class Encoder(nn.Module):
-    """scan=True: one `encoderblock` with params stacked on a leading depth axis (openpi's layout);
-    scan=False: `encoderblock_{i}` per layer (the engine's unrolled layout, see `unstack_blocks`)."""
+    """One `encoderblock` scanned over depth, its params stacked on a leading axis (openpi's layout)."""
 
     cfg: SiglipConfig
     dtype_mm: jnp.dtype
-    scan: bool = True
-    attention: str = "xla"
 
     @nn.compact
     def __call__(self, x):
-        kw = {"mlp_dim": self.cfg.mlp_dim, "num_heads": self.cfg.num_heads, "dtype_mm": self.dtype_mm,
-              "attention": self.attention}
-        if self.scan:
-            blocks = nn.scan(
-                Encoder1DBlock, variable_axes={"params": 0}, split_rngs={"params": True}, length=self.cfg.depth,
-            )(**kw, name="encoderblock")
-            x, _ = blocks(x, None)
-        else:
-            for i in range(self.cfg.depth):
-                x, _ = Encoder1DBlock(**kw, name=f"encoderblock_{i}")(x, None)
+        blocks = nn.scan(
+            Encoder1DBlock, variable_axes={"params": 0}, split_rngs={"params": True}, length=self.cfg.depth,
+        )(mlp_dim=self.cfg.mlp_dim, num_heads=self.cfg.num_heads, dtype_mm=self.dtype_mm, name="encoderblock")
+        x, _ = blocks(x, None)
         return nn.LayerNorm(name="encoder_norm", dtype=self.dtype_mm)(x)
 
 
 class Siglip(nn.Module):
     """Images (B, H, W, 3) float in [-1, 1] -> tokens (B, (H/14)*(W/14), out_dim).
 
-    Returns `(tokens, intermediates)`; intermediates hold the patch embedding and the encoder output.
-    attention: "xla" or "cudnn" (`fused_attention`; the engine's choice, the same function).
+    Returns `(tokens, intermediates)`; intermediates hold the patch embedding and the encoder output. The engine's
+    copy of this function is `pi0_jax.engine.vision`.
     """
 
     cfg: SiglipConfig
     out_dim: int
     dtype_mm: jnp.dtype = jnp.bfloat16
-    scan: bool = True
-    attention: str = "xla"
 
     @nn.compact
     def __call__(self, image):
@@ -111,17 +87,8 @@ class Siglip(nn.Module):
         stem = x
         x = x.astype(self.dtype_mm)
         with nn.intercept_methods(ops_matmul.dense_interceptor):  # quantised kernels take their op
-            encoded = Encoder(self.cfg, self.dtype_mm, self.scan, self.attention, name="Transformer")(x)
+            encoded = Encoder(self.cfg, self.dtype_mm, name="Transformer")(x)
             # Image tokens are *not* scaled by sqrt(width) (spec §3.8).
             tokens = nn.Dense(self.out_dim, dtype=self.dtype_mm, kernel_init=nn.initializers.zeros,
                               name="head")(encoded)
         return tokens, {"stem": stem, "encoded": encoded}
-
-
-def unstack_blocks(params: dict, depth: int) -> dict:
-    """openpi's stacked `Transformer/encoderblock` -> `Transformer/encoderblock_{i}` for `Siglip(scan=False)`."""
-    tr = dict(params["Transformer"])
-    stacked = tr.pop("encoderblock")
-    for i in range(depth):
-        tr[f"encoderblock_{i}"] = jax.tree.map(lambda x, i=i: x[i], stacked)
-    return {**params, "Transformer": tr}

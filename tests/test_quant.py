@@ -138,8 +138,8 @@ def test_quantized_checkpoint_round_trips(dummy, tmp_path):
 
 def test_engine_fp8_equals_the_reference_with_the_same_weights_and_hands_xla_fp8_dots():
     """The engine's FP8 path (fused, re-laid-out QArrays) computes what the reference model computes with the same
-    quantised params; its prefix hands XLA e4m3 x e4m3 dots that contract the weight's last axis (the (out, in)
-    layout cuBLASLt's FP8 GEMM reads without transposing the weight)."""
+    quantised params; its prefix and its SigLIP hand XLA e4m3 x e4m3 dots that contract the weight's last axis (the
+    (out, in) layout cuBLASLt's FP8 GEMM reads without transposing the weight)."""
     config = get_config("dummy", dtype="float32")
     params = benchmark.random_params(config, 0)
     calib = schemes.sample_observations(config, 2, seed=1)
@@ -159,17 +159,21 @@ def test_engine_fp8_equals_the_reference_with_the_same_weights_and_hands_xla_fp8
     spec = jax.ShapeDtypeStruct
     weights = jax.tree.map(lambda x: spec(x.shape, x.dtype), engine.weights)
     image_tokens = spec((1, len(cameras) * config.siglip.num_patches, config.paligemma.width), jnp.float32)
-    text = jax.jit(functools.partial(programs.fill_prefix_cache, config, unroll=True)).lower(
-        weights, image_tokens, spec((len(cameras), 1), bool), spec((1, bucket), jnp.int32),
-        spec((1, bucket), bool)).as_text()
-    dots = [line for line in text.splitlines() if "dot_general" in line and "f8E4M3FN" in line]
+    prefix = jax.jit(functools.partial(programs.fill_prefix_cache, config, unroll=True)).lower(
+        weights, image_tokens, spec((len(cameras), 1), bool), spec((1, bucket), jnp.int32), spec((1, bucket), bool))
+    size = config.image_size
+    vision = jax.jit(functools.partial(programs.encode_images, config, unroll=True)).lower(
+        weights, spec((len(cameras), 1, size, size, 3), jnp.float32))
     depth = config.paligemma.depth  # q/k/v, attention out, gate/up, down per layer; the last layer's K/V is all
-    assert len(dots) == depth + 3 * (depth - 1)  # the prefix returns, so the rest of that layer is dead code
-    for line in dots:
-        operands = re.search(r"\(tensor<([^>]*)>, tensor<([^>]*)>\)", line).groups()
-        assert all(o.endswith("f8E4M3FN") for o in operands), line
-        rhs_rank = operands[1].count("x")
-        assert re.search(rf"contracting_dims = \[\d+\] x \[{rhs_rank - 1}\]", line), line
+    # the prefix returns, so the rest of that layer is dead code. SigLIP: q/k/v, out, MLP in and out, the head.
+    for lowered, expected in ((prefix, depth + 3 * (depth - 1)), (vision, 4 * config.siglip.depth + 1)):
+        dots = [line for line in lowered.as_text().splitlines() if "dot_general" in line and "f8E4M3FN" in line]
+        assert len(dots) == expected
+        for line in dots:
+            operands = re.search(r"\(tensor<([^>]*)>, tensor<([^>]*)>\)", line).groups()
+            assert all(o.endswith("f8E4M3FN") for o in operands), line
+            rhs_rank = operands[1].count("x")
+            assert re.search(rf"contracting_dims = \[\d+\] x \[{rhs_rank - 1}\]", line), line
 
 
 def test_fp8_programs_compile_without_triton_gemms_on_a_gpu_only():

@@ -16,9 +16,9 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 
-from pi0_jax import pi0, siglip
+from pi0_jax import pi0
 from pi0_jax.config import Pi0Config
-from pi0_jax.engine import layers
+from pi0_jax.engine import layers, vision
 from pi0_jax.ops import layout
 from pi0_jax.ops import matmul as quant
 
@@ -130,13 +130,12 @@ class PrefixCache:
 def encode_images(config: Pi0Config, weights: dict, images: jax.Array, *, unroll: bool = False,
                   attention: Attention = Attention()) -> jax.Array:
     """images (C, B, H, W, 3) f32 in [-1, 1] for the C active cameras -> (B, C * 256, VLM width), camera-major.
-    unroll: the weights' SigLIP blocks are per layer (`siglip.unstack_blocks`), and so are the layers."""
+    unroll: the weights' SigLIP blocks are per layer (a list), and so are the layers."""
     c, b = images.shape[:2]
-    module = siglip.Siglip(config.siglip, out_dim=config.paligemma.width, dtype_mm=jnp.dtype(config.dtype),
-                           scan=not unroll, attention=attention.vision)
     # batch-major (B * C images): a batch sharded over devices stays sharded; merging C-major would all-gather it
     flat = jnp.swapaxes(images, 0, 1).reshape(b * c, *images.shape[2:])
-    tokens = module.apply({"params": weights["img"]}, flat)[0]
+    tokens = vision.encode(config.siglip, weights["img"], flat, dtype=jnp.dtype(config.dtype), unroll=unroll,
+                           attention=attention.vision)
     return tokens.reshape(b, -1, tokens.shape[-1])
 
 

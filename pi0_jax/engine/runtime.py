@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pi0_jax import pi0, siglip
+from pi0_jax import pi0
 from pi0_jax.config import IMAGE_KEYS, Pi0Config
 from pi0_jax.engine import programs, weights as weights_lib
 from pi0_jax.ops import formats
@@ -57,7 +57,7 @@ def engine_weights(config: Pi0Config, params: dict, *, unroll: bool = True, kern
         depth = config.paligemma.depth
         w["vlm"] = weights_lib.unstack(w["vlm"], depth)
         w["expert"] = weights_lib.unstack(w["expert"], depth)
-        w["img"] = siglip.unstack_blocks(w["img"], config.siglip.depth)
+        w["img"]["blocks"] = weights_lib.unstack(w["img"]["blocks"], config.siglip.depth)
     if kernels == "pallas":
         if not unroll:
             raise ValueError("kernels='pallas' needs unroll=True")

@@ -1,7 +1,7 @@
 """Engine weights: the openpi param tree rearranged for inference, computing the same function.
 
 - q/k/v of each expert fused into one (D, (N + 2K) H) GEMM, gate/up into one (D, 2F) GEMM, attention out as
-  (N H, D): fewer, larger kernels.
+  (N H, D): fewer, larger kernels. The same for SigLIP's q/k/v and attention out (`vision_weights`).
 - Per-layer weights split into separate buffers (unrolled layers) or kept stacked (scanned layers).
 - The prefix pass returns only K/V, so XLA drops the VLM's last MLP and final norm as dead code; the VLM's final
   norm weights are not carried at all.
@@ -78,6 +78,33 @@ def _expert_weights(attn: dict, mlp: dict, suffix: str, dtype) -> dict:
     }
 
 
+def vision_weights(img: dict, dtype) -> dict:
+    """openpi's SigLIP tree (blocks stacked) -> `engine.vision`'s: q/k/v fused into one (D, 3 N H) GEMM with one
+    bias, the attention output as (N H, D); the patch embedding and position table as they are (an f32 island)."""
+    blk = img["Transformer"]["encoderblock"]
+    mha, mlp = blk["MultiHeadDotProductAttention_0"], blk["MlpBlock_0"]
+    q, k, v = (mha[n]["kernel"] for n in ("query", "key", "value"))  # (L, D, N, H)
+    if isinstance(q, quant.QArray):
+        qkv = quant.concat([_rearrange(w, "L D N H -> L D (N H)", dtype) for w in (q, k, v)], axis=-2)
+    else:
+        qkv = jnp.concatenate([einops.rearrange(w, "L D N H -> L D (N H)") for w in (q, k, v)], axis=-1).astype(dtype)
+    blocks = {
+        "ln1": blk["LayerNorm_0"], "ln2": blk["LayerNorm_1"],
+        "qkv": qkv,
+        "qkv_bias": jnp.concatenate([einops.rearrange(mha[n]["bias"], "L N H -> L (N H)")
+                                     for n in ("query", "key", "value")], axis=-1).astype(dtype),
+        "out": _rearrange(mha["out"]["kernel"], "L N H D -> L (N H) D", dtype),
+        "out_bias": mha["out"]["bias"].astype(dtype),
+        "fc1": _rearrange(mlp["Dense_0"]["kernel"], "L D F -> L D F", dtype),
+        "fc1_bias": mlp["Dense_0"]["bias"].astype(dtype),
+        "fc2": _rearrange(mlp["Dense_1"]["kernel"], "L F D -> L F D", dtype),
+        "fc2_bias": mlp["Dense_1"]["bias"].astype(dtype),
+    }
+    head = {"kernel": _rearrange(img["head"]["kernel"], "D E -> D E", dtype), "bias": img["head"]["bias"].astype(dtype)}
+    return {"embedding": img["embedding"], "pos": img["pos_embedding"], "blocks": blocks,
+            "norm": img["Transformer"]["encoder_norm"], "head": head}
+
+
 def prepare(config: Pi0Config, params: dict) -> dict:
     """Engine weights (stacked over layers) from openpi-layout params. Pure; jit it to run on device."""
     dtype = jnp.dtype(config.dtype)
@@ -92,7 +119,7 @@ def prepare(config: Pi0Config, params: dict) -> dict:
         expert["pre_ffw"] = layers["pre_ffw_norm_1"]["scale"]
     top = {k: v for k, v in params.items() if k != "PaliGemma"}
     out = {
-        "img": params["PaliGemma"]["img"],
+        "img": vision_weights(params["PaliGemma"]["img"], dtype),
         "embedding": llm["embedder"]["input_embedding"],
         "vlm": vlm,
         "expert": expert,

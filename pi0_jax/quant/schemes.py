@@ -13,7 +13,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pi0_jax import siglip
 from pi0_jax.config import IMAGE_KEYS, Pi0Config
 from pi0_jax.ops import matmul as hooks
 from pi0_jax.ops.formats import act_scale_from_amax, fake_quant_fp4, quantize_fp8
@@ -25,16 +24,17 @@ _LLM = ("PaliGemma", "llm", "layers")
 _IMG = ("PaliGemma", "img", "Transformer", "encoderblock")
 _MHA = "MultiHeadDotProductAttention_0"
 
-# group -> [(path, contracting axes, engine calibration key)]; keys: "vlm/<name>" per layer, "img/<sub>" per block.
+# group -> [(path, contracting axes, engine calibration key)]; keys: "vlm/<name>" per layer, "img/<name>" per block
+# (both the engine's GEMM names: `weights.prepare`, `weights.vision_weights`), and "img/head".
 GROUPS: dict[str, list[tuple[tuple[str, ...], tuple[int, ...], str | None]]] = {
     "prefix-mlp": [(_LLM + ("mlp", "gating_einsum"), (-2,), "vlm/gate_up"),
                    (_LLM + ("mlp", "linear"), (-2,), "vlm/down")],
     "prefix-attn": [(_LLM + ("attn", "q_einsum", "w"), (-2,), "vlm/qkv"),
                     (_LLM + ("attn", "kv_einsum", "w"), (-2,), "vlm/qkv"),
                     (_LLM + ("attn", "attn_vec_einsum", "w"), (-3, -2), "vlm/attn_out")],
-    "vision": [(_IMG + (_MHA, n, "kernel"), (-3,), f"img/{_MHA}/{n}") for n in ("query", "key", "value")]
-    + [(_IMG + (_MHA, "out", "kernel"), (-3, -2), f"img/{_MHA}/out")]
-    + [(_IMG + ("MlpBlock_0", n, "kernel"), (-2,), f"img/MlpBlock_0/{n}") for n in ("Dense_0", "Dense_1")]
+    "vision": [(_IMG + (_MHA, n, "kernel"), (-3,), "img/qkv") for n in ("query", "key", "value")]
+    + [(_IMG + (_MHA, "out", "kernel"), (-3, -2), "img/out")]
+    + [(_IMG + ("MlpBlock_0", n, "kernel"), (-2,), f"img/{k}") for n, k in (("Dense_0", "fc1"), ("Dense_1", "fc2"))]
     + [(("PaliGemma", "img", "head", "kernel"), (-2,), "img/head")],
     "expert": [(_LLM + ("attn", n, "w"), c, None) for n, c in
                (("q_einsum_1", (-2,)), ("kv_einsum_1", (-2,)), ("attn_vec_einsum_1", (-3, -2)))]
@@ -45,6 +45,7 @@ SCHEMES: dict[str, tuple[str, ...]] = {
     "prefix-mlp": ("prefix-mlp",),
     "prefix-all": ("prefix-mlp", "prefix-attn"),
     "vision": ("vision",),
+    "prefix-vision": ("prefix-mlp", "prefix-attn", "vision"),   # every FP8 x FP8 GEMM: for large batches
     "expert-weights": ("expert",),
     "all": ("prefix-mlp", "prefix-attn", "vision", "expert"),
 }
@@ -105,23 +106,14 @@ def calibrate(config: Pi0Config, params: dict, observations, scheme: str = "all"
     w = weights_lib.prepare(config, params)
     depth, vdepth = config.paligemma.depth, config.siglip.depth
     w["vlm"] = weights_lib.unstack(w["vlm"], depth)
-    w["img"] = siglip.unstack_blocks(w["img"], vdepth)
-    for i, layer in enumerate(w["vlm"]):
-        for name in ("qkv", "attn_out", "gate_up", "down"):
-            if f"vlm/{name}" in keys:
-                layer[name] = hooks.Tap(layer[name], f"vlm/{name}/{i}")
-    img = w["img"]
-    for key in keys:
-        if not key.startswith("img/"):
-            continue
-        sub = tuple(key.split("/")[1:])
-        if sub == ("head",):
-            img = _set(img, ("head", "kernel"), hooks.Tap(img["head"]["kernel"], "img/head"))
-            continue
-        for i in range(vdepth):
-            path = ("Transformer", f"encoderblock_{i}", *sub, "kernel")
-            img = _set(img, path, hooks.Tap(_get(img, path), f"{key}/{i}"))
-    w["img"] = img
+    w["img"]["blocks"] = weights_lib.unstack(w["img"]["blocks"], vdepth)
+    for prefix, blocks in (("vlm", w["vlm"]), ("img", w["img"]["blocks"])):
+        for i, block in enumerate(blocks):
+            for name in block:
+                if f"{prefix}/{name}" in keys:
+                    block[name] = hooks.Tap(block[name], f"{prefix}/{name}/{i}")
+    if "img/head" in keys:
+        w["img"]["head"]["kernel"] = hooks.Tap(w["img"]["head"]["kernel"], "img/head")
 
     def stages(w, images, image_masks, tokens, token_mask):
         image_tokens = programs.encode_images(config, w, images, unroll=True)
