@@ -37,6 +37,12 @@ for phase in "$@"; do
     cmdbuf_cudnn_b1) XLA_FLAGS="--xla_gpu_enable_command_buffer=FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,WHILE,CONDITIONAL \
                --xla_gpu_graph_min_graph_size=1" python3 -m pi0_jax.cli benchmark --preset pi05_base --steps 1,10 \
                --batch 1 --attention cudnn --iters 50 --out "$OUT/pi05_cmdbuf_cudnn.json" ;;
+    vision_ab) python3 scripts/vision_probe.py --old-siglip .old/siglip.py --batch 1,8,64 --fp8 --trace --iters 30 \
+               --out "$OUT/vision_ab.json" ;;  # .old/siglip.py: `git show 7799238:pi0_jax/siglip.py`, carried
+    pi05_b64_fp8) for q in none prefix-mlp prefix-vision; do
+                 python3 -m pi0_jax.cli benchmark --preset pi05_base --steps 10 --batch 64 --fused-steps 10 --iters 10 \
+                   $([ $q = none ] || echo --quant $q) --out "$OUT/pi05_b64_$q.json" > "$OUT/pi05_b64_$q.log" 2>&1
+                 tail -4 "$OUT/pi05_b64_$q.log"; done ;;
     dump_hlo) python3 - <<'PY'
 import os
 from pi0_jax import benchmark
