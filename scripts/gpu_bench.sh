@@ -17,6 +17,8 @@ for phase in "$@"; do
     stages_b8) python3 scripts/profile_engine.py --preset pi0_base --batch 8 --prompt-tokens 48 --attention xla \
                --attention vision=cudnn,prefix=cudnn --time --iters 20 --out "$OUT/stages_b8.json" ;;
     hlo_pi05) python3 scripts/profile_engine.py --preset pi05_base --steps 10 --out "$OUT/hlo_pi05.json" ;;
+    pi0_b1b8) python3 -m pi0_jax.cli benchmark --preset pi0_base --steps 1,10 --batch 1,8 --fused-steps 1,10 --reference \
+               --iters 30 --out "$OUT/pi0_b1b8.json" > "$OUT/pi0_b1b8.log" 2>&1; tail -30 "$OUT/pi0_b1b8.log" ;;
     pi05_b1) python3 -m pi0_jax.cli benchmark --preset pi05_base --steps 1,10 --batch 1 --reference --warm-start \
                --compare lerobot --iters 50 --out "$OUT/pi05_b1.json" ;;
     pi05_scan) python3 -m pi0_jax.cli benchmark --preset pi05_base --steps 10 --batch 1 --no-unroll --iters 30 \
@@ -37,7 +39,7 @@ for phase in "$@"; do
     cmdbuf_cudnn_b1) XLA_FLAGS="--xla_gpu_enable_command_buffer=FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,WHILE,CONDITIONAL \
                --xla_gpu_graph_min_graph_size=1" python3 -m pi0_jax.cli benchmark --preset pi05_base --steps 1,10 \
                --batch 1 --attention cudnn --iters 50 --out "$OUT/pi05_cmdbuf_cudnn.json" ;;
-    vision_ab) python3 scripts/vision_probe.py --old-siglip .old/siglip.py --batch 1,8,64 --fp8 --trace --iters 30 \
+    vision_ab) python3 scripts/vision_probe.py --old-siglip .old/siglip.py --batch ${VISION_BATCH:-1,8,64} --fp8 --trace --iters 30 \
                --out "$OUT/vision_ab.json" ;;  # .old/siglip.py: `git show 7799238:pi0_jax/siglip.py`, carried
     pi05_b64_fp8) for q in none prefix-mlp prefix-vision; do
                  python3 -m pi0_jax.cli benchmark --preset pi05_base --steps 10 --batch 64 --fused-steps 10 --iters 10 \
