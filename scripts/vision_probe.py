@@ -3,8 +3,7 @@
 "flax": the Flax SigLIP as the engine ran it up to commit 7799238 (blocks unrolled, one Dense per q, k, v, cuDNN
 attention; FP8 kernels went through `ops.matmul.dense_interceptor` in openpi's (in, out) layout), loaded from that
 commit's `pi0_jax/siglip.py` (`--old-siglip`, e.g. `git show 7799238:pi0_jax/siglip.py > old_siglip.py`).
-"engine": `pi0_jax.engine.vision` (FP8 weights (out, in)) with q/k/v as one GEMM, "engine-split" the same with
-the fused weight sliced into three GEMMs. Each in bf16 and, with `--fp8`, with the
+"engine": `pi0_jax.engine.vision` (fused q/k/v, FP8 weights (out, in)). Each in bf16 and, with `--fp8`, with the
 "vision" FP8 scheme (activation scales calibrated on two batches of smooth random images). Timing is round-robin
 over the variants (one call of each per round), so drift hits all alike; kernels are counted in the optimized HLO,
 and `--trace` sums a profiler trace's kernels at the first batch size.
@@ -31,7 +30,7 @@ from profile_engine import count_ops, kernel_times  # noqa: E402
 
 from pi0_jax import benchmark  # noqa: E402
 from pi0_jax.config import get_config  # noqa: E402
-from pi0_jax.engine import vision, weights as weights_lib  # noqa: E402
+from pi0_jax.engine import programs, weights as weights_lib  # noqa: E402
 from pi0_jax.ops import formats  # noqa: E402
 from pi0_jax.quant import schemes  # noqa: E402
 
@@ -46,13 +45,13 @@ def old_encoder(path: Path, config, img: dict):
     return lambda p, x: module.apply({"params": p}, x)[0], params
 
 
-def new_encoder(config, img: dict, split_qkv: bool):
+def new_encoder(config, img: dict):
     w = weights_lib.vision_weights(img, jnp.dtype(config.dtype))
     w["blocks"] = weights_lib.unstack(w["blocks"], config.siglip.depth)
+    attention = programs.Attention(vision="cudnn")
 
     def run(w, x):
-        return vision.encode(config.siglip, w, x, dtype=jnp.dtype(config.dtype), unroll=True, attention="cudnn",
-                             split_qkv=split_qkv)
+        return programs.encode_images(config, {"img": w}, x[None], unroll=True, attention=attention)
     return run, w
 
 
@@ -78,8 +77,7 @@ def main() -> None:
     variants = {}
     for fmt, img in imgs.items():
         variants[f"flax/{fmt}"] = old_encoder(args.old_siglip, config, img)
-        variants[f"engine/{fmt}"] = new_encoder(config, img, split_qkv=False)
-        variants[f"engine-split/{fmt}"] = new_encoder(config, img, split_qkv=True)
+        variants[f"engine/{fmt}"] = new_encoder(config, img)
     rows, s = [], config.image_size
     for bi, batch in enumerate(int(b) for b in args.batch.split(",")):
         n = batch * args.cameras

@@ -11,9 +11,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from pi0_jax import pi0, siglip
+from pi0_jax import pi0
 from pi0_jax.config import IMAGE_KEYS, get_config
-from pi0_jax.engine import Engine, programs, prompt_bucket
+from pi0_jax.engine import Engine, prompt_bucket
 from test_model import make_obs, randomize
 
 sample_ref = jax.jit(pi0.sample_actions, static_argnums=(0, 4))
@@ -43,27 +43,6 @@ def test_fused_and_staged_match_reference_f32(model, unroll):
     assert n == 3 * 256 + 32
     valid = np.asarray(ref_cache.mask)[None, :, :n, None, None]
     np.testing.assert_allclose(np.where(valid, k, 0), np.where(valid, ref_cache.k[:, :, :n], 0), rtol=1e-5, atol=1e-5)
-
-
-def test_vision_split_qkv_gives_the_reference_tokens(monkeypatch):
-    """From VISION_SPLIT_QKV_MIN_IMAGES images per call SigLIP's q/k/v run as three GEMMs on slices of the fused
-    weight (two more dots per block): the same tokens as the reference's Flax tower (π0 and π0.5 share it)."""
-    config = get_config("dummy")
-    params = randomize(pi0.init_params(config, jax.random.key(0)))
-    obs = make_obs(config)
-    cameras = IMAGE_KEYS[: config.num_cameras]
-    want = np.concatenate([np.asarray(siglip.Siglip(config.siglip, config.paligemma.width, jnp.dtype(config.dtype))
-                                      .apply({"params": params["PaliGemma"]["img"]}, obs.images[k])[0])
-                           for k in cameras], axis=1)
-    dots = []
-    for threshold in (1, 10**6):
-        monkeypatch.setattr(programs, "VISION_SPLIT_QKV_MIN_IMAGES", threshold)
-        engine = Engine(config, params, cache_dir=False)
-        images = engine.pack(obs, cameras, 32)[0]
-        exe = engine.executable("encode_images", images.shape[1], 0, cameras, 32)
-        np.testing.assert_allclose(np.asarray(exe(engine.weights, images)), want, rtol=1e-5, atol=1e-5)
-        dots.append(exe.as_text().count(" dot("))
-    assert dots[0] == dots[1] + 2 * config.siglip.depth
 
 
 def test_bf16_matches_reference_bf16(model):
@@ -168,7 +147,7 @@ _CHILD = textwrap.dedent("""
     hits = []
     jax.monitoring.register_event_listener(lambda name, **kw: hits.append(name))
     sys.path.insert(0, sys.argv[2])
-    from pi0_jax import pi0, siglip
+    from pi0_jax import pi0
     from pi0_jax.config import get_config
     from pi0_jax.engine import Engine
     from test_model import make_obs

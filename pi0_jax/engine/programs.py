@@ -32,10 +32,6 @@ PALLAS_MAX_BATCH = 2
 # the Pallas expert, which has its own attention).
 CUDNN_DENOISE_MIN_BATCH = 8
 
-# From this many images per call, SigLIP's q/k/v run as three GEMMs (`vision.block`'s split_qkv); below it as one,
-# whose output is then cut in three. PLACEHOLDER: measured by scripts/vision_probe.py.
-VISION_SPLIT_QKV_MIN_IMAGES = 96
-
 
 KERNELS = ("auto", "xla", "pallas")
 
@@ -139,7 +135,7 @@ def encode_images(config: Pi0Config, weights: dict, images: jax.Array, *, unroll
     # batch-major (B * C images): a batch sharded over devices stays sharded; merging C-major would all-gather it
     flat = jnp.swapaxes(images, 0, 1).reshape(b * c, *images.shape[2:])
     tokens = vision.encode(config.siglip, weights["img"], flat, dtype=jnp.dtype(config.dtype), unroll=unroll,
-                           attention=attention.vision, split_qkv=b * c >= VISION_SPLIT_QKV_MIN_IMAGES)
+                           attention=attention.vision)
     return tokens.reshape(b, -1, tokens.shape[-1])
 
 

@@ -20,7 +20,6 @@ import jax.numpy as jnp
 from pi0_jax.config import SiglipConfig
 from pi0_jax.engine import layers
 from pi0_jax.ops import attention as ops_attention
-from pi0_jax.ops.formats import QArray
 
 
 def layer_norm(x, p, dtype):
@@ -34,26 +33,12 @@ def _dense(x, w, b):
     return layers._mm(x, w) + b
 
 
-def _split_out(w, parts: int):
-    """A fused weight cut back into its parts along the output axis (the last of a plain (in, out) weight, the
-    second to last of an FP8 (out, in) one)."""
-    if isinstance(w, QArray):
-        return [QArray(q, s, w.act_scale, w.contract)
-                for q, s in zip(jnp.split(w.q, parts, axis=-2), jnp.split(w.scale, parts, axis=-2))]
-    return jnp.split(w, parts, axis=-1)
-
-
-def block(cfg: SiglipConfig, w, x, *, attention: str, split_qkv: bool = False):
-    """One pre-LN encoder block. x (B, T, D) in the activation dtype. split_qkv: q, k and v as three GEMMs (the
-    fused weight sliced) instead of one whose output is then cut into three."""
+def block(cfg: SiglipConfig, w, x, *, attention: str):
+    """One pre-LN encoder block. x (B, T, D) in the activation dtype."""
     dtype = x.dtype
     h = layer_norm(x, w["ln1"], dtype)
-    if split_qkv:
-        q, k, v = (_dense(h, wi, bi).reshape(*h.shape[:2], cfg.num_heads, -1)
-                   for wi, bi in zip(_split_out(w["qkv"], 3), jnp.split(w["qkv_bias"], 3, axis=-1)))
-    else:
-        q, k, v = einops.rearrange(_dense(h, w["qkv"], w["qkv_bias"]), "B T (three N H) -> three B T N H",
-                                   three=3, N=cfg.num_heads)
+    q, k, v = einops.rearrange(_dense(h, w["qkv"], w["qkv_bias"]), "B T (three N H) -> three B T N H", three=3,
+                               N=cfg.num_heads)
     if attention == "cudnn":
         y = ops_attention.fused(q, k, v)
     else:
@@ -64,8 +49,7 @@ def block(cfg: SiglipConfig, w, x, *, attention: str, split_qkv: bool = False):
     return x + _dense(h, w["fc2"], w["fc2_bias"])
 
 
-def encode(cfg: SiglipConfig, w: dict, images, *, dtype, unroll: bool, attention: str = "xla",
-           split_qkv: bool = False):
+def encode(cfg: SiglipConfig, w: dict, images, *, dtype, unroll: bool, attention: str = "xla"):
     """images (B, S, S, 3) in [-1, 1] -> tokens (B, 256, out_dim) in dtype (image tokens are not scaled by
     sqrt(width), spec §3.8). w["blocks"]: a list of per-block dicts (unroll) or one stacked dict (lax.scan)."""
     p = cfg.patch_size
@@ -74,7 +58,7 @@ def encode(cfg: SiglipConfig, w: dict, images, *, dtype, unroll: bool, attention
     x = x + w["embedding"]["bias"].astype(jnp.float32)
     x = x.reshape(x.shape[0], -1, x.shape[-1])  # row-major: token = row * (S / 14) + col
     x = (x + w["pos"].astype(jnp.float32)).astype(dtype)
-    x, _ = layers.run_layers(lambda wi, x: (block(cfg, wi, x, attention=attention, split_qkv=split_qkv),), w["blocks"], x,
+    x, _ = layers.run_layers(lambda wi, x: (block(cfg, wi, x, attention=attention),), w["blocks"], x,
                              unroll=unroll)
     x = layer_norm(x, w["norm"], dtype)
     return _dense(x, w["head"]["kernel"], w["head"]["bias"])
