@@ -65,6 +65,7 @@ def main() -> None:
     p.add_argument("--iters", type=int, default=30, help="timed rounds (default: %(default)s)")
     p.add_argument("--trace", action="store_true", help="profiler kernel sums at the first batch size")
     p.add_argument("--out", type=Path, default=None, help="JSON of every row")
+    p.add_argument("--dump-hlo", type=Path, default=None, help="write each program's optimized HLO into this folder")
     args = p.parse_args()
 
     config = get_config(args.preset)
@@ -88,6 +89,9 @@ def main() -> None:
             exes[name] = jax.jit(fn).lower(w, x).compile(formats.compiler_options(w))
             compile_s = time.perf_counter() - t0
             outs[name] = np.asarray(exes[name](w, x), np.float32).reshape(n, -1)
+            if args.dump_hlo:
+                args.dump_hlo.mkdir(parents=True, exist_ok=True)
+                (args.dump_hlo / f"{name.replace('/', '_')}_b{batch}.hlo.txt").write_text(exes[name].as_text())
             counts = count_ops(exes[name].as_text())
             entry = next(v for k, v in counts.items() if k.startswith("ENTRY"))
             rows.append({"variant": name, "batch": batch, "images": n, "compile_s": compile_s, "entry_ops": entry})
