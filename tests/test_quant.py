@@ -165,8 +165,8 @@ def test_engine_fp8_equals_the_reference_with_the_same_weights_and_hands_xla_fp8
     vision = jax.jit(functools.partial(programs.encode_images, config, unroll=True)).lower(
         weights, spec((len(cameras), 1, size, size, 3), jnp.float32))
     depth = config.paligemma.depth  # q/k/v, attention out, gate/up, down per layer; the last layer's K/V is all
-    # the prefix returns, so the rest of that layer is dead code. SigLIP: q, k, v, out, MLP in and out, the head.
-    for lowered, expected in ((prefix, depth + 3 * (depth - 1)), (vision, 6 * config.siglip.depth + 1)):
+    # the prefix returns, so the rest of that layer is dead code. SigLIP: q/k/v, out, MLP in and out, the head.
+    for lowered, expected in ((prefix, depth + 3 * (depth - 1)), (vision, 4 * config.siglip.depth + 1)):
         dots = [line for line in lowered.as_text().splitlines() if "dot_general" in line and "f8E4M3FN" in line]
         assert len(dots) == expected
         for line in dots:

@@ -1,8 +1,8 @@
 """The engine's SigLIP: plain jnp over `weights.vision_weights`, the same function as `pi0_jax.siglip.Siglip`.
 
-What differs from the Flax module is the weights' layout: every matmul is a 2-D GEMM through the engine's one entry
-point (`layers._mm`), so FP8 weights sit (out, in) as cuBLASLt's FP8 GEMM reads them (Flax's Dense keeps them
-(in, out), and XLA transposes them before every GEMM). Numerics as Flax computes them: the
+What differs from the Flax module is the grouping of matmuls and the weights' layout: q/k/v are one (D, 3 N H) GEMM
+with one bias, the attention output one (N H, D) GEMM, and every matmul goes through the engine's one entry point
+(`layers._mm`), so FP8 weights sit (out, in) as cuBLASLt's FP8 GEMM reads them. Numerics as Flax computes them: the
 patch convolution and the position add in f32; LayerNorm statistics in f32 (Flax's fast variance, E[x²] - E[x]²,
 eps 1e-6), the normalised value cast to the activation dtype; each Dense in the activation dtype with its bias added
 in it; GELU-tanh; attention as Flax's `dot_product_attention` ("xla") or one fused kernel ("cudnn").
@@ -37,7 +37,8 @@ def block(cfg: SiglipConfig, w, x, *, attention: str):
     """One pre-LN encoder block. x (B, T, D) in the activation dtype."""
     dtype = x.dtype
     h = layer_norm(x, w["ln1"], dtype)
-    q, k, v = (_dense(h, w[n], w[f"{n}_bias"]).reshape(*h.shape[:2], cfg.num_heads, -1) for n in "qkv")
+    q, k, v = einops.rearrange(_dense(h, w["qkv"], w["qkv_bias"]), "B T (three N H) -> three B T N H", three=3,
+                               N=cfg.num_heads)
     if attention == "cudnn":
         y = ops_attention.fused(q, k, v)
     else:

@@ -1,7 +1,7 @@
 """Engine weights: the openpi param tree rearranged for inference, computing the same function.
 
 - q/k/v of each expert fused into one (D, (N + 2K) H) GEMM, gate/up into one (D, 2F) GEMM, attention out as
-  (N H, D): fewer, larger kernels. SigLIP's are laid out for `engine.vision` (`vision_weights`).
+  (N H, D): fewer, larger kernels. The same for SigLIP's q/k/v and attention out (`vision_weights`).
 - Per-layer weights split into separate buffers (unrolled layers) or kept stacked (scanned layers).
 - The prefix pass returns only K/V, so XLA drops the VLM's last MLP and final norm as dead code; the VLM's final
   norm weights are not carried at all.
@@ -79,17 +79,20 @@ def _expert_weights(attn: dict, mlp: dict, suffix: str, dtype) -> dict:
 
 
 def vision_weights(img: dict, dtype) -> dict:
-    """openpi's SigLIP tree (blocks stacked) -> `engine.vision`'s: q, k, v and the attention output as (D, N H) and
-    (N H, D) GEMMs (q/k/v stay three: cuDNN's attention takes them as separate buffers, and cutting one fused
-    GEMM's output in three costs more than the fusion saves, docs/BENCHMARKS.md); the patch embedding and position
-    table as they are (an f32 island)."""
+    """openpi's SigLIP tree (blocks stacked) -> `engine.vision`'s: q/k/v fused into one (D, 3 N H) GEMM with one
+    bias, the attention output as (N H, D); the patch embedding and position table as they are (an f32 island)."""
     blk = img["Transformer"]["encoderblock"]
     mha, mlp = blk["MultiHeadDotProductAttention_0"], blk["MlpBlock_0"]
+    q, k, v = (mha[n]["kernel"] for n in ("query", "key", "value"))  # (L, D, N, H)
+    if isinstance(q, quant.QArray):
+        qkv = quant.concat([_rearrange(w, "L D N H -> L D (N H)", dtype) for w in (q, k, v)], axis=-2)
+    else:
+        qkv = jnp.concatenate([einops.rearrange(w, "L D N H -> L D (N H)") for w in (q, k, v)], axis=-1).astype(dtype)
     blocks = {
         "ln1": blk["LayerNorm_0"], "ln2": blk["LayerNorm_1"],
-        **{n[0]: _rearrange(mha[n]["kernel"], "L D N H -> L D (N H)", dtype) for n in ("query", "key", "value")},
-        **{f"{n[0]}_bias": einops.rearrange(mha[n]["bias"], "L N H -> L (N H)").astype(dtype)
-           for n in ("query", "key", "value")},
+        "qkv": qkv,
+        "qkv_bias": jnp.concatenate([einops.rearrange(mha[n]["bias"], "L N H -> L (N H)")
+                                     for n in ("query", "key", "value")], axis=-1).astype(dtype),
         "out": _rearrange(mha["out"]["kernel"], "L N H D -> L (N H) D", dtype),
         "out_bias": mha["out"]["bias"].astype(dtype),
         "fc1": _rearrange(mlp["Dense_0"]["kernel"], "L D F -> L D F", dtype),

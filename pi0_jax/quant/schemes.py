@@ -32,7 +32,7 @@ GROUPS: dict[str, list[tuple[tuple[str, ...], tuple[int, ...], str | None]]] = {
     "prefix-attn": [(_LLM + ("attn", "q_einsum", "w"), (-2,), "vlm/qkv"),
                     (_LLM + ("attn", "kv_einsum", "w"), (-2,), "vlm/qkv"),
                     (_LLM + ("attn", "attn_vec_einsum", "w"), (-3, -2), "vlm/attn_out")],
-    "vision": [(_IMG + (_MHA, n, "kernel"), (-3,), f"img/{n[0]}") for n in ("query", "key", "value")]
+    "vision": [(_IMG + (_MHA, n, "kernel"), (-3,), "img/qkv") for n in ("query", "key", "value")]
     + [(_IMG + (_MHA, "out", "kernel"), (-3, -2), "img/out")]
     + [(_IMG + ("MlpBlock_0", n, "kernel"), (-2,), f"img/{k}") for n, k in (("Dense_0", "fc1"), ("Dense_1", "fc2"))]
     + [(("PaliGemma", "img", "head", "kernel"), (-2,), "img/head")],
