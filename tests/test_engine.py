@@ -76,7 +76,7 @@ def test_fused_attention_matches_reference_with_holes_in_the_prefix(model, atten
     fill moves each element's valid tokens to the front. Element 1's last camera is masked (a hole mid-prefix) and
     the prompts are padded to different lengths: without the move the lengths would cut valid keys. "denoise=auto"
     is the fused kernel from CUDNN_DENOISE_MIN_BATCH on: lowered to this test's batch of 2, the prefix fill must see
-    it too (the move)."""
+    it too (the move), for π0.5; π0's masked suffix keeps XLA's attention there, and its cache keeps the hole."""
     from pi0_jax.engine import programs
 
     monkeypatch.setattr(programs, "CUDNN_DENOISE_MIN_BATCH", 2)
@@ -89,8 +89,10 @@ def test_fused_attention_matches_reference_with_holes_in_the_prefix(model, atten
     _, cache, staged = engine.run_stages(obs, jnp.array(noise), 3)
     np.testing.assert_allclose(staged, ref, rtol=1e-5, atol=1e-5)
     mask = np.asarray(cache.mask)
-    if attention != "vision=cudnn":   # valid keys first: each row of the mask is one run from the front
-        assert (np.diff(mask.astype(np.int8), axis=1) <= 0).all() and mask.sum(1).tolist() == [3 * 256 + 13, 2 * 256 + 21]
+    resolved = programs.Attention.parse(attention).at_batch(2, suffix_mask=not config.pi05)
+    moved = (np.diff(mask.astype(np.int8), axis=1) <= 0).all()  # valid keys first: each row one run from the front
+    assert moved == ("cudnn" in (resolved.prefix, resolved.denoise))
+    assert mask.sum(1).tolist() == [3 * 256 + 13, 2 * 256 + 21]
 
 
 def test_attention_and_kernel_choices():
@@ -104,6 +106,7 @@ def test_attention_and_kernel_choices():
     big, small = programs.CUDNN_DENOISE_MIN_BATCH, programs.CUDNN_DENOISE_MIN_BATCH - 1   # measured: 8 faster, 1 slower
     assert programs.AUTO_GPU.at_batch(big) == A("cudnn", "cudnn", "cudnn") and big <= 8
     assert programs.AUTO_GPU.at_batch(small) == A("cudnn", "cudnn", "xla") and small >= 1
+    assert programs.AUTO_GPU.at_batch(big, suffix_mask=True) == A("cudnn", "cudnn", "xla")  # π0: measured slower
     assert A.parse("cudnn").at_batch(1) == A.parse("cudnn")
     for bad in ("flash", "prefix=flash", "decoder=cudnn", "prefix", "vision=auto"):
         with pytest.raises(ValueError, match="attention"):

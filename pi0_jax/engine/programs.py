@@ -27,9 +27,10 @@ from pi0_jax.ops import matmul as quant
 # per row block.
 PALLAS_MAX_BATCH = 2
 
-# The batch from which the denoise step's attention="auto" is cuDNN's fused kernel on a GPU: measured 14 % and 13 %
-# faster than XLA's ops at B = 8 and 64 (π0.5, H200, docs/BENCHMARKS.md), slower at B = 1; below it XLA's ops (or
-# the Pallas expert, which has its own attention).
+# The batch from which the denoise step's attention="auto" is cuDNN's fused kernel on a GPU, for π0.5: measured 14 %
+# and 13 % faster than XLA's ops at B = 8 and 64 (H200, docs/BENCHMARKS.md), slower at B = 1; below it XLA's ops (or
+# the Pallas expert, which has its own attention). Never for π0: its suffix mask (the state token does not see the
+# actions) goes to cuDNN as an explicit boolean mask, and its denoise loop took 35.7 ms at B = 8 against 24.3 ms.
 CUDNN_DENOISE_MIN_BATCH = 8
 
 
@@ -64,7 +65,7 @@ class Attention:
     """Each stage's attention: "xla" (the reference's ops: logits, softmax, weighted sum) or "cudnn" (one fused
     flash kernel, `ops.attention.fused`: cuDNN on a GPU, its XLA form elsewhere; masks by lengths, so the prefix
     fill puts each element's valid tokens first). The denoise step's may also be "auto": "cudnn" from
-    CUDNN_DENOISE_MIN_BATCH on, else "xla" (`at_batch` resolves it; the programs do). It is unused by the Pallas
+    CUDNN_DENOISE_MIN_BATCH on for π0.5, else "xla" (`at_batch` resolves it; the programs do). It is unused by the Pallas
     kernels."""
 
     vision: str = "xla"
@@ -77,11 +78,13 @@ class Attention:
                 raise ValueError(f"attention for {stage} must be 'xla' or 'cudnn'{' or auto' * (stage == 'denoise')}"
                                  f", got {value!r}")
 
-    def at_batch(self, batch: int) -> Attention:
-        """The concrete choice of every stage for a program of this batch size."""
+    def at_batch(self, batch: int, suffix_mask: bool = False) -> Attention:
+        """The concrete choice of every stage for a program of this batch size; suffix_mask: the model's suffix
+        masks some of its own keys (π0; π0.5's attends everywhere)."""
         if self.denoise != "auto":
             return self
-        return dataclasses.replace(self, denoise="cudnn" if batch >= CUDNN_DENOISE_MIN_BATCH else "xla")
+        cudnn = batch >= CUDNN_DENOISE_MIN_BATCH and not suffix_mask
+        return dataclasses.replace(self, denoise="cudnn" if cudnn else "xla")
 
     @classmethod
     def parse(cls, spec, platform: str | None = None) -> Attention:
@@ -147,7 +150,7 @@ def fill_prefix_cache(config: Pi0Config, weights: dict, image_tokens, image_mask
     moved to the front first, in order: positions are computed before and travel with them, and attention does
     not depend on the order of its keys, so the cache holds the same keys, in that order, with a run of a mask."""
     dtype = jnp.dtype(config.dtype)
-    attention = attention.at_batch(image_tokens.shape[0])
+    attention = attention.at_batch(image_tokens.shape[0], suffix_mask=not config.pi05)
     n_img = image_tokens.shape[1] // image_masks.shape[0]
     text = weights["embedding"][tokens]
     text = text * jnp.sqrt(config.paligemma.width).astype(text.dtype)  # sqrt(width) cast to the table dtype first
@@ -187,7 +190,7 @@ def velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, cac
     dtype = jnp.dtype(config.dtype)
     top, horizon = weights["top"], config.action_horizon
     b = x_t.shape[0]
-    attention = attention.at_batch(b)
+    attention = attention.at_batch(b, suffix_mask=not config.pi05)
     action_tokens = _dense(top["action_in_proj"], x_t)  # f32: the projections run in the promoted dtype
     if config.pi05:
         x = action_tokens
