@@ -19,6 +19,11 @@ for phase in "$@"; do
     hlo_pi05) python3 scripts/profile_engine.py --preset pi05_base --steps 10 --out "$OUT/hlo_pi05.json" ;;
     pi0_b1b8) python3 -m pi0_jax.cli benchmark --preset pi0_base --steps 1,10 --batch 1,8 --fused-steps 1,10 --reference \
                --iters 30 --out "$OUT/pi0_b1b8.json" > "$OUT/pi0_b1b8.log" 2>&1; tail -30 "$OUT/pi0_b1b8.log" ;;
+    pi0_b8_attn) for a in auto cudnn; do
+                 python3 -m pi0_jax.cli benchmark --preset pi0_base --steps 10 --batch 8 --fused-steps 10 --iters 20 \
+                   --attention $a --out "$OUT/pi0_b8_$a.json" > "$OUT/pi0_b8_$a.log" 2>&1; tail -3 "$OUT/pi0_b8_$a.log"; done ;;
+    pi0_fp8) python3 -m pi0_jax.cli benchmark --preset pi0_base --steps 10 --batch 1,8 --fused-steps 10 --iters 20 \
+               --quant prefix-vision --out "$OUT/pi0_fp8.json" > "$OUT/pi0_fp8.log" 2>&1; tail -8 "$OUT/pi0_fp8.log" ;;
     pi05_b1) python3 -m pi0_jax.cli benchmark --preset pi05_base --steps 1,10 --batch 1 --reference --warm-start \
                --compare lerobot --iters 50 --out "$OUT/pi05_b1.json" ;;
     pi05_scan) python3 -m pi0_jax.cli benchmark --preset pi05_base --steps 10 --batch 1 --no-unroll --iters 30 \
