@@ -65,8 +65,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--attention", default="auto", type=attention_spec,
                    help="each stage's attention: xla (the reference's ops), cudnn (one fused flash kernel), auto "
                         "(the faster per stage on a GPU: cuDNN in vision and the prefix, in the denoise step XLA below "
-                        "batch 8 and cuDNN from 8 for π0.5 (π0's masked suffix keeps XLA); XLA on a CPU), or per stage, e.g. vision=cudnn,prefix=xla,"
-                        "denoise=auto (default: %(default)s)")
+                        "batch 8 and cuDNN from 8 for π0.5 (π0's masked suffix keeps XLA); XLA on a CPU), or per "
+                        "stage, e.g. vision=cudnn,prefix=xla,denoise=auto (default: %(default)s)")
     p.add_argument("--kernels", choices=KERNELS, default="auto",
                    help="the action expert's layers as XLA ops, as the fused Pallas kernels of pi0_jax.ops "
                         "(Triton on GPU), or auto: the kernels at batch 1 and 2 on a GPU, XLA otherwise; each row "

@@ -65,8 +65,8 @@ class Attention:
     """Each stage's attention: "xla" (the reference's ops: logits, softmax, weighted sum) or "cudnn" (one fused
     flash kernel, `ops.attention.fused`: cuDNN on a GPU, its XLA form elsewhere; masks by lengths, so the prefix
     fill puts each element's valid tokens first). The denoise step's may also be "auto": "cudnn" from
-    CUDNN_DENOISE_MIN_BATCH on for π0.5, else "xla" (`at_batch` resolves it; the programs do). It is unused by the Pallas
-    kernels."""
+    CUDNN_DENOISE_MIN_BATCH on for π0.5, else "xla" (`at_batch` resolves it; the programs do). It is unused by the
+    Pallas kernels."""
 
     vision: str = "xla"
     prefix: str = "xla"

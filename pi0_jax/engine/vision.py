@@ -2,7 +2,9 @@
 
 What differs from the Flax module is the grouping of matmuls and the weights' layout: q/k/v are one (D, 3 N H) GEMM
 with one bias, the attention output one (N H, D) GEMM, and every matmul goes through the engine's one entry point
-(`layers._mm`), so FP8 weights sit (out, in) as cuBLASLt's FP8 GEMM reads them. Numerics as Flax computes them: the
+(`layers._mm`), so FP8 weights sit (out, in) as cuBLASLt's FP8 GEMM reads them. (One q/k/v GEMM measured faster
+than three at every batch but bf16 from ~96 images, where cutting its output in three for cuDNN costs copies:
+docs/BENCHMARKS.md.) Numerics as Flax computes them: the
 patch convolution and the position add in f32; LayerNorm statistics in f32 (Flax's fast variance, E[x²] - E[x]²,
 eps 1e-6), the normalised value cast to the activation dtype; each Dense in the activation dtype with its bias added
 in it; GELU-tanh; attention as Flax's `dot_product_attention` ("xla") or one fused kernel ("cudnn").
