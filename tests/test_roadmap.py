@@ -9,6 +9,8 @@ on the embedded trained pi0_small (pi0_jax/sim/realtime.py, pi0_jax/prune.py).
   index D, then execute the previous chunk's committed actions while the next one is computed; rtc's new chunk
   starts with exactly those committed actions and its guided overlap lies closer to the previous chunk than the
   unguided (naive) sample from the same noise and observation.
+* The same rollout through the reference sampler (pi0.sample_actions, issue 14) equals the engine's: the same noise
+  gives the same actions, so the same states, success flags and episode lengths.
 * `pi0-jax eval --execution --latency-steps --reuse-prefix` end to end, with the recompute fraction of K = 2 in
   eval_info.
 * `pi0-jax prune`: with no layers dropped it writes the original's config and every parameter bit for bit (so the
@@ -46,7 +48,9 @@ VARIANTS = {
     "never": Realtime("sync", 0, "auto:1e9"),          # auto rule that never fires after the first plan
     "naive2": Realtime("naive", D),
     "rtc2": Realtime("rtc", D),
+    "reference": None,                                 # "plain" through the reference sampler instead of the engine
 }
+SAMPLER = {"reference": "reference"}                   # the others: the engine
 
 
 def _chunk(ps):
@@ -71,9 +75,10 @@ def rollout():
     normalizer = nz.load_normalizer(EMBEDDED, use_quantiles=False)
     env = Env(TASKS, RenderConfig(RES, RES))
     pols = [policies.model_policy(config, params, tok, normalizer, env, num_steps=NUM_STEPS, realtime=rt,
-                                  replan_steps=R) for rt in VARIANTS.values()]
+                                  replan_steps=R, sampler=SAMPLER.get(name, "engine")) for name, rt in VARIANTS.items()]
     m, v = len(TASKS), len(VARIANTS)
     state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.key(0), m), jnp.arange(m), jnp.array([2, 9]))
+    qpos0 = np.asarray(state.data.qpos)
     state = jax.tree.map(lambda x: jnp.concatenate([x] * v), state)      # variant-major copies
     keys = jax.random.split(jax.random.key(1), m)
 
@@ -103,7 +108,7 @@ def rollout():
         return acts.reshape((-1,) + acts.shape[2:]), chunks, state, pss
 
     acts, chunks, state, pss = jax.jit(run)(tuple(p.params for p in pols), state, keys)
-    return {"acts": np.asarray(acts), "chunks": np.asarray(chunks), "state": state, "pss": pss,
+    return {"acts": np.asarray(acts), "chunks": np.asarray(chunks), "state": state, "pss": pss, "qpos0": qpos0,
             "index": {k: i for i, k in enumerate(VARIANTS)}, "horizon": config.action_horizon}
 
 
@@ -114,6 +119,24 @@ def test_zero_latency_modes_and_reuse_every_plan_equal_the_sync_policy(rollout):
         np.testing.assert_array_equal(acts[:, ix[name]], acts[:, ix["plain"]], err_msg=name)
         np.testing.assert_array_equal(done[ix[name]], done[ix["plain"]], err_msg=name)
     assert np.abs(acts[:, ix["plain"]]).max() > 0.05          # the policy moves: equality is not vacuous
+
+
+def test_reference_sampler_rollout_equals_the_engine_rollout(rollout):
+    """Issue 14: the embedded trained model's rollout with the engine policy equals the rollout with the reference
+    sampler: the same noise gives the same actions, so the same states, success flags and episode lengths."""
+    acts, ix, state = rollout["acts"], rollout["index"], rollout["state"]
+    eng, ref = ix["plain"], ix["reference"]
+
+    def per_variant(x):
+        x = np.asarray(x)
+        return x.reshape((len(VARIANTS), -1) + x.shape[1:])
+
+    qpos = per_variant(state.data.qpos)
+    assert np.abs(qpos[eng] - rollout["qpos0"]).max() > 1e-3   # the arm moved: the policy's actions were executed
+    np.testing.assert_allclose(acts[:, ref], acts[:, eng], atol=1e-4)
+    np.testing.assert_allclose(qpos[ref], qpos[eng], atol=1e-4)
+    np.testing.assert_array_equal(per_variant(state.success)[ref], per_variant(state.success)[eng])
+    np.testing.assert_array_equal(per_variant(state.length)[ref], per_variant(state.length)[eng])
 
 
 def test_prefix_reuse_keeps_the_cached_prefix(rollout):
