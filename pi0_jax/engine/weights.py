@@ -60,16 +60,17 @@ def _groups(spec: str) -> list[str]:
     return re.findall(r"\([^)]*\)|[^\s()]+", spec)
 
 
+def _fused(parts, dtype):
+    """Weights that share their GEMM input, each rearranged to (in, out) by its pattern, as one GEMM: concatenated on
+    the output axis (the last of a plain weight; the second to last of an FP8 one, laid out (out, in))."""
+    if isinstance(parts[0][0], quant.QArray):
+        return quant.concat([_rearrange(w, pattern, dtype) for w, pattern in parts], axis=-2)
+    return jnp.concatenate([einops.rearrange(w, pattern) for w, pattern in parts], axis=-1).astype(dtype)
+
+
 def _expert_weights(attn: dict, mlp: dict, suffix: str, dtype) -> dict:
-    q = attn[f"q_einsum{suffix}"]["w"]  # (L, N, D, H)
-    kv = attn[f"kv_einsum{suffix}"]["w"]  # (L, 2, K, D, H)
-    if isinstance(q, quant.QArray):
-        qkv = quant.concat([_rearrange(q, "L N D H -> L D (N H)", dtype),
-                            _rearrange(kv, "L two K D H -> L D (two K H)", dtype)], axis=-2)
-    else:
-        qkv = jnp.concatenate(
-            [einops.rearrange(q, "L N D H -> L D (N H)"), einops.rearrange(kv, "L two K D H -> L D (two K H)")],
-            axis=-1).astype(dtype)
+    qkv = _fused([(attn[f"q_einsum{suffix}"]["w"], "L N D H -> L D (N H)"),
+                  (attn[f"kv_einsum{suffix}"]["w"], "L two K D H -> L D (two K H)")], dtype)
     return {
         "qkv": qkv,
         "attn_out": _rearrange(attn[f"attn_vec_einsum{suffix}"]["w"], "L N H D -> L (N H) D", dtype),
@@ -83,14 +84,9 @@ def vision_weights(img: dict, dtype) -> dict:
     bias, the attention output as (N H, D); the patch embedding and position table as they are (an f32 island)."""
     blk = img["Transformer"]["encoderblock"]
     mha, mlp = blk["MultiHeadDotProductAttention_0"], blk["MlpBlock_0"]
-    q, k, v = (mha[n]["kernel"] for n in ("query", "key", "value"))  # (L, D, N, H)
-    if isinstance(q, quant.QArray):
-        qkv = quant.concat([_rearrange(w, "L D N H -> L D (N H)", dtype) for w in (q, k, v)], axis=-2)
-    else:
-        qkv = jnp.concatenate([einops.rearrange(w, "L D N H -> L D (N H)") for w in (q, k, v)], axis=-1).astype(dtype)
     blocks = {
         "ln1": blk["LayerNorm_0"], "ln2": blk["LayerNorm_1"],
-        "qkv": qkv,
+        "qkv": _fused([(mha[n]["kernel"], "L D N H -> L D (N H)") for n in ("query", "key", "value")], dtype),
         "qkv_bias": jnp.concatenate([einops.rearrange(mha[n]["bias"], "L N H -> L (N H)")
                                      for n in ("query", "key", "value")], axis=-1).astype(dtype),
         "out": _rearrange(mha["out"]["kernel"], "L N H D -> L (N H) D", dtype),
