@@ -70,7 +70,7 @@ class RMSNorm(nn.Module):
             scale = self.param("scale", nn.initializers.zeros_init(), (x.shape[-1],))
             return (normed * (1 + scale)).astype(dtype), None
         mod = nn.Dense(x.shape[-1] * 3, kernel_init=nn.initializers.zeros, dtype=dtype)(cond)
-        scale, shift, gate = jnp.split(mod[:, None, :], 3, axis=-1)
+        scale, shift, gate = jnp.split(mod if mod.ndim == 3 else mod[:, None, :], 3, axis=-1)  # per sample or token
         return (normed * (1 + scale) + shift).astype(dtype), gate
 
 

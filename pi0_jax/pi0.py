@@ -56,10 +56,10 @@ def make_attn_mask(input_mask: jax.Array, ar_mask: jax.Array) -> jax.Array:
 
 
 def posemb_sincos(t: jax.Array, dim: int, min_period: float = 4e-3, max_period: float = 4.0) -> jax.Array:
-    """Sinusoidal embedding of scalar times t (B,) -> (B, dim), [sin | cos]. fp32 island, HIGHEST precision."""
+    """Sinusoidal embedding of times t (B,) or (B, H) -> (..., dim), [sin | cos]. fp32 island, HIGHEST precision."""
     fraction = jnp.linspace(0.0, 1.0, dim // 2)
     period = min_period * (max_period / min_period) ** fraction
-    arg = jnp.einsum("i,j->ij", t, 1.0 / period * 2 * jnp.pi, precision=jax.lax.Precision.HIGHEST)
+    arg = jnp.einsum("...,j->...j", t, 1.0 / period * 2 * jnp.pi, precision=jax.lax.Precision.HIGHEST)
     return jnp.concatenate([jnp.sin(arg), jnp.cos(arg)], axis=-1)
 
 
@@ -119,10 +119,10 @@ class Pi0(nn.Module):
         action_tokens = self.action_in_proj(x_t)
         time_emb = posemb_sincos(t, cfg.action_expert.width)
         if cfg.pi05:
-            cond = nn.swish(self.time_mlp_out(nn.swish(self.time_mlp_in(time_emb))))
+            cond = nn.swish(self.time_mlp_out(nn.swish(self.time_mlp_in(time_emb))))   # (B, D) or per token
             tokens.append(action_tokens)
         else:
-            time_tokens = einops.repeat(time_emb, "b d -> b s d", s=cfg.action_horizon)
+            time_tokens = time_emb if t.ndim == 2 else einops.repeat(time_emb, "b d -> b s d", s=cfg.action_horizon)
             h = jnp.concatenate([action_tokens, time_tokens], axis=-1)  # action first, then time
             tokens.append(self.action_time_mlp_out(nn.swish(self.action_time_mlp_in(h))))
             cond = None
@@ -137,7 +137,8 @@ class Pi0(nn.Module):
         return KVCache(k=k, v=v, mask=input_mask, state=obs.state)
 
     def velocity(self, cache: KVCache, x_t: jax.Array, t: jax.Array) -> jax.Array:
-        """v(x_t, t) over a filled prefix cache. x_t: (B, H, action_dim) f32; t: (B,)."""
+        """v(x_t, t) over a filled prefix cache. x_t: (B, H, action_dim) f32; t: (B,), or (B, H) a time per action
+        (training-time action conditioning: committed actions ride at t = 0)."""
         tokens, suffix_mask, ar, cond = self.embed_suffix(cache.state, x_t, t)
         s = tokens.shape[1]
         mask = jnp.concatenate(
@@ -228,25 +229,39 @@ def fill_prefix_cache(config: Pi0Config, params: dict, obs: Observation) -> KVCa
 
 
 def denoise_step(config: Pi0Config, params: dict, cache: KVCache, x_t: jax.Array, t: jax.Array) -> jax.Array:
-    """The velocity v(x_t, t): (B, H, action_dim) f32. t: scalar or (B,)."""
-    t = jnp.broadcast_to(jnp.asarray(t, jnp.float32), x_t.shape[:1])
+    """The velocity v(x_t, t): (B, H, action_dim) f32. t: scalar, (B,) or (B, H) (one time per action)."""
+    t = jnp.asarray(t, jnp.float32)
+    t = t if t.ndim == 2 else jnp.broadcast_to(t, x_t.shape[:1])
     return _apply(config, params, cache, x_t, t, method=Pi0.velocity)
 
 
-def sample_actions(config: Pi0Config, params: dict, obs: Observation, noise: jax.Array, num_steps: int = 10):
+def sample_actions(config: Pi0Config, params: dict, obs: Observation, noise: jax.Array, num_steps: int = 10,
+                   committed: jax.Array | None = None, num_committed: jax.Array | None = None):
     """Euler flow-matching sampler: noise (B, H, action_dim) at t = 1 -> actions at t = 0.
 
     Runs exactly num_steps steps at t = 1, 1 - 1/n, ..., 1/n: a fixed trip count for a Python int, a while loop
     for a traced int32 (same arithmetic: dt = -1/n rounded to f32 once).
+
+    Training-time action conditioning (Black, Ren, Equi, Levine 2025, arXiv 2512.05964): with `committed`
+    (B, H, action_dim) and `num_committed` d (B,) int, actions i < d are the committed ones, clean (time 0) at every
+    step, and returned as given; the model must have been trained that way (`TrainConfig.max_delay`).
     """
     cache = fill_prefix_cache(config, params, obs)
     dt = -1.0 / num_steps
+    x = noise.astype(jnp.float32)
+    frozen = None
+    if num_committed is not None:
+        frozen = jnp.arange(config.action_horizon)[None, :] < jnp.asarray(num_committed)[:, None]   # (B, H)
+        x = jnp.where(frozen[..., None], committed.astype(jnp.float32), x)
 
     def step(_, carry):
         x_t, t = carry  # t accumulates in f32 exactly as openpi's while_loop does
-        return x_t + dt * denoise_step(config, params, cache, x_t, t), t + dt
+        if frozen is None:
+            return x_t + dt * denoise_step(config, params, cache, x_t, t), t + dt
+        v = denoise_step(config, params, cache, x_t, jnp.where(frozen, 0.0, t))
+        return jnp.where(frozen[..., None], x_t, x_t + dt * v), t + dt
 
-    x_0, _ = jax.lax.fori_loop(0, num_steps, step, (noise.astype(jnp.float32), jnp.float32(1.0)))
+    x_0, _ = jax.lax.fori_loop(0, num_steps, step, (x, jnp.float32(1.0)))
     return x_0
 
 
@@ -255,9 +270,9 @@ def compute_loss(config: Pi0Config, params: dict, obs: Observation, actions: jax
     """Flow-matching loss per (B, H): mean over action dims of (v - (noise - actions))^2.
 
     x_t = t * noise + (1 - t) * actions; t: (B,), sampled by the caller (openpi: Beta(1.5, 1) * 0.999 + 0.001,
-    see `sample_time`).
+    see `sample_time`), or (B, H) one time per action (committed actions at t = 0: see `sample_actions`).
     """
-    t_ = t[:, None, None]
+    t_ = t[..., None] if t.ndim == 2 else t[:, None, None]
     x_t = t_ * noise + (1 - t_) * actions
     v_t = _apply(config, params, obs, x_t, t, method=Pi0.joint_velocity)
     return jnp.mean(jnp.square(v_t - (noise - actions)), axis=-1)

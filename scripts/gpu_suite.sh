@@ -9,6 +9,8 @@
 #                                                             # (teacher: $TEACHER, default the embedded model)
 #   EPISODES=100 BG=1 bash scripts/gpu_suite.sh demos h20 rtc20    # issue 15: $TEACHER fine-tuned to 20 actions per
 #                                                             # chunk ($FSTEPS steps), then the latency cells on it
+#   EPISODES=100 BG=1 bash scripts/gpu_suite.sh demos cond rtc-cond   # issue 15: $TEACHER fine-tuned with committed
+#                                                             # actions given (--max-delay $MAXD), then its cells
 #
 # Needs the mujoco / mujoco-mjx wheels in .simwhl (see docs/BENCHMARKS.md); writes into $OUT (or ./out).
 set -uo pipefail
@@ -21,7 +23,8 @@ STOP_AT=${STOP_AT:-$STEPS}
 CONFIG=${CONFIG:-pi0_small_suite}
 TEACHER=${TEACHER:-pi0_jax/assets/pi0_small}
 DSTEPS=${DSTEPS:-3000}      # distillation steps
-FSTEPS=${FSTEPS:-4000}      # fine-tune steps of h20
+FSTEPS=${FSTEPS:-4000}      # fine-tune steps of h20 and cond
+MAXD=${MAXD:-4}             # cond: the largest number of committed actions trained on
 mkdir -p "$OUT" "$W"
 if [ -n "${BG:-}" ]; then
   BG= setsid nohup bash "$0" "$@" > "$W/suite.log" 2>&1 < /dev/null &
@@ -73,6 +76,14 @@ for phase in "$@"; do
       python3 scripts/roadmap_grid.py --checkpoint "$W/h20/checkpoint" --out "$W/roadmap20" --no-timing \
           --budget-s "${BUDGET:-500}" --cells sync,rtc,naive,rtc-d1,naive-d1,rtc-d2,naive-d2 2>&1 | grep "^|"
       cp "$W/roadmap20/roadmap.json" "$OUT/roadmap20.json" ;;
+    cond)   # $TEACHER fine-tuned with training-time action conditioning (d ~ U{0..$MAXD} committed actions given)
+      $PI0 train --config "$CONFIG" --init "$TEACHER" --max-delay "$MAXD" --demos "$W/demos" --out "$W/cond" \
+          --steps "$FSTEPS" --lr 1e-4 --warmup 100 2>&1 | grep -E "data:|first step|exported|step [0-9]*000/" &&
+        cp "$W/cond/train_log.json" "$OUT/cond_log.json" ;;
+    rtc-cond)   # the conditioned model: its own baseline, then conditioned / naive / rtc at D = 4, 2, 1
+      python3 scripts/roadmap_grid.py --checkpoint "$W/cond/checkpoint" --out "$W/roadmap_cond" --no-timing \
+          --budget-s "${BUDGET:-500}" --cells "${CELLS:-cond,sync,cond-d2,cond-d1,naive,rtc}" 2>&1 | grep "^|"
+      cp "$W/roadmap_cond/roadmap.json" "$OUT/roadmap_cond.json" ;;
     grid-extra)   # the cells the first grid left out (replan 2 as the grid)
       python3 scripts/results_grid.py --checkpoint "$TEACHER" --out "$W/grid_extra" --replan-steps 2 \
           --schemes prefix-all:10,vision:10,expert-weights:10,all:1,nvfp4:1,mxfp4:1 2>&1 | grep -E "steps|^\|" &&

@@ -9,12 +9,14 @@ with Wilson 95 % intervals. Cells, run in the order given until the time budget 
            sync at any D: sync ignores the delay, so "sync at D" is this cell by construction)
   naive    D-step latency, the previous chunk executed while the next one is computed
   rtc      D-step latency with real-time chunking (frozen committed prefix, guided overlap)
+  cond     D-step latency, the committed actions given to the model clean (training-time action conditioning:
+           for a checkpoint trained with `pi0-jax train --max-delay`)
   reuseK   vision + prefix KV cache recomputed every K-th plan (e.g. reuse2, reuse4)
   auto     prefix recomputed when the images moved more than --auto-threshold (per environment)
   prune    the checkpoint without --prune-layers (both Gemma towers; `pi0-jax prune`), no recovery fine-tune
   NAME@N   any of these with N flow steps instead of --num-steps (e.g. sync@1, reuse2@1: the embedded model keeps
            its success at 1 step, docs/RESULTS.md, so fewer steps and reuse combine)
-  -dD, -rR before @N: this cell's own latency D (naive, rtc; e.g. naive-d1) or replan interval R (any cell; e.g.
+  -dD, -rR before @N: this cell's own latency D (naive, rtc, cond; e.g. naive-d1) or replan interval R (any cell; e.g.
            sync-r8@1: plan every 8 steps, the origin notes' "action chunking to infer less often")
 
 Cost: the full-size model's stage timings on this device (--timing-preset, random weights, batch 1, 2 cameras, a
@@ -22,7 +24,7 @@ Cost: the full-size model's stage timings on this device (--timing-preset, rando
 XLA attention), and prefix + denoise of the preset with the same fraction of layers dropped as the prune cell
 (pi0_small 4 -> 2 pairs with pi0_base 18 -> 9; the seed's guess was for 18 -> 12). Per control step:
 (vision + prefix + denoise) / R; reuse counts vision + prefix at the cell's measured recompute fraction. naive and
-rtc cost what sync costs per step (rtc: its guided denoise); what they buy is that the robot does not wait
+rtc and cond cost what sync costs per step (rtc: its guided denoise); what they buy is that the robot does not wait
 (D x 50 ms at 20 Hz: D = 4 is 200 ms).
 
 Writes OUT/roadmap.json (every number, the command line, the device), OUT/roadmap.md (the table, what was not run)
@@ -60,6 +62,7 @@ EMBEDDED = Path(pi0_jax.sim.__file__).parents[1] / "assets" / "pi0_small"
 GUESSED = {"reuse": "KV-cache reuse across frames: 2-3x (one table), 1.5-2x (the other)",
            "prune": "18 -> 12 layers: ~1.5x, 'large accuracy loss' risk",
            "naive": "async 3-stream pipeline: 'hides vision latency'", "rtc": "(not in the notes)",
+           "cond": "(not in the notes)",
            "auto": "dynamic similarity detection + partial reuse: no number", "sync": "baseline",
            "chunk": "action chunking, infer less often: 'reduces inference frequency', no number"}
 
@@ -69,9 +72,9 @@ def cell_spec(cell: str, args) -> dict:
     name, _, steps = cell.partition("@")
     kind, *opts = name.split("-")
     own = {o[0]: o[1:] for o in opts if o[:1] in ("d", "r") and o[1:].isdigit()}
-    if len(own) != len(opts) or ("d" in own and kind not in ("naive", "rtc")):
-        raise SystemExit(f"unknown cell {cell!r}: sync, naive, rtc, reuseK, auto, prune, then optionally -dD "
-                         "(naive, rtc: latency D), -rR (replan every R steps), @N (N flow steps)")
+    if len(own) != len(opts) or ("d" in own and kind not in ("naive", "rtc", "cond")):
+        raise SystemExit(f"unknown cell {cell!r}: sync, naive, rtc, cond, reuseK, auto, prune, then optionally -dD "
+                         "(naive, rtc, cond: latency D), -rR (replan every R steps), @N (N flow steps)")
     spec = _cell_kind(kind, args, int(own.get("d", args.latency_steps)))
     spec["num_steps"] = int(steps) if steps else args.num_steps
     spec["replan_steps"] = int(own.get("r", args.replan_steps))
@@ -81,15 +84,16 @@ def cell_spec(cell: str, args) -> dict:
 def _cell_kind(name: str, args, delay: int) -> dict:
     if name == "sync":
         return {"kind": "sync", "execution": "sync", "latency_steps": 0, "reuse_prefix": None}
-    if name in ("naive", "rtc"):
-        return {"kind": name, "execution": name, "latency_steps": delay, "reuse_prefix": None}
+    if name in ("naive", "rtc", "cond"):
+        return {"kind": name, "execution": "conditioned" if name == "cond" else name, "latency_steps": delay,
+                "reuse_prefix": None}
     if name.startswith("reuse") and name[5:].isdigit():
         return {"kind": "reuse", "execution": "sync", "latency_steps": 0, "reuse_prefix": name[5:]}
     if name == "auto":
         return {"kind": "auto", "execution": "sync", "latency_steps": 0, "reuse_prefix": f"auto:{args.auto_threshold}"}
     if name == "prune":
         return {"kind": "prune", "execution": "sync", "latency_steps": 0, "reuse_prefix": None}
-    raise SystemExit(f"unknown cell {name!r}: sync, naive, rtc, reuseK, auto, prune")
+    raise SystemExit(f"unknown cell {name!r}: sync, naive, rtc, cond, reuseK, auto, prune")
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -208,6 +212,7 @@ def markdown(result: dict) -> str:
     for r in rows:
         cost = cost_per_step(r, t, result["replan_steps"])
         setting = {"sync": "sync (world waits)", "naive": "naive async", "rtc": "real-time chunking",
+                   "cond": "training-time RTC",
                    "reuse": f"reuse prefix K={r['reuse_prefix']}", "auto": f"reuse {r['reuse_prefix']}",
                    "prune": f"drop layers {result['prune_layers']}"}[r["kind"]]
         frac = r.get("prefix_recompute_fraction")
@@ -307,10 +312,10 @@ def main() -> int:
     p.add_argument("--checkpoint", type=Path, default=EMBEDDED, help="a trained pi0-jax checkpoint (default: the "
                    "embedded pi0_small)")
     p.add_argument("--cells", default="sync,sync@1,sync-r6@1,rtc,naive,reuse2@1,prune,reuse2,auto,reuse4",
-                   help="comma list, run in this order while the budget lasts: sync, naive, rtc (naive-dD, rtc-dD: "
-                        "latency D instead of --latency-steps), reuseK (K an integer), auto, prune, each optionally "
+                   help="comma list, run in this order while the budget lasts: sync, naive, rtc, cond (naive-dD, "
+                        "rtc-dD, cond-dD: latency D instead of --latency-steps), reuseK (K an integer), auto, prune, each optionally "
                         "@N for N flow steps (default: %(default)s)")
-    p.add_argument("--latency-steps", type=int, default=4, help="D of the naive and rtc cells, in 50 ms control "
+    p.add_argument("--latency-steps", type=int, default=4, help="D of the naive, rtc and cond cells, in 50 ms control "
                    "steps (default: %(default)s = 200 ms)")
     p.add_argument("--auto-threshold", type=float, default=0.1,
                    help="image change (mean absolute difference of 16x16 frames in [0, 1]) above which the auto "

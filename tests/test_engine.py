@@ -70,6 +70,36 @@ def test_masked_camera_and_padding_are_skipped_exactly(model):
     np.testing.assert_allclose(engine.sample_actions(obs, jnp.array(noise), 2), ref, rtol=1e-5, atol=1e-5)
 
 
+def test_committed_actions_match_reference_and_come_back_exactly(model):
+    """Training-time action conditioning: actions i < d ride clean at t = 0 (π0: the time-MLP input; π0.5: the
+    per-token adaRMS modulation), the rest is sampled given them. The engine's denoise equals the reference sampler's,
+    the committed actions come back bit for bit, and d = 0 is the plain sampler."""
+    from pi0_jax.engine import programs
+
+    config, params = model
+    obs = make_obs(config)
+    h, a = config.action_horizon, config.action_dim
+    noise = jax.random.normal(jax.random.key(1), (2, h, a))
+    committed = jax.random.normal(jax.random.key(2), (2, h, a))
+    d = jnp.array([3, 0])
+    ref = np.asarray(jax.jit(pi0.sample_actions, static_argnums=(0, 4))(config, params, obs, noise, 3, committed, d))
+    engine = Engine(config, params, cache_dir=False)
+    cameras, bucket = engine.plan(obs)
+    *_, state = engine.pack(obs, cameras, bucket)
+    _, cache, plain = engine.run_stages(obs, jnp.array(noise), 3)
+    run = jax.jit(lambda c, s, n, x, k: programs.denoise(config, engine.weights, engine.schedule(3), c, s, n,
+                                                         num_steps=3, unroll=True, unroll_steps=False,
+                                                         committed=x, num_committed=k))
+    got = np.asarray(run(cache, state, noise, committed, d))
+    np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-5)
+    np.testing.assert_array_equal(got[0, :3], np.asarray(committed)[0, :3])
+    np.testing.assert_allclose(got[1], np.asarray(plain)[1], rtol=1e-6, atol=1e-6)      # d = 0: the plain sampler
+    # the committed actions condition the rest: the same noise without them samples something else
+    assert np.abs(got[0, 3:] - np.asarray(plain)[0, 3:]).max() > 1e-3
+    np.testing.assert_array_equal(np.asarray(run(cache, state, noise, committed, jnp.zeros(2, jnp.int32))),
+                                  np.asarray(plain))
+
+
 @pytest.mark.parametrize("attention", ["cudnn", "vision=cudnn", "prefix=cudnn", "denoise=cudnn", "denoise=auto"])
 def test_fused_attention_matches_reference_with_holes_in_the_prefix(model, attention, monkeypatch):
     """The fused attention (cuDNN on a GPU; here its XLA form, the same code path) masks by lengths, so the prefix

@@ -2,13 +2,13 @@
 on the embedded trained pi0_small (pi0_jax/sim/realtime.py, pi0_jax/prune.py).
 
 * One jitted rollout steps every policy variant side by side on copies of the same episodes (same initial states,
-  same policy noise), so the physics compiles once: with D = 0 naive and rtc execute exactly the synchronous
-  policy's actions, and so does prefix reuse with K = 1 (through the reuse path); an auto rule that never fires
-  reuses the first plan's prefix (the same first chunk, a different second one); naive and rtc with D = 2 hold
-  still, then switch at
-  index D, then execute the previous chunk's committed actions while the next one is computed; rtc's new chunk
-  starts with exactly those committed actions and its guided overlap lies closer to the previous chunk than the
-  unguided (naive) sample from the same noise and observation.
+  same policy noise), so the physics compiles once: with D = 0 naive, rtc and conditioned execute exactly the
+  synchronous policy's actions, and so does prefix reuse with K = 1 (through the reuse path); an auto rule that
+  never fires reuses the first plan's prefix (the same first chunk, a different second one); naive, rtc and
+  conditioned with D = 2 hold still, then switch at index D, then execute the previous chunk's committed actions
+  while the next one is computed; rtc's and conditioned's new chunks start with exactly those committed actions,
+  and rtc's guided overlap lies closer to the previous chunk than the unguided (naive) sample from the same noise
+  and observation.
 * The same rollout through the reference sampler (pi0.sample_actions, issue 14) equals the engine's: the same noise
   gives the same actions, so the same states, success flags and episode lengths.
 * `pi0-jax eval --execution --latency-steps --reuse-prefix` end to end, with the recompute fraction of K = 2 in
@@ -48,6 +48,8 @@ VARIANTS = {
     "never": Realtime("sync", 0, "auto:1e9"),          # auto rule that never fires after the first plan
     "naive2": Realtime("naive", D),
     "rtc2": Realtime("rtc", D),
+    "cond0": Realtime("conditioned", 0),
+    "cond2": Realtime("conditioned", D),
     "reference": None,                                 # "plain" through the reference sampler instead of the engine
 }
 SAMPLER = {"reference": "reference"}                   # the others: the engine
@@ -115,7 +117,7 @@ def rollout():
 def test_zero_latency_modes_and_reuse_every_plan_equal_the_sync_policy(rollout):
     acts, ix, state = rollout["acts"], rollout["index"], rollout["state"]
     done = np.asarray(state.success).reshape(len(VARIANTS), -1)
-    for name in ("naive0", "rtc0", "reuse1"):
+    for name in ("naive0", "rtc0", "cond0", "reuse1"):
         np.testing.assert_array_equal(acts[:, ix[name]], acts[:, ix["plain"]], err_msg=name)
         np.testing.assert_array_equal(done[ix[name]], done[ix["plain"]], err_msg=name)
     assert np.abs(acts[:, ix["plain"]]).max() > 0.05          # the policy moves: equality is not vacuous
@@ -152,7 +154,7 @@ def test_latency_switches_chunks_at_the_delay(rollout):
     acts, chunks, ix = rollout["acts"], rollout["chunks"], rollout["index"]
     hold = np.zeros(7, np.float32)
     hold[6] = -1.0
-    for name in ("naive2", "rtc2"):
+    for name in ("naive2", "rtc2", "cond2"):
         a, c = acts[:, ix[name]], chunks[:, ix[name]]
         np.testing.assert_array_equal(a[:D], np.broadcast_to(hold, a[:D].shape))   # no chunk yet: hold still
         for j in range(REPLANS):
@@ -177,6 +179,20 @@ def test_rtc_freezes_the_committed_prefix_and_guides_the_overlap(rollout):
         return float((np.abs(c[1][:, D: h - R] - c[0][:, R + D:]).mean(axis=(0, 2)) * w).sum() / w.sum())
 
     assert err(rtc) < 0.8 * err(naive), (err(rtc), err(naive))
+
+
+def test_conditioned_chunks_start_with_the_committed_actions(rollout):
+    """Training-time action conditioning: every plan's chunk starts with exactly the D actions committed while it was
+    computed (the first plan: the hold chunk), and the model samples the rest given them (the embedded model was not
+    trained so: this checks the plumbing, not the benefit)."""
+    chunks, ix = rollout["chunks"], rollout["index"]
+    cond, naive = chunks[:, ix["cond2"]], chunks[:, ix["naive2"]]
+    hold = np.zeros(7, np.float32)
+    hold[6] = -1.0
+    np.testing.assert_array_equal(cond[0][:, :D], np.broadcast_to(hold, cond[0][:, :D].shape))
+    for j in range(1, REPLANS):
+        np.testing.assert_array_equal(cond[j][:, :D], cond[j - 1][:, R:R + D])
+    assert np.abs(cond[0][:, D:] - naive[0][:, D:]).max() > 1e-3     # same noise and frames, conditioned otherwise
 
 
 def test_rtc_weights_follow_the_paper():

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from pi0_jax import normalize as nz
+from pi0_jax import pi0
 from pi0_jax.tokenizer import PaligemmaTokenizer
 from pi0_jax.train import augment, data, step, trainer
 from pi0_jax.train.config import get_train_config
@@ -126,7 +127,7 @@ def test_init_fine_tunes_a_checkpoint_to_another_horizon(demos, tmp_path):
 
     out = tmp_path / "run"
     assert cli.main(["train", "--config", "dummy_smoke", "--demos", str(demos), "--out", str(out), "--init", str(ckpt),
-                     "--horizon", "12", "--steps", "2", "--lr", "0", "--ema", "0", "--log-every", "1",
+                     "--horizon", "12", "--max-delay", "3", "--steps", "2", "--lr", "0", "--ema", "0", "--log-every", "1",
                      "--save-every", "2", "--no-augment"]) == 0
     got_cfg, got = ckpt_lib.load_checkpoint(out / "checkpoint")
     _, want = ckpt_lib.load_checkpoint(ckpt)
@@ -136,12 +137,34 @@ def test_init_fine_tunes_a_checkpoint_to_another_horizon(demos, tmp_path):
     assert (out / "tokenizer.model").read_bytes() == (src / "tokenizer.model").read_bytes()
     np.testing.assert_array_equal(nz.load_openpi_norm_stats(out / "norm_stats.json")["state"].mean,
                                   stats["state"].mean)
-    assert json.loads((out / "train_config.json").read_text())["init"] == str(ckpt.absolute())
+    saved = json.loads((out / "train_config.json").read_text())
+    assert saved["init"] == str(ckpt.absolute()) and saved["train"]["max_delay"] == 3
     ep = np.load(demos / "episode_000003.npz")
     result = Policy.from_checkpoint(out / "checkpoint").infer(
         {"observation/image": ep["agentview"][0], "observation/wrist_image": ep["wrist"][0],
          "observation/state": ep["state"][0], "prompt": str(ep["prompt"])})
     assert result["actions"].shape == (12, 7)
+
+
+def test_max_delay_gives_the_first_actions_clean_and_leaves_them_out_of_the_loss():
+    """Training-time action conditioning: the first d actions ride at t = 0, where x_t is the clean action whatever
+    the noise, and the loss skips them; so the noise drawn for them changes nothing, while without it it does."""
+    model = CFG.model_config
+    params = pi0.random_params(model, 0)
+    obs = pi0.fake_observation(model, 4)
+    h, a = model.action_horizon, model.action_dim
+    actions, noise, other = (jax.random.normal(jax.random.key(i), (4, h, a)) for i in range(3))
+    t = jnp.full((4,), 0.7)
+    rng = jax.random.key(5)
+    d = jax.random.randint(rng, (4,), 0, 4)
+    assert int(d.min()) < 3 and int(d.max()) > 0       # this draw exercises both ends
+    mixed = jnp.where((jnp.arange(h) < d[:, None])[..., None], other, noise)   # new noise under the given actions
+    loss = jax.jit(step.flow_loss, static_argnums=(0, 1))
+    cond = CFG.replace(max_delay=3)
+    assert float(loss(cond, model, params, obs, actions, noise, t, rng)) == pytest.approx(
+        float(loss(cond, model, params, obs, actions, mixed, t, rng)), rel=1e-6)
+    assert abs(float(loss(CFG, model, params, obs, actions, noise, t, rng))
+               - float(loss(CFG, model, params, obs, actions, mixed, t, rng))) > 1e-4
 
 
 def test_cli_help_explains_every_flag(capsys):
@@ -152,7 +175,8 @@ def test_cli_help_explains_every_flag(capsys):
     assert e.value.code == 0
     out = capsys.readouterr().out
     for flag in ("--config", "--demos", "--out", "--resume", "--steps", "--batch", "--lr", "--warmup", "--ema",
-                 "--no-augment", "--seed", "--log-every", "--save-every", "--stop-at", "--max-episodes", "--init", "--horizon"):
+                 "--no-augment", "--seed", "--log-every", "--save-every", "--stop-at", "--max-episodes", "--init", "--horizon",
+                 "--max-delay"):
         assert flag in out
     assert "pi0_small_suite" in out
 

@@ -23,13 +23,14 @@ from pi0_jax.ops.matmul import matmul
 
 
 def rms_norm(x, scale=None, mod=None):
-    """Plain RMSNorm (scale) or adaRMS (mod = concat[scale, shift, gate], (B or 1, 3D)); returns (y, gate)."""
+    """Plain RMSNorm (scale) or adaRMS (mod = concat[scale, shift, gate]: (B or 1, 3D), or per token (B or 1, S or 1,
+    3D)); returns (y, gate)."""
     dtype = x.dtype
     var = jnp.mean(jnp.square(x.astype(jnp.float32)), axis=-1, keepdims=True)
     normed = x * jax.lax.rsqrt(var + 1e-6)
     if mod is None:
         return (normed * (1 + scale)).astype(dtype), None
-    s, shift, gate = jnp.split(mod[:, None, :], 3, axis=-1)
+    s, shift, gate = jnp.split(mod if mod.ndim == 3 else mod[:, None, :], 3, axis=-1)
     return (normed * (1 + s) + shift).astype(dtype), gate
 
 

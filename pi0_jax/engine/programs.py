@@ -184,21 +184,31 @@ def _dense(p, x):
 
 
 def velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, cache: PrefixCache, state, x_t, *,
-             unroll: bool, attention: Attention = Attention(), kernels: str = "xla") -> jax.Array:
+             unroll: bool, attention: Attention = Attention(), kernels: str = "xla",
+             frozen: jax.Array | None = None) -> jax.Array:
     """v(x_t, t_step) over the cache. `sched` is `weights.precompute_schedule` output, indexed by the step number.
-    attention.denoise "cudnn" needs a cache filled with the same `attention` (its valid keys first)."""
+    attention.denoise "cudnn" needs a cache filled with the same `attention` (its valid keys first). `frozen` (B, H)
+    bool: those actions are committed and ride at t = 0 (`sched["committed"]`), the rest at the step's time."""
     dtype = jnp.dtype(config.dtype)
     top, horizon = weights["top"], config.action_horizon
     b = x_t.shape[0]
     attention = attention.at_batch(b, suffix_mask=not config.pi05)
+
+    def at_step(key):   # the schedule row of `key` for every action: (1, 1, ...) or, with `frozen`, (B, H, ...)
+        now = sched[key][step][None, None]
+        if frozen is None:
+            return now
+        where = frozen.reshape(frozen.shape + (1,) * (now.ndim - 2))
+        return jnp.where(where, sched["committed"][key][0][None, None], now)
+
     action_tokens = _dense(top["action_in_proj"], x_t)  # f32: the projections run in the promoted dtype
     if config.pi05:
         x = action_tokens
-        mods = (sched["mods_attn"][step], sched["mods_ffw"][step])  # (L, 3D) each
+        mods = (at_step("mods_attn"), at_step("mods_ffw"))  # (B or 1, H or 1, L, 3D) each
         ar_state = []
     else:
         w_in = top["action_time_mlp_in"]["kernel"]
-        h = action_tokens @ w_in[: config.action_expert.width].astype(jnp.float32) + sched["time_in"][step]
+        h = action_tokens @ w_in[: config.action_expert.width].astype(jnp.float32) + at_step("time_in")
         x = jnp.concatenate([_dense(top["state_proj"], state)[:, None, :],
                              _dense(top["action_time_mlp_out"], jax.nn.swish(h))], axis=1)
         mods = None
@@ -208,11 +218,14 @@ def velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, cac
     ar = jnp.asarray(ar_state + [True] + [False] * (horizon - 1))
     suffix_mask = jnp.broadcast_to(pi0.make_attn_mask(jnp.ones((1, s), bool), ar), (b, s, s))
     positions = jnp.sum(cache.mask, axis=-1, keepdims=True) + jnp.arange(s)[None, :]
+    final_mod = at_step("mods_final") if config.pi05 else None
 
     if expert_path(kernels, b, weights["expert"]) == "pallas":
+        if frozen is not None:
+            raise ValueError("committed actions (training-time action conditioning) run on the XLA expert path")
         x = layers.suffix_layers_pallas(config.action_expert, weights["expert"], x, positions, cache.k, cache.v,
-                                        cache.mask, suffix_mask, mods)
-        return _top(config, weights, sched, step, x)
+                                        cache.mask, suffix_mask, None if mods is None else tuple(m[0, 0] for m in mods))
+        return _top(config, weights, final_mod, x)
 
     prefix_mask = jnp.broadcast_to(cache.mask[:, None, :], (b, s, cache.mask.shape[1]))
     kv_len = None
@@ -221,21 +234,21 @@ def velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, cac
         suffix_mask = None if config.pi05 else suffix_mask  # π0.5's suffix attends everywhere
 
     def layer(w, x, k, v, *mod):
-        m = None if mods is None else (mod[0][None], mod[1][None])
+        m = None if mods is None else mod
         return (layers.suffix_layer(config.action_expert, w, x, positions, k, v, prefix_mask, suffix_mask, m,
                                     kv_len),)
 
     per_layer = [cache.k, cache.v]
-    if mods is not None:
-        per_layer += [_by_layer(mods[0], unroll), _by_layer(mods[1], unroll)]
+    if mods is not None:   # layer axis first: (L, B or 1, H or 1, 3D)
+        per_layer += [_by_layer(jnp.moveaxis(m, 2, 0), unroll) for m in mods]
     x, _ = layers.run_layers(layer, weights["expert"], x, per_layer, unroll=unroll)
-    return _top(config, weights, sched, step, x)
+    return _top(config, weights, final_mod, x)
 
 
-def _top(config, weights, sched, step, x):
-    """The expert's final norm and the action output projection."""
+def _top(config, weights, final_mod, x):
+    """The expert's final norm (π0.5: adaRMS with `final_mod`) and the action output projection."""
     if config.pi05:
-        x, _ = layers.rms_norm(x, mod=sched["mods_final"][step][None])
+        x, _ = layers.rms_norm(x, mod=final_mod)
     else:
         x, _ = layers.rms_norm(x, weights["final_norm_1"])
     return _dense(weights["top"]["action_out_proj"], x[:, -config.action_horizon:])
@@ -246,19 +259,28 @@ def _by_layer(x, unroll):
 
 
 def denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixCache, state, noise, *, num_steps: int,
-            unroll: bool, unroll_steps: bool, attention: Attention = Attention(), kernels: str = "xla") -> jax.Array:
+            unroll: bool, unroll_steps: bool, attention: Attention = Attention(), kernels: str = "xla",
+            committed: jax.Array | None = None, num_committed: jax.Array | None = None) -> jax.Array:
     """num_steps Euler steps from noise (t = 1) to actions (t = 0): a fixed trip count for a Python int, a while
-    loop for a traced int32 (then `sched` must hold at least num_steps entries)."""
+    loop for a traced int32 (then `sched` must hold at least num_steps entries). With `committed` (B, H, action_dim)
+    and `num_committed` d (B,): actions i < d are given, clean at every step and returned as given (training-time
+    action conditioning, as `pi0.sample_actions`)."""
     dt = -1.0 / num_steps
     if not isinstance(num_steps, int):
         dt, unroll_steps = jnp.asarray(dt, jnp.float32), None   # f32 as the reference's traced dt
+    x = noise.astype(jnp.float32)
+    frozen = None
+    if num_committed is not None:
+        frozen = jnp.arange(config.action_horizon)[None, :] < jnp.asarray(num_committed)[:, None]
+        x = jnp.where(frozen[..., None], committed.astype(jnp.float32), x)
 
     def step(i, x_t):
         v = velocity(config, weights, sched, i, cache, state, x_t, unroll=unroll, attention=attention,
-                     kernels=kernels)
-        return x_t + dt * v  # dt * v in v's dtype, then promoted to f32: as the reference
+                     kernels=kernels, frozen=frozen)
+        x_next = x_t + dt * v  # dt * v in v's dtype, then promoted to f32: as the reference
+        return x_next if frozen is None else jnp.where(frozen[..., None], x_t, x_next)
 
-    return jax.lax.fori_loop(0, num_steps, step, noise.astype(jnp.float32), unroll=unroll_steps)
+    return jax.lax.fori_loop(0, num_steps, step, x, unroll=unroll_steps)
 
 
 def infer(config: Pi0Config, weights: dict, sched: dict, images, image_masks, tokens, token_mask, state, noise, *,

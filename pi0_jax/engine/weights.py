@@ -132,11 +132,17 @@ def precompute_schedule(config: Pi0Config, params: dict, num_steps, length: int 
 
     π0.5: `mods_attn`, `mods_ffw` (T, L, 3 D) and `mods_final` (T, 3 D): the adaRMS Dense outputs, computed in the
     activation dtype as the reference does (cond cast to it, then Dense). π0: `time_in` (T, D) = the time half of
-    `action_time_mlp_in` plus its bias, in f32 (the projection runs in f32 in the reference too).
+    `action_time_mlp_in` plus its bias, in f32 (the projection runs in f32 in the reference too). `committed`: the
+    same at t = 0 (leading axis 1), the time of committed actions under training-time action conditioning.
     """
+    out = _schedule_at(config, params, jnp.asarray(step_times(num_steps, length)))
+    out["committed"] = _schedule_at(config, params, jnp.zeros((1,), jnp.float32))
+    return out
+
+
+def _schedule_at(config: Pi0Config, params: dict, t: jax.Array) -> dict:
     dtype = jnp.dtype(config.dtype)
     width = config.action_expert.width
-    t = jnp.asarray(step_times(num_steps, length))
     emb = pi0.posemb_sincos(t, width)  # (T, D) f32
     if config.pi05:
         def dense(p, x):

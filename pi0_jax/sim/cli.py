@@ -83,13 +83,16 @@ def add_eval_parser(subparsers) -> argparse.ArgumentParser:
                     help="inference latency in control steps: a chunk planned from the observation at step t is "
                          "first usable at t + D (one step is 50 ms at the suite's 20 Hz: D = 4 is 200 ms). Needs "
                          "D <= --replan-steps and --replan-steps + D <= the action horizon (default: %(default)s)")
-    rt.add_argument("--execution", choices=("sync", "naive", "rtc"), default="sync",
+    rt.add_argument("--execution", choices=("sync", "naive", "rtc", "conditioned"), default="sync",
                     help="what the robot does while a chunk is computed: sync = the world waits (D has no effect; "
                          "the usual protocol); naive = keep executing the previous chunk, switch to the new one at "
                          "its index D (an episode's first D steps hold still: zero motion, gripper open); rtc = as "
                          "naive, with the new chunk sampled by real-time chunking (first D actions frozen to the "
-                         "committed ones, the overlap guided with decaying weights, ΠGDM guidance clipped at 5). "
-                         "With D = 0 all three are the same policy (default: %(default)s)")
+                         "committed ones, the overlap guided with decaying weights, ΠGDM guidance clipped at 5); "
+                         "conditioned = as naive, the committed actions given to the model as clean inputs "
+                         "(training-time action conditioning: for a model trained with `pi0-jax train "
+                         "--max-delay`; no extra compute). With D = 0 all four are the same policy "
+                         "(default: %(default)s)")
     rt.add_argument("--reuse-prefix", default=None, metavar="K|auto:THRESH",
                     help="recompute vision and the prefix KV cache only every K-th plan, otherwise denoise on the "
                          "cached prefix (K = 1: every plan, through the reuse path). auto:THRESH recomputes an "

@@ -56,8 +56,8 @@ class EvalConfig:
     videos: int = 4
     segment_replans: int = 8
     num_steps: int = 10               # flow-matching steps of a checkpoint policy
-    # Model policies in time (pi0_jax/sim/realtime.py): sync | naive | rtc, the delay D in control steps (50 ms each),
-    # prefix reuse None | "K" | "auto:THRESH".
+    # Model policies in time (pi0_jax/sim/realtime.py): sync | naive | rtc | conditioned, the delay D in control
+    # steps (50 ms each), prefix reuse None | "K" | "auto:THRESH".
     execution: str = "sync"
     latency_steps: int = 0
     reuse_prefix: str | None = None

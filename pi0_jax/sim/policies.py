@@ -89,7 +89,7 @@ def model_policy(config, params, tok, normalizer, env, *, num_steps: int = 10, d
     program, so one compiled rollout serves every step count up to `PolicyCore.max_dynamic_steps` (same numerics).
     params None: the transforms only (`observation`), e.g. for calibration batches. quant: the number format the
     params were quantised to (`quantize_for_suite`), recorded in the policy's info.
-    realtime: a `pi0_jax.sim.realtime.Realtime` (latency, sync / naive / rtc execution, prefix reuse; needs
+    realtime: a `pi0_jax.sim.realtime.Realtime` (latency, sync / naive / rtc / conditioned execution, prefix reuse; needs
     replan_steps); the policy state is then a dict (chunk, previous chunk, cached prefix, counters) instead of the
     chunk itself."""
     from pi0_jax import pi0

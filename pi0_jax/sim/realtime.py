@@ -13,6 +13,10 @@ is 50 ms at the suite's 20 Hz, so D = 4 is 200 ms). Chunk index i is the action 
          previous chunk still has actions) is guided with exponentially decaying weights, and the rest is free
          (`engine.programs.guided_denoise`, ΠGDM guidance clipped at beta). The frozen actions are written into the
          returned chunk exactly; they are never executed from it (they lie in the past when it arrives).
+  conditioned  as naive, with training-time action conditioning (Black, Ren, Equi, Levine 2025, arXiv 2512.05964):
+         the committed prev[r : r+D] enter the new chunk's first D actions as clean inputs (flow time 0) and the
+         model samples the rest given them, with no guidance and no extra compute. Meant for a model trained so
+         (`pi0-jax train --max-delay`); an episode's first plan is conditioned on the hold chunk it executes.
 
 Every mode steps the environment once per control step, so episode lengths and LIBERO's step limits mean the same.
 Requires D <= r (one plan in flight) and r + D <= H (the previous chunk covers the wait). With D = 0 the three modes
@@ -42,14 +46,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-EXECUTIONS = ("sync", "naive", "rtc")
+EXECUTIONS = ("sync", "naive", "rtc", "conditioned")
 CONTROL_HZ = 20          # the suite's control rate: D steps = 50 D ms
 THUMB = 16               # side of the downsampled frames of the auto reuse rule
 
 
 @dataclasses.dataclass(frozen=True)
 class Realtime:
-    """execution: sync | naive | rtc; latency_steps: D; reuse_prefix: None (recompute every plan), "K" or
+    """execution: sync | naive | rtc | conditioned; latency_steps: D; reuse_prefix: None (recompute every plan), "K" or
     "auto:THRESH"; rtc_beta: the guidance weight's clip."""
 
     execution: str = "sync"
@@ -153,6 +157,7 @@ def make_model_callbacks(core, rt: Realtime, replan_steps: int, inputs, cameras,
     rt.check(r, horizon)
     every, thresh = parse_reuse(rt.reuse_prefix)
     reuse, rtc = rt.reuse_prefix is not None, rt.execution == "rtc" and d > 0
+    conditioned = rt.execution == "conditioned" and d > 0
     size, n_cam = cfg.image_size, len(cameras)
 
     def prefix(model, pixels, image_masks, tokens, token_mask):
@@ -214,12 +219,22 @@ def make_model_callbacks(core, rt: Realtime, replan_steps: int, inputs, cameras,
             frozen = (jnp.arange(horizon) < d)[None, :, None] & ps["fresh"][:, None, None]
             raw = jnp.where(frozen, target, raw)
             out["raw"], out["fresh"] = raw, jnp.ones_like(ps["fresh"])
+        elif conditioned:   # the committed actions, as executed, back in model space (padding dims 0)
+            executed = ps["chunk"][:, r:r + d]
+            scale = norm["action_scale"]
+            given = (executed - norm["action_offset"]) / jnp.where(scale == 0, 1.0, scale)
+            given = jnp.pad(given, ((0, 0), (0, horizon - d), (0, adim - dims)))
+            raw = programs.denoise(cfg, model["weights"], sched, cache, state, noise, num_steps=num_steps,
+                                   unroll=core.unroll, unroll_steps=False, attention=core.attention,
+                                   committed=given, num_committed=jnp.full((noise.shape[0],), d))
         else:
             raw = programs.denoise(cfg, model["weights"], sched, cache, state, noise, num_steps=num_steps,
                                    unroll=core.unroll, unroll_steps=False, attention=core.attention)
         if d:
             out["prev"] = ps["chunk"]
         out["chunk"] = raw[..., :dims].astype(jnp.float32) * norm["action_scale"] + norm["action_offset"]
+        if conditioned:   # exactly the committed actions (the round trip through model space rounds)
+            out["chunk"] = out["chunk"].at[:, :d].set(ps["chunk"][:, r:r + d])
         out["count"] = ps["count"] + 1
         out["plans"] = ps["plans"] + live
         out["recomputed"] = ps["recomputed"] + (live & need)

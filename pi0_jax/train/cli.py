@@ -29,6 +29,9 @@ Pipeline of the demo model (see pi0_jax/train/__init__.py and scripts/gpu_suite.
 A fine-tune to a longer action horizon (real-time chunking needs an overlap of the previous chunk to guide):
   pi0-jax train --config pi0_small_suite --init pi0_jax/assets/pi0_small --horizon 20 --steps 4000 --lr 1e-4 \
       --warmup 100 --demos DEMOS --out RUN20
+A fine-tune that conditions on up to 4 committed actions (for `pi0-jax eval --execution conditioned`):
+  pi0-jax train --config pi0_small_suite --init pi0_jax/assets/pi0_small --max-delay 4 --steps 4000 --lr 1e-4 \
+      --warmup 100 --demos DEMOS --out RUN_D4
 """
 
 
@@ -51,6 +54,11 @@ def add_train_parser(subparsers) -> argparse.ArgumentParser:
                    help="action horizon (actions per chunk) of the trained model; π0's weights do not depend on it, "
                         "so --init can fine-tune a checkpoint to another horizon; default: the preset's or the "
                         "--init checkpoint's")
+    p.add_argument("--max-delay", type=int, default=None, metavar="D",
+                   help="training-time action conditioning for real-time execution (Black, Ren, Equi, Levine "
+                        "2025): each sample's first d ~ U{0..D} actions are given clean and left out of the loss, "
+                        "so the model continues actions already committed (`pi0-jax eval --execution conditioned "
+                        "--latency-steps d`); needs D < the horizon; default: the preset's (0, off)")
     _add_run_flags(p)
     p.set_defaults(func=run)
     return p
@@ -102,7 +110,8 @@ def config_from_args(args: argparse.Namespace):
 
 
 # the schedule and the batch stream depend on these: changing them on --resume breaks the exact resume
-_RESUME_KEYS = ("model", "batch_size", "lr", "warmup_steps", "decay_lr", "seed", "augment", "ema_decay")
+_RESUME_KEYS = ("model", "batch_size", "lr", "warmup_steps", "decay_lr", "seed", "augment", "ema_decay",
+                "max_delay")
 
 
 def _warn_if_changed(out: Path, mine: dict, keys: tuple[str, ...]) -> None:
@@ -120,6 +129,8 @@ def run(args: argparse.Namespace) -> int:
     from pi0_jax.train.trainer import train
 
     cfg = config_from_args(args)
+    if args.max_delay is not None:
+        cfg = cfg.replace(max_delay=args.max_delay)
     if args.horizon is not None and args.horizon < 1:
         raise SystemExit(f"--horizon must be positive, got {args.horizon}")
     init = args.init and str(args.init.absolute())

@@ -28,11 +28,17 @@ class TrainConfig:
     save_every: int = 1000
     keep: int = 2                       # train-state checkpoints kept
     model_overrides: tuple[tuple[str, Any], ...] = ()   # Pi0Config fields replaced in the preset
+    # Training-time action conditioning (Black, Ren, Equi, Levine 2025): each sample's first d ~ U{0..max_delay}
+    # actions are given clean (flow time 0) and left out of the loss, so the model learns to continue committed
+    # actions (`pi0-jax eval --execution conditioned`). 0: plain flow matching.
+    max_delay: int = 0
 
     def __post_init__(self):
         for f in ("steps", "batch_size", "log_every", "save_every", "keep"):
             if getattr(self, f) <= 0:
                 raise ValueError(f"{f} must be positive, got {getattr(self, f)}")
+        if self.max_delay < 0:
+            raise ValueError(f"max_delay must be >= 0, got {self.max_delay}")
         if self.ema_decay is not None and not 0.0 <= self.ema_decay < 1.0:
             raise ValueError(f"ema_decay must be in [0, 1), got {self.ema_decay}")
 

@@ -137,6 +137,19 @@ def optimizer_step(cfg: TrainConfig, state: TrainState, loss_fn) -> tuple[TrainS
     return TrainState(step=state.step + 1, params=params, opt_state=opt_state, ema=ema), metrics
 
 
+def flow_loss(cfg: TrainConfig, model: Pi0Config, params, obs, actions, noise, t, rng) -> jax.Array:
+    """The mean flow-matching loss; with cfg.max_delay, each sample's first d ~ U{0..max_delay} actions ride at
+    t = 0 (given, clean) and the mean runs over the others only (training-time action conditioning)."""
+    if not cfg.max_delay:
+        return jnp.mean(pi0.compute_loss(model, params, obs, actions, noise, t))
+    if cfg.max_delay >= actions.shape[1]:
+        raise ValueError(f"max_delay {cfg.max_delay} must be below the action horizon {actions.shape[1]}")
+    d = jax.random.randint(rng, (actions.shape[0],), 0, cfg.max_delay + 1)
+    free = jnp.arange(actions.shape[1])[None, :] >= d[:, None]                       # (B, H)
+    loss = pi0.compute_loss(model, params, obs, actions, noise, jnp.where(free, t[:, None], 0.0))
+    return jnp.sum(loss * free) / jnp.sum(free)
+
+
 def train_step(cfg: TrainConfig, model: Pi0Config, mesh: Mesh, state: TrainState, data: dict):
     """One flow-matching AdamW step on one batch. -> (new state, {"loss", "grad_norm", "lr"} as device scalars)."""
     shard = batch_sharder(mesh)
@@ -144,7 +157,8 @@ def train_step(cfg: TrainConfig, model: Pi0Config, mesh: Mesh, state: TrainState
     obs, actions = make_batch(cfg, model, data, k_batch, shard)
     noise = shard(jax.random.normal(k_noise, actions.shape, jnp.float32))
     t = shard(pi0.sample_time(k_time, cfg.batch_size))
-    return optimizer_step(cfg, state, lambda params: jnp.mean(pi0.compute_loss(model, params, obs, actions, noise, t)))
+    k_delay = jax.random.fold_in(k_time, 1)
+    return optimizer_step(cfg, state, lambda params: flow_loss(cfg, model, params, obs, actions, noise, t, k_delay))
 
 
 def batch_loss(cfg: TrainConfig, model: Pi0Config, params, data: dict, rng: jax.Array) -> jax.Array:
