@@ -11,6 +11,9 @@
 #                                                             # chunk ($FSTEPS steps), then the latency cells on it
 #   EPISODES=100 BG=1 bash scripts/gpu_suite.sh demos cond rtc-cond   # issue 15: $TEACHER fine-tuned with committed
 #                                                             # actions given (--max-delay $MAXD), then its cells
+#   GAIN=0.5 EPISODES=100 BG=1 bash scripts/gpu_suite.sh demos slow rtc-slow cond rtc-cond expert-latency
+#                                                             # the same on demos of a slower expert, which
+#                                                             # tolerates latency (scripts/expert_latency.py)
 #
 # Needs the mujoco / mujoco-mjx wheels in .simwhl (see docs/BENCHMARKS.md); writes into $OUT (or ./out).
 set -uo pipefail
@@ -44,7 +47,8 @@ for phase in "$@"; do
   echo "=== $phase $(date -u +%T)"
   case $phase in
     demos) python3 scripts/sim_demos.py "$W/demos" --suite all --episodes-per-task "$EPISODES" --first-init 50 \
-               --resolution 112 --no-compress --batch 550 --action-noise "$NOISE" 2>&1 | tail -3 ;;
+               --resolution 112 --no-compress --batch 550 --action-noise "$NOISE" ${GAIN:+--gain "$GAIN"} 2>&1 |
+               tail -3 ;;
     train) $PI0 train --config "$CONFIG" --demos "$W/demos" --out "$W/run" --steps "$STEPS" \
                --stop-at "$STOP_AT" 2>&1 | grep -v "^ *$" ;;
     resume) $PI0 train --config "$CONFIG" --demos "$W/demos" --out "$W/run" --steps "$STEPS" --resume 2>&1 ;;
@@ -80,6 +84,17 @@ for phase in "$@"; do
       $PI0 train --config "$CONFIG" --init "$TEACHER" --max-delay "$MAXD" --demos "$W/demos" --out "$W/cond" \
           --steps "$FSTEPS" --lr 1e-4 --warmup 100 2>&1 | grep -E "data:|first step|exported|step [0-9]*000/" &&
         cp "$W/cond/train_log.json" "$OUT/cond_log.json" ;;
+    slow)   # $TEACHER fine-tuned on $W/demos as they are (GAIN=0.5: a slower expert's), no conditioning
+      $PI0 train --config "$CONFIG" --init "$TEACHER" --demos "$W/demos" --out "$W/slow" \
+          --steps "$FSTEPS" --lr 1e-4 --warmup 100 2>&1 | grep -E "data:|first step|exported|step [0-9]*000/" &&
+        cp "$W/slow/train_log.json" "$OUT/slow_log.json" ;;
+    rtc-slow)
+      python3 scripts/roadmap_grid.py --checkpoint "$W/slow/checkpoint" --out "$W/roadmap_slow" --no-timing \
+          --budget-s "${BUDGET:-500}" --cells "${SLOW_CELLS:-sync,rtc,naive,rtc-d2}" 2>&1 | grep "^|"
+      cp "$W/roadmap_slow/roadmap.json" "$OUT/roadmap_slow.json" ;;
+    expert-latency)   # the scripted expert with its actions D steps late, at several gains (no learning involved)
+      python3 scripts/expert_latency.py --out "$W/expert_latency" --delays 0,2,4,8 --gains 1.5,1.0,0.5 2>&1 |
+        grep -E "^gain|^\|" && cp "$W/expert_latency/expert_latency.json" "$OUT/" ;;
     rtc-cond)   # the conditioned model: its own baseline, then conditioned / naive / rtc at D = 4, 2, 1
       python3 scripts/roadmap_grid.py --checkpoint "$W/cond/checkpoint" --out "$W/roadmap_cond" --no-timing \
           --budget-s "${BUDGET:-500}" --cells "${CELLS:-cond,sync,cond-d2,cond-d1,naive,rtc}" 2>&1 | grep "^|"

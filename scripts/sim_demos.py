@@ -31,6 +31,7 @@ class Args:
     first_init: int
     no_compress: bool
     action_noise: float
+    gain: float
 
 
 def parse(argv=None) -> Args:
@@ -49,6 +50,10 @@ def parse(argv=None) -> Args:
     p.add_argument("--action-noise", type=float, default=0.0, metavar="SIGMA",
                    help="DART noise injection: execute the expert's action plus N(0, s^2) on the motion dims, s drawn "
                         "per episode uniform in [0, SIGMA], and record the clean action (default 0: no noise)")
+    p.add_argument("--gain", type=float, default=None, metavar="G",
+                   help="the expert's proportional position gain per control step (the rotation gain scales with "
+                        "it); the default 1.5 does not tolerate 2 steps of latency, 0.5 tolerates 4 "
+                        "(scripts/expert_latency.py); default: pi0_jax.sim.expert.POS_GAIN")
     return Args(**vars(p.parse_args(argv)))
 
 
@@ -57,7 +62,8 @@ def main(argv=None) -> int:
 
     a = parse(argv)
     meta = write_demos(a.out, a.suite, a.episodes_per_task, a.batch, a.resolution, a.keep_failures,
-                       first_init=a.first_init, compress=not a.no_compress, action_noise=a.action_noise)
+                       first_init=a.first_init, compress=not a.no_compress, action_noise=a.action_noise,
+                       **({} if a.gain is None else {"pos_gain": a.gain}))
     ok = sum(e["success"] for e in meta["episodes"])
     print(f"{len(meta['episodes'])} episodes written to {a.out} ({ok} successful)")
     return 0

@@ -59,8 +59,10 @@ def _wrap_quarter(a):
     return (a + jnp.pi / 4) % (jnp.pi / 2) - jnp.pi / 4
 
 
-def act(env, state, es: ExpertState) -> tuple[jax.Array, ExpertState]:
-    """One environment's action (7,) and the expert's next state. `env` is a pi0_jax.sim.env.Env."""
+def act(env, state, es: ExpertState, pos_gain: float = POS_GAIN,
+        rot_gain: float = ROT_GAIN) -> tuple[jax.Array, ExpertState]:
+    """One environment's action (7,) and the expert's next state. `env` is a pi0_jax.sim.env.Env. The gains scale
+    the proportional commands: per control step, a gain g moves g times the error (before clipping)."""
     d, tb, idx = state.data, env.table, env.index
     kind, obj, target = (jnp.asarray(a)[state.task] for a in (tb.kind, tb.obj, tb.target))
     blocks, fixtures = env.block_pos(d), env.fixture_pos(d)
@@ -108,7 +110,7 @@ def act(env, state, es: ExpertState) -> tuple[jax.Array, ExpertState]:
     count = jnp.where(nxt == ph, n + 1, 0).astype(jnp.int32)
 
     action = jnp.concatenate([
-        jnp.clip(POS_GAIN * err / controller.POS_SCALE, -MAX_ACTION, MAX_ACTION),
-        jnp.clip(ROT_GAIN * rot_err / controller.ROT_SCALE, -MAX_ACTION, MAX_ACTION),
+        jnp.clip(pos_gain * err / controller.POS_SCALE, -MAX_ACTION, MAX_ACTION),
+        jnp.clip(rot_gain * rot_err / controller.ROT_SCALE, -MAX_ACTION, MAX_ACTION),
         jnp.where(close, 1.0, -1.0)[None]])
     return action, ExpertState(phase=nxt, count=count)

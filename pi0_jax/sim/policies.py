@@ -46,13 +46,31 @@ class SimPolicy:
     stats: Callable | None = None                   # pstate -> {name: (B,) counts}, summed into eval_info
 
 
-def expert_policy(env) -> SimPolicy:
-    """The scripted expert (privileged state, closed loop every step)."""
-    return SimPolicy(
-        name="expert",
-        init=lambda b: jax.tree.map(lambda x: jnp.broadcast_to(x, (b,) + x.shape), _expert.init()),
-        plan=lambda params, ps, obs, es, rng: ps,
-        act=lambda ps, es, k: jax.vmap(lambda s, e: _expert.act(env, s, e))(es, ps))
+def expert_policy(env, delay: int = 0, pos_gain: float = _expert.POS_GAIN,
+                  rot_gain: float = _expert.ROT_GAIN) -> SimPolicy:
+    """The scripted expert (privileged state, closed loop every step). delay D > 0: the action computed from the
+    state at step t is executed at t + D (a FIFO of D actions; the first D steps hold still: zero motion, gripper
+    open), the latency of a policy that replans every step. The gains: `expert.act`'s."""
+    def expert_act(ps, es):
+        return jax.vmap(lambda s, e: _expert.act(env, s, e, pos_gain, rot_gain))(es, ps)
+
+    if not delay:
+        return SimPolicy(
+            name="expert",
+            init=lambda b: jax.tree.map(lambda x: jnp.broadcast_to(x, (b,) + x.shape), _expert.init()),
+            plan=lambda params, ps, obs, es, rng: ps,
+            act=lambda ps, es, k: expert_act(ps, es))
+
+    def init(b):
+        queue = jnp.zeros((b, delay, 7), jnp.float32).at[..., 6].set(-1.0)
+        return jax.tree.map(lambda x: jnp.broadcast_to(x, (b,) + x.shape), _expert.init()), queue
+
+    def act(ps, es, k):
+        ex, queue = ps
+        action, ex = expert_act(ex, es)
+        return queue[:, 0], (ex, jnp.concatenate([queue[:, 1:], action[:, None]], axis=1))
+
+    return SimPolicy(name=f"expert (latency {delay})", init=init, plan=lambda params, ps, obs, es, rng: ps, act=act)
 
 
 def random_policy(replan_steps: int) -> SimPolicy:
