@@ -22,6 +22,10 @@ for phase in "$@"; do
     pi0_b8_attn) for a in auto cudnn; do
                  python3 -m pi0_jax.cli benchmark --preset pi0_base --steps 10 --batch 8 --fused-steps 10 --iters 20 \
                    --attention $a --out "$OUT/pi0_b8_$a.json" > "$OUT/pi0_b8_$a.log" 2>&1; tail -3 "$OUT/pi0_b8_$a.log"; done ;;
+    pi05_denoise_attn) for a in xla cudnn; do   # π0.5's denoise attention below CUDNN_DENOISE_MIN_BATCH
+                 python3 -m pi0_jax.cli benchmark --preset pi05_base --steps 10 --batch 2,4,6,8 --iters 20 \
+                   --attention denoise=$a --out "$OUT/pi05_denoise_$a.json" > "$OUT/pi05_denoise_$a.log" 2>&1
+                 tail -6 "$OUT/pi05_denoise_$a.log"; done ;;
     pi0_fp8) python3 -m pi0_jax.cli benchmark --preset pi0_base --steps 10 --batch 1,8 --fused-steps 10 --iters 20 \
                --quant prefix-vision --out "$OUT/pi0_fp8.json" > "$OUT/pi0_fp8.log" 2>&1; tail -8 "$OUT/pi0_fp8.log" ;;
     pi05_b1) python3 -m pi0_jax.cli benchmark --preset pi05_base --steps 1,10 --batch 1 --reference --warm-start \
