@@ -54,12 +54,11 @@ def main() -> int:
     for gain in gains:
         for d in delays:
             cfg = EvalConfig(suite=args.suite, episodes_per_task=args.episodes_per_task, batch=args.batch, videos=0)
-            rot = expert.ROT_GAIN * gain / expert.POS_GAIN
             t0 = time.perf_counter()
-            info = evaluate(lambda env, d=d, g=gain, r=rot: expert_policy(env, d, g, r), cfg, None, progress=False)
+            info = evaluate(lambda env, d=d, g=gain: expert_policy(env, d, g), cfg, None, progress=False)
             a = info["aggregated"]
             lo, hi = wilson(a["n_success"], a["n_episodes"])
-            rows.append({"gain": gain, "rot_gain": rot, "delay": d, "delay_ms": 1000 * d / CONTROL_HZ,
+            rows.append({"gain": gain, "rot_gain": expert.gains(gain)[1], "delay": d, "delay_ms": 1000 * d / CONTROL_HZ,
                          "n_episodes": a["n_episodes"], "n_success": a["n_success"], "pc_success": a["pc_success"],
                          "ci95": [lo, hi], "mean_length": sum(e["length"] for e in info["per_episode"])
                          / len(info["per_episode"]), "wall_s": time.perf_counter() - t0})

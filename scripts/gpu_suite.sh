@@ -78,7 +78,7 @@ for phase in "$@"; do
         cp "$W/h20/train_log.json" "$OUT/h20_log.json" ;;
     rtc20)   # sync / naive / rtc at D = 1, 2, 4 on the 20-action model (the cost column is the 10-action one's)
       python3 scripts/roadmap_grid.py --checkpoint "$W/h20/checkpoint" --out "$W/roadmap20" --no-timing \
-          --budget-s "${BUDGET:-500}" --cells sync,rtc,naive,rtc-d1,naive-d1,rtc-d2,naive-d2 2>&1 | grep "^|"
+          --budget-s "${BUDGET:-500}" --cells "${CELLS:-sync,rtc,naive,rtc-d1,naive-d1,rtc-d2,naive-d2}" 2>&1 | grep "^|"
       cp "$W/roadmap20/roadmap.json" "$OUT/roadmap20.json" ;;
     cond)   # $TEACHER fine-tuned with training-time action conditioning (d ~ U{0..$MAXD} committed actions given)
       $PI0 train --config "$CONFIG" --init "$TEACHER" --max-delay "$MAXD" --demos "$W/demos" --out "$W/cond" \

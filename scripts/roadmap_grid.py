@@ -313,8 +313,8 @@ def main() -> int:
                    "embedded pi0_small)")
     p.add_argument("--cells", default="sync,sync@1,sync-r6@1,rtc,naive,reuse2@1,prune,reuse2,auto,reuse4",
                    help="comma list, run in this order while the budget lasts: sync, naive, rtc, cond (naive-dD, "
-                        "rtc-dD, cond-dD: latency D instead of --latency-steps), reuseK (K an integer), auto, prune, each optionally "
-                        "@N for N flow steps (default: %(default)s)")
+                        "rtc-dD, cond-dD: latency D instead of --latency-steps), reuseK (K an integer), auto, "
+                        "prune, each optionally @N for N flow steps (default: %(default)s)")
     p.add_argument("--latency-steps", type=int, default=4, help="D of the naive, rtc and cond cells, in 50 ms control "
                    "steps (default: %(default)s = 200 ms)")
     p.add_argument("--auto-threshold", type=float, default=0.1,

@@ -127,8 +127,8 @@ def test_init_fine_tunes_a_checkpoint_to_another_horizon(demos, tmp_path):
 
     out = tmp_path / "run"
     assert cli.main(["train", "--config", "dummy_smoke", "--demos", str(demos), "--out", str(out), "--init", str(ckpt),
-                     "--horizon", "12", "--max-delay", "3", "--steps", "2", "--lr", "0", "--ema", "0", "--log-every", "1",
-                     "--save-every", "2", "--no-augment"]) == 0
+                     "--horizon", "12", "--max-delay", "3", "--steps", "2", "--lr", "0", "--ema", "0",
+                     "--log-every", "1", "--save-every", "2", "--no-augment"]) == 0
     got_cfg, got = ckpt_lib.load_checkpoint(out / "checkpoint")
     _, want = ckpt_lib.load_checkpoint(ckpt)
     assert got_cfg.action_horizon == 12 and model.action_horizon != 12

@@ -43,13 +43,13 @@ FPS = 20
 _MOTION = jnp.array([1.0] * 6 + [0.0])   # noise on translation and rotation, never on the gripper
 
 
-def _segment(env: Env, steps: int, pos_gain: float, rot_gain: float):
+def _segment(env: Env, steps: int, pos_gain: float):
     """Jitted (state, expert state, keys, noise scale) -> next carry and per-step records of `steps` steps,
     batched. The executed action is the expert's plus N(0, sigma^2) on the motion dims; the record is the expert's."""
     def one(carry, _):
         state, es, keys, sigma = carry
         obs = jax.vmap(env.observe)(state)
-        action, es = jax.vmap(lambda s, e: _expert.act(env, s, e, pos_gain, rot_gain))(state, es)
+        action, es = jax.vmap(lambda s, e: _expert.act(env, s, e, pos_gain))(state, es)
         split = jax.vmap(jax.random.split)(keys)
         noise = jax.vmap(lambda k: jax.random.normal(k, (7,)))(split[:, 1]) * sigma[:, None] * _MOTION
         nxt = jax.vmap(env.step)(state, jnp.clip(action + noise, -1.0, 1.0))
@@ -66,7 +66,7 @@ def write_demos(out_dir: str | Path, suite: str = "all", episodes_per_task: int 
     """Roll the expert out on initial states first_init .. first_init + episodes_per_task - 1 of every task of
     `suite`; returns meta.json. compress=False writes plain npz (np.savez): compressing gigabytes of frames takes
     longer than rendering them on a GPU. action_noise: the largest per-episode noise scale (module docstring).
-    pos_gain: the expert's position gain; its rotation gain scales with it (the defaults' ratio)."""
+    pos_gain: the expert's position gain (`expert.gains`)."""
     if first_init < 0 or episodes_per_task <= 0:
         raise ValueError(f"need first_init >= 0 and episodes_per_task > 0, got {first_init}, {episodes_per_task}")
     if not 0.0 <= action_noise <= 1.0:
@@ -79,8 +79,7 @@ def write_demos(out_dir: str | Path, suite: str = "all", episodes_per_task: int 
     init_of = init_of + np.int32(first_init)
     save = np.savez_compressed if compress else np.savez
     reset = jax.jit(jax.vmap(env.reset))
-    rot_gain = _expert.ROT_GAIN * pos_gain / _expert.POS_GAIN
-    segment = _segment(env, segment_steps, pos_gain, rot_gain)
+    segment = _segment(env, segment_steps, pos_gain)
     rows, n_written = [], 0
     for start in range(0, len(task_of), batch):
         t_ids, i_ids = task_of[start:start + batch], init_of[start:start + batch]
@@ -120,7 +119,7 @@ def write_demos(out_dir: str | Path, suite: str = "all", episodes_per_task: int 
         log(f"{min(start + batch, len(task_of))}/{len(task_of)} episodes rolled out, {n_written} written")
     meta = {"format": "pi0_jax.sim demos v1", "suite": suite, "suite_version": _tasks.SUITE_VERSION, "fps": FPS,
             "resolution": resolution, "first_init": first_init, "action_noise": action_noise,
-            "expert_gains": [pos_gain, rot_gain],
+            "expert_gains": list(_expert.gains(pos_gain)),
             "state": "eef pos (3), axis-angle (3), gripper (left, -right)",
             "actions": "EE delta pos (3) x 0.05 m, axis-angle (3) x 0.5 rad, gripper (-1 open, +1 closed)",
             "tasks": [{"task": t.name, "family": t.family, "prompt": t.prompt} for t in env.tasks],

@@ -59,10 +59,15 @@ def _wrap_quarter(a):
     return (a + jnp.pi / 4) % (jnp.pi / 2) - jnp.pi / 4
 
 
-def act(env, state, es: ExpertState, pos_gain: float = POS_GAIN,
-        rot_gain: float = ROT_GAIN) -> tuple[jax.Array, ExpertState]:
-    """One environment's action (7,) and the expert's next state. `env` is a pi0_jax.sim.env.Env. The gains scale
-    the proportional commands: per control step, a gain g moves g times the error (before clipping)."""
+def gains(pos_gain: float = POS_GAIN) -> tuple[float, float]:
+    """(position, rotation) gains for a position gain; the rotation gain keeps the defaults' ratio."""
+    return pos_gain, ROT_GAIN * pos_gain / POS_GAIN
+
+
+def act(env, state, es: ExpertState, pos_gain: float = POS_GAIN) -> tuple[jax.Array, ExpertState]:
+    """One environment's action (7,) and the expert's next state. `env` is a pi0_jax.sim.env.Env. pos_gain scales
+    the proportional commands (`gains`): per control step, a gain g moves g times the error (before clipping)."""
+    pos_gain, rot_gain = gains(pos_gain)
     d, tb, idx = state.data, env.table, env.index
     kind, obj, target = (jnp.asarray(a)[state.task] for a in (tb.kind, tb.obj, tb.target))
     blocks, fixtures = env.block_pos(d), env.fixture_pos(d)

@@ -46,13 +46,12 @@ class SimPolicy:
     stats: Callable | None = None                   # pstate -> {name: (B,) counts}, summed into eval_info
 
 
-def expert_policy(env, delay: int = 0, pos_gain: float = _expert.POS_GAIN,
-                  rot_gain: float = _expert.ROT_GAIN) -> SimPolicy:
+def expert_policy(env, delay: int = 0, pos_gain: float = _expert.POS_GAIN) -> SimPolicy:
     """The scripted expert (privileged state, closed loop every step). delay D > 0: the action computed from the
     state at step t is executed at t + D (a FIFO of D actions; the first D steps hold still: zero motion, gripper
-    open), the latency of a policy that replans every step. The gains: `expert.act`'s."""
+    open), the latency of a policy that replans every step. pos_gain: `expert.act`'s."""
     def expert_act(ps, es):
-        return jax.vmap(lambda s, e: _expert.act(env, s, e, pos_gain, rot_gain))(es, ps)
+        return jax.vmap(lambda s, e: _expert.act(env, s, e, pos_gain))(es, ps)
 
     if not delay:
         return SimPolicy(
@@ -107,8 +106,8 @@ def model_policy(config, params, tok, normalizer, env, *, num_steps: int = 10, d
     program, so one compiled rollout serves every step count up to `PolicyCore.max_dynamic_steps` (same numerics).
     params None: the transforms only (`observation`), e.g. for calibration batches. quant: the number format the
     params were quantised to (`quantize_for_suite`), recorded in the policy's info.
-    realtime: a `pi0_jax.sim.realtime.Realtime` (latency, sync / naive / rtc / conditioned execution, prefix reuse; needs
-    replan_steps); the policy state is then a dict (chunk, previous chunk, cached prefix, counters) instead of the
+    realtime: a `pi0_jax.sim.realtime.Realtime` (latency, sync / naive / rtc / conditioned execution, prefix reuse;
+    needs replan_steps); the policy state is then a dict (chunk, previous chunk, cached prefix, counters) instead of the
     chunk itself."""
     from pi0_jax import pi0
     from pi0_jax.engine import prompt_bucket
