@@ -195,6 +195,30 @@ def test_conditioned_chunks_start_with_the_committed_actions(rollout):
     assert np.abs(cond[0][:, D:] - naive[0][:, D:]).max() > 1e-3     # same noise and frames, conditioned otherwise
 
 
+def test_delayed_expert_executes_its_actions_d_steps_late():
+    """scripts/expert_latency.py's policy: the expert's action from the state at step t runs at t + D (hold still
+    before), and a lower gain commands proportionally less motion."""
+    env = Env(TASKS[:1], RenderConfig(RES, RES))
+    state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.key(0), 1), jnp.zeros(1, jnp.int32),
+                                         jnp.zeros(1, jnp.int32))
+    now, late, slow = (policies.expert_policy(env, d, g) for d, g in ((0, 1.5), (3, 1.5), (0, 0.5)))
+    want, _ = jax.jit(now.act)(now.init(1), state, 0)
+    act = jax.jit(late.act)
+    ps, got = late.init(1), []
+    for k in range(5):        # the same state every step: the expert's phase does not move on
+        a, ps = act(ps, state, k)
+        got.append(np.asarray(a[0]))
+    hold = np.zeros(7, np.float32)
+    hold[6] = -1.0
+    np.testing.assert_array_equal(np.stack(got[:3]), np.broadcast_to(hold, (3, 7)))
+    np.testing.assert_array_equal(got[3], np.asarray(want[0]))
+    assert np.abs(np.asarray(want[0, :3])).max() > 0.05                     # it moves: the check is not vacuous
+    third, _ = jax.jit(slow.act)(slow.init(1), state, 0)
+    rot, rot_third = np.asarray(want[0, 3:6]), np.asarray(third[0, 3:6])
+    assert 0.01 < np.abs(rot).max() < 0.8                                   # below the clip: the gain scales linearly
+    np.testing.assert_allclose(rot_third, rot / 3, rtol=1e-5)
+
+
 def test_rtc_weights_follow_the_paper():
     w = rtc_weights(10, 2, 5)
     assert w[:2].tolist() == [1.0, 1.0] and (w[5:] == 0).all()
