@@ -19,9 +19,9 @@ is 50 ms at the suite's 20 Hz, so D = 4 is 200 ms). Chunk index i is the action 
          (`pi0-jax train --max-delay`); an episode's first plan is conditioned on the hold chunk it executes.
 
 Every mode steps the environment once per control step, so episode lengths and LIBERO's step limits mean the same.
-Requires D <= r (one plan in flight) and r + D <= H (the previous chunk covers the wait). With D = 0 the three modes
+Requires D <= r (one plan in flight) and r + D <= H (the previous chunk covers the wait). With D = 0 the four modes
 are the same policy: rtc then has nothing committed and samples without guidance (the paper's soft overlap weights
-alone are not applied at D = 0, so D = 0 is exactly the synchronous baseline).
+alone are not applied at D = 0, so D = 0 is exactly the synchronous baseline), and conditioned gives nothing.
 
 Prefix reuse. `reuse_prefix` K recomputes vision and the prefix KV cache only at every K-th plan and otherwise runs
 only the denoise program on the cached prefix. π0 feeds the state through the suffix, so the fresh state still
