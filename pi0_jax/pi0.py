@@ -251,7 +251,7 @@ def sample_actions(config: Pi0Config, params: dict, obs: Observation, noise: jax
     x = noise.astype(jnp.float32)
     frozen = None
     if num_committed is not None:
-        frozen = jnp.arange(config.action_horizon)[None, :] < jnp.asarray(num_committed)[:, None]   # (B, H)
+        frozen = committed_mask(config.action_horizon, num_committed)
         x = jnp.where(frozen[..., None], committed.astype(jnp.float32), x)
 
     def step(_, carry):
@@ -263,6 +263,11 @@ def sample_actions(config: Pi0Config, params: dict, obs: Observation, noise: jax
 
     x_0, _ = jax.lax.fori_loop(0, num_steps, step, (x, jnp.float32(1.0)))
     return x_0
+
+
+def committed_mask(horizon: int, num_committed) -> jax.Array:
+    """(B, H) bool: action i of element b is committed (given clean, at t = 0) when i < num_committed[b]."""
+    return jnp.arange(horizon)[None, :] < jnp.asarray(num_committed)[:, None]
 
 
 def compute_loss(config: Pi0Config, params: dict, obs: Observation, actions: jax.Array, noise: jax.Array,

@@ -26,8 +26,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pi0_jax import checkpoint, pi0
-from pi0_jax.policy import Policy
+from pi0_jax import pi0
+from pi0_jax.policy import Policy, load_parts
 
 
 def main() -> int:
@@ -39,9 +39,8 @@ def main() -> int:
     p.add_argument("--num-steps", type=int, default=10, help="flow steps (default: %(default)s)")
     args = p.parse_args()
 
-    policy = Policy.from_checkpoint(args.checkpoint, dtype="float32")
-    config, params = checkpoint.load_checkpoint(args.checkpoint, dtype="float32")
-    config = config.replace(dtype="float32")
+    config, params, tokenizer, normalizer = load_parts(args.checkpoint, dtype="float32")
+    policy = Policy(config, params, tokenizer, normalizer)
     h, a, d = config.action_horizon, config.action_dim, args.delay
     scale, offset = (np.asarray(policy.core.norm[k]) for k in ("action_scale", "action_offset"))
     sample = jax.jit(pi0.sample_actions, static_argnums=(0, 4))

@@ -43,6 +43,17 @@ evaluate() {   # NAME POLICY, then extra eval flags; 550 episodes on held-out in
       --output-dir "$W/$name" "$@" 2>&1 | grep -E "\*\*|episodes in" &&
     cp "$W/$name/eval_info.json" "$OUT/$name.json"
 }
+finetune() {   # NAME, then extra train flags: $TEACHER fine-tuned on $W/demos for $FSTEPS steps into $W/NAME
+  local name=$1; shift
+  $PI0 train --config "$CONFIG" --init "$TEACHER" --demos "$W/demos" --out "$W/$name" --steps "$FSTEPS" --lr 1e-4 \
+      --warmup 100 "$@" 2>&1 | grep -E "data:|first step|exported|step [0-9]*000/" &&
+    cp "$W/$name/train_log.json" "$OUT/${name}_log.json"
+}
+latency_cells() {   # MODEL (a fine-tune in $W) RESULT CELLS: roadmap cells on it, without the cost column
+  python3 scripts/roadmap_grid.py --checkpoint "$W/$1/checkpoint" --out "$W/$2" --no-timing \
+      --budget-s "${BUDGET:-500}" --cells "$3" 2>&1 | grep "^|"
+  cp "$W/$2/roadmap.json" "$OUT/$2.json"
+}
 for phase in "$@"; do
   echo "=== $phase $(date -u +%T)"
   case $phase in
@@ -72,33 +83,17 @@ for phase in "$@"; do
         evaluate distill2l "$W/distill2l/checkpoint" --replan-steps 2 &&
         $PI0 benchmark --preset pi0_small --checkpoint "$W/distill2l/checkpoint" --cameras 2 --prompt-tokens 16 \
             --steps 1 --batch 1,64 --iters 50 --out "$OUT/latency_distill2l.json" 2>&1 | grep "^|" ;;
-    h20)   # $TEACHER's weights fine-tuned to a 20-action horizon: D = 4 then leaves RTC 11 guided actions, not 1
-      $PI0 train --config "$CONFIG" --init "$TEACHER" --horizon 20 --demos "$W/demos" --out "$W/h20" \
-          --steps "$FSTEPS" --lr 1e-4 --warmup 100 2>&1 | grep -E "data:|first step|exported|step [0-9]*000/" &&
-        cp "$W/h20/train_log.json" "$OUT/h20_log.json" ;;
+    h20) finetune h20 --horizon 20 ;;   # a 20-action horizon: D = 4 then leaves RTC 11 guided actions, not 1
     rtc20)   # sync / naive / rtc at D = 1, 2, 4 on the 20-action model (the cost column is the 10-action one's)
-      python3 scripts/roadmap_grid.py --checkpoint "$W/h20/checkpoint" --out "$W/roadmap20" --no-timing \
-          --budget-s "${BUDGET:-500}" --cells "${CELLS:-sync,rtc,naive,rtc-d1,naive-d1,rtc-d2,naive-d2}" 2>&1 | grep "^|"
-      cp "$W/roadmap20/roadmap.json" "$OUT/roadmap20.json" ;;
-    cond)   # $TEACHER fine-tuned with training-time action conditioning (d ~ U{0..$MAXD} committed actions given)
-      $PI0 train --config "$CONFIG" --init "$TEACHER" --max-delay "$MAXD" --demos "$W/demos" --out "$W/cond" \
-          --steps "$FSTEPS" --lr 1e-4 --warmup 100 2>&1 | grep -E "data:|first step|exported|step [0-9]*000/" &&
-        cp "$W/cond/train_log.json" "$OUT/cond_log.json" ;;
-    slow)   # $TEACHER fine-tuned on $W/demos as they are (GAIN=0.5: a slower expert's), no conditioning
-      $PI0 train --config "$CONFIG" --init "$TEACHER" --demos "$W/demos" --out "$W/slow" \
-          --steps "$FSTEPS" --lr 1e-4 --warmup 100 2>&1 | grep -E "data:|first step|exported|step [0-9]*000/" &&
-        cp "$W/slow/train_log.json" "$OUT/slow_log.json" ;;
-    rtc-slow)
-      python3 scripts/roadmap_grid.py --checkpoint "$W/slow/checkpoint" --out "$W/roadmap_slow" --no-timing \
-          --budget-s "${BUDGET:-500}" --cells "${SLOW_CELLS:-sync,rtc,naive,rtc-d2}" 2>&1 | grep "^|"
-      cp "$W/roadmap_slow/roadmap.json" "$OUT/roadmap_slow.json" ;;
+      latency_cells h20 roadmap20 "${CELLS:-sync,rtc,naive,rtc-d1,naive-d1,rtc-d2,naive-d2}" ;;
+    cond) finetune cond --max-delay "$MAXD" ;;   # training-time action conditioning: d ~ U{0..$MAXD} given
+    slow) finetune slow ;;   # on $W/demos as they are (GAIN=0.5: a slower expert's), no conditioning
+    rtc-slow) latency_cells slow roadmap_slow "${SLOW_CELLS:-sync,rtc,naive,rtc-d2}" ;;
     expert-latency)   # the scripted expert with its actions D steps late, at several gains (no learning involved)
       python3 scripts/expert_latency.py --out "$W/expert_latency" --delays 0,2,4,8 --gains 1.5,1.0,0.5 2>&1 |
         grep -E "^gain|^\|" && cp "$W/expert_latency/expert_latency.json" "$OUT/" ;;
     rtc-cond)   # the conditioned model: its own baseline, then conditioned / naive / rtc at D = 4, 2, 1
-      python3 scripts/roadmap_grid.py --checkpoint "$W/cond/checkpoint" --out "$W/roadmap_cond" --no-timing \
-          --budget-s "${BUDGET:-500}" --cells "${CELLS:-cond,sync,cond-d2,cond-d1,naive,rtc}" 2>&1 | grep "^|"
-      cp "$W/roadmap_cond/roadmap.json" "$OUT/roadmap_cond.json" ;;
+      latency_cells cond roadmap_cond "${CELLS:-cond,sync,cond-d2,cond-d1,naive,rtc}" ;;
     grid-extra)   # the cells the first grid left out (replan 2 as the grid)
       python3 scripts/results_grid.py --checkpoint "$TEACHER" --out "$W/grid_extra" --replan-steps 2 \
           --schemes prefix-all:10,vision:10,expert-weights:10,all:1,nvfp4:1,mxfp4:1 2>&1 | grep -E "steps|^\|" &&

@@ -272,7 +272,7 @@ def denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixCache, s
     x = noise.astype(jnp.float32)
     frozen = None
     if num_committed is not None:
-        frozen = jnp.arange(config.action_horizon)[None, :] < jnp.asarray(num_committed)[:, None]
+        frozen = pi0.committed_mask(config.action_horizon, num_committed)
         x = jnp.where(frozen[..., None], committed.astype(jnp.float32), x)
 
     def step(i, x_t):

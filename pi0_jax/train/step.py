@@ -145,7 +145,7 @@ def flow_loss(cfg: TrainConfig, model: Pi0Config, params, obs, actions, noise, t
     if cfg.max_delay >= actions.shape[1]:
         raise ValueError(f"max_delay {cfg.max_delay} must be below the action horizon {actions.shape[1]}")
     d = jax.random.randint(rng, (actions.shape[0],), 0, cfg.max_delay + 1)
-    free = jnp.arange(actions.shape[1])[None, :] >= d[:, None]                       # (B, H)
+    free = ~pi0.committed_mask(actions.shape[1], d)                                    # (B, H)
     loss = pi0.compute_loss(model, params, obs, actions, noise, jnp.where(free, t[:, None], 0.0))
     return jnp.sum(loss * free) / jnp.sum(free)
 
