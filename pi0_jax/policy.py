@@ -82,7 +82,8 @@ class PolicyCore:
         self.num_steps, self.action_dims, self.sampler, self.unroll = int(num_steps), int(action_dims), sampler, unroll
         # the engine's expert layers ("xla" ops, the fused Pallas kernels of pi0_jax.ops, or "auto": by batch size)
         # and each stage's attention (`programs.Attention.parse`)
-        self.kernels, self.attention = programs.check_kernels(kernels), programs.Attention.parse(attention)
+        self.kernels, self.attention = programs.check_kernels(kernels), programs.Attention.parse(
+            attention, dtype=config.dtype)
         self.slots = IMAGE_KEYS[: config.num_cameras]
         # The state's dims as the stats know them (None: no stats, so only <= action_dim can be checked).
         self.state_dim = normalizer.dim(_norm.STATE)

@@ -134,6 +134,7 @@ def test_attention_and_kernel_choices():
 
     A = programs.Attention
     assert A.parse("auto", platform="cpu") == A() and A.parse("auto", platform="gpu") == programs.AUTO_GPU
+    assert A.parse("auto", platform="gpu", dtype="float32") == A()  # cuDNN's flash kernel takes no float32
     assert A.parse("cudnn") == A("cudnn", "cudnn", "cudnn") and A.parse("prefix=cudnn") == A(prefix="cudnn")
     assert str(A.parse(str(programs.AUTO_GPU))) == str(programs.AUTO_GPU)
     big, small = programs.CUDNN_DENOISE_MIN_BATCH, programs.CUDNN_DENOISE_MIN_BATCH - 1   # measured: 4 faster, 1 slower

@@ -88,13 +88,13 @@ class Attention:
         return dataclasses.replace(self, denoise="cudnn" if cudnn else "xla")
 
     @classmethod
-    def parse(cls, spec, platform: str | None = None) -> Attention:
-        """"xla" | "cudnn" (every stage) | "auto" (`AUTO_GPU` on a GPU, else "xla") | "vision=cudnn,prefix=xla"
-        (unnamed stages "xla") | an Attention."""
+    def parse(cls, spec, platform: str | None = None, dtype: str = "bfloat16") -> Attention:
+        """"xla" | "cudnn" (every stage) | "auto" (`AUTO_GPU` on a GPU for bfloat16 models, else "xla": cuDNN's
+        flash kernel takes no float32) | "vision=cudnn,prefix=xla" (unnamed stages "xla") | an Attention."""
         if isinstance(spec, cls):
             return spec
         if spec == "auto":
-            return AUTO_GPU if (platform or jax.default_backend()) == "gpu" else cls()
+            return AUTO_GPU if (platform or jax.default_backend()) == "gpu" and dtype == "bfloat16" else cls()
         if spec in ("xla", "cudnn"):
             return cls(spec, spec, spec)
         fields = {f.name for f in dataclasses.fields(cls)}

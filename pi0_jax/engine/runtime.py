@@ -83,7 +83,7 @@ class Engine:
     def __init__(self, config: Pi0Config, params: dict, *, unroll: bool = True, unroll_steps: bool = False,
                  attention: str | programs.Attention = "auto", kernels: str = "auto",
                  cache_dir: str | os.PathLike | None | bool = None):
-        self.attention = programs.Attention.parse(attention)
+        self.attention = programs.Attention.parse(attention, dtype=config.dtype)
         self.kernels = programs.check_kernels(kernels)
         if cache_dir is not False:
             self.cache_dir = enable_compilation_cache(None if cache_dir in (None, True) else cache_dir)
