@@ -113,11 +113,11 @@ def _reset(count_ref, tile, arrivals: int):
     plgpu.atomic_add(count_ref, (tile,), jnp.full((), -arrivals, jnp.int32))
 
 
-def _total(ref, index, splits: int, shape):
-    """sum over t < splits of ref[index(t)] in f32, in split order. Plain loads: only this program reads the tile's
-    partials, once, so its SM's L1 holds no stale copy (volatile loads, tried, made the kernels 2-3x slower)."""
-    return jax.lax.fori_loop(0, splits, lambda t, a: a + ref[index(t)],
-                             jnp.zeros(shape, jnp.float32))
+def _total(ref, index, splits: int):
+    """sum over t < splits of ref[index(t)] in f32, in split order. Unrolled, so that every load is in flight at once
+    (a loop waits for each). Plain loads: only this program reads the tile's partials, once, so its SM's L1 holds no
+    stale copy (volatile loads, tried, were slower)."""
+    return functools.reduce(lambda a, t: a + ref[index(t)], range(1, splits), ref[index(0)])
 
 
 def _scaled(x_ref, mod_ref, rows, cols, mod_row, dtype):
@@ -193,13 +193,13 @@ def _gemm_kernel(y_ref, mod_ref, w_ref, cos_ref, sin_ref, x_ref, _, count_ref, o
     @pl.when(_arrived_last(count_ref, tile, splits))
     def _epilogue():
         _reset(count_ref, tile, splits)
-        accs = [_total(parts_ref, lambda t, c=c: (pl.ds(t * m + i * bm, bm), c), splits, (bm, bn)) for c in cols]
+        accs = [_total(parts_ref, lambda t, c=c: (pl.ds(t * m + i * bm, bm), c), splits) for c in cols]
         if scaled:
-            ss_sum = _total(ss_ref, lambda t: (pl.ds((t * nj + j) * m + i * bm, bm),), splits, (bm,))
+            ss_sum = _total(ss_ref, lambda t: (pl.ds((t * nj + j) * m + i * bm, bm),), splits)
             inv = jax.lax.rsqrt(ss_sum / width + EPS)[:, None]
             accs = [a * inv for a in accs]
         if adaptive:
-            accs = [a + _total(shift_ref, lambda t, c=c: (pl.ds((t * ni + i) * ALIGN, 1), c), splits, (1, bn))
+            accs = [a + _total(shift_ref, lambda t, c=c: (pl.ds((t * ni + i) * ALIGN, 1), c), splits)
                     for a, c in zip(accs, cols)]
         if epilogue == "rope":
             # RoPE in f32, then the dtype, for q and k heads (v heads take cos 1, sin 0: exactly the identity);
@@ -339,15 +339,12 @@ def _attention_kernel(qkv_ref, ck_ref, cv_ref, pmask_ref, smask_ref, _, count_re
         def lse(t):
             return lse_ref[part(t), pl.ds(n, 1)]
 
-        top = jax.lax.fori_loop(1, splits + 1, lambda t, a: jnp.maximum(a, lse(t)), lse(0))
-
-        def add(t, acc):
-            w = jnp.exp(lse(t) - top)
-            o = o_ref[part(t), head].astype(jnp.float32)
-            return acc[0] + w * o, acc[1] + w
-
-        num, den = jax.lax.fori_loop(0, splits + 1, add, (jnp.zeros((bq, hd), jnp.float32),
-                                                          jnp.zeros((bq, 1), jnp.float32)))
+        lses = [lse(t) for t in range(splits + 1)]  # unrolled: every load in flight at once
+        top = functools.reduce(jnp.maximum, lses)
+        weights = [jnp.exp(x - top) for x in lses]
+        num = functools.reduce(lambda a, t: a + weights[t] * o_ref[part(t), head].astype(jnp.float32),
+                                range(1, splits + 1), weights[0] * o_ref[part(0), head].astype(jnp.float32))
+        den = functools.reduce(lambda a, w: a + w, weights[1:], weights[0])
         y_ref[rows, head] = (num / den).astype(y_ref.dtype)
 
 
