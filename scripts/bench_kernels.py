@@ -125,20 +125,18 @@ def stages(config, args, key):
                        ((64, 4), (64, 8), (128, 4), (32, 4), (64, 2), (128, 8))] + [dict(k=256), dict(num_warps=8)],
         "down_residual": [dict(out_cols=a, down_splits=sp) for a, sp in ((32, 8), (32, 16), (64, 8), (16, 8))],
     }
-    c0 = ek.counters  # each timed call starts from zeroed counters (one memset more than in the engine)
     calls = {
-        "norm_qkv_rope": (lambda bl: lambda x, w: ek.norm_qkv_rope(x, scale, 0, False, w, cos, sin, counts=c0(),
-                                                                   width=d, head_dim=h, blocks=bl, **kw)[0],
-                          xs, (w["qkv"],)),
-        "attention": (lambda bl: lambda q, ck, cv: ek.attention(q, ck, cv, pmask, smask, counts=c0(), batch=1,
-                                                                blocks=bl, **kw)[0], qkvs, (ck, cv)),
-        "out_residual": (lambda bl: lambda y, w, x: ek.matmul_residual(y, w, x, counts=c0(), splits=bl.out_splits,
-                                                                       blocks=bl)[0], ys, (w["attn_out"], xs[0])),
-        "norm_geglu": (lambda bl: lambda x, w: ek.norm_geglu(x, scale, 0, False, w, counts=c0(), width=d,
-                                                             blocks=bl)[0], xs, (w["gate_up"],)),
-        "down_residual": (lambda bl: lambda hh, w, x: ek.matmul_residual(hh, w, x, counts=c0(),
-                                                                         splits=bl.down_splits, blocks=bl)[0],
-                          hs, (w["down"], xs[0])),
+        "norm_qkv_rope": (lambda bl: lambda x, w: ek.norm_qkv_rope(x, scale, 0, False, w, cos, sin, width=d,
+                                                                   head_dim=h, blocks=bl, **kw), xs, (w["qkv"],)),
+        "attention": (lambda bl: lambda q, ck, cv: ek.attention(q, ck, cv, pmask, smask, batch=1, blocks=bl, **kw),
+                      qkvs, (ck, cv)),
+        "out_residual": (lambda bl: lambda y, w, x: ek.matmul_residual(y, w, x, splits=bl.out_splits, blocks=bl), ys,
+                         (w["attn_out"], xs[0])),
+        "norm_geglu": (lambda bl: lambda x, w: ek.norm_geglu(x, scale, 0, False, w, width=d, blocks=bl), xs,
+                       (w["gate_up"],)),
+        "down_residual": (lambda bl: lambda hh, w, x: ek.matmul_residual(hh, w, x, splits=bl.down_splits, blocks=bl),
+                          hs,
+                          (w["down"], xs[0])),
     }
     best = {}
     for name, variants in sweeps.items():

@@ -146,9 +146,9 @@ def run_layers(layer_fn, weights, x, per_layer=(), *, unroll: bool):
 
 def suffix_layers_pallas(cfg: GemmaConfig, weights, x, positions, cache_k, cache_v, prefix_mask, suffix_mask,
                          mods=None, blocks: expert_kernels.Blocks = expert_kernels.Blocks()):
-    """All action-expert layers as Pallas kernels (`pi0_jax.ops`): per layer four split-K GEMMs, each with its norm
-    and epilogue (RoPE, GeGLU, gate and residual), and the attention; the same function as `suffix_layer` applied
-    layer by layer.
+    """All action-expert layers as Pallas kernels (`pi0_jax.ops`): per layer four split-K GEMMs and the attention,
+    each followed by one XLA fusion (norm, RoPE, GeGLU, residuals, the split merges); the same function as
+    `suffix_layer` applied layer by layer.
 
     weights: the engine's per-layer dicts, laid out for the kernels here (`ops.layout.expert_weights`: reshapes that
     XLA makes free at full size, where nothing is padded); cache_k/v: per layer (B, Pp, K, 2hp)
@@ -165,21 +165,19 @@ def suffix_layers_pallas(cfg: GemmaConfig, weights, x, positions, cache_k, cache
     adaptive = mods is not None
     if adaptive:
         mods_attn, mods_ffw = layout.mods(mods[0], d), layout.mods(mods[1], d)
-    counts = expert_kernels.counters()
     for i, w in enumerate(weights):
         w = layout.expert_weights(w, cfg)
         if adaptive:  # layer i's rows of the step's table: scale 3i, shift 3i + 1, gate 3i + 2
             (ma, ra, ga), (mf, rf, gf) = (mods_attn, 3 * i, 3 * i + 2), (mods_ffw, 3 * i, 3 * i + 2)
         else:
             (ma, ra, ga), (mf, rf, gf) = (w["pre_attn"], 0, None), (w["pre_ffw"], 0, None)
-        qkv, counts = expert_kernels.norm_qkv_rope(rows, ma, ra, adaptive, w["qkv"], cos, sin, counts=counts,
-                                                   width=d, head_dim=cfg.head_dim, blocks=blocks, **heads)
+        qkv = expert_kernels.norm_qkv_rope(rows, ma, ra, adaptive, w["qkv"], cos, sin, width=d,
+                                           head_dim=cfg.head_dim, blocks=blocks, **heads)
         k, v = (c[i].reshape(b * c[i].shape[1], -1) for c in (cache_k, cache_v))
-        y, counts = expert_kernels.attention(qkv, k, v, pmask, smask, counts=counts, batch=b, blocks=blocks, **heads)
-        rows, counts = expert_kernels.matmul_residual(y, w["attn_out"], rows, ma, ga, counts=counts,
-                                                      splits=blocks.out_splits, blocks=blocks)
-        h, counts = expert_kernels.norm_geglu(rows, mf, rf, adaptive, w["gate_up"], counts=counts, width=d,
+        y = expert_kernels.attention(qkv, k, v, pmask, smask, batch=b, blocks=blocks, **heads)
+        rows = expert_kernels.matmul_residual(y, w["attn_out"], rows, ma, ga, splits=blocks.out_splits,
                                               blocks=blocks)
-        rows, counts = expert_kernels.matmul_residual(h, w["down"], rows, mf, gf, counts=counts,
-                                                      splits=blocks.down_splits, blocks=blocks)
+        h = expert_kernels.norm_geglu(rows, mf, rf, adaptive, w["gate_up"], width=d, blocks=blocks)
+        rows = expert_kernels.matmul_residual(h, w["down"], rows, mf, gf, splits=blocks.down_splits,
+                                              blocks=blocks)
     return rows.reshape(b, sp, -1)[:, :s, :d]
