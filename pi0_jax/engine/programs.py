@@ -23,15 +23,15 @@ from pi0_jax.ops import layout
 from pi0_jax.ops import matmul as quant
 
 # The batch sizes at which kernels="auto" runs the expert's Pallas kernels on a GPU: measured faster than XLA at
-# B = 1 and 2 and slower at B = 4 and 8 (H200, docs/BENCHMARKS.md); their 64-row blocks stream the weights once
-# per row block.
+# B = 1 and 2 and slower at B = 3 (π0.5), 4 and 8 (H200, docs/BENCHMARKS.md); their 64-row blocks stream the weights
+# once per row block.
 PALLAS_MAX_BATCH = 2
 
 # The batch from which the denoise step's attention="auto" is cuDNN's fused kernel on a GPU, for π0.5: measured 8, 14,
-# 13 and 13 % faster than XLA's ops at B = 4, 6, 8 and 64 (H200, docs/BENCHMARKS.md), slower at B = 1; below it XLA's
-# ops (at B <= PALLAS_MAX_BATCH the Pallas expert, which has its own attention). Never for π0: its suffix mask (the
-# state token does not see the actions) goes to cuDNN as an explicit boolean mask, and its denoise loop took 35.7 ms at
-# B = 8 against 24.3 ms.
+# 13 and 13 % faster than XLA's ops at B = 4, 6, 8 and 64 (H200, docs/BENCHMARKS.md), equal at B = 3, slower at B = 1;
+# below it XLA's ops (at B <= PALLAS_MAX_BATCH the Pallas expert, which has its own attention). Never for π0: its
+# suffix mask (the state token does not see the actions) goes to cuDNN as an explicit boolean mask, and its denoise
+# loop took 35.7 ms at B = 8 against 24.3 ms.
 CUDNN_DENOISE_MIN_BATCH = 4
 
 
