@@ -77,7 +77,7 @@ def xla_stages(cfg, out, xs, w, pos, ck, cv, pmask, ys, hs, s, p, rnd, args):
     out["xla"]["down_residual"] = stage_ms(lambda hh, w, x: x + hh @ w["down"], [hh[None, :s] for hh in hs],
                                            (w, x3[0]), args.iters)
     out["xla"]["layer"] = stage_ms(
-        lambda x, w, kc, vc: layers.suffix_layer(cfg, w, x, positions, kc, vc, pm3, sm3), x3,
+        lambda x, w, kc, vc: layers.suffix_layer(cfg, w, x, positions, kc, vc, pm3, sm3)[0], x3,
         ({k: w[k] for k in ("qkv", "attn_out", "gate_up", "down", "pre_attn")} | {"pre_ffw": w["pre_attn"]}, kc, vc),
         args.iters)
 

@@ -7,6 +7,7 @@ import sys
 import textwrap
 
 import jax
+import jax.extend
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -126,6 +127,38 @@ def test_fused_attention_matches_reference_with_holes_in_the_prefix(model, atten
     moved = (np.diff(mask.astype(np.int8), axis=1) <= 0).all()  # valid keys first: each row one run from the front
     assert moved == ("cudnn" in (resolved.prefix, resolved.denoise))
     assert mask.sum(1).tolist() == [3 * 256 + 13, 2 * 256 + 21]
+
+
+def test_fused_denoise_writes_suffix_keys_in_place_of_copying_the_cache(model):
+    """With the fused attention the denoise loop carries suffix-first key / value buffers and writes each step's
+    suffix keys into them (a dynamic_update_slice of the carry); nothing inside the loop concatenates a cache-sized
+    array (that copied the cache every layer and step). The numbers are checked by the test above."""
+    from pi0_jax.engine import programs
+
+    config, params = model
+    obs = make_obs(config)
+    engine = Engine(config, params, attention="cudnn", cache_dir=False)
+    cameras, bucket = engine.plan(obs)
+    _, _, _, _, state = engine.pack(obs, cameras, bucket)
+    _, cache, _ = engine.run_stages(obs, jnp.zeros((2, config.action_horizon, config.action_dim)), 2)
+    keys = cache.mask.shape[1] + config.action_horizon + (0 if config.pi05 else 1)
+    noise = jnp.zeros((2, config.action_horizon, config.action_dim))
+    jaxpr = jax.make_jaxpr(lambda c, s, n: programs.denoise(
+        config, engine.weights, engine.schedule(2), c, s, n, num_steps=2, unroll=True, unroll_steps=False,
+        attention=engine.attention))(cache, state, noise)
+
+    def eqns(j):   # every equation, nested jaxprs (the loop body, pjit calls) included
+        for e in j.eqns:
+            yield e
+            for sub in jax.extend.core.jaxprs_in_params(e.params):
+                yield from eqns(sub)
+
+    (loop,) = [e for e in eqns(jaxpr.jaxpr) if e.primitive.name in ("scan", "while")]   # the step loop
+    body = [e for sub in jax.extend.core.jaxprs_in_params(loop.params) for e in eqns(sub)]
+    cache_sized = [e for e in body if any(getattr(v.aval, "shape", (0,) * 2)[1:2] == (keys,) for v in e.outvars)]
+    assert not [e for e in cache_sized if e.primitive.name in ("concatenate", "pad")]
+    writes = [e for e in cache_sized if e.primitive.name == "dynamic_update_slice"]
+    assert len(writes) == 2 * config.action_expert.depth   # k and v of every layer
 
 
 def test_attention_and_kernel_choices():

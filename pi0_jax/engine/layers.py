@@ -89,24 +89,29 @@ def prefix_layer(cfg: GemmaConfig, w, x, positions, mask, kv_len=None):
     return x + _mlp(h, w), k, v
 
 
-def _attend_suffix_fused(q, k, v, cache_k, cache_v, kv_len, suffix_mask):
+def _attend_suffix_fused(q, k, v, buf_k, buf_v, kv_len, suffix_mask):
     """Fused attention over keys [suffix | prefix]: putting the suffix first makes every element's invalid prefix
     tokens a tail, cut off by `kv_len` = S + valid prefix tokens (the valid prefix must be a run from the front).
-    suffix_mask (B,S,S) is applied only where it masks something (π0's state token), as a boolean mask."""
+    buf_k / buf_v (B, S + P, K, H): the prefix cache behind S slots (`programs.suffix_kv`); this step's k / v are
+    written into the slots (in place when the buffers are a loop carry: a concatenation would copy the cache).
+    suffix_mask (B,S,S) is applied only where it masks something (π0's state token), as a boolean mask. Returns the
+    output and the filled buffers."""
     b, s = q.shape[:2]
-    keys, values = jnp.concatenate([k, cache_k], axis=1), jnp.concatenate([v, cache_v], axis=1)
+    keys = jax.lax.dynamic_update_slice_in_dim(buf_k, k.astype(buf_k.dtype), 0, axis=1)
+    values = jax.lax.dynamic_update_slice_in_dim(buf_v, v.astype(buf_v.dtype), 0, axis=1)
     mask = None
     if suffix_mask is not None:
         mask = jnp.ones((b, s, keys.shape[1]), bool).at[:, :, :s].set(suffix_mask)
-    return _attend_fused(q, keys, values, kv_len, mask)
+    return _attend_fused(q, keys, values, kv_len, mask), keys, values
 
 
 def suffix_layer(cfg: GemmaConfig, w, x, positions, cache_k, cache_v, prefix_mask, suffix_mask, mods=None,
                  kv_len=None):
-    """One action-expert layer over the suffix, attending to [cached prefix | suffix].
+    """One action-expert layer over the suffix, attending to [cached prefix | suffix]. Returns (x, cache_k, cache_v).
 
     cache_k/v (B,P,K,H); prefix_mask (B,S,P); suffix_mask (B,S,S); mods: None (π0) or (attn, ffw) adaRMS outputs.
-    kv_len: None for XLA attention, else (B,) key lengths for the fused kernel (see `_attend_suffix_fused`).
+    kv_len: None for XLA attention, else (B,) key lengths for the fused kernel; cache_k/v are then the suffix-first
+    buffers (B,S+P,K,H) of `_attend_suffix_fused` and come back with this step's suffix keys in them.
     """
     mod_attn, mod_ffw = mods if mods is not None else (None, None)
     h, gate = rms_norm(x, w.get("pre_attn"), mod_attn)
@@ -114,12 +119,12 @@ def suffix_layer(cfg: GemmaConfig, w, x, positions, cache_k, cache_v, prefix_mas
     if kv_len is None:
         y = _attend(q, [cache_k, k], [cache_v, v], [prefix_mask, suffix_mask], x.dtype)
     else:
-        y = _attend_suffix_fused(q, k, v, cache_k, cache_v, kv_len, suffix_mask)
+        y, cache_k, cache_v = _attend_suffix_fused(q, k, v, cache_k, cache_v, kv_len, suffix_mask)
     y = _mm(y, w["attn_out"])
     x = x + (y if gate is None else y * gate)
     h, gate = rms_norm(x, w.get("pre_ffw"), mod_ffw)
     y = _mlp(h, w)
-    return x + (y if gate is None else y * gate)
+    return x + (y if gate is None else y * gate), cache_k, cache_v
 
 
 def run_layers(layer_fn, weights, x, per_layer=(), *, unroll: bool):

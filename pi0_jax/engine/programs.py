@@ -184,12 +184,49 @@ def _dense(p, x):
     return x @ p["kernel"] + p["bias"]
 
 
+def _suffix_len(config: Pi0Config) -> int:
+    """Suffix tokens: the actions, and π0's state token."""
+    return config.action_horizon + (0 if config.pi05 else 1)
+
+
+def fused_suffix_attention(config: Pi0Config, attention: Attention, kernels: str, batch: int,
+                           expert_weights) -> bool:
+    """Whether the denoise step at this batch runs the XLA expert with the fused (cuDNN) attention, which reads the
+    suffix-first key / value buffers of `suffix_kv`."""
+    fused = attention.at_batch(batch, suffix_mask=not config.pi05).denoise == "cudnn"
+    return fused and expert_path(kernels, batch, expert_weights) != "pallas"
+
+
+def suffix_kv(config: Pi0Config, cache: PrefixCache) -> tuple:
+    """The fused attention's keys and values, per layer [S suffix slots | prefix cache] (B, S + P, K, H): made once
+    per call, and each step writes its suffix keys into the slots. As a loop carry that is in place; concatenating
+    [suffix | cache] copied the whole cache every layer and step (13.4 of 72 ms of π0.5's denoise at B = 64, H200).
+    Per layer tuples when unrolled, (L, ...) stacked when scanned, as the cache."""
+    def slots(c):
+        pad = [(0, 0)] * c.ndim
+        pad[-3] = (_suffix_len(config), 0)
+        return jnp.pad(c, pad)
+
+    return tuple(jax.tree.map(slots, c) for c in (cache.k, cache.v))
+
+
 def velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, cache: PrefixCache, state, x_t, *,
              unroll: bool, attention: Attention = Attention(), kernels: str = "xla",
              frozen: jax.Array | None = None) -> jax.Array:
     """v(x_t, t_step) over the cache. `sched` is `weights.precompute_schedule` output, indexed by the step number.
     attention.denoise "cudnn" needs a cache filled with the same `attention` (its valid keys first). `frozen` (B, H)
     bool: those actions are committed and ride at t = 0 (`sched["committed"]`), the rest at the step's time."""
+    kv = None
+    if fused_suffix_attention(config, attention, kernels, x_t.shape[0], weights["expert"]):
+        kv = suffix_kv(config, cache)
+    return _velocity(config, weights, sched, step, cache, state, x_t, kv, unroll=unroll, attention=attention,
+                     kernels=kernels, frozen=frozen)[0]
+
+
+def _velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, cache: PrefixCache, state, x_t, kv, *,
+              unroll: bool, attention: Attention, kernels: str, frozen: jax.Array | None) -> tuple:
+    """`velocity` -> (v, kv): kv, the suffix-first buffers of `suffix_kv` (exactly when `fused_suffix_attention`,
+    else None), comes back with this step's suffix keys written in."""
     dtype = jnp.dtype(config.dtype)
     top, horizon = weights["top"], config.action_horizon
     b = x_t.shape[0]
@@ -226,7 +263,7 @@ def velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, cac
             raise ValueError("committed actions (training-time action conditioning) run on the XLA expert path")
         x = layers.suffix_layers_pallas(config.action_expert, weights["expert"], x, positions, cache.k, cache.v,
                                         cache.mask, suffix_mask, None if mods is None else tuple(m[0, 0] for m in mods))
-        return _top(config, weights, final_mod, x)
+        return _top(config, weights, final_mod, x), kv
 
     prefix_mask = jnp.broadcast_to(cache.mask[:, None, :], (b, s, cache.mask.shape[1]))
     kv_len = None
@@ -236,14 +273,15 @@ def velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, cac
 
     def layer(w, x, k, v, *mod):
         m = None if mods is None else mod
-        return (layers.suffix_layer(config.action_expert, w, x, positions, k, v, prefix_mask, suffix_mask, m,
-                                    kv_len),)
+        x, k, v = layers.suffix_layer(config.action_expert, w, x, positions, k, v, prefix_mask, suffix_mask, m,
+                                      kv_len)
+        return (x, k, v) if kv_len is not None else (x,)
 
-    per_layer = [cache.k, cache.v]
+    per_layer = [cache.k, cache.v] if kv is None else list(kv)
     if mods is not None:   # layer axis first: (L, B or 1, H or 1, 3D)
         per_layer += [_by_layer(jnp.moveaxis(m, 2, 0), unroll) for m in mods]
-    x, _ = layers.run_layers(layer, weights["expert"], x, per_layer, unroll=unroll)
-    return _top(config, weights, final_mod, x)
+    x, outs = layers.run_layers(layer, weights["expert"], x, per_layer, unroll=unroll)
+    return _top(config, weights, final_mod, x), (None if kv is None else tuple(outs))
 
 
 def _top(config, weights, final_mod, x):
@@ -275,13 +313,18 @@ def denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixCache, s
         frozen = pi0.committed_mask(config.action_horizon, num_committed)
         x = jnp.where(frozen[..., None], committed.astype(jnp.float32), x)
 
-    def step(i, x_t):
-        v = velocity(config, weights, sched, i, cache, state, x_t, unroll=unroll, attention=attention,
-                     kernels=kernels, frozen=frozen)
-        x_next = x_t + dt * v  # dt * v in v's dtype, then promoted to f32: as the reference
-        return x_next if frozen is None else jnp.where(frozen[..., None], x_t, x_next)
+    kv = None
+    if fused_suffix_attention(config, attention, kernels, x.shape[0], weights["expert"]):
+        kv = suffix_kv(config, cache)
 
-    return jax.lax.fori_loop(0, num_steps, step, x, unroll=unroll_steps)
+    def step(i, carry):   # the suffix-first buffers ride in the carry, so each step fills their slots in place
+        x_t, kv = carry
+        v, kv = _velocity(config, weights, sched, i, cache, state, x_t, kv, unroll=unroll, attention=attention,
+                          kernels=kernels, frozen=frozen)
+        x_next = x_t + dt * v  # dt * v in v's dtype, then promoted to f32: as the reference
+        return (x_next if frozen is None else jnp.where(frozen[..., None], x_t, x_next)), kv
+
+    return jax.lax.fori_loop(0, num_steps, step, (x, kv), unroll=unroll_steps)[0]
 
 
 def infer(config: Pi0Config, weights: dict, sched: dict, images, image_masks, tokens, token_mask, state, noise, *,
