@@ -85,7 +85,7 @@ def xla_stages(cfg, out, xs, w, pos, ck, cv, pmask, ys, hs, s, p, rnd, args):
 def stages(config, args, key):
     """Per-stage timings of one expert layer at full size (B=1): XLA ops vs each kernel over a block sweep."""
     cfg, dt = config.action_expert, jnp.bfloat16
-    s = config.action_horizon + (0 if config.pi05 else 1)
+    s = config.suffix_len
     sp, d, f, h = layout.suffix_rows(s), cfg.width, cfg.mlp_dim, cfg.head_dim
     p = 768 + (200 if config.pi05 else 48)
     pp = -(-p // layout.KEY_PAD) * layout.KEY_PAD

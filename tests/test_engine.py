@@ -140,9 +140,9 @@ def test_fused_denoise_writes_suffix_keys_in_place_of_copying_the_cache(model):
     engine = Engine(config, params, attention="cudnn", cache_dir=False)
     cameras, bucket = engine.plan(obs)
     _, _, _, _, state = engine.pack(obs, cameras, bucket)
-    _, cache, _ = engine.run_stages(obs, jnp.zeros((2, config.action_horizon, config.action_dim)), 2)
-    keys = cache.mask.shape[1] + config.action_horizon + (0 if config.pi05 else 1)
     noise = jnp.zeros((2, config.action_horizon, config.action_dim))
+    _, cache, _ = engine.run_stages(obs, noise, 2)
+    keys = cache.mask.shape[1] + config.suffix_len
     jaxpr = jax.make_jaxpr(lambda c, s, n: programs.denoise(
         config, engine.weights, engine.schedule(2), c, s, n, num_steps=2, unroll=True, unroll_steps=False,
         attention=engine.attention))(cache, state, noise)

@@ -184,11 +184,6 @@ def _dense(p, x):
     return x @ p["kernel"] + p["bias"]
 
 
-def _suffix_len(config: Pi0Config) -> int:
-    """Suffix tokens: the actions, and π0's state token."""
-    return config.action_horizon + (0 if config.pi05 else 1)
-
-
 def fused_suffix_attention(config: Pi0Config, attention: Attention, kernels: str, batch: int,
                            expert_weights) -> bool:
     """Whether the denoise step at this batch runs the XLA expert with the fused (cuDNN) attention, which reads the
@@ -204,7 +199,7 @@ def suffix_kv(config: Pi0Config, cache: PrefixCache) -> tuple:
     Per layer tuples when unrolled, (L, ...) stacked when scanned, as the cache."""
     def slots(c):
         pad = [(0, 0)] * c.ndim
-        pad[-3] = (_suffix_len(config), 0)
+        pad[-3] = (config.suffix_len, 0)
         return jnp.pad(c, pad)
 
     return tuple(jax.tree.map(slots, c) for c in (cache.k, cache.v))
