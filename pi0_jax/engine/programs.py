@@ -210,7 +210,9 @@ def velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, cac
              frozen: jax.Array | None = None) -> jax.Array:
     """v(x_t, t_step) over the cache. `sched` is `weights.precompute_schedule` output, indexed by the step number.
     attention.denoise "cudnn" needs a cache filled with the same `attention` (its valid keys first). `frozen` (B, H)
-    bool: those actions are committed and ride at t = 0 (`sched["committed"]`), the rest at the step's time."""
+    bool: those actions are committed and ride at t = 0 (`sched["committed"]`), the rest at the step's time. With
+    the fused attention a single call pads the cache into `suffix_kv`'s buffers itself (one copy, as a concatenation
+    was); `denoise` makes them once and carries them instead."""
     kv = None
     if fused_suffix_attention(config, attention, kernels, x_t.shape[0], weights["expert"]):
         kv = suffix_kv(config, cache)
