@@ -28,6 +28,7 @@ import numpy as np
 
 from pi0_jax import pi0
 from pi0_jax.policy import Policy, load_parts
+from pi0_jax.sim.realtime import hold_chunk
 
 
 def main() -> int:
@@ -50,8 +51,7 @@ def main() -> int:
         out[0, :, :actions.shape[1]] = (actions - offset) / scale
         return jnp.asarray(out)
 
-    hold = np.zeros((h, len(scale)), np.float32)
-    hold[:, 6] = -1.0
+    hold = np.asarray(hold_chunk(1, h, len(scale))[0])
     errors: dict[str, list[float]] = {"free": [], "given": [], "hold": [], "earlier": []}
     for path in sorted(args.demos.glob("episode_*.npz")):
         ep = np.load(path)

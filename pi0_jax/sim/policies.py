@@ -30,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from pi0_jax.sim import expert as _expert
+from pi0_jax.sim.realtime import hold_chunk
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -61,7 +62,7 @@ def expert_policy(env, delay: int = 0, pos_gain: float = _expert.POS_GAIN) -> Si
             act=lambda ps, es, k: expert_act(ps, es))
 
     def init(b):
-        queue = jnp.zeros((b, delay, 7), jnp.float32).at[..., 6].set(-1.0)
+        queue = hold_chunk(b, delay)
         return jax.tree.map(lambda x: jnp.broadcast_to(x, (b,) + x.shape), _expert.init()), queue
 
     def act(ps, es, k):
