@@ -10,6 +10,8 @@
 #   QUANT=prefix-mlp bash scripts/gpu_eval.sh pi05-fp8   # pi05-1 with FP8 weights and calibrated activation scales
 #   QUANT=prefix-mlp bash scripts/gpu_eval.sh embedded-fp8   # embedded-1 likewise (task success under FP8)
 #   bash scripts/gpu_eval.sh overlap                # scripts/overlap_probe.py: physics beside the policy on 2 streams
+#   TREE=.old_tree TAG=_old bash scripts/gpu_eval.sh pi05-1   # the same with an older package (carried, made by
+#                                                   # `git archive REV pi0_jax | tar -x -C .old_tree`); outputs *_old
 #   POLICY=preset:dummy PER_TASK=1 EXTRA="--steps 10" bash scripts/gpu_eval.sh pi05-1   # CPU smoke run
 #
 # Needs the mujoco / mujoco-mjx wheels in .simwhl (carried); writes OUT/<phase>.json (the eval_info, per_episode
@@ -22,11 +24,11 @@ PER_TASK=${PER_TASK:-24}        # π0.5 episodes per task and per device: 11 tas
 mkdir -p "$OUT" "$W"
 python3 -c "import mujoco.mjx" 2>/dev/null ||
   python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .simwhl/*.whl
-export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
+export PYTHONPATH=/tmp/site:${TREE:-$PWD} PYTHONUNBUFFERED=1
 [ -n "${DET:-}" ] && export XLA_FLAGS="--xla_gpu_deterministic_ops=true ${XLA_FLAGS:-}"
 nvidia-smi -L; date -u
 run() {   # NAME GPUS, then eval flags
-  local name=$1 gpus=$2; shift 2
+  local name=$1${TAG:-} gpus=$2; shift 2
   local t0; t0=$(date +%s.%N)
   CUDA_VISIBLE_DEVICES=$gpus python3 -m pi0_jax.cli eval --videos 0 --no-progress --output-dir "$W/$name" "$@" ${EXTRA:-} > "$OUT/$name.log" 2>&1 ||
     { tail -30 "$OUT/$name.log"; return 1; }
