@@ -97,20 +97,24 @@ def prefix_layer(cfg: GemmaConfig, w, x, positions, mask, kv_len=None):
     return x + _mlp(h, w), k, v
 
 
-def _attend_suffix_fused(q, k, v, buf_k, buf_v, kv_len, suffix_mask):
+def _attend_suffix_fused(q, k, v, buf_k, buf_v, kv_len, head_mask):
     """Fused attention over keys [suffix | prefix]: putting the suffix first makes every element's invalid prefix
     tokens a tail, cut off by `kv_len` = S + valid prefix tokens (the valid prefix must be a run from the front).
     buf_k / buf_v (B, S + P, K, H): the prefix cache behind S slots (`programs.suffix_kv`); this step's k / v are
     written into the slots (in place when the buffers are a loop carry: a concatenation would copy the cache).
-    suffix_mask (B,S,S) is applied only where it masks something (π0's state token), as a boolean mask. Returns the
-    output and the filled buffers."""
-    b, s = q.shape[:2]
+    head_mask None, or (B, m, S): the first m query rows' view of the suffix keys (π0's state token sees no action);
+    the other rows see every suffix key. Those run in the fused kernel without a mask; the m masked rows run as XLA's
+    attention beside it (a mask in cuDNN's kernel measured slower than XLA's whole attention at π0 B = 8). Returns
+    the output and the filled buffers."""
     keys = jax.lax.dynamic_update_slice_in_dim(buf_k, k.astype(buf_k.dtype), 0, axis=1)
     values = jax.lax.dynamic_update_slice_in_dim(buf_v, v.astype(buf_v.dtype), 0, axis=1)
-    mask = None
-    if suffix_mask is not None:
-        mask = jnp.ones((b, s, keys.shape[1]), bool).at[:, :, :s].set(suffix_mask)
-    return _attend_fused(q, keys, values, kv_len, mask), keys, values
+    if head_mask is None:
+        return _attend_fused(q, keys, values, kv_len), keys, values
+    m, s = head_mask.shape[1:]
+    prefix = jnp.arange(s, keys.shape[1]) < kv_len[:, None]
+    mask = jnp.concatenate([head_mask, jnp.broadcast_to(prefix[:, None], (q.shape[0], m, prefix.shape[1]))], axis=2)
+    head = _attend(q[:, :m], [keys], [values], [mask], q.dtype)
+    return jnp.concatenate([head, _attend_fused(q[:, m:], keys, values, kv_len)], axis=1), keys, values
 
 
 def suffix_layer(cfg: GemmaConfig, w, x, positions, cache_k, cache_v, prefix_mask, suffix_mask, mods=None,
@@ -119,7 +123,8 @@ def suffix_layer(cfg: GemmaConfig, w, x, positions, cache_k, cache_v, prefix_mas
 
     cache_k/v (B,P,K,H); prefix_mask (B,S,P); suffix_mask (B,S,S); mods: None (π0) or (attn, ffw) adaRMS outputs.
     kv_len: None for XLA attention, else (B,) key lengths for the fused kernel; cache_k/v are then the suffix-first
-    buffers (B,S+P,K,H) of `_attend_suffix_fused` and come back with this step's suffix keys in them.
+    buffers (B,S+P,K,H) of `_attend_suffix_fused` and come back with this step's suffix keys in them, and
+    suffix_mask is its head_mask (B, m, S) or None.
     """
     mod_attn, mod_ffw = mods if mods is not None else (None, None)
     h, gate = rms_norm(x, w.get("pre_attn"), mod_attn)

@@ -266,7 +266,8 @@ def _velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, ca
     kv_len = None
     if attention.denoise == "cudnn":
         kv_len = (s + jnp.sum(cache.mask, axis=-1)).astype(jnp.int32)
-        suffix_mask = None if config.pi05 else suffix_mask  # π0.5's suffix attends everywhere
+        # only π0's state row masks suffix keys (it sees no action); the action rows, and π0.5's, see them all
+        suffix_mask = suffix_mask[:, : len(ar_state)] if ar_state else None
 
     def layer(w, x, k, v, *mod):
         m = None if mods is None else mod
