@@ -19,10 +19,14 @@ for phase in "$@"; do
     hlo_pi05) python3 scripts/profile_engine.py --preset pi05_base --steps 10 --out "$OUT/hlo_pi05.json" ;;
     profile_pi05_b64) python3 scripts/profile_engine.py --preset pi05_base --batch 64 --prompt-tokens 20 --steps 10 \
                --time --iters 10 --trace-stages --out "$OUT/profile_pi05_b64.json" ;;
-    ab_pi05) for b in 64 8; do for tree in "$PWD" "$PWD/.old_tree"; do   # this tree against .old_tree, carried:
-                 echo "== B=$b $tree"                                 # `git archive REV pi0_jax | tar -x -C .old_tree`
-                 PYTHONPATH=/tmp/site:$tree python3 scripts/profile_engine.py --preset pi05_base --batch $b --steps 10 \
-                   --time --iters 10 --out "$OUT/ab_$(basename "$tree")_b$b.json" | grep "median"; done; done ;;
+    ab_pi05|ab_pi0) for b in 64 8; do for tree in "$PWD" "$PWD/.old_tree"; do   # this tree against .old_tree,
+                 echo "== B=$b $tree"                         # carried: `git archive REV pi0_jax | tar -x -C .old_tree`
+                 PYTHONPATH=/tmp/site:$tree python3 scripts/profile_engine.py --preset ${phase#ab_}_base --batch $b \
+                   --steps 10 --time --iters 10 --out "$OUT/${phase}_$(basename "$tree")_b$b.json" | grep "median"
+                 done; done ;;
+    pi0_b3_attn) python3 scripts/profile_engine.py --preset pi0_base --batch 3 --prompt-tokens 48 --time --iters 20 \
+               --attention vision=cudnn,prefix=cudnn,denoise=xla --attention vision=cudnn,prefix=cudnn,denoise=cudnn \
+               --out "$OUT/pi0_b3_attn.json" | grep -E "^==|median|relative" ;;
     pi0_b1b8) python3 -m pi0_jax.cli benchmark --preset pi0_base --steps 1,10 --batch 1,8 --fused-steps 1,10 --reference \
                --iters 30 --out "$OUT/pi0_b1b8.json" > "$OUT/pi0_b1b8.log" 2>&1; tail -30 "$OUT/pi0_b1b8.log" ;;
     pi0_b8_attn) for a in auto cudnn; do
