@@ -65,7 +65,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--attention", default="auto", type=attention_spec,
                    help="each stage's attention: xla (the reference's ops), cudnn (one fused flash kernel), auto "
                         "(the faster per stage on a GPU: cuDNN in vision and the prefix, in the denoise step cuDNN from "
-                        "batch 3 and XLA below; XLA on a CPU), or per "
+                        "batch 3 (π0: 4) and XLA below; XLA on a CPU), or per "
                         "stage, e.g. vision=cudnn,prefix=xla,denoise=auto (default: %(default)s)")
     p.add_argument("--kernels", choices=KERNELS, default="auto",
                    help="the action expert's layers as XLA ops, as the fused Pallas kernels of pi0_jax.ops "
@@ -165,7 +165,7 @@ def bench_engine(engine: Engine, args, batch: int) -> list[dict]:
         t_den = time_calls(lambda c, p, n: den(w, sched, c, p[4], jnp.copy(n)),
                            [(c, p, n) for c, p, (_, n) in zip(caches, packed, sets)], args.iters, args.warmup)
         row = {"dtype": cfg.dtype, "batch": batch, "steps": steps, "cameras": len(cameras), "prompt_bucket": bucket,
-               "attention": str(engine.attention.at_batch(batch)),
+               "attention": str(engine.attention.at_batch(batch, suffix_mask=not cfg.pi05)),
                "kernels": engine.kernels_for(batch),
                "vision": t_vis, "prefix": t_pre, "denoise": t_den,
                "denoise_per_step_ms": t_den["median_ms"] / steps}

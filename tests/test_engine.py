@@ -114,6 +114,7 @@ def test_fused_attention_matches_reference_with_holes_in_the_prefix(model, atten
     from pi0_jax.engine import programs
 
     monkeypatch.setattr(programs, "CUDNN_DENOISE_MIN_BATCH", 2)
+    monkeypatch.setattr(programs, "CUDNN_DENOISE_MIN_BATCH_MASKED", 2)
     config, params = model
     obs = make_obs(config, valid_lens=(13, 21))
     noise = jax.random.normal(jax.random.key(1), (2, config.action_horizon, config.action_dim))
@@ -123,7 +124,7 @@ def test_fused_attention_matches_reference_with_holes_in_the_prefix(model, atten
     _, cache, staged = engine.run_stages(obs, jnp.array(noise), 3)
     np.testing.assert_allclose(staged, ref, rtol=1e-5, atol=1e-5)
     mask = np.asarray(cache.mask)
-    resolved = programs.Attention.parse(attention).at_batch(2)
+    resolved = programs.Attention.parse(attention).at_batch(2, suffix_mask=not config.pi05)
     moved = (np.diff(mask.astype(np.int8), axis=1) <= 0).all()  # valid keys first: each row one run from the front
     assert moved == ("cudnn" in (resolved.prefix, resolved.denoise))
     assert mask.sum(1).tolist() == [3 * 256 + 13, 2 * 256 + 21]
@@ -173,6 +174,9 @@ def test_attention_and_kernel_choices():
     big, small = programs.CUDNN_DENOISE_MIN_BATCH, programs.CUDNN_DENOISE_MIN_BATCH - 1   # measured: 3 faster, 1 slower
     assert programs.AUTO_GPU.at_batch(big) == A("cudnn", "cudnn", "cudnn") and big <= 8
     assert programs.AUTO_GPU.at_batch(small) == A("cudnn", "cudnn", "xla") and small >= 1
+    masked = programs.CUDNN_DENOISE_MIN_BATCH_MASKED   # π0: measured 4 faster, 3 slower
+    assert programs.AUTO_GPU.at_batch(masked - 1, suffix_mask=True).denoise == "xla" and masked > big
+    assert programs.AUTO_GPU.at_batch(masked, suffix_mask=True).denoise == "cudnn"
     assert A.parse("cudnn").at_batch(1) == A.parse("cudnn")
     for bad in ("flash", "prefix=flash", "decoder=cudnn", "prefix", "vision=auto"):
         with pytest.raises(ValueError, match="attention"):

@@ -27,12 +27,13 @@ from pi0_jax.ops import matmul as quant
 # once per row block.
 PALLAS_MAX_BATCH = 2
 
-# The batch from which the denoise step's attention="auto" is cuDNN's fused kernel on a GPU (H200, docs/BENCHMARKS.md):
-# π0.5's denoise loop 7 % faster than with XLA's ops at B = 3 with a kv head's 8 query heads folded into its rows,
-# 8-14 % at B = 4-64 before that fold (which took a further 3 % off at B = 8, 13 % at B = 64); π0's 4, 9 and 37 %
-# at B = 4, 8 and 64 (its masked state row as XLA's attention beside the kernel).
-# Below it (B <= PALLAS_MAX_BATCH) the Pallas expert, which has its own attention.
+# The batch from which the denoise step's attention="auto" is cuDNN's fused kernel on a GPU (H200, docs/BENCHMARKS.md),
+# below it XLA's ops (at B <= PALLAS_MAX_BATCH the Pallas expert, which has its own attention). π0.5: its denoise loop
+# 7 % faster at B = 3 with a kv head's 8 query heads folded into its rows, 8-14 % at B = 4-64 before that fold (which
+# took a further 3 % off at B = 8, 13 % at B = 64). π0 (a masked suffix: its state row runs as XLA's attention beside
+# the kernel): 9 % slower at B = 3, 4, 9 and 37 % faster at B = 4, 8 and 64.
 CUDNN_DENOISE_MIN_BATCH = 3
+CUDNN_DENOISE_MIN_BATCH_MASKED = 4
 
 
 KERNELS = ("auto", "xla", "pallas")
@@ -66,8 +67,8 @@ class Attention:
     """Each stage's attention: "xla" (the reference's ops: logits, softmax, weighted sum) or "cudnn" (one fused
     flash kernel, `ops.attention.fused`: cuDNN on a GPU, its XLA form elsewhere; masks by lengths, so the prefix
     fill puts each element's valid tokens first). The denoise step's may also be "auto": "cudnn" from
-    CUDNN_DENOISE_MIN_BATCH on, else "xla" (`at_batch` resolves it; the programs do). It is unused by the
-    Pallas kernels."""
+    CUDNN_DENOISE_MIN_BATCH on (π0: CUDNN_DENOISE_MIN_BATCH_MASKED), else "xla" (`at_batch` resolves it; the
+    programs do). It is unused by the Pallas kernels."""
 
     vision: str = "xla"
     prefix: str = "xla"
@@ -79,11 +80,13 @@ class Attention:
                 raise ValueError(f"attention for {stage} must be 'xla' or 'cudnn'{' or auto' * (stage == 'denoise')}"
                                  f", got {value!r}")
 
-    def at_batch(self, batch: int) -> Attention:
-        """The concrete choice of every stage for a program of this batch size."""
+    def at_batch(self, batch: int, suffix_mask: bool = False) -> Attention:
+        """The concrete choice of every stage for a program of this batch size; suffix_mask: the model's suffix
+        masks some of its own keys (π0; π0.5's attends everywhere)."""
         if self.denoise != "auto":
             return self
-        return dataclasses.replace(self, denoise="cudnn" if batch >= CUDNN_DENOISE_MIN_BATCH else "xla")
+        cudnn = batch >= (CUDNN_DENOISE_MIN_BATCH_MASKED if suffix_mask else CUDNN_DENOISE_MIN_BATCH)
+        return dataclasses.replace(self, denoise="cudnn" if cudnn else "xla")
 
     @classmethod
     def parse(cls, spec, platform: str | None = None, dtype: str = "bfloat16") -> Attention:
@@ -149,7 +152,7 @@ def fill_prefix_cache(config: Pi0Config, weights: dict, image_tokens, image_mask
     moved to the front first, in order: positions are computed before and travel with them, and attention does
     not depend on the order of its keys, so the cache holds the same keys, in that order, with a run of a mask."""
     dtype = jnp.dtype(config.dtype)
-    attention = attention.at_batch(image_tokens.shape[0])
+    attention = attention.at_batch(image_tokens.shape[0], suffix_mask=not config.pi05)
     n_img = image_tokens.shape[1] // image_masks.shape[0]
     text = weights["embedding"][tokens]
     text = text * jnp.sqrt(config.paligemma.width).astype(text.dtype)  # sqrt(width) cast to the table dtype first
@@ -186,7 +189,7 @@ def fused_suffix_attention(config: Pi0Config, attention: Attention, kernels: str
                            expert_weights) -> bool:
     """Whether the denoise step at this batch runs the XLA expert with the fused (cuDNN) attention, which reads the
     suffix-first key / value buffers of `suffix_kv`."""
-    fused = attention.at_batch(batch).denoise == "cudnn"
+    fused = attention.at_batch(batch, suffix_mask=not config.pi05).denoise == "cudnn"
     return fused and expert_path(kernels, batch, expert_weights) != "pallas"
 
 
@@ -225,7 +228,7 @@ def _velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, ca
     dtype = jnp.dtype(config.dtype)
     top, horizon = weights["top"], config.action_horizon
     b = x_t.shape[0]
-    attention = attention.at_batch(b)
+    attention = attention.at_batch(b, suffix_mask=not config.pi05)
 
     def at_step(key):   # the schedule row of `key` for every action: (1, 1, ...) or, with `frozen`, (B, H, ...)
         now = sched[key][step][None, None]
