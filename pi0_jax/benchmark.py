@@ -32,7 +32,7 @@ from pi0_jax import pi0
 from pi0_jax.pi0 import random_params
 from pi0_jax.config import IMAGE_KEYS, PRESETS, Pi0Config, get_config
 from pi0_jax.engine import Engine
-from pi0_jax.engine.programs import KERNELS, attention_spec, prefix_mlp_path
+from pi0_jax.engine.programs import KERNELS, attention_spec
 from pi0_jax.quant.schemes import SCHEMES
 
 
@@ -68,10 +68,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "batch 3 (π0: 4) and XLA below; XLA on a CPU), or per "
                         "stage, e.g. vision=cudnn,prefix=xla,denoise=auto (default: %(default)s)")
     p.add_argument("--kernels", choices=KERNELS, default="auto",
-                   help="xla: XLA's ops everywhere; pallas: the action expert's layers as the fused Pallas "
-                        "kernels of pi0_jax.ops (Triton on GPU); auto: those kernels at batch 1 and 2 on a GPU, XLA "
-                        "otherwise. Both but xla also run the prefix MLP's gate/up GEMM + GeGLU as one Mosaic GPU "
-                        "kernel on a single GPU in bf16; each row records the paths it ran (default: %(default)s)")
+                   help="the action expert's layers as XLA ops, as the fused Pallas kernels of pi0_jax.ops "
+                        "(Triton on GPU), or auto: the kernels at batch 1 and 2 on a GPU, XLA otherwise; each row "
+                        "records the path it ran (default: %(default)s)")
     p.add_argument("--reference", action="store_true",
                    help="also time the reference model (pi0_jax.pi0.sample_actions: openpi's structure, layers "
                         "scanned, one jit) at each batch for the largest step count")
@@ -168,7 +167,6 @@ def bench_engine(engine: Engine, args, batch: int) -> list[dict]:
         row = {"dtype": cfg.dtype, "batch": batch, "steps": steps, "cameras": len(cameras), "prompt_bucket": bucket,
                "attention": str(engine.attention.at_batch(batch, suffix_mask=not cfg.pi05)),
                "kernels": engine.kernels_for(batch),
-               "prefix_mlp": prefix_mlp_path(engine.kernels, engine.weights["vlm"], cfg.dtype),
                "vision": t_vis, "prefix": t_pre, "denoise": t_den,
                "denoise_per_step_ms": t_den["median_ms"] / steps}
         if args.fused_steps is None or steps in args.fused_steps:

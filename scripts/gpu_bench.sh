@@ -24,14 +24,6 @@ for phase in "$@"; do
                  PYTHONPATH=/tmp/site:$tree python3 scripts/profile_engine.py --preset ${phase#ab_}_base --batch $b \
                    --steps 10 --time --iters 10 --out "$OUT/${phase}_$(basename "$tree")_b$b.json" | grep "median"
                  done; done ;;
-    geglu_ab) for spec in "pi05_base 64 20 2" "pi0_base 8 48 3" "pi0_base 1 48 3"; do
-                 read -r preset b prompt cams <<< "$spec"   # one process: kernels auto (the prefix MLP's Mosaic GPU
-                 echo "== $preset B=$b"                     # kernel) against xla, same weights
-                 python3 scripts/profile_engine.py --preset $preset --batch $b --prompt-tokens $prompt --cameras $cams \
-                   --time --iters 10 --kernels auto --kernels xla --out "$OUT/geglu_ab_${preset}_b$b.json" |
-                   grep -E "^==|median|relative"
-                 done ;;
-    geglu_probe) python3 scripts/geglu_probe.py --rows 8192,51200,143616 --iters 15 --out "$OUT/geglu_probe.json" ;;
     pi0_b3_attn) python3 scripts/profile_engine.py --preset pi0_base --batch 3 --prompt-tokens 48 --time --iters 20 \
                --attention vision=cudnn,prefix=cudnn,denoise=xla --attention vision=cudnn,prefix=cudnn,denoise=cudnn \
                --out "$OUT/pi0_b3_attn.json" | grep -E "^==|median|relative" ;;

@@ -17,7 +17,6 @@ import argparse
 import collections
 import glob
 import gzip
-import itertools
 import json
 import re
 import tempfile
@@ -104,9 +103,8 @@ def main() -> None:
     p.add_argument("--prompt-tokens", type=int, default=20)
     p.add_argument("--no-unroll", action="store_true")
     p.add_argument("--unroll-steps", action="store_true")
-    p.add_argument("--kernels", choices=programs.KERNELS, action="append", default=None,
-                   help="Engine's `kernels` (the expert's layers: XLA, Pallas, or auto by batch size; all but xla "
-                        "also the prefix MLP's GeGLU kernel); repeat it to compare, like --attention (default: auto)")
+    p.add_argument("--kernels", choices=programs.KERNELS, default="auto",
+                   help="the expert's layers: XLA, Pallas, or auto (by batch size)")
     p.add_argument("--attention", action="append", default=None,
                    help="each stage's attention (Engine's `attention`); repeat it to compare several engines on the "
                         "same weights and inputs in one process (default: auto)")
@@ -124,16 +122,14 @@ def main() -> None:
     report = {"preset": args.preset, "batch": args.batch, "steps": args.steps, "env": benchmark.environment(),
               "variants": []}
     outputs = {}
-    for attention, kernels in itertools.product(args.attention or ["auto"], args.kernels or ["auto"]):
+    for attention in args.attention or ["auto"]:
         engine = Engine(config, params, unroll=not args.no_unroll, unroll_steps=args.unroll_steps,
-                        kernels=kernels, attention=attention, cache_dir=False)
+                        kernels=args.kernels, attention=attention, cache_dir=False)
         cameras, bucket = engine.plan(obs)
         packed = engine.pack(obs, cameras, bucket)
-        var = {"attention": str(engine.attention), "kernels": engine.kernels_for(args.batch),
-               "prefix_mlp": programs.prefix_mlp_path(kernels, engine.weights["vlm"], config.dtype), "counts": {},
+        var = {"attention": str(engine.attention), "kernels": engine.kernels_for(args.batch), "counts": {},
                "median_ms": {}, "trace": {}}
-        print(f"== attention {var['attention']}, kernels {var['kernels']}, prefix MLP {var['prefix_mlp']}",
-              flush=True)
+        print(f"== attention {var['attention']}, kernels {var['kernels']}", flush=True)
         for stage in ("encode_images", "fill_prefix_cache", "denoise", "infer"):
             exe = engine.executable(stage, args.batch, args.steps, cameras, bucket)
             counts = var["counts"][stage] = count_ops(exe.as_text())
@@ -141,7 +137,7 @@ def main() -> None:
                 if comp.startswith("ENTRY") or c["fusion"] + c["custom-call"] > 20:
                     print(f"   {stage:18s} {comp[:50]:50s} {json.dumps(c)}", flush=True)
         calls = stage_calls(engine, args.batch, args.steps, cameras, bucket, packed, noise)
-        outputs[f"{var['attention']} {kernels}"] = np.asarray(calls["infer"](), np.float64)
+        outputs[var["attention"]] = np.asarray(calls["infer"](), np.float64)
         for stage, fn in calls.items():
             if args.time:
                 var["median_ms"][stage] = benchmark.time_calls(fn, [()], args.iters, 3)["median_ms"]
@@ -156,8 +152,7 @@ def main() -> None:
         report["variants"].append(var)
         if args.trace:
             fn = calls["infer"]
-            name = f"{var['attention']}_{kernels}".replace(",", "_").replace("=", "-")
-            with jax.profiler.trace(str(args.trace / name)):
+            with jax.profiler.trace(str(args.trace / var["attention"].replace(",", "_").replace("=", "-"))):
                 for _ in range(3):
                     jax.block_until_ready(fn())
         del engine, calls

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 
 from pi0_jax.config import GemmaConfig
 from pi0_jax.gemma import _BIG_NEG, apply_rope
-from pi0_jax.ops import attention, expert_kernels, geglu, layout
+from pi0_jax.ops import attention, expert_kernels, layout
 from pi0_jax.ops.formats import QArray
 from pi0_jax.ops.matmul import matmul
 
@@ -52,10 +52,7 @@ def _qkv(h, w, cfg: GemmaConfig, positions):
     return einops.rearrange(q, "B T (K G) H -> B T K G H", K=cfg.num_kv_heads), k, v
 
 
-def _mlp(h, w, kernel: bool = False):
-    """GeGLU MLP; kernel: the gate/up GEMM and GeGLU as one Mosaic GPU kernel (`ops.geglu`) where it applies."""
-    if kernel and geglu.applies(h.dtype, w["gate_up"]):
-        return _mm(geglu.geglu_matmul(h, w["gate_up"]), w["down"])
+def _mlp(h, w):
     gate, up = jnp.split(_mm(h, w["gate_up"]), 2, axis=-1)
     return _mm(jax.nn.gelu(gate, approximate=True) * up, w["down"])
 
@@ -88,16 +85,16 @@ def _attend_fused(q, keys, values, kv_len, mask=None):
     return einops.rearrange(out, "B T N H -> B T (N H)")
 
 
-def prefix_layer(cfg: GemmaConfig, w, x, positions, mask, kv_len=None, mlp_kernel: bool = False):
+def prefix_layer(cfg: GemmaConfig, w, x, positions, mask, kv_len=None):
     """One VLM layer over the prefix. x (B,P,D); mask (B,P,P). Returns (x, k, v) with k, v (B,P,K,H) post-RoPE.
     kv_len: None for XLA attention under `mask`, else (B,) lengths for the fused kernel (the valid tokens are then
-    each element's first kv_len, see `programs.fill_prefix_cache`). mlp_kernel: `_mlp`'s."""
+    each element's first kv_len, see `programs.fill_prefix_cache`)."""
     h, _ = rms_norm(x, w["pre_attn"])
     q, k, v = _qkv(h, w["qkv"], cfg, positions)
     y = _attend(q, [k], [v], [mask], x.dtype) if kv_len is None else _attend_fused(q, k, v, kv_len)
     x = x + _mm(y, w["attn_out"])
     h, _ = rms_norm(x, w["pre_ffw"])
-    return x + _mlp(h, w, mlp_kernel), k, v
+    return x + _mlp(h, w), k, v
 
 
 def _attend_suffix_fused(q, k, v, buf_k, buf_v, kv_len, head_mask):

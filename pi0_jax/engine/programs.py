@@ -19,7 +19,7 @@ import jax.numpy as jnp
 from pi0_jax import pi0
 from pi0_jax.config import Pi0Config
 from pi0_jax.engine import layers, vision
-from pi0_jax.ops import geglu, layout
+from pi0_jax.ops import layout
 from pi0_jax.ops import matmul as quant
 
 # The batch sizes at which kernels="auto" runs the expert's Pallas kernels on a GPU: measured faster than XLA at
@@ -48,15 +48,6 @@ def check_kernels(kernels: str) -> str:
 def is_quantised(tree) -> bool:
     """Whether any weight in tree is quantised (an FP8 `QArray` or a calibration `Tap`)."""
     return any(quant.is_quant(x) for x in jax.tree.leaves(tree, is_leaf=quant.is_quant))
-
-
-def prefix_mlp_path(kernels: str, vlm_weights, dtype, platform: str | None = None) -> str:
-    """The prefix MLP's path: "mgpu" (gate/up GEMM and GeGLU in one Mosaic GPU kernel, `ops.geglu`) unless kernels
-    is "xla", where it applies (a GPU, bf16, plain weights that tile); else "xla"."""
-    w = (vlm_weights[0] if isinstance(vlm_weights, (list, tuple)) else vlm_weights)["gate_up"]
-    w = w[0] if getattr(w, "ndim", 0) == 3 else w   # stacked under lax.scan
-    applies = check_kernels(kernels) != "xla" and geglu.applies(dtype, w, platform)
-    return "mgpu" if applies else "xla"
 
 
 def expert_path(kernels: str, batch: int, expert_weights, platform: str | None = None) -> str:
@@ -176,8 +167,7 @@ def fill_prefix_cache(config: Pi0Config, weights: dict, image_tokens, image_mask
         if attention.prefix == "cudnn":
             kv_len = jnp.sum(mask, axis=1, dtype=jnp.int32)
     attn_mask = mask[:, None, :] & mask[:, :, None]
-    layer = functools.partial(_prefix_layer, config, positions=positions, mask=attn_mask, kv_len=kv_len,
-                              mlp_kernel=check_kernels(kernels) != "xla")
+    layer = functools.partial(_prefix_layer, config, positions=positions, mask=attn_mask, kv_len=kv_len)
     _, (k, v) = layers.run_layers(layer, weights["vlm"], x, unroll=unroll)
     if expert_path(kernels, x.shape[0], weights["expert"]) == "pallas":  # once per call: no denoise step pads
         head_dim = config.paligemma.head_dim
@@ -186,8 +176,8 @@ def fill_prefix_cache(config: Pi0Config, weights: dict, image_tokens, image_mask
     return PrefixCache(k=k, v=v, mask=mask)
 
 
-def _prefix_layer(config, w, x, *, positions, mask, kv_len, mlp_kernel):
-    x, k, v = layers.prefix_layer(config.paligemma, w, x, positions, mask, kv_len, mlp_kernel)
+def _prefix_layer(config, w, x, *, positions, mask, kv_len):
+    x, k, v = layers.prefix_layer(config.paligemma, w, x, positions, mask, kv_len)
     return x, k, v
 
 
