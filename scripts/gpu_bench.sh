@@ -24,6 +24,7 @@ for phase in "$@"; do
                  PYTHONPATH=/tmp/site:$tree python3 scripts/profile_engine.py --preset ${phase#ab_}_base --batch $b \
                    --steps 10 --time --iters 10 --out "$OUT/${phase}_$(basename "$tree")_b$b.json" | grep "median"
                  done; done ;;
+    geglu_probe) python3 scripts/geglu_probe.py --rows 8192,51200,143616 --iters 15 --out "$OUT/geglu_probe.json" ;;
     pi0_b3_attn) python3 scripts/profile_engine.py --preset pi0_base --batch 3 --prompt-tokens 48 --time --iters 20 \
                --attention vision=cudnn,prefix=cudnn,denoise=xla --attention vision=cudnn,prefix=cudnn,denoise=cudnn \
                --out "$OUT/pi0_b3_attn.json" | grep -E "^==|median|relative" ;;

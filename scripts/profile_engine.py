@@ -17,6 +17,7 @@ import argparse
 import collections
 import glob
 import gzip
+import itertools
 import json
 import re
 import tempfile
@@ -103,8 +104,9 @@ def main() -> None:
     p.add_argument("--prompt-tokens", type=int, default=20)
     p.add_argument("--no-unroll", action="store_true")
     p.add_argument("--unroll-steps", action="store_true")
-    p.add_argument("--kernels", choices=programs.KERNELS, default="auto",
-                   help="the expert's layers: XLA, Pallas, or auto (by batch size)")
+    p.add_argument("--kernels", choices=programs.KERNELS, action="append", default=None,
+                   help="Engine's `kernels` (the expert's layers: XLA, Pallas, or auto by batch size); repeat it to "
+                        "compare, like --attention (default: auto)")
     p.add_argument("--attention", action="append", default=None,
                    help="each stage's attention (Engine's `attention`); repeat it to compare several engines on the "
                         "same weights and inputs in one process (default: auto)")
@@ -122,9 +124,9 @@ def main() -> None:
     report = {"preset": args.preset, "batch": args.batch, "steps": args.steps, "env": benchmark.environment(),
               "variants": []}
     outputs = {}
-    for attention in args.attention or ["auto"]:
+    for attention, kernels in itertools.product(args.attention or ["auto"], args.kernels or ["auto"]):
         engine = Engine(config, params, unroll=not args.no_unroll, unroll_steps=args.unroll_steps,
-                        kernels=args.kernels, attention=attention, cache_dir=False)
+                        kernels=kernels, attention=attention, cache_dir=False)
         cameras, bucket = engine.plan(obs)
         packed = engine.pack(obs, cameras, bucket)
         var = {"attention": str(engine.attention), "kernels": engine.kernels_for(args.batch), "counts": {},
@@ -137,7 +139,7 @@ def main() -> None:
                 if comp.startswith("ENTRY") or c["fusion"] + c["custom-call"] > 20:
                     print(f"   {stage:18s} {comp[:50]:50s} {json.dumps(c)}", flush=True)
         calls = stage_calls(engine, args.batch, args.steps, cameras, bucket, packed, noise)
-        outputs[var["attention"]] = np.asarray(calls["infer"](), np.float64)
+        outputs[f"{var['attention']} {kernels}"] = np.asarray(calls["infer"](), np.float64)
         for stage, fn in calls.items():
             if args.time:
                 var["median_ms"][stage] = benchmark.time_calls(fn, [()], args.iters, 3)["median_ms"]
@@ -152,7 +154,8 @@ def main() -> None:
         report["variants"].append(var)
         if args.trace:
             fn = calls["infer"]
-            with jax.profiler.trace(str(args.trace / var["attention"].replace(",", "_").replace("=", "-"))):
+            name = f"{var['attention']}_{kernels}".replace(",", "_").replace("=", "-")
+            with jax.profiler.trace(str(args.trace / name)):
                 for _ in range(3):
                     jax.block_until_ready(fn())
         del engine, calls
