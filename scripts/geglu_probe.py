@@ -9,6 +9,8 @@ Two kernels, both exact to bf16 rounding against XLA:
   mgpu    Pallas on Mosaic GPU (wgmma, TMA, warp-specialised, persistent): a CTA of two compute warpgroups, each
           with a gate and an up accumulator (64 rows x 128 hidden units, f32) and a TMA store of the product.
 Also timed: cuBLAS's GEMM alone, and jax's stock Mosaic GPU Hopper matmul (the GEMM alone) at its fastest config.
+The Mosaic GPU kernel won here and lost in the engine, where cuBLAS ran faster (docs/BENCHMARKS.md, "GeGLU in the
+gate/up GEMM's epilogue"), so the engine keeps XLA's path.
 
   python3 scripts/geglu_probe.py --rows 8192,51200,143616 --iters 15 --out OUT.json
 """
