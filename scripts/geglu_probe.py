@@ -186,7 +186,8 @@ VARIANTS = {
 
 def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--rows", default="8192,51200", help="comma-separated M values (multiples of 256): B x prefix tokens")
+    p.add_argument("--rows", default="8192,51200",
+                   help="comma-separated M values (multiples of 256): B x prefix tokens")
     p.add_argument("--width", type=int, default=2048, help="K: Gemma 2B's width")
     p.add_argument("--hidden", type=int, default=16384, help="F: Gemma 2B's MLP width")
     p.add_argument("--iters", type=int, default=15, help="timed calls per variant (median reported)")

@@ -130,12 +130,21 @@ def test_fused_attention_matches_reference_with_holes_in_the_prefix(model, atten
     assert mask.sum(1).tolist() == [3 * 256 + 13, 2 * 256 + 21]
 
 
-def test_fused_denoise_writes_suffix_keys_in_place_of_copying_the_cache(model):
+def test_fused_denoise_writes_suffix_keys_in_place_of_copying_the_cache(model, monkeypatch):
     """With the fused attention the denoise loop carries suffix-first key / value buffers and writes each step's
     suffix keys into them (a dynamic_update_slice of the carry); nothing inside the loop concatenates a cache-sized
-    array (that copied the cache every layer and step). The numbers are checked by the test above."""
-    from pi0_jax.engine import programs
+    array (that copied the cache every layer and step). The kernel gets no mask (cuDNN's masked kernel was slower
+    than XLA's attention) and one head of G x T rows per kv head (the query heads folded); π0's state row, the one
+    row that masks, runs beside it. The numbers are checked by the test above."""
+    from pi0_jax.engine import layers, programs
 
+    calls, fused = [], layers.attention.fused
+
+    def spy(q, *args, **kw):
+        calls.append((q.shape, kw))
+        return fused(q, *args, **kw)
+
+    monkeypatch.setattr(layers.attention, "fused", spy)
     config, params = model
     obs = make_obs(config)
     engine = Engine(config, params, attention="cudnn", cache_dir=False)
@@ -144,6 +153,7 @@ def test_fused_denoise_writes_suffix_keys_in_place_of_copying_the_cache(model):
     noise = jnp.zeros((2, config.action_horizon, config.action_dim))
     _, cache, _ = engine.run_stages(obs, noise, 2)
     keys = cache.mask.shape[1] + config.suffix_len
+    calls.clear()   # the stages above ran vision and the prefix: only the denoise program's calls count
     jaxpr = jax.make_jaxpr(lambda c, s, n: programs.denoise(
         config, engine.weights, engine.schedule(2), c, s, n, num_steps=2, unroll=True, unroll_steps=False,
         attention=engine.attention))(cache, state, noise)
@@ -160,6 +170,10 @@ def test_fused_denoise_writes_suffix_keys_in_place_of_copying_the_cache(model):
     assert not [e for e in cache_sized if e.primitive.name in ("concatenate", "pad")]
     writes = [e for e in cache_sized if e.primitive.name == "dynamic_update_slice"]
     assert len(writes) == 2 * config.action_expert.depth   # k and v of every layer
+    expert = config.action_expert
+    rows = (config.suffix_len - (not config.pi05)) * expert.num_heads // expert.num_kv_heads
+    assert len(calls) == expert.depth
+    assert {(shape[1:3], kw.get("mask")) for shape, kw in calls} == {((rows, expert.num_kv_heads), None)}
 
 
 def test_attention_and_kernel_choices():
