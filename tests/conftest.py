@@ -19,6 +19,15 @@ _SENTENCES = [
 ]
 
 
+# The modules with the longest tests (the roadmap's rollout fixture, the demo, the two-process evaluation: 1.5-3 min
+# each on CI's 2 cores) run first, so that `-n 2` does not end with one worker on a long test while the other idles.
+SLOW_FIRST = ("test_roadmap.py", "test_cli.py", "test_sim_distributed.py")
+
+
+def pytest_collection_modifyitems(items):
+    items.sort(key=lambda item: item.path.name not in SLOW_FIRST)   # stable: the order within each group stays
+
+
 @pytest.fixture(scope="session")
 def sp_model_path(tmp_path_factory):
     buf = io.BytesIO()
