@@ -82,11 +82,13 @@ def geglu_mgpu(x, w, *, tile_m=128, tile_n=64, tile_k=64, stages=4, snake=8, int
     if m % cta_m or f % tile_n or k % tile_k:
         raise ValueError(f"shapes {x.shape} @ {w.shape} do not tile by ({cta_m}, {tile_n}, {tile_k})")
     m_iters, n_iters, k_iters = m // cta_m, f // tile_n, k // tile_k
-    swz = plgpu.find_swizzle(tile_k * jnp.dtype(dtype).itemsize * 8)
-    in_tr = (plgpu.TilingTransform((8, swz // jnp.dtype(dtype).itemsize)), plgpu.SwizzleTransform(swz))
-    b_swz = plgpu.find_swizzle(tile_n * jnp.dtype(dtype).itemsize * 8)
-    b_tr = (plgpu.TilingTransform((8, b_swz // jnp.dtype(dtype).itemsize)), plgpu.SwizzleTransform(b_swz))
-    out_tr = b_tr
+    item = jnp.dtype(dtype).itemsize
+
+    def transforms(minor):   # TMA tiles of 8 rows, swizzled by the row's width in bytes (at most 128)
+        swizzle = plgpu.find_swizzle(minor * item * 8)
+        return plgpu.TilingTransform((8, swizzle // item)), plgpu.SwizzleTransform(swizzle)
+
+    in_tr, b_tr = transforms(tile_k), transforms(tile_n)
 
     def pipeline(body, context):
         spec = functools.partial(plgpu.BlockSpec, memory_space=plgpu.SMEM)
@@ -102,7 +104,7 @@ def geglu_mgpu(x, w, *, tile_m=128, tile_n=64, tile_k=64, stages=4, snake=8, int
 
         @functools.partial(pl.run_scoped,
                            allocs=pipeline(nothing, nothing).get_allocations(x_gmem, w_gmem, w_gmem),
-                           out_smem=plgpu.SMEM((2, tile_m, tile_n), dtype, transforms=out_tr),
+                           out_smem=plgpu.SMEM((2, tile_m, tile_n), dtype, transforms=b_tr),
                            collective_axes="wg")
         def scope(allocs, out_smem):
             wg = lax.axis_index("wg")

@@ -69,20 +69,16 @@ def _attend(q, ks, vs, masks, dtype):
     return einops.rearrange(out, "B T K G H -> B T (K G H)")
 
 
-def _attend_fused(q, keys, values, kv_len, mask=None):
+def _attend_fused(q, keys, values, kv_len):
     """One fused attention (`ops.attention.fused`: cuDNN on a GPU) over keys masked by length: each element attends
-    its first kv_len keys, and a boolean mask (B, T, S) removes more. q (B,T,K,G,H), pre-scaled.
+    its first kv_len keys. q (B,T,K,G,H), pre-scaled.
 
-    Without a mask every query row of an element sees the same keys, so a kv head's G query heads are folded into
-    T·G rows of one head (a reshape when K = 1): the kernel then reads each K/V block once for all G heads, and its
-    row tiles cover T·G rows rather than G separate runs of T (T = 50 in the denoise step). Same sums per row."""
-    if mask is None:
-        g = q.shape[3]
-        out = attention.fused(einops.rearrange(q, "B T K G H -> B (T G) K H"), keys, values, scale=1.0, kv_len=kv_len)
-        return einops.rearrange(out, "B (T G) K H -> B T (K G H)", G=g)
-    q = einops.rearrange(q, "B T K G H -> B T (K G) H")
-    out = attention.fused(q, keys, values, scale=1.0, kv_len=kv_len, mask=mask[:, None])
-    return einops.rearrange(out, "B T N H -> B T (N H)")
+    Every query row of an element sees the same keys, so a kv head's G query heads are folded into T·G rows of one
+    head (a reshape when K = 1): the kernel then reads each K/V block once for all G heads, and its row tiles cover
+    T·G rows rather than G separate runs of T (T = 50 in the denoise step). Same sums per row."""
+    g = q.shape[3]
+    out = attention.fused(einops.rearrange(q, "B T K G H -> B (T G) K H"), keys, values, scale=1.0, kv_len=kv_len)
+    return einops.rearrange(out, "B (T G) K H -> B T (K G H)", G=g)
 
 
 def prefix_layer(cfg: GemmaConfig, w, x, positions, mask, kv_len=None):
