@@ -65,6 +65,12 @@ for phase in "$@"; do
                  python3 -m pi0_jax.cli benchmark --preset pi05_base --steps 10 --batch 64 --fused-steps 10 --iters 10 \
                    $([ $q = none ] || echo --quant $q) --out "$OUT/pi05_b64_$q.json" > "$OUT/pi05_b64_$q.log" 2>&1
                  tail -4 "$OUT/pi05_b64_$q.log"; done ;;
+    flags_b1) i=0; for f in "" "--xla_gpu_graph_min_graph_size=100000" \
+                 "--xla_gpu_enable_command_buffer=FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN --xla_gpu_graph_min_graph_size=1" \
+                 "--xla_gpu_enable_triton_gemm=false" "--xla_gpu_enable_triton_gemm=false --xla_gpu_enable_cublaslt=true"; do
+                 echo "== XLA_FLAGS=$f"; XLA_FLAGS="$f" python3 scripts/profile_engine.py --preset pi0_base --batch 1 \
+                   --prompt-tokens 48 --time --iters 30 --trace-stages --out "$OUT/flags_b1_$i.json" \
+                   | grep -E "kernels,|median"; i=$((i + 1)); done ;;   # XLA's launch options at B = 1, one process each
     dump_hlo) python3 - <<'PY'
 import os
 from pi0_jax import benchmark
