@@ -33,6 +33,7 @@ from pi0_jax.pi0 import random_params
 from pi0_jax.config import IMAGE_KEYS, PRESETS, Pi0Config, get_config
 from pi0_jax.engine import Engine
 from pi0_jax.engine.programs import KERNELS, attention_spec
+from pi0_jax.ops.matmul import GEMMS
 from pi0_jax.quant.schemes import SCHEMES
 
 
@@ -71,6 +72,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the action expert's layers as XLA ops, as the fused Pallas kernels of pi0_jax.ops "
                         "(Triton on GPU), or auto: the kernels at batch 1 and 2 on a GPU, XLA otherwise; each row "
                         "records the path it ran (default: %(default)s)")
+    p.add_argument("--gemm", choices=GEMMS, default="auto",
+                   help="the library of XLA's GEMMs on a GPU: cublas (XLA's Triton GEMMs off, so bias, GELU and "
+                        "residual adds become cuBLASLt epilogues), xla (XLA's autotuned choice of Triton or cuBLAS per "
+                        "GEMM), or auto (= cublas); the reference always runs XLA's defaults (default: %(default)s)")
     p.add_argument("--reference", action="store_true",
                    help="also time the reference model (pi0_jax.pi0.sample_actions: openpi's structure, layers "
                         "scanned, one jit) at each batch for the largest step count")
@@ -166,7 +171,7 @@ def bench_engine(engine: Engine, args, batch: int) -> list[dict]:
                            [(c, p, n) for c, p, (_, n) in zip(caches, packed, sets)], args.iters, args.warmup)
         row = {"dtype": cfg.dtype, "batch": batch, "steps": steps, "cameras": len(cameras), "prompt_bucket": bucket,
                "attention": str(engine.attention.at_batch(batch, suffix_mask=not cfg.pi05)),
-               "kernels": engine.kernels_for(batch),
+               "kernels": engine.kernels_for(batch), "gemm": engine.gemm,
                "vision": t_vis, "prefix": t_pre, "denoise": t_den,
                "denoise_per_step_ms": t_den["median_ms"] / steps}
         if args.fused_steps is None or steps in args.fused_steps:
@@ -209,7 +214,7 @@ from pi0_jax.engine.programs import attention_spec
 cfg = get_config(sys.argv[1], dtype=sys.argv[2])
 params = benchmark.random_params(cfg, 0)
 engine = Engine(cfg, params, unroll=sys.argv[4] == "1", kernels=sys.argv[8], attention=sys.argv[9],
-                cache_dir=sys.argv[3])
+                gemm=sys.argv[10], cache_dir=sys.argv[3])
 obs, noise = benchmark.make_inputs(cfg, 1, int(sys.argv[5]), int(sys.argv[6]), 0)
 start = time.perf_counter()
 engine.executable("infer", 1, int(sys.argv[7]), *engine.plan(obs))
@@ -220,7 +225,7 @@ print(json.dumps({"warm_compile_s": time.perf_counter() - start, "process_s": ti
 def measure_warm_start(config: Pi0Config, args, cache_dir: Path, steps: int) -> dict:
     out = subprocess.run([sys.executable, "-c", _WARM_CHILD, config.name, config.dtype, str(cache_dir),
                           "0" if args.no_unroll else "1", str(args.cameras), str(args.prompt_tokens), str(steps),
-                          args.kernels, args.attention],
+                          args.kernels, args.attention, args.gemm],
                          capture_output=True, text=True, check=True).stdout
     return json.loads(out.strip().splitlines()[-1])
 
@@ -281,7 +286,8 @@ def chart(results: dict, path: Path) -> None:
 
 def run(args: argparse.Namespace) -> dict:
     cache_dir = args.cache_dir or Path(tempfile.mkdtemp(prefix="pi0-jax-xla-"))
-    results = {"preset": args.preset, "env": {**environment(), "kernels": args.kernels, "attention": args.attention},
+    results = {"preset": args.preset, "env": {**environment(), "kernels": args.kernels, "attention": args.attention,
+                                               "gemm": args.gemm},
                "rows": [], "peers": [],
                "compile": {},
                "args": {k: str(v) for k, v in vars(args).items() if k != "func"}}
@@ -302,7 +308,7 @@ def run(args: argparse.Namespace) -> dict:
                                           "all", percentile=None)
                 params = schemes.quantize_params(config, params, args.quant, stats["amax"])
         engine = Engine(config, params, unroll=not args.no_unroll, unroll_steps=args.unroll_steps,
-                        attention=args.attention, kernels=args.kernels, cache_dir=cache_dir)
+                        attention=args.attention, kernels=args.kernels, gemm=args.gemm, cache_dir=cache_dir)
         for batch in args.batch:
             results["rows"] += bench_engine(engine, args, batch)
             if args.reference:

@@ -41,7 +41,7 @@ from pi0_jax.engine import engine_weights, enable_compilation_cache, prompt_buck
 from pi0_jax.engine import programs
 from pi0_jax.engine import weights as weights_lib
 from pi0_jax.observation import DEFAULT_OPTIONAL_CAMERAS, ObservationError, Prepared, Validator
-from pi0_jax.ops import formats
+from pi0_jax.ops import matmul
 from pi0_jax.preprocess import resize_with_pad
 from pi0_jax.tokenizer import PaligemmaTokenizer
 
@@ -69,7 +69,8 @@ class PolicyCore:
 
     def __init__(self, config: Pi0Config, params: dict | None, tokenizer: PaligemmaTokenizer,
                  normalizer: _norm.Normalizer, *, num_steps: int = 10, action_dims: int | None = None,
-                 sampler: str = "engine", unroll: bool = True, kernels: str = "auto", attention: str = "auto"):
+                 sampler: str = "engine", unroll: bool = True, kernels: str = "auto", attention: str = "auto",
+                 gemm: str = "auto"):
         if tokenizer.max_len != config.max_token_len:
             raise ValueError(f"tokenizer max_len {tokenizer.max_len} != config.max_token_len {config.max_token_len}")
         if sampler not in SAMPLERS:
@@ -84,6 +85,7 @@ class PolicyCore:
         # and each stage's attention (`programs.Attention.parse`)
         self.kernels, self.attention = programs.check_kernels(kernels), programs.Attention.parse(
             attention, dtype=config.dtype)
+        self.gemm = matmul.check_gemm(gemm)   # XLA's GEMM library on a GPU (`pi0_jax.ops.matmul.compiler_options`)
         self.slots = IMAGE_KEYS[: config.num_cameras]
         # The state's dims as the stats know them (None: no stats, so only <= action_dim can be checked).
         self.state_dim = normalizer.dim(_norm.STATE)
@@ -336,7 +338,7 @@ class Policy:
                     return core.program(model, norm, images, cameras, image_masks, tokens, token_mask, state, noise)
 
                 lowered = jax.jit(fn).lower(core.model, self._norm, *spec)
-                self._executables[key] = lowered.compile(formats.compiler_options(core.model))
+                self._executables[key] = lowered.compile(matmul.compiler_options(core.model, core.gemm))
                 self.compile_seconds[key] = time.perf_counter() - start
             return self._executables[key]
 

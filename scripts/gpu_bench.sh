@@ -71,6 +71,12 @@ for phase in "$@"; do
                  echo "== XLA_FLAGS=$f"; XLA_FLAGS="$f" python3 scripts/profile_engine.py --preset pi0_base --batch 1 \
                    --prompt-tokens 48 --time --iters 30 --trace-stages --out "$OUT/flags_b1_$i.json" \
                    | grep -E "kernels,|median"; i=$((i + 1)); done ;;   # XLA's launch options at B = 1, one process each
+    gemm_b1b8) for b in 1 8; do python3 scripts/profile_engine.py --preset pi0_base --batch $b --prompt-tokens 48 \
+                 --gemm xla --gemm cublas --time --iters 30 --trace-stages --out "$OUT/gemm_pi0_b$b.json" \
+                 | grep -E "^==|kernels,|median|relative"; done ;;   # XLA's GEMM choice against cuBLAS, one process
+    gemm_b64) for p in pi05 pi0; do python3 scripts/profile_engine.py --preset ${p}_base --batch 64 --prompt-tokens 20 \
+                 --gemm xla --gemm cublas --time --iters 10 --out "$OUT/gemm_${p}_b64.json" \
+                 | grep -E "^==|median|relative"; done ;;
     dump_hlo) python3 - <<'PY'
 import os
 from pi0_jax import benchmark

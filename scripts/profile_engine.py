@@ -31,6 +31,7 @@ import numpy as np
 from pi0_jax import benchmark
 from pi0_jax.config import get_config
 from pi0_jax.engine import Engine, programs
+from pi0_jax.ops import matmul
 
 
 def count_ops(hlo: str) -> dict:
@@ -110,6 +111,8 @@ def main() -> None:
     p.add_argument("--attention", action="append", default=None,
                    help="each stage's attention (Engine's `attention`); repeat it to compare several engines on the "
                         "same weights and inputs in one process (default: auto)")
+    p.add_argument("--gemm", choices=matmul.GEMMS, action="append", default=None,
+                   help="the library of XLA's GEMMs on a GPU (Engine's `gemm`); repeat it to compare (default: auto)")
     p.add_argument("--time", action="store_true", help="median ms of each stage program (and the fused one)")
     p.add_argument("--iters", type=int, default=30, help="timed calls per program with --time")
     p.add_argument("--trace-stages", action="store_true",
@@ -124,14 +127,15 @@ def main() -> None:
     report = {"preset": args.preset, "batch": args.batch, "steps": args.steps, "env": benchmark.environment(),
               "variants": []}
     outputs = {}
-    for attention, kernels in itertools.product(args.attention or ["auto"], args.kernels or ["auto"]):
+    for attention, kernels, gemm in itertools.product(args.attention or ["auto"], args.kernels or ["auto"],
+                                                      args.gemm or ["auto"]):
         engine = Engine(config, params, unroll=not args.no_unroll, unroll_steps=args.unroll_steps,
-                        kernels=kernels, attention=attention, cache_dir=False)
+                        kernels=kernels, attention=attention, gemm=gemm, cache_dir=False)
         cameras, bucket = engine.plan(obs)
         packed = engine.pack(obs, cameras, bucket)
-        var = {"attention": str(engine.attention), "kernels": engine.kernels_for(args.batch), "counts": {},
+        var = {"attention": str(engine.attention), "kernels": engine.kernels_for(args.batch), "gemm": gemm, "counts": {},
                "median_ms": {}, "trace": {}}
-        print(f"== attention {var['attention']}, kernels {var['kernels']}", flush=True)
+        print(f"== attention {var['attention']}, kernels {var['kernels']}, gemm {gemm}", flush=True)
         for stage in ("encode_images", "fill_prefix_cache", "denoise", "infer"):
             exe = engine.executable(stage, args.batch, args.steps, cameras, bucket)
             counts = var["counts"][stage] = count_ops(exe.as_text())
@@ -139,7 +143,7 @@ def main() -> None:
                 if comp.startswith("ENTRY") or c["fusion"] + c["custom-call"] > 20:
                     print(f"   {stage:18s} {comp[:50]:50s} {json.dumps(c)}", flush=True)
         calls = stage_calls(engine, args.batch, args.steps, cameras, bucket, packed, noise)
-        outputs[f"{var['attention']} {kernels}"] = np.asarray(calls["infer"](), np.float64)
+        outputs[f"{var['attention']} {kernels} {gemm}"] = np.asarray(calls["infer"](), np.float64)
         for stage, fn in calls.items():
             if args.time:
                 var["median_ms"][stage] = benchmark.time_calls(fn, [()], args.iters, 3)["median_ms"]
@@ -154,7 +158,7 @@ def main() -> None:
         report["variants"].append(var)
         if args.trace:
             fn = calls["infer"]
-            name = f"{var['attention']}_{kernels}".replace(",", "_").replace("=", "-")
+            name = f"{var['attention']}_{kernels}_{gemm}".replace(",", "_").replace("=", "-")
             with jax.profiler.trace(str(args.trace / name)):
                 for _ in range(3):
                     jax.block_until_ready(fn())

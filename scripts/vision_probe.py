@@ -31,7 +31,7 @@ from profile_engine import count_ops, kernel_times  # noqa: E402
 from pi0_jax import benchmark  # noqa: E402
 from pi0_jax.config import get_config  # noqa: E402
 from pi0_jax.engine import programs, weights as weights_lib  # noqa: E402
-from pi0_jax.ops import formats  # noqa: E402
+from pi0_jax.ops import matmul  # noqa: E402
 from pi0_jax.quant import schemes  # noqa: E402
 
 
@@ -86,7 +86,7 @@ def main() -> None:
         exes, outs = {}, {}
         for name, (fn, w) in variants.items():
             t0 = time.perf_counter()
-            exes[name] = jax.jit(fn).lower(w, x).compile(formats.compiler_options(w))
+            exes[name] = jax.jit(fn).lower(w, x).compile(matmul.compiler_options(w))
             compile_s = time.perf_counter() - t0
             outs[name] = np.asarray(exes[name](w, x), np.float32).reshape(n, -1)
             if args.dump_hlo:

@@ -12,7 +12,7 @@ import pytest
 from pi0_jax import benchmark, checkpoint, pi0
 from pi0_jax.config import get_config
 from pi0_jax.engine import Engine, programs
-from pi0_jax.ops import formats
+from pi0_jax.ops import formats, matmul
 from pi0_jax.quant import report, schemes
 
 
@@ -176,13 +176,20 @@ def test_engine_fp8_equals_the_reference_with_the_same_weights_and_hands_xla_fp8
             assert re.search(rf"contracting_dims = \[\d+\] x \[{rhs_rank - 1}\]", line), line
 
 
-def test_fp8_programs_compile_without_triton_gemms_on_a_gpu_only():
-    """XLA's autotuner spends minutes on Triton FP8 GEMMs (then picks cuBLASLt): programs holding FP8 weights turn
-    Triton GEMMs off on a GPU; anything else keeps XLA's defaults."""
-    tree = {"a": jnp.ones((2, 2)), "b": [formats.quantize_fp8(jnp.ones((4, 4)), act_scale=0.1)]}
-    assert formats.compiler_options(tree, "gpu") == {"xla_gpu_enable_triton_gemm": False}
-    assert formats.compiler_options(tree, "cpu") is None
-    assert formats.compiler_options({"a": jnp.ones((2, 2))}, "gpu") is None
+def test_gemm_library_per_program():
+    """On a GPU every program gets cuBLAS GEMMs by default (XLA's Triton GEMMs off: bias, GELU and residual become
+    cuBLASLt epilogues); gemm="xla" keeps XLA's defaults, except with FP8 weights, whose Triton GEMMs the autotuner
+    compiles for minutes. Off a GPU nothing is set."""
+    fp8 = {"a": jnp.ones((2, 2)), "b": [formats.quantize_fp8(jnp.ones((4, 4)), act_scale=0.1)]}
+    plain = {"a": jnp.ones((2, 2))}
+    off = {"xla_gpu_enable_triton_gemm": False}
+    assert matmul.compiler_options(plain, platform="gpu") == off
+    assert matmul.compiler_options(plain, "cublas", "gpu") == off
+    assert matmul.compiler_options(plain, "xla", "gpu") is None
+    assert matmul.compiler_options(fp8, "xla", "gpu") == off
+    assert matmul.compiler_options(fp8, platform="cpu") is None
+    with pytest.raises(ValueError, match="gemm must be one of"):
+        matmul.compiler_options(plain, "triton", "gpu")
 
 
 def test_activation_schemes_need_calibration(dummy):

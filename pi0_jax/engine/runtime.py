@@ -20,7 +20,7 @@ import numpy as np
 from pi0_jax import pi0
 from pi0_jax.config import IMAGE_KEYS, Pi0Config
 from pi0_jax.engine import programs, weights as weights_lib
-from pi0_jax.ops import formats
+from pi0_jax.ops import matmul
 
 PROMPT_BUCKETS = (16, 32, 48, 64, 96, 128, 160, 200)
 STAGES = ("encode_images", "fill_prefix_cache", "denoise", "infer")
@@ -77,14 +77,16 @@ class Engine:
     faster per stage on a GPU, XLA elsewhere, or "vision=cudnn,prefix=cudnn,denoise=xla"); kernels: the action
     expert's layers as XLA ops ("xla"), as the fused Pallas kernels of `pi0_jax.ops` ("pallas": Triton on GPU,
     interpret mode on CPU; needs unrolled layers and unquantised expert weights), or "auto" (per batch size,
-    `programs.expert_path`: the kernels at B <= 2 on a GPU, XLA otherwise).
+    `programs.expert_path`: the kernels at B <= 2 on a GPU, XLA otherwise); gemm: the library of XLA's GEMMs on a
+    GPU (`pi0_jax.ops.matmul.compiler_options`: "auto" = "cublas", or "xla": XLA's autotuned choice).
     """
 
     def __init__(self, config: Pi0Config, params: dict, *, unroll: bool = True, unroll_steps: bool = False,
                  attention: str | programs.Attention = "auto", kernels: str = "auto",
-                 cache_dir: str | os.PathLike | None | bool = None):
+                 gemm: str = "auto", cache_dir: str | os.PathLike | None | bool = None):
         self.attention = programs.Attention.parse(attention, dtype=config.dtype)
         self.kernels = programs.check_kernels(kernels)
+        self.gemm = matmul.check_gemm(gemm)
         if cache_dir is not False:
             self.cache_dir = enable_compilation_cache(None if cache_dir in (None, True) else cache_dir)
         self.config = config
@@ -123,7 +125,7 @@ class Engine:
             start = time.perf_counter()
             fn, args, donate = self._stage(stage, batch, num_steps, cameras, prompt_len)
             lowered = jax.jit(fn, donate_argnums=donate).lower(*args)
-            self._executables[key] = lowered.compile(formats.compiler_options(self.weights))
+            self._executables[key] = lowered.compile(matmul.compiler_options(self.weights, self.gemm))
             self.compile_seconds[key] = time.perf_counter() - start
         return self._executables[key]
 

@@ -14,7 +14,7 @@ Conventions:
   older form (operands dequantised to f32, an f32 dot) is rewritten too, but its f32 output and separate scaling
   pass cost more than FP8 saves (docs/BENCHMARKS.md, "FP8 that pays").
 - XLA's GPU autotuner also tries Triton for FP8 GEMMs: ~150 s of compiling per GEMM shape, for cuBLASLt in the end.
-  `compiler_options` turns Triton GEMMs off for programs that hold FP8 weights (compiles in seconds, same GEMMs).
+  `pi0_jax.ops.matmul.compiler_options` turns Triton GEMMs off for programs that hold FP8 weights.
 """
 
 from __future__ import annotations
@@ -141,14 +141,6 @@ def qmatmul(eqn: str, x: jax.Array, w: QArray) -> jax.Array:
 def has_fp8(tree) -> bool:
     """Whether the pytree holds an FP8 weight (`QArray`)."""
     return any(isinstance(x, QArray) for x in jax.tree.leaves(tree, is_leaf=lambda v: isinstance(v, QArray)))
-
-
-def compiler_options(tree, platform: str | None = None) -> dict | None:
-    """XLA options for compiling a program over `tree`: on a GPU with FP8 weights, no Triton GEMMs (see the module
-    doc: the autotuner compiles Triton FP8 GEMMs for minutes, then picks cuBLASLt); otherwise XLA's defaults."""
-    if (platform or jax.default_backend()) == "gpu" and has_fp8(tree):
-        return {"xla_gpu_enable_triton_gemm": False}
-    return None
 
 
 def rearrange(w: QArray, pattern: str, contract=(-2,), **sizes) -> QArray:

@@ -4,6 +4,13 @@
 (FP8, `pi0_jax.ops.formats`) brings its own op; a `Tap` (a plain weight that records the magnitude of its GEMM
 input while `recording()` is active, for calibration) runs the plain op. SigLIP's Flax Dense layers keep their own
 op for plain kernels and come here through `dense_interceptor` only for quantised or tapped ones.
+
+`compiler_options(tree, gemm)`: which library runs the GEMMs of a program compiled on a GPU. "xla" is XLA's own
+choice (its autotuner picks a Triton GEMM or cuBLAS per dot; a dot it gives to Triton keeps its bias, GELU and
+residual as separate fusions); "cublas" turns XLA's Triton GEMMs off, so every dot is a cuBLASLt call that takes
+its bias, GELU-tanh and residual add as epilogues (SigLIP's Dense layers: 386 -> 305 kernels at B = 1); "auto" is
+cuBLAS, the faster in the engine (docs/BENCHMARKS.md, "cuBLAS for every GEMM"). Programs with FP8 weights always
+get cuBLAS: XLA's autotuner compiles Triton FP8 GEMMs for minutes, then picks cuBLASLt anyway.
 """
 
 from __future__ import annotations
@@ -17,9 +24,26 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 
-from pi0_jax.ops.formats import QArray, qmatmul
+from pi0_jax.ops.formats import QArray, has_fp8, qmatmul
 
+GEMMS = ("auto", "xla", "cublas")
 _RECORDER: dict | None = None
+
+
+def check_gemm(gemm: str) -> str:
+    if gemm not in GEMMS:
+        raise ValueError(f"gemm must be one of {GEMMS}, got {gemm!r}")
+    return gemm
+
+
+def compiler_options(tree, gemm: str = "auto", platform: str | None = None) -> dict | None:
+    """XLA options for compiling a program over the weights `tree` (module doc): None (XLA's defaults) off a GPU
+    and for gemm="xla" without FP8 weights; otherwise no Triton GEMMs."""
+    if (platform or jax.default_backend()) != "gpu":
+        return None
+    if check_gemm(gemm) == "xla" and not has_fp8(tree):
+        return None
+    return {"xla_gpu_enable_triton_gemm": False}
 
 
 @flax.struct.dataclass

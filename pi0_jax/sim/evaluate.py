@@ -33,7 +33,7 @@ from flax import struct
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from pi0_jax.ops import formats
+from pi0_jax.ops import matmul
 from pi0_jax.sim import tasks as _tasks
 from pi0_jax.sim.env import Env
 from pi0_jax.sim.policies import SimPolicy, make_policy
@@ -293,7 +293,7 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
         carry0 = first_carry(0)
         t0 = time.perf_counter()
         lowered = make_segment(env, policy, cfg, n_video, mesh).lower(params, carry0)
-        segment = lowered.compile(formats.compiler_options(params))
+        segment = lowered.compile(matmul.compiler_options(params))
         need, free = program_bytes(segment), free_device_bytes(jax.local_devices()[0])
         tried.append({"batch": batch, "program_bytes": need, "free_bytes": free,
                       "compile_s": time.perf_counter() - t0})
