@@ -72,10 +72,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the action expert's layers as XLA ops, as the fused Pallas kernels of pi0_jax.ops "
                         "(Triton on GPU), or auto: the kernels at batch 1 and 2 on a GPU, XLA otherwise; each row "
                         "records the path it ran (default: %(default)s)")
-    p.add_argument("--gemm", choices=GEMMS, default="auto",
-                   help="the library of XLA's GEMMs on a GPU: cublas (XLA's Triton GEMMs off, so bias, GELU and "
-                        "residual adds become cuBLASLt epilogues), xla (XLA's autotuned choice of Triton or cuBLAS per "
-                        "GEMM), or auto (= cublas); the reference always runs XLA's defaults (default: %(default)s)")
+    p.add_argument("--gemm", choices=GEMMS, default="xla",
+                   help="the library of XLA's GEMMs on a GPU: xla (XLA's autotuned choice of Triton or cuBLAS per "
+                        "GEMM) or cublas (XLA's Triton GEMMs off, so bias, GELU and residual adds become cuBLASLt "
+                        "epilogues; faster in the vision tower from batch 8, not overall); programs with FP8 weights "
+                        "always get cublas; the reference always runs XLA's defaults (default: %(default)s)")
     p.add_argument("--reference", action="store_true",
                    help="also time the reference model (pi0_jax.pi0.sample_actions: openpi's structure, layers "
                         "scanned, one jit) at each batch for the largest step count")

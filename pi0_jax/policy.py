@@ -70,7 +70,7 @@ class PolicyCore:
     def __init__(self, config: Pi0Config, params: dict | None, tokenizer: PaligemmaTokenizer,
                  normalizer: _norm.Normalizer, *, num_steps: int = 10, action_dims: int | None = None,
                  sampler: str = "engine", unroll: bool = True, kernels: str = "auto", attention: str = "auto",
-                 gemm: str = "auto"):
+                 gemm: str = "xla"):
         if tokenizer.max_len != config.max_token_len:
             raise ValueError(f"tokenizer max_len {tokenizer.max_len} != config.max_token_len {config.max_token_len}")
         if sampler not in SAMPLERS:

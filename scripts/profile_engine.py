@@ -112,7 +112,7 @@ def main() -> None:
                    help="each stage's attention (Engine's `attention`); repeat it to compare several engines on the "
                         "same weights and inputs in one process (default: auto)")
     p.add_argument("--gemm", choices=matmul.GEMMS, action="append", default=None,
-                   help="the library of XLA's GEMMs on a GPU (Engine's `gemm`); repeat it to compare (default: auto)")
+                   help="the library of XLA's GEMMs on a GPU (Engine's `gemm`); repeat it to compare (default: xla)")
     p.add_argument("--time", action="store_true", help="median ms of each stage program (and the fused one)")
     p.add_argument("--iters", type=int, default=30, help="timed calls per program with --time")
     p.add_argument("--trace-stages", action="store_true",
@@ -128,7 +128,7 @@ def main() -> None:
               "variants": []}
     outputs = {}
     for attention, kernels, gemm in itertools.product(args.attention or ["auto"], args.kernels or ["auto"],
-                                                      args.gemm or ["auto"]):
+                                                      args.gemm or ["xla"]):
         engine = Engine(config, params, unroll=not args.no_unroll, unroll_steps=args.unroll_steps,
                         kernels=kernels, attention=attention, gemm=gemm, cache_dir=False)
         cameras, bucket = engine.plan(obs)
@@ -153,6 +153,8 @@ def main() -> None:
                       f"{t['wall_ms']:.3f} ms ({t['busy']:.0%} busy)", flush=True)
                 for row in t["by_name"][:12]:
                     print(f"      {row['us_per_call']:9.1f} us  x{row['per_call']:6.1f}  {row['name'][:80]}", flush=True)
+        var["compile_s"] = {k[0]: round(v, 2) for k, v in engine.compile_seconds.items()}
+        print("   compile s: " + json.dumps(var["compile_s"]), flush=True)
         if var["median_ms"]:
             print("   median ms: " + json.dumps({k: round(v, 3) for k, v in var["median_ms"].items()}), flush=True)
         report["variants"].append(var)

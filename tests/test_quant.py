@@ -177,16 +177,16 @@ def test_engine_fp8_equals_the_reference_with_the_same_weights_and_hands_xla_fp8
 
 
 def test_gemm_library_per_program():
-    """On a GPU every program gets cuBLAS GEMMs by default (XLA's Triton GEMMs off: bias, GELU and residual become
-    cuBLASLt epilogues); gemm="xla" keeps XLA's defaults, except with FP8 weights, whose Triton GEMMs the autotuner
-    compiles for minutes. Off a GPU nothing is set."""
+    """On a GPU, gemm="xla" (the default) keeps XLA's defaults, except with FP8 weights, whose Triton GEMMs the
+    autotuner compiles for minutes; gemm="cublas" turns XLA's Triton GEMMs off (bias, GELU and residual become
+    cuBLASLt epilogues). Off a GPU nothing is set."""
     fp8 = {"a": jnp.ones((2, 2)), "b": [formats.quantize_fp8(jnp.ones((4, 4)), act_scale=0.1)]}
     plain = {"a": jnp.ones((2, 2))}
     off = {"xla_gpu_enable_triton_gemm": False}
-    assert matmul.compiler_options(plain, platform="gpu") == off
+    assert matmul.compiler_options(plain, platform="gpu") is None
     assert matmul.compiler_options(plain, "cublas", "gpu") == off
-    assert matmul.compiler_options(plain, "xla", "gpu") is None
-    assert matmul.compiler_options(fp8, "xla", "gpu") == off
+    assert matmul.compiler_options(fp8, platform="gpu") == off
+    assert matmul.compiler_options(fp8, "cublas", "gpu") == off
     assert matmul.compiler_options(fp8, platform="cpu") is None
     with pytest.raises(ValueError, match="gemm must be one of"):
         matmul.compiler_options(plain, "triton", "gpu")

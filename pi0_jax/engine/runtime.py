@@ -78,12 +78,12 @@ class Engine:
     expert's layers as XLA ops ("xla"), as the fused Pallas kernels of `pi0_jax.ops` ("pallas": Triton on GPU,
     interpret mode on CPU; needs unrolled layers and unquantised expert weights), or "auto" (per batch size,
     `programs.expert_path`: the kernels at B <= 2 on a GPU, XLA otherwise); gemm: the library of XLA's GEMMs on a
-    GPU (`pi0_jax.ops.matmul.compiler_options`: "auto" = "cublas", or "xla": XLA's autotuned choice).
+    GPU (`pi0_jax.ops.matmul.compiler_options`: "xla", XLA's autotuned choice, or "cublas").
     """
 
     def __init__(self, config: Pi0Config, params: dict, *, unroll: bool = True, unroll_steps: bool = False,
                  attention: str | programs.Attention = "auto", kernels: str = "auto",
-                 gemm: str = "auto", cache_dir: str | os.PathLike | None | bool = None):
+                 gemm: str = "xla", cache_dir: str | os.PathLike | None | bool = None):
         self.attention = programs.Attention.parse(attention, dtype=config.dtype)
         self.kernels = programs.check_kernels(kernels)
         self.gemm = matmul.check_gemm(gemm)

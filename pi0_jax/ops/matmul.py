@@ -5,12 +5,14 @@
 input while `recording()` is active, for calibration) runs the plain op. SigLIP's Flax Dense layers keep their own
 op for plain kernels and come here through `dense_interceptor` only for quantised or tapped ones.
 
-`compiler_options(tree, gemm)`: which library runs the GEMMs of a program compiled on a GPU. "xla" is XLA's own
-choice (its autotuner picks a Triton GEMM or cuBLAS per dot; a dot it gives to Triton keeps its bias, GELU and
-residual as separate fusions); "cublas" turns XLA's Triton GEMMs off, so every dot is a cuBLASLt call that takes
-its bias, GELU-tanh and residual add as epilogues (SigLIP's Dense layers: 386 -> 305 kernels at B = 1); "auto" is
-cuBLAS, the faster in the engine (docs/BENCHMARKS.md, "cuBLAS for every GEMM"). Programs with FP8 weights always
-get cuBLAS: XLA's autotuner compiles Triton FP8 GEMMs for minutes, then picks cuBLASLt anyway.
+`compiler_options(tree, gemm)`: which library runs the GEMMs of a program compiled on a GPU. "xla" (the default)
+is XLA's own choice: its autotuner picks a Triton GEMM or cuBLAS per dot, and a dot it gives to Triton keeps its
+bias, GELU and residual as separate fusions. "cublas" turns XLA's Triton GEMMs off, so every dot is a cuBLAS call
+that takes its bias, GELU-tanh and residual add as epilogues (SigLIP's Dense layers: 386 -> 305 kernels at B = 1).
+That is 8-10 % faster in the vision tower from B = 8, but slower in the denoise step and no faster for the whole
+call or in the simulator (docs/BENCHMARKS.md, "cuBLAS for every GEMM"), so it is an option, not the default.
+Programs with FP8 weights always get cuBLAS: XLA's autotuner compiles Triton FP8 GEMMs for minutes, then picks
+cuBLASLt anyway.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ import jax.numpy as jnp
 
 from pi0_jax.ops.formats import QArray, has_fp8, qmatmul
 
-GEMMS = ("auto", "xla", "cublas")
+GEMMS = ("xla", "cublas")
 _RECORDER: dict | None = None
 
 
@@ -36,7 +38,7 @@ def check_gemm(gemm: str) -> str:
     return gemm
 
 
-def compiler_options(tree, gemm: str = "auto", platform: str | None = None) -> dict | None:
+def compiler_options(tree, gemm: str = "xla", platform: str | None = None) -> dict | None:
     """XLA options for compiling a program over the weights `tree` (module doc): None (XLA's defaults) off a GPU
     and for gemm="xla" without FP8 weights; otherwise no Triton GEMMs."""
     if (platform or jax.default_backend()) != "gpu":
