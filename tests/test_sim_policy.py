@@ -51,12 +51,33 @@ def test_batched_policy_matches_policy_infer(demo_ckpt):
     assert chunk.shape == (n, pol.horizon, 7) and np.isfinite(chunk).all()
 
     ref = Policy.from_checkpoint(ckpt, tokenizer_path=tokenizer, num_steps=NUM_STEPS)
+    assert pol.info["prompt_tokens"] < ref.config.max_token_len     # the state prompt runs in a shorter bucket
     for i in range(n):
         noise = jax.random.normal(keys[i], (ref.config.action_horizon, ref.config.action_dim))
         out = ref.infer({"observation/image": np.asarray(obs["agentview"][i]),
                          "observation/wrist_image": np.asarray(obs["wrist"][i]),
                          "observation/state": np.asarray(obs["state"][i]), "prompt": env.prompts[i]}, noise=noise)
         np.testing.assert_allclose(chunk[i], out["actions"], rtol=1e-4, atol=1e-4)
+
+
+def test_state_prompt_bound_holds_every_state(demo_ckpt):
+    """The bound the sim's π0.5 bucket is cut to holds the prompt of any state: random ones, the range's ends and
+    beyond (bins -1 and 255), for every task of the suite."""
+    from pi0_jax import checkpoint
+    from pi0_jax import normalize as nz
+    from pi0_jax.policy import PolicyCore
+    from pi0_jax.sim.tasks import TASKS
+    from pi0_jax.tokenizer import PaligemmaTokenizer
+
+    ckpt, tokenizer = demo_ckpt
+    config = checkpoint.load_checkpoint(ckpt)[0]
+    core = PolicyCore(config, None, PaligemmaTokenizer(tokenizer, config.max_token_len),
+                      nz.load_normalizer(ckpt, use_quantiles=True))
+    prompts = [t.prompt for t in TASKS]
+    bound = policies.state_prompt_tokens(core, prompts)
+    states = np.random.default_rng(0).uniform(-1.5, 1.5, (64, policies.STATE_DIMS))
+    longest = max(int(core.tokenize(p, s)[1].sum()) for p in prompts for s in states)
+    assert longest <= bound < config.max_token_len
 
 
 def test_engine_reference_and_dynamic_steps_plan_the_same(demo_ckpt):

@@ -32,6 +32,8 @@ import numpy as np
 from pi0_jax.sim import expert as _expert
 from pi0_jax.sim.realtime import hold_chunk
 
+STATE_DIMS = 8   # LIBERO's state: the tool centre point's position and axis-angle, two finger joints
+
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class SimPolicy:
@@ -120,20 +122,26 @@ def model_policy(config, params, tok, normalizer, env, *, num_steps: int = 10, d
     core = PolicyCore(config, params, tok, normalizer, num_steps=num_steps, sampler=sampler, action_dims=action_dims)
     if core.action_dims != 7:
         raise ValueError(f"{name}: the model's actions have {core.action_dims} dims; this suite needs LIBERO's 7")
-    if core.reads_state and core.state_dim not in (None, 8):
-        raise ValueError(f"{name}: the norm stats' state has {core.state_dim} dims; this suite's state has 8")
+    if core.reads_state and core.state_dim not in (None, STATE_DIMS):
+        raise ValueError(f"{name}: the norm stats' state has {core.state_dim} dims; "
+                         f"this suite's state has {STATE_DIMS}")
     # agent view -> base_0_rgb, wrist -> left_wrist_0_rgb; a right wrist slot is absent, so never encoded
     cameras = tuple(k for k in ("base_0_rgb", "left_wrist_0_rgb") if k in core.slots)
     horizon, adim = config.action_horizon, config.action_dim
     prompts = env.prompts
     in_prompt = config.pi05 and config.discrete_state_input
     tokens, masks = map(np.stack, zip(*(core.tokenize_prompt(p) for p in prompts)))   # (T, L), once per task
-    bucket = config.max_token_len if in_prompt else prompt_bucket(int(masks.sum(1).max()), config.max_token_len)
+    longest = state_prompt_tokens(core, prompts) if in_prompt else int(masks.sum(1).max())
+    bucket = prompt_bucket(longest, config.max_token_len)
     tokens, masks = tokens[:, :bucket], masks[:, :bucket]
 
     def host_tokenize(task, state):   # π0.5 with the state in the prompt: the normalised state, per plan
-        out = [core.tokenize(prompts[int(t)], np.asarray(s[:8], np.float64)) for t, s in zip(task, state)]
-        return np.stack([o[0] for o in out]), np.stack([o[1] for o in out])
+        out = [core.tokenize(prompts[int(t)], np.asarray(s[:STATE_DIMS], np.float64)) for t, s in zip(task, state)]
+        tk, tm = np.stack([o[0] for o in out]), np.stack([o[1] for o in out])
+        if tm[:, bucket:].any():
+            raise ValueError(f"{name}: a state prompt took {int(tm.sum(1).max())} tokens, more than the "
+                             f"{bucket} the rollout was compiled for (state_prompt_tokens' bound is too low)")
+        return tk[:, :bucket], tm[:, :bucket]
 
     def inputs(norm, obs, es):
         b = obs["state"].shape[0]
@@ -168,7 +176,7 @@ def model_policy(config, params, tok, normalizer, env, *, num_steps: int = 10, d
         pparams["num_steps"] = np.int32(num_steps)
     info = {"model": config.name, "pi05": config.pi05, "dtype": config.dtype, "num_steps": num_steps,
             "action_horizon": horizon, "normalization": normalizer.convention.value, "sampler": core.sampler,
-            "quant": quant or "none"}
+            "quant": quant or "none", "prompt_tokens": bucket}
     init, act, stats = (lambda b: jnp.zeros((b, horizon, core.action_dims))), (lambda ps, es, k: (ps[:, k], ps)), None
     if realtime is not None and not realtime.is_default:
         from pi0_jax.sim import realtime as rt_lib
@@ -182,6 +190,16 @@ def model_policy(config, params, tok, normalizer, env, *, num_steps: int = 10, d
             info["realtime"]["note"] = "π0.5 with the state in the prompt: reused prefixes hold a stale state"
     return SimPolicy(name=name, init=init, plan=plan, act=act, needs_images=True, horizon=horizon,
                      observation=observation, params=pparams, info=info, stats=stats)
+
+
+def state_prompt_tokens(core, prompts) -> int:
+    """The most tokens any of these prompts takes with a discretised state written into it (π0.5): each prompt with
+    all STATE_DIMS dims in each of the 257 bins in turn, plus one token per dim, in case numbers tokenize longer side
+    by side than alone. The suite's π0.5 thus runs a 48- or 64-token prompt bucket instead of all 200 tokens."""
+    from pi0_jax.tokenizer import _STATE_BIN_EDGES
+
+    values = np.concatenate([[-2.0], _STATE_BIN_EDGES])     # one value per bin: -1 (below the range), 0 .. 255
+    return max(int(core.tokenize(p, np.full(STATE_DIMS, v))[1].sum()) for p in prompts for v in values) + STATE_DIMS
 
 
 def preset_policy(name: str, env, *, num_steps: int = 10, dtype: str | None = None, seed: int = 0,
