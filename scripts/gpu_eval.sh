@@ -27,10 +27,12 @@ python3 -c "import mujoco.mjx" 2>/dev/null ||
 export PYTHONPATH=/tmp/site:${TREE:-$PWD} PYTHONUNBUFFERED=1
 [ -n "${DET:-}" ] && export XLA_FLAGS="--xla_gpu_deterministic_ops=true ${XLA_FLAGS:-}"
 nvidia-smi -L; date -u
+# -P: `python3 -m` would put the working directory first on sys.path, so TREE's package would never be imported
+python3 -P -c "import pi0_jax; print('package:', pi0_jax.__file__)"
 run() {   # NAME GPUS, then eval flags
   local name=$1${TAG:-} gpus=$2; shift 2
   local t0; t0=$(date +%s.%N)
-  CUDA_VISIBLE_DEVICES=$gpus python3 -m pi0_jax.cli eval --videos 0 --no-progress --output-dir "$W/$name" "$@" ${EXTRA:-} > "$OUT/$name.log" 2>&1 ||
+  CUDA_VISIBLE_DEVICES=$gpus python3 -P -m pi0_jax.cli eval --videos 0 --no-progress --output-dir "$W/$name" "$@" ${EXTRA:-} > "$OUT/$name.log" 2>&1 ||
     { tail -30 "$OUT/$name.log"; return 1; }
   grep -E "\*\*|episodes in" "$OUT/$name.log"
   python3 - "$W/$name/eval_info.json" "$OUT/$name.json" "$t0" "$* ${EXTRA:-}" <<'EOF'
