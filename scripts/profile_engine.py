@@ -133,8 +133,8 @@ def main() -> None:
                         kernels=kernels, attention=attention, gemm=gemm, cache_dir=False)
         cameras, bucket = engine.plan(obs)
         packed = engine.pack(obs, cameras, bucket)
-        var = {"attention": str(engine.attention), "kernels": engine.kernels_for(args.batch), "gemm": gemm, "counts": {},
-               "median_ms": {}, "trace": {}}
+        var = {"attention": str(engine.attention), "kernels": engine.kernels_for(args.batch), "gemm": gemm,
+               "counts": {}, "median_ms": {}, "trace": {}}
         print(f"== attention {var['attention']}, kernels {var['kernels']}, gemm {gemm}", flush=True)
         for stage in ("encode_images", "fill_prefix_cache", "denoise", "infer"):
             exe = engine.executable(stage, args.batch, args.steps, cameras, bucket)

@@ -9,8 +9,8 @@ op for plain kernels and come here through `dense_interceptor` only for quantise
 is XLA's own choice: its autotuner picks a Triton GEMM or cuBLAS per dot, and a dot it gives to Triton keeps its
 bias, GELU and residual as separate fusions. "cublas" turns XLA's Triton GEMMs off, so every dot is a cuBLAS call
 that takes its bias, GELU-tanh and residual add as epilogues (SigLIP's Dense layers: 386 -> 305 kernels at B = 1).
-That is 8-10 % faster in the vision tower from B = 8, but slower in the denoise step and no faster for the whole
-call or in the simulator (docs/BENCHMARKS.md, "cuBLAS for every GEMM"), so it is an option, not the default.
+That is 5-10 % faster in the vision tower from B = 8, but slower in the denoise step and no faster for the whole
+call (docs/BENCHMARKS.md, "cuBLAS for every GEMM"), so it is an option, not the default.
 Programs with FP8 weights always get cuBLAS: XLA's autotuner compiles Triton FP8 GEMMs for minutes, then picks
 cuBLASLt anyway.
 """
