@@ -12,6 +12,7 @@
 #   bash scripts/gpu_eval.sh overlap                # scripts/overlap_probe.py: physics beside the policy on 2 streams
 #   TREE=.old_tree TAG=_old bash scripts/gpu_eval.sh pi05-1   # the same with an older package (carried, made by
 #                                                   # `git archive REV pi0_jax | tar -x -C .old_tree`); outputs *_old
+#   EXTRA="--gemm cublas" TAG=_cublas bash scripts/gpu_eval.sh pi05-1   # pi05-1 with cuBLAS for every GEMM
 #   POLICY=preset:dummy PER_TASK=1 EXTRA="--steps 10" bash scripts/gpu_eval.sh pi05-1   # CPU smoke run
 #
 # Needs the mujoco / mujoco-mjx wheels in .simwhl (carried); writes OUT/<phase>.json (the eval_info, per_episode

@@ -293,7 +293,7 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
         carry0 = first_carry(0)
         t0 = time.perf_counter()
         lowered = make_segment(env, policy, cfg, n_video, mesh).lower(params, carry0)
-        segment = lowered.compile(matmul.compiler_options(params))
+        segment = lowered.compile(matmul.compiler_options(params, policy.info.get("gemm", "xla")))
         need, free = program_bytes(segment), free_device_bytes(jax.local_devices()[0])
         tried.append({"batch": batch, "program_bytes": need, "free_bytes": free,
                       "compile_s": time.perf_counter() - t0})
