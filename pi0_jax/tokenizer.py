@@ -25,7 +25,7 @@ import sentencepiece
 logger = logging.getLogger(__name__)
 
 # 256 bins over [-1, 1]: the left edges of linspace(-1, 1, 257), as openpi writes it.
-_STATE_BIN_EDGES = np.linspace(-1.0, 1.0, 256 + 1)[:-1]
+STATE_BIN_EDGES = np.linspace(-1.0, 1.0, 256 + 1)[:-1]
 
 
 def clean_text(prompt: str) -> str:
@@ -34,7 +34,7 @@ def clean_text(prompt: str) -> str:
 
 def discretize_state(state: np.ndarray) -> np.ndarray:
     """(..., S) normalised state -> (..., S) int64 bin indices in [-1, 255] (below -1 -> -1; >= 0.9921875 -> 255)."""
-    return np.digitize(np.asarray(state, np.float64), _STATE_BIN_EDGES) - 1
+    return np.digitize(np.asarray(state, np.float64), STATE_BIN_EDGES) - 1
 
 
 def state_prompt(prompt: str, state: np.ndarray) -> str:

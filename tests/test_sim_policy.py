@@ -66,7 +66,7 @@ def test_state_prompt_bound_holds_every_state(demo_ckpt):
     from pi0_jax import checkpoint
     from pi0_jax import normalize as nz
     from pi0_jax.policy import PolicyCore
-    from pi0_jax.sim.tasks import TASKS
+    from pi0_jax.sim.tasks import STATE_DIM, TASKS
     from pi0_jax.tokenizer import PaligemmaTokenizer
 
     ckpt, tokenizer = demo_ckpt
@@ -75,7 +75,7 @@ def test_state_prompt_bound_holds_every_state(demo_ckpt):
                       nz.load_normalizer(ckpt, use_quantiles=True))
     prompts = [t.prompt for t in TASKS]
     bound = policies.state_prompt_tokens(core, prompts)
-    states = np.random.default_rng(0).uniform(-1.5, 1.5, (64, policies.STATE_DIMS))
+    states = np.random.default_rng(0).uniform(-1.5, 1.5, (64, STATE_DIM))
     longest = max(int(core.tokenize(p, s)[1].sum()) for p in prompts for s in states)
     assert longest <= bound < config.max_token_len
 

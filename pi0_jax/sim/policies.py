@@ -31,8 +31,7 @@ import numpy as np
 
 from pi0_jax.sim import expert as _expert
 from pi0_jax.sim.realtime import hold_chunk
-
-STATE_DIMS = 8   # LIBERO's state: the tool centre point's position and axis-angle, two finger joints
+from pi0_jax.sim.tasks import STATE_DIM
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -124,9 +123,9 @@ def model_policy(config, params, tok, normalizer, env, *, num_steps: int = 10, d
                       gemm=gemm)
     if core.action_dims != 7:
         raise ValueError(f"{name}: the model's actions have {core.action_dims} dims; this suite needs LIBERO's 7")
-    if core.reads_state and core.state_dim not in (None, STATE_DIMS):
+    if core.reads_state and core.state_dim not in (None, STATE_DIM):
         raise ValueError(f"{name}: the norm stats' state has {core.state_dim} dims; "
-                         f"this suite's state has {STATE_DIMS}")
+                         f"this suite's state has {STATE_DIM}")
     # agent view -> base_0_rgb, wrist -> left_wrist_0_rgb; a right wrist slot is absent, so never encoded
     cameras = tuple(k for k in ("base_0_rgb", "left_wrist_0_rgb") if k in core.slots)
     horizon, adim = config.action_horizon, config.action_dim
@@ -138,7 +137,7 @@ def model_policy(config, params, tok, normalizer, env, *, num_steps: int = 10, d
     tokens, masks = tokens[:, :bucket], masks[:, :bucket]
 
     def host_tokenize(task, state):   # π0.5 with the state in the prompt: the normalised state, per plan
-        out = [core.tokenize(prompts[int(t)], np.asarray(s[:STATE_DIMS], np.float64)) for t, s in zip(task, state)]
+        out = [core.tokenize(prompts[int(t)], np.asarray(s[:STATE_DIM], np.float64)) for t, s in zip(task, state)]
         tk, tm = np.stack([o[0] for o in out]), np.stack([o[1] for o in out])
         if tm[:, bucket:].any():
             raise ValueError(f"{name}: a state prompt took {int(tm.sum(1).max())} tokens, more than the "
@@ -196,12 +195,12 @@ def model_policy(config, params, tok, normalizer, env, *, num_steps: int = 10, d
 
 def state_prompt_tokens(core, prompts) -> int:
     """The most tokens any of these prompts takes with a discretised state written into it (π0.5): each prompt with
-    all STATE_DIMS dims in each of the 257 bins in turn, plus one token per dim, in case numbers tokenize longer side
+    all STATE_DIM dims in each of the 257 bins in turn, plus one token per dim, in case numbers tokenize longer side
     by side than alone. The suite's π0.5 thus runs a 48- or 64-token prompt bucket instead of all 200 tokens."""
-    from pi0_jax.tokenizer import _STATE_BIN_EDGES
+    from pi0_jax.tokenizer import STATE_BIN_EDGES
 
-    values = np.concatenate([[-2.0], _STATE_BIN_EDGES])     # one value per bin: -1 (below the range), 0 .. 255
-    return max(int(core.tokenize(p, np.full(STATE_DIMS, v))[1].sum()) for p in prompts for v in values) + STATE_DIMS
+    values = np.concatenate([[-2.0], STATE_BIN_EDGES])     # one value per bin: -1 (below the range), 0 .. 255
+    return max(int(core.tokenize(p, np.full(STATE_DIM, v))[1].sum()) for p in prompts for v in values) + STATE_DIM
 
 
 def preset_policy(name: str, env, *, num_steps: int = 10, dtype: str | None = None, seed: int = 0,

@@ -28,6 +28,8 @@ from pi0_jax.sim import scene
 
 SUITE_VERSION = 1
 NUM_INIT_STATES = 50
+# LIBERO's observation state (the tool centre point's position and axis-angle, two finger joints) and action dims
+STATE_DIM, ACTION_DIM = 8, 7
 
 PLACE, STACK, LIFT = 0, 1, 2
 LIFT_HEIGHT = 0.10           # block centre above this = lifted (rests at 0.02)

@@ -32,7 +32,6 @@ from pi0_jax.sim import tasks as _tasks   # also sets XLA:CPU flags (pi0_jax.sim
 from pi0_jax.tokenizer import PaligemmaTokenizer, clean_text
 
 CAMERAS = ("agentview", "wrist")          # npz keys, in model slot order (base_0_rgb, left_wrist_0_rgb)
-STATE_DIM, ACTION_DIM = 8, 7
 
 
 @dataclasses.dataclass(frozen=True)
@@ -110,8 +109,8 @@ def load_demos(demos_dir: str | Path, prompts: Sequence[str], tokenizer_path: st
     lengths = [int(r["length"]) for r in rows]
     n, res = sum(lengths), int(meta["resolution"])
     images = np.empty((n, len(CAMERAS), res, res, 3), np.uint8)   # preallocated: the full suite is ~10 GB
-    state = np.empty((n, STATE_DIM), np.float32)
-    actions = np.empty((n, ACTION_DIM), np.float32)
+    state = np.empty((n, _tasks.STATE_DIM), np.float32)
+    actions = np.empty((n, _tasks.ACTION_DIM), np.float32)
     end = np.empty((n,), np.int32)
     task = np.empty((n,), np.int32)
     start = 0
