@@ -3,12 +3,15 @@
 "flax": the Flax SigLIP as the engine ran it up to commit 7799238 (blocks unrolled, one Dense per q, k, v, cuDNN
 attention; FP8 kernels went through `ops.matmul.dense_interceptor` in openpi's (in, out) layout), loaded from that
 commit's `pi0_jax/siglip.py` (`--old-siglip`, e.g. `git show 7799238:pi0_jax/siglip.py > old_siglip.py`).
-"engine": `pi0_jax.engine.vision` (fused q/k/v, FP8 weights (out, in)). Each in bf16 and, with `--fp8`, with the
-"vision" FP8 scheme (activation scales calibrated on two batches of smooth random images). Timing is round-robin
-over the variants (one call of each per round), so drift hits all alike; kernels are counted in the optimized HLO,
-and `--trace` sums a profiler trace's kernels at the first batch size.
+"engine-ATTENTION": `pi0_jax.engine.vision` (fused q/k/v, FP8 weights (out, in)) with that vision attention
+(`--attention`, repeatable), and "engine-pallas-Q,KV,WARPS,STAGES" the Pallas attention with other blocks
+(`--pallas-blocks`). Each in bf16 and, with `--fp8`, with the "vision" FP8 scheme (activation scales calibrated on
+two batches of smooth random images). Actions are compared with the first variant of each format. Timing is
+round-robin over the variants (one call of each per round), so drift hits all alike; kernels are counted in the
+optimized HLO, and `--trace` sums a profiler trace's kernels at the first batch size.
 
     python scripts/vision_probe.py --old-siglip old_siglip.py --batch 1,8,64 --fp8 --out vision.json
+    python scripts/vision_probe.py --attention cudnn --attention pallas --pallas-blocks 128,64,8,2 --trace
 """
 
 from __future__ import annotations
@@ -31,7 +34,7 @@ from profile_engine import count_ops, kernel_times  # noqa: E402
 from pi0_jax import benchmark  # noqa: E402
 from pi0_jax.config import get_config  # noqa: E402
 from pi0_jax.engine import programs, weights as weights_lib  # noqa: E402
-from pi0_jax.ops import matmul  # noqa: E402
+from pi0_jax.ops import matmul, vision_attention  # noqa: E402
 from pi0_jax.quant import schemes  # noqa: E402
 
 
@@ -45,20 +48,32 @@ def old_encoder(path: Path, config, img: dict):
     return lambda p, x: module.apply({"params": p}, x)[0], params
 
 
-def new_encoder(config, img: dict):
+def new_encoder(config, img: dict, attention: str = "cudnn", blocks: vision_attention.Blocks | None = None):
+    """The engine's tower with this vision attention; blocks: the Pallas kernel's, in place of its defaults."""
     w = weights_lib.vision_weights(img, jnp.dtype(config.dtype))
     w["blocks"] = weights_lib.unstack(w["blocks"], config.siglip.depth)
-    attention = programs.Attention(vision="cudnn")
+    spec = programs.Attention(vision=attention)
 
     def run(w, x):
-        return programs.encode_images(config, {"img": w}, x[None], unroll=True, attention=attention)
+        kernel = vision_attention.attention
+        if blocks:  # the kernel is looked up when the program is traced
+            vision_attention.attention = functools.partial(kernel, blocks=blocks)
+        try:
+            return programs.encode_images(config, {"img": w}, x[None], unroll=True, attention=spec)
+        finally:
+            vision_attention.attention = kernel
     return run, w
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--preset", default="pi0_base", help="model preset, random weights (default: %(default)s)")
-    p.add_argument("--old-siglip", type=Path, required=True, help="siglip.py of the commit before the change")
+    p.add_argument("--old-siglip", type=Path, default=None,
+                   help="siglip.py of the commit before the engine owned the tower (adds the flax/* variants)")
+    p.add_argument("--attention", action="append", choices=("cudnn", "xla", "pallas"), default=None,
+                   help="the engine's vision attention; repeat it to compare (default: cudnn)")
+    p.add_argument("--pallas-blocks", action="append", default=[], metavar="Q,KV,WARPS,STAGES",
+                   help="one more engine/pallas variant with these `ops.vision_attention.Blocks`; repeatable")
     p.add_argument("--batch", default="1,8,64", help="images per call = batch x cameras (default: %(default)s)")
     p.add_argument("--cameras", type=int, default=3, help="images per batch element (default: %(default)s)")
     p.add_argument("--fp8", action="store_true", help="also the 'vision' FP8 scheme, both paths")
@@ -77,8 +92,16 @@ def main() -> None:
         imgs["fp8"] = schemes.quantize_params(config, params, "vision", amax)["PaliGemma"]["img"]
     variants = {}
     for fmt, img in imgs.items():
-        variants[f"flax/{fmt}"] = old_encoder(args.old_siglip, config, img)
-        variants[f"engine/{fmt}"] = new_encoder(config, img)
+        if args.old_siglip:
+            variants[f"flax/{fmt}"] = old_encoder(args.old_siglip, config, img)
+        for attention in args.attention or ["cudnn"]:
+            variants[f"engine-{attention}/{fmt}"] = new_encoder(config, img, attention)
+        for spec in args.pallas_blocks:
+            blocks = vision_attention.Blocks(*(int(v) for v in spec.split(",")))
+            variants[f"engine-pallas-{spec}/{fmt}"] = new_encoder(config, img, "pallas", blocks)
+    firsts = {}  # format -> the first variant of it (the reference of rel_l2_vs_first)
+    for name in variants:
+        firsts.setdefault(name.split("/")[1], name)
     rows, s = [], config.image_size
     for bi, batch in enumerate(int(b) for b in args.batch.split(",")):
         n = batch * args.cameras
@@ -106,12 +129,11 @@ def main() -> None:
                 times[name].append(time.perf_counter() - t0)
         for row in rows[-len(variants):]:
             name = row["variant"]
-            ref = outs[f"flax/{name.split('/')[1]}"]
+            ref, bf16 = outs[firsts[name.split("/")[1]]], outs[firsts["bf16"]]
             row["median_ms"] = float(np.median(times[name]) * 1e3)
             row["p10_ms"], row["p90_ms"] = (float(np.percentile(times[name], q) * 1e3) for q in (10, 90))
-            row["rel_l2_vs_flax_same_format"] = float(np.linalg.norm(outs[name] - ref) / np.linalg.norm(ref))
-            row["rel_l2_vs_flax_bf16"] = float(np.linalg.norm(outs[name] - outs["flax/bf16"])
-                                               / np.linalg.norm(outs["flax/bf16"]))
+            row["rel_l2_vs_first_same_format"] = float(np.linalg.norm(outs[name] - ref) / np.linalg.norm(ref))
+            row["rel_l2_vs_first_bf16"] = float(np.linalg.norm(outs[name] - bf16) / np.linalg.norm(bf16))
             if args.trace and bi == 0:
                 fn, w = variants[name]
                 row["trace"] = kernel_times(functools.partial(exes[name], w, x))

@@ -178,6 +178,42 @@ def test_engine_with_kernels_skips_a_camera_masked_everywhere():
     np.testing.assert_allclose(got, ref, **TOL)
 
 
+@pytest.mark.parametrize("head_dim", [20, 64, 72])
+def test_vision_attention_kernel_matches_xla(head_dim):
+    """SigLIP's attention kernel reads q, k, v in place from the fused GEMM's output. Head dims: 20 (the dummy
+    tower's: two overlapping pieces), 64 (one piece), 72 (So400m's: 64 + the last 16). f32 against Flax's attention;
+    bf16 against f32 within bf16 rounding."""
+    import flax.linen as nn
+
+    from pi0_jax.ops import vision_attention as va
+
+    images, t, heads = 3, 64, 2
+    qkv = _rand(7, images * t, 3 * heads * head_dim)
+    x = qkv.reshape(images, t, 3, heads, head_dim)
+    ref = nn.dot_product_attention(x[:, :, 0], x[:, :, 1], x[:, :, 2]).reshape(images * t, heads * head_dim)
+    for blocks in (va.Blocks(), va.Blocks(q=16, kv=32)):   # one key block, and an online softmax over two
+        got = va.attention(qkv, images=images, num_heads=heads, blocks=blocks)
+        np.testing.assert_allclose(got, ref, **TOL)
+    low = va.attention(qkv.astype(jnp.bfloat16), images=images, num_heads=heads).astype(jnp.float32)
+    assert float(jnp.linalg.norm(low - ref) / jnp.linalg.norm(ref)) < 1e-2
+    assert [p[1] for p in va.pieces(head_dim)] == {20: [16, 16], 64: [64], 72: [64, 16]}[head_dim]
+    with pytest.raises(ValueError, match="head dim"):
+        va.pieces(8)
+    with pytest.raises(ValueError, match="not 5 images"):
+        va.attention(qkv, images=5, num_heads=heads)
+
+
+def test_engine_with_vision_kernel_matches_reference(model):
+    """The engine with the Pallas vision attention (the dummy tower: 2 heads of 20) samples the reference's actions;
+    element 1's last camera is masked, the prompts padded."""
+    config, params = model
+    obs = make_obs(config, valid_lens=(13, 21))
+    noise = jax.random.normal(jax.random.key(3), (2, config.action_horizon, config.action_dim))
+    ref = jax.jit(pi0.sample_actions, static_argnums=(0, 4))(config, params, obs, noise, 2)
+    engine = Engine(config, params, attention="vision=pallas", cache_dir=False)
+    np.testing.assert_allclose(engine.sample_actions(obs, jnp.array(noise), 2), ref, **TOL)
+
+
 def test_kernel_flag_is_checked():
     config = get_config("dummy")
     params = randomize(pi0.param_shapes(config))

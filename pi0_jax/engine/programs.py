@@ -66,7 +66,8 @@ def expert_path(kernels: str, batch: int, expert_weights, platform: str | None =
 class Attention:
     """Each stage's attention: "xla" (the reference's ops: logits, softmax, weighted sum) or "cudnn" (one fused
     flash kernel, `ops.attention.fused`: cuDNN on a GPU, its XLA form elsewhere; masks by lengths, so the prefix
-    fill puts each element's valid tokens first). The denoise step's may also be "auto": "cudnn" from
+    fill puts each element's valid tokens first). Vision's may also be "pallas" (`ops.vision_attention`: q, k and v
+    read in place from the fused GEMM's output). The denoise step's may also be "auto": "cudnn" from
     CUDNN_DENOISE_MIN_BATCH on (π0: CUDNN_DENOISE_MIN_BATCH_MASKED), else "xla" (`at_batch` resolves it; the
     programs do). It is unused by the Pallas kernels."""
 
@@ -76,9 +77,9 @@ class Attention:
 
     def __post_init__(self):
         for stage, value in dataclasses.asdict(self).items():
-            if value not in ("xla", "cudnn") and not (stage == "denoise" and value == "auto"):
-                raise ValueError(f"attention for {stage} must be 'xla' or 'cudnn'{' or auto' * (stage == 'denoise')}"
-                                 f", got {value!r}")
+            extra = {"vision": ("pallas",), "denoise": ("auto",)}.get(stage, ())
+            if value not in ("xla", "cudnn", *extra):
+                raise ValueError(f"attention for {stage} must be one of {('xla', 'cudnn', *extra)}, got {value!r}")
 
     def at_batch(self, batch: int, suffix_mask: bool = False) -> Attention:
         """The concrete choice of every stage for a program of this batch size; suffix_mask: the model's suffix

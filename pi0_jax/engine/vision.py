@@ -7,7 +7,8 @@ than three at every batch but bf16 from ~96 images, where cutting its output in 
 docs/BENCHMARKS.md.) Numerics as Flax computes them: the
 patch convolution and the position add in f32; LayerNorm statistics in f32 (Flax's fast variance, E[x²] - E[x]²,
 eps 1e-6), the normalised value cast to the activation dtype; each Dense in the activation dtype with its bias added
-in it; GELU-tanh; attention as Flax's `dot_product_attention` ("xla") or one fused kernel ("cudnn").
+in it; GELU-tanh; attention as Flax's `dot_product_attention` ("xla"), cuDNN's fused kernel ("cudnn"), or a Pallas
+kernel that reads q, k and v in place from the fused GEMM's output ("pallas", `ops.vision_attention`).
 
 Axis legend: B images, T tokens (256 patches), D width, N heads, H head dim.
 """
@@ -22,6 +23,7 @@ import jax.numpy as jnp
 from pi0_jax.config import SiglipConfig
 from pi0_jax.engine import layers
 from pi0_jax.ops import attention as ops_attention
+from pi0_jax.ops import vision_attention
 
 
 def layer_norm(x, p, dtype):
@@ -38,14 +40,16 @@ def _dense(x, w, b):
 def block(cfg: SiglipConfig, w, x, *, attention: str):
     """One pre-LN encoder block. x (B, T, D) in the activation dtype."""
     dtype = x.dtype
+    b, t = x.shape[:2]
     h = layer_norm(x, w["ln1"], dtype)
-    q, k, v = einops.rearrange(_dense(h, w["qkv"], w["qkv_bias"]), "B T (three N H) -> three B T N H", three=3,
-                               N=cfg.num_heads)
-    if attention == "cudnn":
-        y = ops_attention.fused(q, k, v)
+    qkv = _dense(h, w["qkv"], w["qkv_bias"])
+    if attention == "pallas":   # reads q, k, v in place: no copies
+        y = vision_attention.attention(qkv.reshape(b * t, -1), images=b, num_heads=cfg.num_heads).reshape(b, t, -1)
     else:
-        y = nn.dot_product_attention(q, k, v, dtype=dtype)
-    x = x + _dense(einops.rearrange(y, "B T N H -> B T (N H)"), w["out"], w["out_bias"])
+        q, k, v = einops.rearrange(qkv, "B T (three N H) -> three B T N H", three=3, N=cfg.num_heads)
+        y = ops_attention.fused(q, k, v) if attention == "cudnn" else nn.dot_product_attention(q, k, v, dtype=dtype)
+        y = einops.rearrange(y, "B T N H -> B T (N H)")
+    x = x + _dense(y, w["out"], w["out_bias"])
     h = layer_norm(x, w["ln2"], dtype)
     h = nn.gelu(_dense(h, w["fc1"], w["fc1_bias"]), approximate=True)
     return x + _dense(h, w["fc2"], w["fc2_bias"])

@@ -1,0 +1,122 @@
+"""SigLIP's self-attention as one Pallas kernel (Triton on GPU, interpret mode on CPU) that reads q, k and v where
+the fused q/k/v GEMM wrote them and writes the heads side by side, as the out-projection reads them.
+
+cuDNN's fused attention takes q, k and v as three buffers, so feeding it from one (D, 3 N H) GEMM costs three copies
+per layer (81 of the tower's 386 kernels at B = 1, docs/BENCHMARKS.md) and a memset. This kernel reads each head's
+columns in place. Triton's blocks are powers of two, so a head dim that is not one (So400m's 72) is read as two
+pieces that are, both inside the head: [0, 64) and the last 16 columns [56, 72). The second piece's first 8 columns
+repeat the first piece's: they are zeroed in q, so each product counts once, and left out of the second piece's
+store.
+
+Numerics as cuDNN's kernel (`ops.attention.fused`): f32 logits scaled by 1 / sqrt(H), an online softmax in f32 over
+key blocks, the probabilities rounded to the activation dtype for the PV product with an f32 accumulator, the output
+rounded once. Flax's XLA attention (the "xla" path) scales q in the dtype and forms the logits in it; in f32 the
+two agree to rounding.
+
+Axis legend: R rows (images x T tokens, image-major), T tokens per image, N heads, H head dim.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.experimental import pallas as pl
+from jax.experimental.pallas import triton as plgpu
+
+ALIGN = 16  # Triton's smallest dot dimension
+NEG = float(np.finfo(np.float32).min)  # the running max before any key (no key is masked here)
+
+
+@dataclasses.dataclass(frozen=True)
+class Blocks:
+    """Queries per program, keys per loop step (powers of two, shrunk to divide T) and Triton launch parameters."""
+
+    q: int = 64
+    kv: int = 64
+    num_warps: int = 4
+    num_stages: int = 2
+
+
+def pieces(head_dim: int) -> tuple:
+    """(offset, width, repeated) column pieces of one head: power-of-two widths >= 16 inside [0, head_dim) that cover
+    it; `repeated` leading columns of a piece are the previous piece's last ones."""
+    if head_dim < ALIGN:
+        raise ValueError(f"the Pallas vision attention needs a head dim >= {ALIGN}, got {head_dim}")
+    first = 1 << (head_dim.bit_length() - 1)
+    if first == head_dim:
+        return ((0, head_dim, 0),)
+    width = max(ALIGN, 1 << (head_dim - first - 1).bit_length())
+    return (0, first, 0), (head_dim - width, width, first - (head_dim - width))
+
+
+def _fit(block: int, n: int) -> int:
+    """The largest power of two <= block that divides n."""
+    while n % block:
+        block //= 2
+    return block
+
+
+def _dot(a, b, trans_b: bool = False):
+    dims = (((1,), (1 if trans_b else 0,)), ((), ()))
+    return jax.lax.dot_general(a, b, dims, preferred_element_type=jnp.float32)
+
+
+def _kernel(qkv_ref, o_ref, *, t, bq, bkv, width, hd, parts, scale):
+    """Program (i, n, qi): query block qi of image i, head n, over all T keys of image i."""
+    i, n, qi = pl.program_id(0), pl.program_id(1), pl.program_id(2)
+    rows = pl.ds(i * t + qi * bq, bq)
+
+    def cols(base, part):
+        return pl.ds(base + n * hd + part[0], part[1])
+
+    qs = []
+    for part in parts:
+        q = qkv_ref[rows, cols(0, part)]
+        if part[2]:
+            q = jnp.where(jnp.arange(part[1])[None, :] >= part[2], q, jnp.zeros_like(q))
+        qs.append(q)
+    dtype = qs[0].dtype
+
+    def body(j, carry):
+        o, mx, l = carry
+        keys = pl.ds(i * t + j * bkv, bkv)
+        logits = sum(_dot(q, qkv_ref[keys, cols(width, part)], trans_b=True) for q, part in zip(qs, parts)) * scale
+        m_new = jnp.maximum(mx, jnp.max(logits, axis=1))
+        corr = jnp.exp(mx - m_new)
+        p = jnp.exp(logits - m_new[:, None])
+        pv = p.astype(dtype)
+        o = tuple(acc * corr[:, None] + _dot(pv, qkv_ref[keys, cols(2 * width, part)]) for acc, part in zip(o, parts))
+        return o, m_new, l * corr + jnp.sum(p, axis=1)
+
+    init = (tuple(jnp.zeros((bq, part[1]), jnp.float32) for part in parts), jnp.full((bq,), NEG, jnp.float32),
+            jnp.zeros((bq,), jnp.float32))
+    o, _, l = jax.lax.fori_loop(0, t // bkv, body, init)
+    for acc, part in zip(o, parts):
+        out = (acc / l[:, None]).astype(o_ref.dtype)
+        if part[2]:
+            plgpu.store(o_ref.at[rows, cols(0, part)], out, mask=jnp.arange(part[1])[None, :] >= part[2])
+        else:
+            o_ref[rows, cols(0, part)] = out
+
+
+def attention(qkv, *, images: int, num_heads: int, blocks: Blocks = Blocks()):
+    """Softmax attention within each image: qkv (R, 3 N H), each row [q | k | v] with heads side by side (the fused
+    GEMM's output, bias added), rows image-major -> (R, N H) in qkv's dtype."""
+    r, c = qkv.shape
+    hd, t = c // (3 * num_heads), r // images
+    if hd * 3 * num_heads != c or t * images != r:
+        raise ValueError(f"qkv {qkv.shape} is not {images} images x T rows of 3 x {num_heads} heads")
+    bq, bkv = _fit(blocks.q, t), _fit(blocks.kv, t)
+    if min(bq, bkv) < ALIGN:
+        raise ValueError(f"the Pallas vision attention needs T divisible by {ALIGN}, got {t}")
+    kernel = functools.partial(_kernel, t=t, bq=bq, bkv=bkv, width=num_heads * hd, hd=hd, parts=pieces(hd),
+                               scale=float(hd) ** -0.5)
+    on_cpu = jax.default_backend() == "cpu"
+    params = None if on_cpu else plgpu.CompilerParams(num_warps=blocks.num_warps, num_stages=blocks.num_stages)
+    return pl.pallas_call(kernel, grid=(images, num_heads, t // bq),
+                          out_shape=jax.ShapeDtypeStruct((r, num_heads * hd), qkv.dtype), interpret=on_cpu,
+                          compiler_params=params, name="vision_attention")(qkv)
