@@ -65,9 +65,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--unroll-steps", action="store_true", help="unroll the denoise loop as well")
     p.add_argument("--attention", default="auto", type=attention_spec,
                    help="each stage's attention: xla (the reference's ops), cudnn (one fused flash kernel), auto "
-                        "(the faster per stage on a GPU: cuDNN in vision and the prefix, in the denoise step cuDNN from "
-                        "batch 3 (π0: 4) and XLA below; XLA on a CPU), or per "
-                        "stage, e.g. vision=cudnn,prefix=xla,denoise=auto (default: %(default)s)")
+                        "(the faster per stage on a GPU: in vision a Pallas kernel that reads q, k, v in place, cuDNN "
+                        "in the prefix, in the denoise step cuDNN from batch 3 (π0: 4) and XLA below; XLA on a CPU), "
+                        "or per stage, e.g. vision=pallas,prefix=xla,denoise=auto (vision may be pallas) "
+                        "(default: %(default)s)")
     p.add_argument("--kernels", choices=KERNELS, default="auto",
                    help="the action expert's layers as XLA ops, as the fused Pallas kernels of pi0_jax.ops "
                         "(Triton on GPU), or auto: the kernels at batch 1 and 2 on a GPU, XLA otherwise; each row "

@@ -186,13 +186,14 @@ def test_attention_and_kernel_choices():
     assert A.parse("cudnn") == A("cudnn", "cudnn", "cudnn") and A.parse("prefix=cudnn") == A(prefix="cudnn")
     assert str(A.parse(str(programs.AUTO_GPU))) == str(programs.AUTO_GPU)
     big, small = programs.CUDNN_DENOISE_MIN_BATCH, programs.CUDNN_DENOISE_MIN_BATCH - 1   # measured: 3 faster, 1 slower
-    assert programs.AUTO_GPU.at_batch(big) == A("cudnn", "cudnn", "cudnn") and big <= 8
-    assert programs.AUTO_GPU.at_batch(small) == A("cudnn", "cudnn", "xla") and small >= 1
+    assert programs.AUTO_GPU.at_batch(big) == A("pallas", "cudnn", "cudnn") and big <= 8
+    assert programs.AUTO_GPU.at_batch(small) == A("pallas", "cudnn", "xla") and small >= 1
+    assert A.parse("vision=pallas") == A(vision="pallas")
     masked = programs.CUDNN_DENOISE_MIN_BATCH_MASKED   # π0: measured 4 faster, 3 slower
     assert programs.AUTO_GPU.at_batch(masked - 1, suffix_mask=True).denoise == "xla" and masked > big
     assert programs.AUTO_GPU.at_batch(masked, suffix_mask=True).denoise == "cudnn"
     assert A.parse("cudnn").at_batch(1) == A.parse("cudnn")
-    for bad in ("flash", "prefix=flash", "decoder=cudnn", "prefix", "vision=auto"):
+    for bad in ("flash", "prefix=flash", "decoder=cudnn", "prefix", "vision=auto", "prefix=pallas", "pallas"):
         with pytest.raises(ValueError, match="attention"):
             A.parse(bad)
     layers = [{"qkv": jnp.zeros((4, 4))}]

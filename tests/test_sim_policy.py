@@ -114,13 +114,14 @@ def test_eval_cli_with_checkpoint(demo_ckpt, tmp_path):
     assert cli.main(["eval", "--policy", str(ckpt), "--tokenizer", str(tokenizer), "--suite", "goal",
                      "--episodes-per-task", "1", "--batch", "4", "--steps", "10", "--replan-steps", "5",
                      "--num-steps", str(NUM_STEPS), "--resolution", str(RES), "--videos", "1",
-                     "--gemm", "cublas", "--output-dir", str(out), "--no-progress"]) == 0
+                     "--gemm", "xla", "--attention", "vision=pallas", "--output-dir", str(out), "--no-progress"]) == 0
     info = json.loads((out / "eval_info.json").read_text())
     agg = info["aggregated"]
     assert agg["n_episodes"] == 4 and 0.0 <= agg["pc_success"] <= 100.0
     assert all(e["length"] == 10 or e["success"] for e in info["per_episode"])
     assert info["config"]["policy_info"]["model"] == "dummy_pi05"
-    assert info["config"]["policy_info"]["gemm"] == "cublas"      # recorded; it changes nothing off a GPU
+    assert info["config"]["policy_info"]["gemm"] == "xla"      # recorded; it changes nothing off a GPU
+    assert info["config"]["policy_info"]["attention"].startswith("vision=pallas,")   # the vision kernel, interpreted
     assert len(info["video_paths"]) == 1
 
 

@@ -33,9 +33,11 @@ NEG = float(np.finfo(np.float32).min)  # the running max before any key (no key 
 
 @dataclasses.dataclass(frozen=True)
 class Blocks:
-    """Queries per program, keys per loop step (powers of two, shrunk to divide T) and Triton launch parameters."""
+    """Queries per program, keys per loop step (powers of two, shrunk to divide T) and Triton launch parameters.
+    Defaults: of six settings, the one within noise of the best at 3 and 24 images and the best at 192 (H100,
+    docs/BENCHMARKS.md)."""
 
-    q: int = 64
+    q: int = 128
     kv: int = 64
     num_warps: int = 4
     num_stages: int = 2

@@ -73,11 +73,15 @@ def add_eval_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--sampler", choices=("engine", "reference"), default="engine",
                    help="how a checkpoint policy samples: the compiled engine's programs (default), or openpi's "
                         "reference structure (pi0.sample_actions; the parity path, slower)")
-    p.add_argument("--gemm", choices=("xla", "cublas"), default="xla",   # pi0_jax.ops.matmul.GEMMS (imports jax)
-                   help="the library of a checkpoint or preset policy's GEMMs on a GPU: xla (XLA's autotuned choice "
-                        "of Triton or cuBLAS per GEMM) or cublas (XLA's Triton GEMMs off for the rollout program; "
-                        "faster in the vision tower from batch 8, slower in the denoise step); FP8 weights always "
-                        "get cublas (default: %(default)s)")
+    p.add_argument("--gemm", choices=("xla", "cublas"), default="cublas",   # pi0_jax.ops.matmul.GEMMS (imports jax)
+                   help="the library of a checkpoint or preset policy's GEMMs on a GPU: cublas (XLA's Triton GEMMs "
+                        "off for the rollout program: bias, GELU and residual become cuBLAS epilogues; π0.5's "
+                        "rollout 5 %% faster at 264 environments) or xla (XLA's autotuned choice of Triton or cuBLAS "
+                        "per GEMM); FP8 weights always get cublas (default: %(default)s)")
+    p.add_argument("--attention", default="auto",
+                   help="a checkpoint or preset policy's attention per stage, as `pi0-jax benchmark --attention`: "
+                        "auto (the faster per stage and batch on a GPU, XLA's ops on a CPU), xla, cudnn, or e.g. "
+                        "vision=pallas,prefix=cudnn,denoise=auto (default: %(default)s)")
     p.add_argument("--tokenizer", type=Path, default=None, metavar="FILE",
                    help="SentencePiece model for a checkpoint policy (default: CKPT/tokenizer.model or "
                         "CKPT/assets/tokenizer.model)")
@@ -185,7 +189,8 @@ def run(args: argparse.Namespace) -> int:
                      num_steps=default_num_steps(args.policy) if args.num_steps is None else args.num_steps,
                      execution=args.execution, latency_steps=args.latency_steps, reuse_prefix=args.reuse_prefix)
     kw = {"tokenizer_path": args.tokenizer, "norm_stats": args.norm_stats, "dtype": args.dtype,
-          "sampler": args.sampler, "quant": args.quant, "gemm": args.gemm}
+          "sampler": args.sampler, "quant": args.quant, "gemm": args.gemm,
+          "attention": args.attention}
     info = evaluate(args.policy, cfg, args.output_dir, progress=not args.no_progress, policy_kwargs=kw,
                     profile=args.profile)
     if jax.process_index() == 0:

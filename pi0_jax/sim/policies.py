@@ -86,21 +86,23 @@ def random_policy(replan_steps: int) -> SimPolicy:
 def checkpoint_policy(path: str | os.PathLike, env, *, tokenizer_path=None, num_steps: int = 10,
                       norm_stats: str | os.PathLike | None = None, dtype: str | None = None,
                       sampler: str = "engine", realtime=None, replan_steps: int | None = None,
-                      quant: str | None = None, gemm: str = "xla") -> SimPolicy:
+                      quant: str | None = None, gemm: str = "xla", attention: str = "auto") -> SimPolicy:
     """A pi0-jax checkpoint directory (`pi0-jax convert` output) as a batched in-jit policy for `env`'s tasks.
-    quant: a number format for the weights (`quantize_for_suite`), None = as stored; gemm: see `model_policy`."""
+    quant: a number format for the weights (`quantize_for_suite`), None = as stored; gemm, attention: see
+    `model_policy`."""
     from pi0_jax.policy import load_parts
 
     config, params, tok, normalizer = load_parts(path, tokenizer_path=tokenizer_path, norm_stats=norm_stats,
                                                  dtype=dtype)
     params = quantize_for_suite(config, params, tok, normalizer, quant)
     return model_policy(config, params, tok, normalizer, env, num_steps=num_steps, name=str(path), sampler=sampler,
-                        realtime=realtime, replan_steps=replan_steps, quant=quant, gemm=gemm)
+                        realtime=realtime, replan_steps=replan_steps, quant=quant, gemm=gemm, attention=attention)
 
 
 def model_policy(config, params, tok, normalizer, env, *, num_steps: int = 10, dynamic_steps: bool = False,
                  name: str = "model", sampler: str = "engine", action_dims: int | None = None, realtime=None,
-                 replan_steps: int | None = None, quant: str | None = None, gemm: str = "xla") -> SimPolicy:
+                 replan_steps: int | None = None, quant: str | None = None, gemm: str = "xla",
+                 attention: str = "auto") -> SimPolicy:
     """A π0 / π0.5 with its tokenizer and normaliser as a batched in-jit policy for `env`'s tasks, through the one
     policy pipeline (`pi0_jax.policy.PolicyCore.program`: the engine, or the reference sampler when asked).
 
@@ -109,6 +111,7 @@ def model_policy(config, params, tok, normalizer, env, *, num_steps: int = 10, d
     params None: the transforms only (`observation`), e.g. for calibration batches. quant: the number format the
     params were quantised to (`quantize_for_suite`), recorded in the policy's info. gemm: the library of the
     rollout's GEMMs on a GPU (`pi0_jax.ops.matmul.compiler_options`; the rollout compiles with `info["gemm"]`).
+    attention: each stage's attention (`pi0_jax.engine.programs.Attention.parse`), recorded in the info.
     realtime: a `pi0_jax.sim.realtime.Realtime` (latency, sync / naive / rtc / conditioned execution, prefix reuse;
     needs replan_steps); the policy state is then a dict (chunk, previous chunk, cached prefix, counters) instead of the
     chunk itself."""
@@ -120,7 +123,7 @@ def model_policy(config, params, tok, normalizer, env, *, num_steps: int = 10, d
 
     action_dims = action_dims or normalizer.dim(nz.ACTIONS) or 7    # no stats: LIBERO's 7
     core = PolicyCore(config, params, tok, normalizer, num_steps=num_steps, sampler=sampler, action_dims=action_dims,
-                      gemm=gemm)
+                      gemm=gemm, attention=attention)
     if core.action_dims != 7:
         raise ValueError(f"{name}: the model's actions have {core.action_dims} dims; this suite needs LIBERO's 7")
     if core.reads_state and core.state_dim not in (None, STATE_DIM):
@@ -177,7 +180,7 @@ def model_policy(config, params, tok, normalizer, env, *, num_steps: int = 10, d
         pparams["num_steps"] = np.int32(num_steps)
     info = {"model": config.name, "pi05": config.pi05, "dtype": config.dtype, "num_steps": num_steps,
             "action_horizon": horizon, "normalization": normalizer.convention.value, "sampler": core.sampler,
-            "quant": quant or "none", "gemm": core.gemm, "prompt_tokens": bucket}
+            "quant": quant or "none", "gemm": core.gemm, "attention": str(core.attention), "prompt_tokens": bucket}
     init, act, stats = (lambda b: jnp.zeros((b, horizon, core.action_dims))), (lambda ps, es, k: (ps[:, k], ps)), None
     if realtime is not None and not realtime.is_default:
         from pi0_jax.sim import realtime as rt_lib
@@ -205,7 +208,7 @@ def state_prompt_tokens(core, prompts) -> int:
 
 def preset_policy(name: str, env, *, num_steps: int = 10, dtype: str | None = None, seed: int = 0,
                   sampler: str = "engine", realtime=None, replan_steps: int | None = None,
-                  quant: str | None = None, gemm: str = "xla") -> SimPolicy:
+                  quant: str | None = None, gemm: str = "xla", attention: str = "auto") -> SimPolicy:
     """Random weights of a preset (`pi0_jax.config`), e.g. a full-size π0.5, with identity normalisation, the
     embedded model's tokenizer and LIBERO's 7 action dims: the protocol's timing without a trained checkpoint
     (the success rate is ~0)."""
@@ -222,7 +225,7 @@ def preset_policy(name: str, env, *, num_steps: int = 10, dtype: str | None = No
     params = quantize_for_suite(config, pi0.random_params(config, seed), tok, normalizer, quant)
     return model_policy(config, params, tok, normalizer, env, num_steps=num_steps,
                         name=f"preset:{name} (random weights)", sampler=sampler, realtime=realtime,
-                        replan_steps=replan_steps, quant=quant, gemm=gemm)
+                        replan_steps=replan_steps, quant=quant, gemm=gemm, attention=attention)
 
 
 def make_policy(spec: str, env, replan_steps: int, **kw) -> SimPolicy:
@@ -232,7 +235,8 @@ def make_policy(spec: str, env, replan_steps: int, **kw) -> SimPolicy:
     if spec == "random":
         return random_policy(replan_steps)
     if spec.startswith("preset:"):
-        kw = {k: v for k, v in kw.items() if k in ("num_steps", "dtype", "sampler", "realtime", "quant", "gemm")}
+        kw = {k: v for k, v in kw.items() if k in ("num_steps", "dtype", "sampler", "realtime", "quant", "gemm",
+                                                  "attention")}
         return preset_policy(spec.removeprefix("preset:"), env, replan_steps=replan_steps, **kw)
     if not Path(spec).is_dir():
         raise FileNotFoundError(f"--policy {spec!r}: not 'expert', 'random', 'preset:NAME' or a checkpoint directory")
