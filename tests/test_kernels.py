@@ -201,6 +201,8 @@ def test_vision_attention_kernel_matches_xla(head_dim):
         va.pieces(8)
     with pytest.raises(ValueError, match="not 5 images"):
         va.attention(qkv, images=5, num_heads=heads)
+    with pytest.raises(ValueError, match="T divisible by 16"):
+        va.attention(qkv[: images * 8], images=images, num_heads=heads)
 
 
 def test_engine_with_vision_kernel_matches_reference(model):

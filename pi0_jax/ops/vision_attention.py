@@ -20,12 +20,16 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.experimental import pallas as pl
+from jax.experimental.custom_partitioning import custom_partitioning
 from jax.experimental.pallas import triton as plgpu
+from jax.sharding import NamedSharding
+from jax.sharding import PartitionSpec as P
 
 ALIGN = 16  # Triton's smallest dot dimension
 NEG = float(np.finfo(np.float32).min)  # the running max before any key (no key is masked here)
@@ -107,14 +111,51 @@ def _kernel(qkv_ref, o_ref, *, t, bq, bkv, width, hd, parts, scale):
 
 def attention(qkv, *, images: int, num_heads: int, blocks: Blocks = Blocks()):
     """Softmax attention within each image: qkv (R, 3 N H), each row [q | k | v] with heads side by side (the fused
-    GEMM's output, bias added), rows image-major -> (R, N H) in qkv's dtype."""
+    GEMM's output, bias added), rows image-major -> (R, N H) in qkv's dtype.
+
+    Under a sharded jit (the simulator's batch mesh) each device runs the kernel on its own images: XLA cannot split
+    a kernel it does not know, and would otherwise gather every image onto every device."""
     r, c = qkv.shape
     hd, t = c // (3 * num_heads), r // images
     if hd * 3 * num_heads != c or t * images != r:
         raise ValueError(f"qkv {qkv.shape} is not {images} images x T rows of 3 x {num_heads} heads")
-    bq, bkv = _fit(blocks.q, t), _fit(blocks.kv, t)
-    if min(bq, bkv) < ALIGN:
+    pieces(hd)
+    if min(_fit(blocks.q, t), _fit(blocks.kv, t)) < ALIGN:
         raise ValueError(f"the Pallas vision attention needs T divisible by {ALIGN}, got {t}")
+    return _partitioned(qkv, images, num_heads, blocks)
+
+
+@functools.partial(custom_partitioning, static_argnums=(1, 2, 3))
+def _partitioned(qkv, images, num_heads, blocks):
+    return _attention(qkv, images, num_heads, blocks)
+
+
+def _rows(mesh, sharding, images: int) -> tuple:
+    """(the rows' sharding, devices over them): qkv's row sharding where each device gets whole images, else none."""
+    axes = sharding.spec[0] if len(sharding.spec) else None
+    n = math.prod(mesh.shape[a] for a in (axes if isinstance(axes, tuple) else (axes,))) if axes else 1
+    if n == 1 or images % n:
+        return NamedSharding(mesh, P()), 1
+    return NamedSharding(mesh, P(axes, None)), n
+
+
+def _partition(images, num_heads, blocks, mesh, arg_shapes, result_shape):
+    rows, n = _rows(mesh, arg_shapes[0].sharding, images)
+    return mesh, functools.partial(_attention, images=images // n, num_heads=num_heads, blocks=blocks), rows, (rows,)
+
+
+def _infer(images, num_heads, blocks, mesh, arg_shapes, result_shape):
+    return _rows(mesh, arg_shapes[0].sharding, images)[0]
+
+
+_partitioned.def_partition(partition=_partition, infer_sharding_from_operands=_infer, sharding_rule="r c -> r d",
+                           need_replication_factors=("c", "d"))
+
+
+def _attention(qkv, images: int, num_heads: int, blocks: Blocks):
+    r, c = qkv.shape
+    hd, t = c // (3 * num_heads), r // images
+    bq, bkv = _fit(blocks.q, t), _fit(blocks.kv, t)
     kernel = functools.partial(_kernel, t=t, bq=bq, bkv=bkv, width=num_heads * hd, hd=hd, parts=pieces(hd),
                                scale=float(hd) ** -0.5)
     on_cpu = jax.default_backend() == "cpu"
