@@ -6,7 +6,7 @@ commit's `pi0_jax/siglip.py` (`--old-siglip`, e.g. `git show 7799238:pi0_jax/sig
 "engine-ATTENTION": `pi0_jax.engine.vision` (fused q/k/v, FP8 weights (out, in)) with that vision attention
 (`--attention`, repeatable), and "engine-pallas-Q,KV,WARPS,STAGES" the Pallas attention with other blocks
 (`--pallas-blocks`). Each in bf16 and, with `--fp8`, with the "vision" FP8 scheme (activation scales calibrated on
-two batches of smooth random images). Actions are compared with the first variant of each format. Timing is
+two batches of smooth random images). Tokens are compared with the first variant of each format. Timing is
 round-robin over the variants (one call of each per round), so drift hits all alike; kernels are counted in the
 optimized HLO, and `--trace` sums a profiler trace's kernels at the first batch size.
 

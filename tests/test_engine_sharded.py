@@ -26,7 +26,8 @@ CHILD = textwrap.dedent("""
     mesh = Mesh(np.array(jax.devices()), ("batch",))
     assert len(jax.devices()) == 2
     sh = lambda *spec: NamedSharding(mesh, P(*spec))
-    args = (jax.random.uniform(jax.random.key(0), (c, b, s, s, 3), minval=-1.0), jnp.ones((c, b), bool), jnp.zeros((b, n), jnp.int32), jnp.ones((b, n), bool),
+    images = jax.random.uniform(jax.random.key(0), (c, b, s, s, 3), minval=-1.0)
+    args = (images, jnp.ones((c, b), bool), jnp.zeros((b, n), jnp.int32), jnp.ones((b, n), bool),
             jnp.zeros((b, cfg.action_dim)), jnp.zeros((b, cfg.action_horizon, cfg.action_dim)))
     shardings = (sh(), sh(), sh(None, "batch"), sh(None, "batch"), *(sh("batch"),) * 4)
     for attention in (programs.Attention(), programs.Attention(vision="pallas")):

@@ -1,6 +1,7 @@
-"""The fused expert kernels (`pi0_jax.ops`, interpret mode on CPU) compute what the engine's XLA ops compute, at the
-`dummy` sizes (every width, head half and key count padded), and the engine with kernels="pallas" matches the
-reference sampler. f32 throughout: the kernels and XLA differ only in summation order (measured ~1e-6)."""
+"""The fused expert kernels and the vision attention kernel (`pi0_jax.ops`, interpret mode on CPU) compute what the
+engine's XLA ops compute, at the `dummy` sizes (every width, head half and key count padded), and the engine with
+kernels="pallas" (and with attention="vision=pallas") matches the reference sampler. f32 throughout: the kernels and
+XLA differ only in summation order (measured ~1e-6)."""
 
 import jax
 import jax.numpy as jnp

@@ -154,6 +154,9 @@ def test_engine_fp8_equals_the_reference_with_the_same_weights_and_hands_xla_fp8
     plain = np.asarray(sample(config, params, calib[1], noise, 2))
     assert np.linalg.norm(got - want) / np.linalg.norm(want) < 1e-5
     assert np.linalg.norm(want - plain) / np.linalg.norm(plain) > 1e-3  # FP8 is in use
+    kernel = Engine(config, qp, attention="vision=pallas", cache_dir=False)   # the vision kernel after FP8 GEMMs
+    np.testing.assert_allclose(kernel.sample_actions(calib[1], jnp.copy(noise), num_steps=2), got, rtol=1e-5,
+                               atol=1e-5)
 
     cameras, bucket = engine.plan(calib[1])
     spec = jax.ShapeDtypeStruct

@@ -119,8 +119,9 @@ def attention_spec(spec: str) -> str:
     return spec
 
 
-# attention="auto" on a GPU: per stage (and, in the denoise step, per batch), the faster (docs/BENCHMARKS.md): the Pallas
-# vision attention beat cuDNN's at 3, 24 and 192 images (H100, 9 / 4 / 2 % of the tower), as it needs no q/k/v copies
+# attention="auto" on a GPU: per stage (and, in the denoise step, per batch), the faster (docs/BENCHMARKS.md): the
+# Pallas vision attention beat cuDNN's at 3, 24 and 192 images (H100, 6 / 4 / 2 % of the tower): it needs no q/k/v
+# copies
 AUTO_GPU = Attention(vision="pallas", prefix="cudnn", denoise="auto")
 
 
