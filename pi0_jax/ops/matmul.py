@@ -10,7 +10,8 @@ is XLA's own choice: its autotuner picks a Triton GEMM or cuBLAS per dot, and a 
 bias, GELU and residual as separate fusions. "cublas" turns XLA's Triton GEMMs off, so every dot is a cuBLAS call
 that takes its bias, GELU-tanh and residual add as epilogues (SigLIP's Dense layers: 386 -> 305 kernels at B = 1).
 That is 5-10 % faster in the vision tower from B = 8, but slower in the denoise step and no faster for the whole
-call (docs/BENCHMARKS.md, "cuBLAS for every GEMM"), so it is an option, not the default.
+call (docs/BENCHMARKS.md, "cuBLAS for every GEMM"), so it is the engine's option, not its default; the simulator's
+rollout (`pi0-jax eval`) defaults to it, 5 % faster there ("cuBLAS in the simulator").
 Programs with FP8 weights always get cuBLAS: XLA's autotuner compiles Triton FP8 GEMMs for minutes, then picks
 cuBLASLt anyway.
 """

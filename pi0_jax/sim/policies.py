@@ -31,7 +31,7 @@ import numpy as np
 
 from pi0_jax.sim import expert as _expert
 from pi0_jax.sim.realtime import hold_chunk
-from pi0_jax.sim.tasks import STATE_DIM
+from pi0_jax.sim.tasks import ACTION_DIM, STATE_DIM
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -77,9 +77,9 @@ def expert_policy(env, delay: int = 0, pos_gain: float = _expert.POS_GAIN) -> Si
 def random_policy(replan_steps: int) -> SimPolicy:
     """Uniform actions in [-1, 1]^7 (gripper included), a fresh chunk every plan."""
     def plan(params, ps, obs, es, rng):
-        return jax.vmap(lambda k: jax.random.uniform(k, (replan_steps, 7), minval=-1.0, maxval=1.0))(rng)
+        return jax.vmap(lambda k: jax.random.uniform(k, (replan_steps, ACTION_DIM), minval=-1.0, maxval=1.0))(rng)
 
-    return SimPolicy(name="random", init=lambda b: jnp.zeros((b, replan_steps, 7)), plan=plan,
+    return SimPolicy(name="random", init=lambda b: jnp.zeros((b, replan_steps, ACTION_DIM)), plan=plan,
                      act=lambda ps, es, k: (ps[:, k], ps), horizon=replan_steps)
 
 
@@ -121,11 +121,12 @@ def model_policy(config, params, tok, normalizer, env, *, num_steps: int = 10, d
 
     from pi0_jax import normalize as nz
 
-    action_dims = action_dims or normalizer.dim(nz.ACTIONS) or 7    # no stats: LIBERO's 7
+    action_dims = action_dims or normalizer.dim(nz.ACTIONS) or ACTION_DIM    # no stats: LIBERO's
     core = PolicyCore(config, params, tok, normalizer, num_steps=num_steps, sampler=sampler, action_dims=action_dims,
                       gemm=gemm, attention=attention)
-    if core.action_dims != 7:
-        raise ValueError(f"{name}: the model's actions have {core.action_dims} dims; this suite needs LIBERO's 7")
+    if core.action_dims != ACTION_DIM:
+        raise ValueError(f"{name}: the model's actions have {core.action_dims} dims; this suite needs LIBERO's "
+                         f"{ACTION_DIM}")
     if core.reads_state and core.state_dim not in (None, STATE_DIM):
         raise ValueError(f"{name}: the norm stats' state has {core.state_dim} dims; "
                          f"this suite's state has {STATE_DIM}")
