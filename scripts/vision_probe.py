@@ -5,8 +5,9 @@ attention; FP8 kernels went through `ops.matmul.dense_interceptor` in openpi's (
 commit's `pi0_jax/siglip.py` (`--old-siglip`, e.g. `git show 7799238:pi0_jax/siglip.py > old_siglip.py`).
 "engine-ATTENTION": `pi0_jax.engine.vision` (fused q/k/v, FP8 weights (out, in)) with that vision attention
 (`--attention`, repeatable), and "engine-pallas-Q,KV,WARPS,STAGES" the Pallas attention with other blocks
-(`--pallas-blocks`). Each in bf16 and, with `--fp8`, with the "vision" FP8 scheme (activation scales calibrated on
-two batches of smooth random images). Tokens are compared with the first variant of each format. Timing is
+(`--pallas-blocks`); "-ln" in a name: the Pallas LayerNorm (`--norm pallas`, `--norm-blocks`); "+cublas": every
+GEMM on cuBLAS (`--gemm cublas`). Each in bf16 and, with `--fp8`, with the "vision" FP8 scheme (activation scales
+calibrated on two batches of smooth random images). Tokens are compared with the first variant of each format. Timing is
 round-robin over the variants (one call of each per round), so drift hits all alike; kernels are counted in the
 optimized HLO, and `--trace` sums a profiler trace's kernels at the first batch size.
 
@@ -19,6 +20,7 @@ from __future__ import annotations
 import argparse
 import functools
 import importlib.util
+import itertools
 import json
 import sys
 import time
@@ -34,7 +36,7 @@ from profile_engine import count_ops, kernel_times  # noqa: E402
 from pi0_jax import benchmark  # noqa: E402
 from pi0_jax.config import get_config  # noqa: E402
 from pi0_jax.engine import programs, weights as weights_lib  # noqa: E402
-from pi0_jax.ops import matmul, vision_attention  # noqa: E402
+from pi0_jax.ops import layer_norm, matmul, vision_attention  # noqa: E402
 from pi0_jax.quant import schemes  # noqa: E402
 
 
@@ -48,20 +50,24 @@ def old_encoder(path: Path, config, img: dict):
     return lambda p, x: module.apply({"params": p}, x)[0], params
 
 
-def new_encoder(config, img: dict, attention: str = "cudnn", blocks: vision_attention.Blocks | None = None):
-    """The engine's tower with this vision attention; blocks: the Pallas kernel's, in place of its defaults."""
+def new_encoder(config, img: dict, attention: str = "cudnn", blocks: vision_attention.Blocks | None = None,
+                norm: str = "xla", norm_blocks: layer_norm.Blocks | None = None):
+    """The engine's tower with this vision attention and LayerNorm; blocks, norm_blocks: the Pallas kernels', in
+    place of their defaults."""
     w = weights_lib.vision_weights(img, jnp.dtype(config.dtype))
     w["blocks"] = weights_lib.unstack(w["blocks"], config.siglip.depth)
     spec = programs.Attention(vision=attention)
 
     def run(w, x):
-        kernel = vision_attention.attention
-        if blocks:  # the kernel is looked up when the program is traced
-            vision_attention.attention = functools.partial(kernel, blocks=blocks)
+        kernels = vision_attention.attention, layer_norm.layer_norm
+        if blocks:  # the kernels are looked up when the program is traced
+            vision_attention.attention = functools.partial(kernels[0], blocks=blocks)
+        if norm_blocks:
+            layer_norm.layer_norm = functools.partial(kernels[1], blocks=norm_blocks)
         try:
-            return programs.encode_images(config, {"img": w}, x[None], unroll=True, attention=spec)
+            return programs.encode_images(config, {"img": w}, x[None], unroll=True, attention=spec, kernels=norm)
         finally:
-            vision_attention.attention = kernel
+            vision_attention.attention, layer_norm.layer_norm = kernels
     return run, w
 
 
@@ -74,6 +80,14 @@ def main() -> None:
                    help="the engine's vision attention; repeat it to compare (default: cudnn)")
     p.add_argument("--pallas-blocks", action="append", default=[], metavar="Q,KV,WARPS,STAGES",
                    help="one more engine/pallas variant with these `ops.vision_attention.Blocks`; repeatable")
+    p.add_argument("--norm", action="append", choices=("xla", "pallas"), default=None,
+                   help="the tower's LayerNorm (`programs.vision_norm`); repeat it to compare (default: xla)")
+    p.add_argument("--norm-blocks", action="append", default=[], metavar="ROWS,COLS,WARPS",
+                   help="one more engine/pallas variant with the Pallas LayerNorm and these `ops.layer_norm.Blocks` "
+                        "(the first --attention's); repeatable")
+    p.add_argument("--gemm", action="append", choices=matmul.GEMMS, default=None,
+                   help="the library of XLA's GEMMs (`ops.matmul.compiler_options`); repeat it to compare; "
+                        "\"+cublas\" in a variant's name (default: xla)")
     p.add_argument("--batch", default="1,8,64", help="images per call = batch x cameras (default: %(default)s)")
     p.add_argument("--cameras", type=int, default=3, help="images per batch element (default: %(default)s)")
     p.add_argument("--fp8", action="store_true", help="also the 'vision' FP8 scheme, both paths")
@@ -94,11 +108,18 @@ def main() -> None:
     for fmt, img in imgs.items():
         if args.old_siglip:
             variants[f"flax/{fmt}"] = old_encoder(args.old_siglip, config, img)
-        for attention in args.attention or ["cudnn"]:
-            variants[f"engine-{attention}/{fmt}"] = new_encoder(config, img, attention)
+        for attention, norm, gemm in itertools.product(args.attention or ["cudnn"], args.norm or ["xla"],
+                                                       args.gemm or ["xla"]):
+            name = f"engine-{attention}" + ("-ln" if norm == "pallas" else "") + ("+cublas" if gemm == "cublas" else "")
+            variants[f"{name}/{fmt}"] = new_encoder(config, img, attention, norm=norm)
         for spec in args.pallas_blocks:
             blocks = vision_attention.Blocks(*(int(v) for v in spec.split(",")))
             variants[f"engine-pallas-{spec}/{fmt}"] = new_encoder(config, img, "pallas", blocks)
+        for spec in args.norm_blocks:
+            attention = (args.attention or ["cudnn"])[0]
+            norm_blocks = layer_norm.Blocks(*(int(v) for v in spec.split(",")))
+            variants[f"engine-{attention}-ln-{spec}/{fmt}"] = new_encoder(config, img, attention, norm="pallas",
+                                                                          norm_blocks=norm_blocks)
     firsts = {}  # format -> the first variant of it (the reference of rel_l2_vs_first)
     for name in variants:
         firsts.setdefault(name.split("/")[1], name)
@@ -109,7 +130,8 @@ def main() -> None:
         exes, outs = {}, {}
         for name, (fn, w) in variants.items():
             t0 = time.perf_counter()
-            exes[name] = jax.jit(fn).lower(w, x).compile(matmul.compiler_options(w))
+            gemm = "cublas" if "+cublas" in name else "xla"
+            exes[name] = jax.jit(fn).lower(w, x).compile(matmul.compiler_options(w, gemm))
             compile_s = time.perf_counter() - t0
             outs[name] = np.asarray(exes[name](w, x), np.float32).reshape(n, -1)
             if args.dump_hlo:

@@ -1,7 +1,7 @@
 """The engine's fused program on a batch-sharded mesh (two CPU devices in a child process, as the simulator's eval
 runs it on several GPUs): samples are independent, so the partitioned program must hold no collective. Merging the
 camera axis in front of the sharded batch axis (the vision tower's input) once made XLA all-gather every image; so
-would the Pallas vision attention without its partitioning rule."""
+would the Pallas vision attention and LayerNorm without their partitioning rules."""
 
 import os
 import subprocess
@@ -37,6 +37,12 @@ CHILD = textwrap.dedent("""
         alone = jax.jit(lambda w, sc, *a: programs.infer(cfg, w, sc, *a, num_steps=2, unroll=True,
                                                          unroll_steps=False, attention=attention))
         np.testing.assert_allclose(fn(w, sched, *args), alone(w, sched, *args), rtol=1e-5, atol=1e-5)
+    # SigLIP's LayerNorm kernel (kernels="pallas"; the expert's kernels are for B <= 2 and not partitioned)
+    enc = lambda w, im: programs.encode_images(cfg, w, im, unroll=True, kernels="pallas",
+                                               attention=programs.Attention(vision="pallas"))
+    sharded = jax.jit(enc, in_shardings=(None, sh(None, "batch")))
+    print("layer_norm collectives", collectives(sharded.lower(w, images).compile().as_text()))
+    np.testing.assert_allclose(sharded(w, images), jax.jit(enc)(w, images), rtol=1e-5, atol=1e-5)
 """)
 
 
@@ -49,3 +55,4 @@ def test_engine_program_on_a_batch_mesh_has_no_collectives():
     assert "xla collectives 0" in out.stdout, out.stdout
     # the Pallas vision attention is a kernel XLA cannot split: without its own partitioning rule, 12 collectives here
     assert "pallas collectives 0" in out.stdout, out.stdout
+    assert "layer_norm collectives 0" in out.stdout, out.stdout   # likewise for the LayerNorm kernel

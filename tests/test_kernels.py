@@ -1,6 +1,7 @@
-"""The fused expert kernels and the vision attention kernel (`pi0_jax.ops`, interpret mode on CPU) compute what the
-engine's XLA ops compute, at the `dummy` sizes (every width, head half and key count padded), and the engine with
-kernels="pallas" (and with attention="vision=pallas") matches the reference sampler. f32 throughout: the kernels and
+"""The fused expert kernels and the vision attention and LayerNorm kernels (`pi0_jax.ops`, interpret mode on CPU)
+compute what the engine's XLA ops compute, at the `dummy` sizes (every width, head half and key count padded), and
+the engine with kernels="pallas" (the expert's kernels and SigLIP's LayerNorm; with attention="vision=pallas" also
+SigLIP's attention) matches the reference sampler. f32 throughout: the kernels and
 XLA differ only in summation order (measured ~1e-6)."""
 
 import jax
@@ -206,6 +207,46 @@ def test_vision_attention_kernel_matches_xla(head_dim):
         va.attention(qkv[: images * 8], images=images, num_heads=heads)
 
 
+@pytest.mark.parametrize("width", [40, 1152])
+def test_layer_norm_kernel_matches_xla(width):
+    """SigLIP's LayerNorm kernel, alone and with the residual add (a Dense's product and bias) before it, against the
+    engine's XLA path: widths 40 (the dummy tower's, 5 chunks of 8) and 1152 (So400m's, 9 chunks of 128); 24 rows in
+    blocks of 8, and in one block; f32 1e-5, bf16 to its rounding."""
+    from pi0_jax.engine import vision
+    from pi0_jax.ops import layer_norm as ln
+
+    x, y = _rand(1, 2, 12, width, scale=3.0) + 1.5, _rand(2, 2, 12, width)
+    p, y_bias = {"scale": _rand(3, width), "bias": _rand(4, width)}, _rand(5, width)
+    for f in (None, (y, y_bias)):
+        want = vision.add_norm(x, f, p, jnp.float32, "xla")
+        for blocks in (ln.Blocks(), ln.Blocks(rows=32, cols=16)):
+            got = (x, ln.layer_norm(x, p["scale"], p["bias"], blocks=blocks)) if f is None else ln.layer_norm(
+                x, p["scale"], p["bias"], residual=f, blocks=blocks)
+            for g, w in zip(got, want):
+                np.testing.assert_allclose(g, w, **TOL)
+    low = lambda a: a.astype(jnp.bfloat16)  # noqa: E731
+    want = vision.add_norm(low(x), (low(y), low(y_bias)), p, jnp.bfloat16, "xla")
+    got = vision.add_norm(low(x), (low(y), low(y_bias)), p, jnp.bfloat16, "pallas")
+    assert got[0].dtype == got[1].dtype == jnp.bfloat16
+    np.testing.assert_array_equal(got[0], want[0])   # the same two bf16 roundings
+    np.testing.assert_allclose(got[1].astype(jnp.float32), want[1].astype(jnp.float32), rtol=1e-2, atol=1e-2)
+    with pytest.raises(ValueError, match=r"scale \(3,\)"):
+        ln.layer_norm(x, p["scale"][:3], p["bias"])
+    with pytest.raises(ValueError, match="residual"):
+        ln.layer_norm(x, p["scale"], p["bias"], residual=(y[:1], y_bias))
+
+
+def test_vision_norm_choice():
+    """SigLIP's LayerNorm kernel: as asked, or with kernels="auto" on a GPU from 24 images a call (on a CPU it runs
+    interpreted)."""
+    from pi0_jax.engine import programs
+
+    n = programs.VISION_NORM_MIN_IMAGES
+    assert programs.vision_norm("pallas", 3, "cpu") == "pallas" and programs.vision_norm("xla", n, "gpu") == "xla"
+    assert programs.vision_norm("auto", n, "gpu") == "pallas" and programs.vision_norm("auto", n, "cpu") == "xla"
+    assert programs.vision_norm("auto", n - 1, "gpu") == "xla"
+
+
 def test_engine_with_vision_kernel_matches_reference(model):
     """The engine with the Pallas vision attention (the dummy tower: 2 heads of 20) samples the reference's actions;
     element 1's last camera is masked, the prompts padded."""
@@ -215,6 +256,8 @@ def test_engine_with_vision_kernel_matches_reference(model):
     ref = jax.jit(pi0.sample_actions, static_argnums=(0, 4))(config, params, obs, noise, 2)
     engine = Engine(config, params, attention="vision=pallas", cache_dir=False)
     np.testing.assert_allclose(engine.sample_actions(obs, jnp.array(noise), 2), ref, **TOL)
+    both = Engine(config, params, attention="vision=pallas", kernels="pallas", cache_dir=False)  # + the LayerNorm
+    np.testing.assert_allclose(both.sample_actions(obs, jnp.array(noise), 2), ref, **TOL)
 
 
 def test_kernel_flag_is_checked():

@@ -37,6 +37,9 @@ CUDNN_DENOISE_MIN_BATCH_MASKED = 4
 
 
 KERNELS = ("auto", "xla", "pallas")
+# SigLIP's LayerNorm kernel measured 3 % faster on the tower at 24 and 192 images, and no faster at 3 (H100, XLA's
+# GEMMs; docs/BENCHMARKS.md, "SigLIP's LayerNorm as a kernel"): "auto" takes it where it was measured faster
+VISION_NORM_MIN_IMAGES = 24
 
 
 def check_kernels(kernels: str) -> str:
@@ -60,6 +63,16 @@ def expert_path(kernels: str, batch: int, expert_weights, platform: str | None =
     unrolled = isinstance(expert_weights, (list, tuple))
     gpu_batch = platform == "gpu" and batch <= PALLAS_MAX_BATCH
     return "pallas" if gpu_batch and unrolled and not is_quantised(expert_weights) else "xla"
+
+
+def vision_norm(kernels: str, images: int, platform: str | None = None) -> str:
+    """SigLIP's residual adds and LayerNorms: "xla" or "pallas" (`ops.layer_norm`: one kernel where XLA runs two or
+    three) as asked; "auto" the kernel on a GPU from VISION_NORM_MIN_IMAGES images per call, XLA's ops below (and
+    on a CPU, where the kernel runs interpreted)."""
+    if check_kernels(kernels) != "auto":
+        return kernels
+    gpu = (platform or jax.default_backend()) == "gpu"
+    return "pallas" if gpu and images >= VISION_NORM_MIN_IMAGES else "xla"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -136,14 +149,14 @@ class PrefixCache:
 
 
 def encode_images(config: Pi0Config, weights: dict, images: jax.Array, *, unroll: bool = False,
-                  attention: Attention = Attention()) -> jax.Array:
+                  attention: Attention = Attention(), kernels: str = "xla") -> jax.Array:
     """images (C, B, H, W, 3) f32 in [-1, 1] for the C active cameras -> (B, C * 256, VLM width), camera-major.
-    unroll: the weights' SigLIP blocks are per layer (a list), and so are the layers."""
+    unroll: the weights' SigLIP blocks are per layer (a list), and so are the layers. kernels: `vision_norm`'s."""
     c, b = images.shape[:2]
     # batch-major (B * C images): a batch sharded over devices stays sharded; merging C-major would all-gather it
     flat = jnp.swapaxes(images, 0, 1).reshape(b * c, *images.shape[2:])
     tokens = vision.encode(config.siglip, weights["img"], flat, dtype=jnp.dtype(config.dtype), unroll=unroll,
-                           attention=attention.vision)
+                           attention=attention.vision, norm=vision_norm(kernels, b * c))
     return tokens.reshape(b, -1, tokens.shape[-1])
 
 
@@ -333,7 +346,7 @@ def infer(config: Pi0Config, weights: dict, sched: dict, images, image_masks, to
           num_steps: int, unroll: bool, unroll_steps: bool, attention: Attention = Attention(),
           kernels: str = "xla") -> jax.Array:
     """The fused program: vision -> prefix cache -> denoise, one XLA executable, no host round trip."""
-    image_tokens = encode_images(config, weights, images, unroll=unroll, attention=attention)
+    image_tokens = encode_images(config, weights, images, unroll=unroll, attention=attention, kernels=kernels)
     cache = fill_prefix_cache(config, weights, image_tokens, image_masks, tokens, token_mask, unroll=unroll,
                               kernels=kernels, attention=attention)
     return denoise(config, weights, sched, cache, state, noise, num_steps=num_steps, unroll=unroll,

@@ -77,7 +77,8 @@ class Engine:
     faster per stage on a GPU, XLA elsewhere, or "vision=cudnn,prefix=cudnn,denoise=xla"); kernels: the action
     expert's layers as XLA ops ("xla"), as the fused Pallas kernels of `pi0_jax.ops` ("pallas": Triton on GPU,
     interpret mode on CPU; needs unrolled layers and unquantised expert weights), or "auto" (per batch size,
-    `programs.expert_path`: the kernels at B <= 2 on a GPU, XLA otherwise); gemm: the library of XLA's GEMMs on a
+    `programs.expert_path`: the kernels at B <= 2 on a GPU, XLA otherwise); the same choice for SigLIP's LayerNorm
+    (`programs.vision_norm`: "auto" is the kernel on a GPU from 24 images a call); gemm: the library of XLA's GEMMs on a
     GPU (`pi0_jax.ops.matmul.compiler_options`: "xla", XLA's autotuned choice, or "cublas").
     """
 
@@ -143,10 +144,10 @@ class Engine:
         sched = jax.tree.map(lambda x: spec(x.shape, x.dtype), self.schedule(num_steps)) if num_steps else None
         kw = {"unroll": self.unroll, "attention": self.attention}
         denoise_kw = {**kw, "num_steps": num_steps, "unroll_steps": self.unroll_steps, "kernels": self.kernels}
-        if stage == "encode_images":
-            return functools.partial(programs.encode_images, cfg, **kw), (w, images), ()
-        image_tokens = spec((batch, c * cfg.siglip.num_patches, cfg.paligemma.width), dtype)
         kw_cache = {**kw, "kernels": self.kernels}
+        if stage == "encode_images":
+            return functools.partial(programs.encode_images, cfg, **kw_cache), (w, images), ()
+        image_tokens = spec((batch, c * cfg.siglip.num_patches, cfg.paligemma.width), dtype)
         if stage == "fill_prefix_cache":
             fn = functools.partial(programs.fill_prefix_cache, cfg, **kw_cache)
             return fn, (w, image_tokens, image_masks, tokens, token_mask), ()

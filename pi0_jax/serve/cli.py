@@ -74,7 +74,8 @@ def add_serve_parser(subparsers) -> None:
                           "pi0_jax.ops, or auto: the kernels for batches of 1 and 2 on a GPU, XLA for larger ones and "
                           "on a CPU (where the kernels run interpreted, slowly). On an H200 the kernels are faster "
                           "at batch 1 (0.83 against 1.09 ms per flow step) and slower at batch 8 (3.9 against "
-                          "2.5 ms): docs/BENCHMARKS.md, 'Fused kernels'. Default: %(default)s")
+                          "2.5 ms): docs/BENCHMARKS.md, 'Fused kernels'. SigLIP's LayerNorm likewise (auto: the "
+                          "kernel on a GPU from 24 images a call). Default: %(default)s")
     pol.add_argument("--attention", default="auto", type=_attention,
                      help="each stage's attention: xla, cudnn (one fused flash kernel), auto (the faster per stage "
                           "on a GPU, XLA on a CPU), or per stage, e.g. vision=pallas,prefix=cudnn,denoise=xla "

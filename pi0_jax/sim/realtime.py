@@ -162,7 +162,8 @@ def make_model_callbacks(core, rt: Realtime, replan_steps: int, inputs, cameras,
 
     def prefix(model, pixels, image_masks, tokens, token_mask):
         w = model["weights"]
-        image_tokens = programs.encode_images(cfg, w, pixels, unroll=core.unroll, attention=core.attention)
+        image_tokens = programs.encode_images(cfg, w, pixels, unroll=core.unroll, attention=core.attention,
+                                              kernels=core.kernels)
         return programs.fill_prefix_cache(cfg, w, image_tokens, image_masks, tokens, token_mask, unroll=core.unroll,
                                           attention=core.attention)
 
