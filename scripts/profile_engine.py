@@ -9,6 +9,9 @@ GPU sat idle between kernels.
     python scripts/profile_engine.py --preset pi05_base --batch 1 --steps 10 [--trace DIR]
     python scripts/profile_engine.py --preset pi0_base --attention xla --attention auto --time --trace-stages \
         --out profile.json        # two engines on the same weights: counts, stage times, per-kernel traces
+
+Variants are the product of --attention, --kernels, --gemm and --vision-norm; with --time they are timed round-robin
+(one call of each per round, the order reversed every other round), so drift over the run hits all alike.
 """
 
 from __future__ import annotations
@@ -113,7 +116,12 @@ def main() -> None:
                         "same weights and inputs in one process (default: auto)")
     p.add_argument("--gemm", choices=matmul.GEMMS, action="append", default=None,
                    help="the library of XLA's GEMMs on a GPU (Engine's `gemm`); repeat it to compare (default: xla)")
-    p.add_argument("--time", action="store_true", help="median ms of each stage program (and the fused one)")
+    p.add_argument("--vision-norm", choices=("auto", "xla", "pallas"), action="append", default=None,
+                   help="SigLIP's LayerNorm (`programs.vision_norm`; auto: as the kernels choose); repeat it to "
+                        "compare (default: auto)")
+    p.add_argument("--time", action="store_true",
+                   help="median ms of each stage program (and the fused one), round-robin over the variants (every "
+                        "engine is kept until the end: mind device memory)")
     p.add_argument("--iters", type=int, default=30, help="timed calls per program with --time")
     p.add_argument("--trace-stages", action="store_true",
                    help="sum each stage program's GPU kernels from a profiler trace (`kernel_times`)")
@@ -126,16 +134,21 @@ def main() -> None:
     obs, noise = benchmark.make_inputs(config, args.batch, args.cameras, args.prompt_tokens, 0)
     report = {"preset": args.preset, "batch": args.batch, "steps": args.steps, "env": benchmark.environment(),
               "variants": []}
-    outputs = {}
-    for attention, kernels, gemm in itertools.product(args.attention or ["auto"], args.kernels or ["auto"],
-                                                      args.gemm or ["xla"]):
+    outputs, timed = {}, []
+    vision_norm = programs.vision_norm
+    for attention, kernels, gemm, norm in itertools.product(args.attention or ["auto"], args.kernels or ["auto"],
+                                                            args.gemm or ["xla"], args.vision_norm or ["auto"]):
+        # the programs are traced below, inside this variant: its LayerNorm choice holds for all of them
+        programs.vision_norm = vision_norm if norm == "auto" else (lambda kernels, images, platform=None, n=norm: n)
         engine = Engine(config, params, unroll=not args.no_unroll, unroll_steps=args.unroll_steps,
                         kernels=kernels, attention=attention, gemm=gemm, cache_dir=False)
         cameras, bucket = engine.plan(obs)
         packed = engine.pack(obs, cameras, bucket)
         var = {"attention": str(engine.attention), "kernels": engine.kernels_for(args.batch), "gemm": gemm,
+               "vision_norm": programs.vision_norm(kernels, args.batch * len(cameras)),
                "counts": {}, "median_ms": {}, "trace": {}}
-        print(f"== attention {var['attention']}, kernels {var['kernels']}, gemm {gemm}", flush=True)
+        print(f"== attention {var['attention']}, kernels {var['kernels']}, gemm {gemm}, vision norm "
+              f"{var['vision_norm']}", flush=True)
         for stage in ("encode_images", "fill_prefix_cache", "denoise", "infer"):
             exe = engine.executable(stage, args.batch, args.steps, cameras, bucket)
             counts = var["counts"][stage] = count_ops(exe.as_text())
@@ -143,10 +156,9 @@ def main() -> None:
                 if comp.startswith("ENTRY") or c["fusion"] + c["custom-call"] > 20:
                     print(f"   {stage:18s} {comp[:50]:50s} {json.dumps(c)}", flush=True)
         calls = stage_calls(engine, args.batch, args.steps, cameras, bucket, packed, noise)
-        outputs[f"{var['attention']} {kernels} {gemm}"] = np.asarray(calls["infer"](), np.float64)
+        outputs[f"{var['attention']} {kernels} {gemm} {norm}"] = np.asarray(calls["infer"](), np.float64)
+        timed.append((var, calls))
         for stage, fn in calls.items():
-            if args.time:
-                var["median_ms"][stage] = benchmark.time_calls(fn, [()], args.iters, 3)["median_ms"]
             if args.trace_stages:
                 t = var["trace"][stage] = kernel_times(fn, 5)
                 print(f"   {stage:18s} {t['kernels_per_call']:.0f} kernels, {t['kernel_ms']:.3f} ms in kernels of "
@@ -155,8 +167,6 @@ def main() -> None:
                     print(f"      {row['us_per_call']:9.1f} us  x{row['per_call']:6.1f}  {row['name'][:80]}", flush=True)
         var["compile_s"] = {k[0]: round(v, 2) for k, v in engine.compile_seconds.items()}
         print("   compile s: " + json.dumps(var["compile_s"]), flush=True)
-        if var["median_ms"]:
-            print("   median ms: " + json.dumps({k: round(v, 3) for k, v in var["median_ms"].items()}), flush=True)
         report["variants"].append(var)
         if args.trace:
             fn = calls["infer"]
@@ -164,7 +174,25 @@ def main() -> None:
             with jax.profiler.trace(str(args.trace / name)):
                 for _ in range(3):
                     jax.block_until_ready(fn())
-        del engine, calls
+        del engine
+    programs.vision_norm = vision_norm
+    if args.time:   # round-robin: one call of each variant's stage per round, so drift hits all variants alike;
+        # the order flips every round: a program timed right after another runs 1-3 % slower (docs/BENCHMARKS.md)
+        times = [{stage: [] for stage in calls} for _, calls in timed]
+        for i in range(3 + args.iters):
+            rounds = list(zip(timed, times))
+            for (var, calls), per_stage in (rounds if i % 2 else rounds[::-1]):
+                for stage, fn in calls.items():
+                    start = time.perf_counter()
+                    jax.block_until_ready(fn())
+                    if i >= 3:
+                        per_stage[stage].append((time.perf_counter() - start) * 1e3)
+        for (var, _), per_stage in zip(timed, times):
+            var["median_ms"] = {k: float(np.median(v)) for k, v in per_stage.items()}
+            var["p10_p90_ms"] = {k: [float(np.percentile(v, q)) for q in (10, 90)] for k, v in per_stage.items()}
+            medians = json.dumps({k: round(v, 3) for k, v in var["median_ms"].items()})
+            print(f"== {var['attention']}, kernels {var['kernels']}, gemm {var['gemm']}, vision norm "
+                  f"{var['vision_norm']}: median ms {medians}", flush=True)
     first = next(iter(outputs.values()))
     report["rel_l2_vs_first"] = {k: float(np.linalg.norm(v - first) / np.linalg.norm(first)) for k, v in outputs.items()}
     print("actions, relative L2 against the first variant:", json.dumps(report["rel_l2_vs_first"]), flush=True)
