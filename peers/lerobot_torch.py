@@ -2,17 +2,36 @@
 
 Random weights (LeRobot's own init), the LeRobot `dtype` matching ours (its bf16 mode keeps vision fp32, as it does
 for users). Times `policy.model.sample_actions` (no pre/post-processing, as for pi0-jax), eager, and with
-`torch.compile` when asked (mode `--torch-compile-mode`, default LeRobot's own `max-autotune`). LeRobot processes
-the whole padded prompt and every camera slot it is given; it gets the same cameras and prompt as pi0-jax.
+`torch.compile` when asked (mode `--torch-compile-mode`: "default"; LeRobot's own, "max-autotune", compiles for
+longer than a 10-minute run allows at full size) in one of two scopes (`--torch-compile-scope`):
+
+* `sample_actions`: the whole call is one compiled function, as LeRobot's `compile_model=True` does (the step loop
+  is unrolled into the graph, so the first call compiles the vision tower, the prefix and every denoise step).
+* `stages`: LeRobot's own per-stage methods that `sample_actions` calls are compiled in place, and the Euler loop
+  over steps stays eager: `embed_prefix` (SigLIP on every camera slot and the prompt embedding), the prefix pass
+  of the PaliGemma language model that fills the KV cache (`paligemma.model.language_model.forward`), and
+  `denoise_step` (one step of the action expert against that cache). Each is one graph, compiled on the first call
+  and reused by every later step and call.
+
+Either scope sets `torch.set_float32_matmul_precision("high")` for the compiled rows, as LeRobot's `compile_model`
+does (it makes the fp32 vision tower's matmuls TF32); the eager rows run with TF32 off. The row's `impl` names the
+mode, the scope and that precision; a compiled row also counts the graphs Dynamo compiled while it ran (scope
+`stages`: 3 at the first batch size, any more are recompiles; `sample_actions`: 1) and its graph breaks. Each row
+is printed as one JSON line as soon as it is measured, so a run killed by a time limit still leaves the rows before
+it in the log. LeRobot processes the whole padded prompt and every camera slot it is given; it gets the same
+cameras and prompt as pi0-jax.
 """
 
 from __future__ import annotations
 
+import json
 import time
 
 import numpy as np
 
 from pi0_jax.config import IMAGE_KEYS, Pi0Config
+
+COMPILE_SCOPES = ("sample_actions", "stages")
 
 
 def _build(config: Pi0Config, num_steps: int, device: str):
@@ -57,33 +76,64 @@ def _inputs(config: Pi0Config, batch: int, cameras: int, prompt_tokens: int, see
     }
 
 
-def _time(fn, inputs: list, iters: int, warmup: int) -> dict:
+def _sync(device: str) -> None:
     import torch
 
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize()
+
+
+def _time(fn, inputs: list, iters: int, warmup: int, device: str = "cuda") -> dict:
     for i in range(warmup):
         fn(inputs[i % len(inputs)])
-    torch.cuda.synchronize()
+    _sync(device)
     times = []
     for i in range(iters):
         start = time.perf_counter()
         fn(inputs[i % len(inputs)])
-        torch.cuda.synchronize()
+        _sync(device)
         times.append((time.perf_counter() - start) * 1e3)
     return {"median_ms": float(np.median(times)), "p90_ms": float(np.percentile(times, 90)),
             "min_ms": float(np.min(times))}
 
 
-def benchmark(config: Pi0Config, args) -> list[dict]:
-    """LeRobot timings at every --batch for the largest --steps; eager, then torch.compile if asked."""
+def compile_model(model, scope: str, mode: str):
+    """Wrap LeRobot's `PI0Pytorch` / `PI05Pytorch` in `torch.compile`; returns the function to call.
+
+    `sample_actions`: the whole call, as LeRobot's `compile_model` does (the model is left as it is). `stages`:
+    LeRobot's own methods that `sample_actions` calls are replaced on this instance by compiled versions of
+    themselves, so `model.sample_actions` (returned) runs its Euler loop in Python and each stage as one graph.
+    The precision is set to `high`, as LeRobot's `compile_model` sets it.
+    """
+    import torch
+
+    if scope not in COMPILE_SCOPES:
+        raise ValueError(f"torch.compile scope must be one of {COMPILE_SCOPES}, got {scope!r}")
+    torch.set_float32_matmul_precision("high")
+    if scope == "sample_actions":
+        return torch.compile(model.sample_actions, mode=mode)
+    model.embed_prefix = torch.compile(model.embed_prefix, mode=mode)
+    language_model = model.paligemma_with_expert.paligemma.model.language_model  # the prefix pass only
+    language_model.forward = torch.compile(language_model.forward, mode=mode)
+    model.denoise_step = torch.compile(model.denoise_step, mode=mode)
+    return model.sample_actions
+
+
+def benchmark(config: Pi0Config, args, device: str = "cuda") -> list[dict]:
+    """LeRobot timings at every --batch for the largest --steps; eager, then torch.compile if asked.
+
+    Prints each row as one JSON line (flushed) as soon as it is measured.
+    """
     import torch
 
     import lerobot
 
-    device = "cuda"
     torch.backends.cuda.matmul.allow_tf32 = False
+    precision = torch.get_float32_matmul_precision()
     steps = max(args.steps)
     policy = _build(config, steps, device)
     model = policy.model
+    scope = getattr(args, "torch_compile_scope", "stages")
 
     def call(fn, x):
         with torch.no_grad():
@@ -91,22 +141,40 @@ def benchmark(config: Pi0Config, args) -> list[dict]:
                 return fn(x["images"], x["img_masks"], x["lang_tokens"], x["lang_masks"], noise=x["noise"])
             return fn(x["images"], x["img_masks"], x["lang_tokens"], x["lang_masks"], x["state"], noise=x["noise"])
 
-    variants = [("eager", model.sample_actions)]
+    # (name, factory): a compiled variant wraps the model only when its turn comes, after the eager rows.
+    variants = [("eager", lambda: model.sample_actions)]
     if args.torch_compile:
-        variants.append((f"torch.compile({args.torch_compile_mode})",
-                         torch.compile(model.sample_actions, mode=args.torch_compile_mode)))
+        variants.append((f"torch.compile(mode={args.torch_compile_mode}, scope={scope}, fp32 matmul high)",
+                         lambda: compile_model(model, scope, args.torch_compile_mode)))
+
+    def graphs():  # Dynamo's graphs so far and its graph breaks (a recompile adds a graph)
+        from torch._dynamo.utils import counters
+
+        return counters["stats"]["unique_graphs"], sum(counters["graph_break"].values())
+
     rows = []
-    for name, fn in variants:
-        for batch in [b for b in args.batch if b in args.peer_batch]:
-            sets = [_inputs(config, batch, args.cameras, args.prompt_tokens, args.seed + i, device)
-                    for i in range(args.input_sets)]
-            start = time.perf_counter()
-            call(fn, sets[0])
-            torch.cuda.synchronize()
-            first_s = time.perf_counter() - start
-            rows.append({"impl": f"LeRobot {lerobot.__version__} torch {torch.__version__} {name}",
-                         "dtype": config.dtype, "batch": batch, "steps": steps, "first_call_s": first_s,
-                         "total": _time(lambda x: call(fn, x), sets, args.peer_iters, args.warmup)})
+    try:
+        for name, make in variants:
+            fn = make()
+            for batch in [b for b in args.batch if b in args.peer_batch]:
+                before = graphs()
+                sets = [_inputs(config, batch, args.cameras, args.prompt_tokens, args.seed + i, device)
+                        for i in range(args.input_sets)]
+                print(f"LeRobot {name} B={batch}: first call", flush=True)
+                start = time.perf_counter()
+                call(fn, sets[0])
+                _sync(device)
+                first_s = time.perf_counter() - start
+                row = {"impl": f"LeRobot {lerobot.__version__} torch {torch.__version__} {name}",
+                       "dtype": config.dtype, "batch": batch, "steps": steps, "first_call_s": first_s,
+                       "total": _time(lambda x: call(fn, x), sets, args.peer_iters, args.warmup, device)}
+                if name != "eager":  # the graphs compiled during this row, the timed calls' included
+                    row["compiled_graphs"], row["graph_breaks"] = (a - b for a, b in zip(graphs(), before))
+                print(json.dumps(row), flush=True)
+                rows.append(row)
+    finally:
+        torch.set_float32_matmul_precision(precision)
     del policy, model
-    torch.cuda.empty_cache()
+    if torch.device(device).type == "cuda":
+        torch.cuda.empty_cache()
     return rows

@@ -32,7 +32,7 @@ from pi0_jax import pi0
 from pi0_jax.pi0 import random_params
 from pi0_jax.config import IMAGE_KEYS, PRESETS, Pi0Config, get_config
 from pi0_jax.engine import Engine
-from pi0_jax.engine.programs import KERNELS, attention_spec
+from pi0_jax.engine.programs import KERNELS, attention_spec, vision_norm
 from pi0_jax.ops.matmul import GEMMS
 from pi0_jax.quant.schemes import SCHEMES
 
@@ -72,7 +72,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--kernels", choices=KERNELS, default="auto",
                    help="the action expert's layers as XLA ops, as the fused Pallas kernels of pi0_jax.ops "
                         "(Triton on GPU), or auto: the kernels at batch 1 and 2 on a GPU, XLA otherwise; each row "
-                        "records the path it ran (default: %(default)s)")
+                        "records the path it ran. SigLIP's LayerNorm likewise, auto: the kernel on a GPU from 24 "
+                        "images a call (default: %(default)s)")
     p.add_argument("--gemm", choices=GEMMS, default="xla",
                    help="the library of XLA's GEMMs on a GPU: xla (XLA's autotuned choice of Triton or cuBLAS per "
                         "GEMM) or cublas (XLA's Triton GEMMs off, so bias, GELU and residual adds become cuBLASLt "
@@ -86,8 +87,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--torch-compile", action="store_true", help="with --compare: also time torch.compile")
     p.add_argument("--peer-batch", type=_ints, default=[1, 8], help="batch sizes for peers (default: 1,8)")
     p.add_argument("--peer-iters", type=int, default=10, help="timed iterations for peers (default: %(default)s)")
-    p.add_argument("--torch-compile-mode", default="max-autotune",
-                   help="torch.compile mode for --torch-compile (default: LeRobot's own, %(default)s)")
+    p.add_argument("--torch-compile-mode", default="default",
+                   help="torch.compile mode for --torch-compile (default: %(default)s; LeRobot's own, max-autotune, "
+                        "did not finish compiling in 9 minutes on an H100, even per stage: docs/BENCHMARKS.md)")
+    p.add_argument("--torch-compile-scope", choices=["sample_actions", "stages"], default="stages",
+                   help="what --torch-compile compiles: sample_actions (the whole call at once, LeRobot's own way; "
+                        "its unrolled step loop makes the first call compile for minutes at full size) or "
+                        "stages (LeRobot's embed_prefix, the prefix pass of its language model and denoise_step, "
+                        "each its own graph, with the loop over steps left in Python) (default: %(default)s)")
     p.add_argument("--warm-start", action="store_true",
                    help="measure the warm start: a second process loads the fused B=1 program from the cache")
     p.add_argument("--cache-dir", type=Path, default=None,
@@ -173,8 +180,8 @@ def bench_engine(engine: Engine, args, batch: int) -> list[dict]:
                            [(c, p, n) for c, p, (_, n) in zip(caches, packed, sets)], args.iters, args.warmup)
         row = {"dtype": cfg.dtype, "batch": batch, "steps": steps, "cameras": len(cameras), "prompt_bucket": bucket,
                "attention": str(engine.attention.at_batch(batch, suffix_mask=not cfg.pi05)),
-               "kernels": engine.kernels_for(batch), "gemm": engine.gemm,
-               "vision": t_vis, "prefix": t_pre, "denoise": t_den,
+               "kernels": engine.kernels_for(batch), "vision_norm": vision_norm(engine.kernels, batch * len(cameras)),
+               "gemm": engine.gemm, "vision": t_vis, "prefix": t_pre, "denoise": t_den,
                "denoise_per_step_ms": t_den["median_ms"] / steps}
         if args.fused_steps is None or steps in args.fused_steps:
             fused = engine.executable("infer", batch, steps, cameras, bucket)

@@ -49,6 +49,10 @@ for phase in "$@"; do
                --fused-steps 1,10 --reference --compare lerobot --warm-start --iters 50 --out "$OUT/pi0_table.json" ;;
     pi05_table) python3 -m pi0_jax.cli benchmark --preset pi05_base --steps 1,2,3,5,10 --batch 1,8,64 \
                --fused-steps 1,10 --reference --compare lerobot --peer-batch 1 --iters 50 --out "$OUT/pi05_table.json" ;;
+    lerobot_compile) timeout -k 15 540 python3 -m pi0_jax.cli benchmark --preset pi0_base --steps 10 --batch 1 \
+               --fused-steps 10 --compare lerobot --torch-compile --torch-compile-mode default \
+               --torch-compile-scope stages --peer-batch 1 --peer-iters 10 --iters 30 --reference \
+               --out "$OUT/lerobot_compile.json" 2>&1 | tee "$OUT/lerobot_compile.log" ;;   # LeRobot prints each row
     fp32) python3 -m pi0_jax.cli benchmark --preset pi0_base --dtype float32 --steps 1,10 --batch 1 \
                --reference --iters 30 --out "$OUT/pi0_fp32.json" ;;
     cudnn_b1) python3 -m pi0_jax.cli benchmark --preset pi05_base --steps 1,10 --batch 1 --attention cudnn \
