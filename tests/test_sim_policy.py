@@ -122,6 +122,7 @@ def test_eval_cli_with_checkpoint(demo_ckpt, tmp_path):
     assert info["config"]["policy_info"]["model"] == "dummy_pi05"
     assert info["config"]["policy_info"]["gemm"] == "xla"      # recorded; it changes nothing off a GPU
     assert info["config"]["policy_info"]["attention"].startswith("vision=pallas,")   # the vision kernel, interpreted
+    assert info["config"]["policy_info"]["kernels"] == "auto"   # the expert's and the LayerNorm's rule, recorded
     assert len(info["video_paths"]) == 1
 
 

@@ -181,7 +181,8 @@ def model_policy(config, params, tok, normalizer, env, *, num_steps: int = 10, d
         pparams["num_steps"] = np.int32(num_steps)
     info = {"model": config.name, "pi05": config.pi05, "dtype": config.dtype, "num_steps": num_steps,
             "action_horizon": horizon, "normalization": normalizer.convention.value, "sampler": core.sampler,
-            "quant": quant or "none", "gemm": core.gemm, "attention": str(core.attention), "prompt_tokens": bucket}
+            "quant": quant or "none", "gemm": core.gemm, "attention": str(core.attention), "kernels": core.kernels,
+            "prompt_tokens": bucket}
     init, act, stats = (lambda b: jnp.zeros((b, horizon, core.action_dims))), (lambda ps, es, k: (ps[:, k], ps)), None
     if realtime is not None and not realtime.is_default:
         from pi0_jax.sim import realtime as rt_lib
