@@ -7,9 +7,10 @@ commit's `pi0_jax/siglip.py` (`--old-siglip`, e.g. `git show 7799238:pi0_jax/sig
 (`--attention`, repeatable), and "engine-pallas-Q,KV,WARPS,STAGES" the Pallas attention with other blocks
 (`--pallas-blocks`); "-ln" in a name: the Pallas LayerNorm (`--norm pallas`, `--norm-blocks`); "+cublas": every
 GEMM on cuBLAS (`--gemm cublas`). Each in bf16 and, with `--fp8`, with the "vision" FP8 scheme (activation scales
-calibrated on two batches of smooth random images). Tokens are compared with the first variant of each format. Timing is
-round-robin over the variants (one call of each per round), so drift hits all alike; kernels are counted in the
-optimized HLO, and `--trace` sums a profiler trace's kernels at the first batch size.
+calibrated on two batches of smooth random images). Tokens are compared with the first variant of each format.
+Timing is round-robin over the variants (one call of each per round, the order reversed every other round), so
+drift hits all alike; kernels are counted in the optimized HLO, and `--trace` sums a profiler trace's kernels at the
+first batch size.
 
     python scripts/vision_probe.py --old-siglip old_siglip.py --batch 1,8,64 --fp8 --out vision.json
     python scripts/vision_probe.py --attention cudnn --attention pallas --pallas-blocks 128,64,8,2 --trace
@@ -110,7 +111,8 @@ def main() -> None:
             variants[f"flax/{fmt}"] = old_encoder(args.old_siglip, config, img)
         for attention, norm, gemm in itertools.product(args.attention or ["cudnn"], args.norm or ["xla"],
                                                        args.gemm or ["xla"]):
-            name = f"engine-{attention}" + ("-ln" if norm == "pallas" else "") + ("+cublas" if gemm == "cublas" else "")
+            name = (f"engine-{attention}" + ("-ln" if norm == "pallas" else "")
+                    + ("+cublas" if gemm == "cublas" else ""))
             variants[f"{name}/{fmt}"] = new_encoder(config, img, attention, norm=norm)
         for spec in args.pallas_blocks:
             blocks = vision_attention.Blocks(*(int(v) for v in spec.split(",")))
@@ -144,8 +146,8 @@ def main() -> None:
         for _ in range(3):
             for name, (fn, w) in variants.items():
                 jax.block_until_ready(exes[name](w, x))
-        for _ in range(args.iters):
-            for name, (fn, w) in variants.items():
+        for i in range(args.iters):   # the order flips every round: position in a round biases it by 1-3 %
+            for name, (fn, w) in (list(variants.items()) if i % 2 else list(variants.items())[::-1]):
                 t0 = time.perf_counter()
                 jax.block_until_ready(exes[name](w, x))
                 times[name].append(time.perf_counter() - t0)
