@@ -3,5 +3,6 @@
 matmul: the one entry point of every weighted matmul (plain, FP8 `QArray`, calibration `Tap`) and SigLIP's Dense
 hook. attention: fused (flash) attention, cuDNN's kernel on a GPU. formats: FP8 / FP4 number formats, `QArray`,
 its checkpoint storage. expert_kernels, layout: the action expert's fused Pallas kernels and their data layout;
-vision_attention: SigLIP's attention as a Pallas kernel that reads q, k, v in place.
+vision_attention: SigLIP's attention as a Pallas kernel that reads q, k, v in place; layer_norm: SigLIP's residual
+add and LayerNorm as one Pallas kernel; pallas_base: what those kernels share (block sizes, the call).
 """

@@ -37,11 +37,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.experimental import pallas as pl
-from jax.experimental.pallas import triton as plgpu
+
+from pi0_jax.ops import pallas_base
+from pi0_jax.ops.pallas_base import ALIGN, dot, fit
 
 BIG_NEG = -2.3819763e38  # masked logits: the value pi0_jax.gemma fills (a test checks they agree)
 EPS = 1e-6
-ALIGN = 16  # Triton's smallest dot dimension
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,19 +68,9 @@ class Blocks:
     num_stages: int = 3
 
 
-def _fit(block: int, n: int) -> int:
-    """The largest power of two <= block that divides n."""
-    while n % block:
-        block //= 2
-    return block
-
-
 def _call(kernel, grid, out_shape, blocks: Blocks, name: str, num_warps: int | None = None):
-    on_cpu = jax.default_backend() == "cpu"
-    params = None if on_cpu else plgpu.CompilerParams(num_warps=num_warps or blocks.num_warps,
-                                                      num_stages=blocks.num_stages)
-    return pl.pallas_call(kernel, grid=grid, out_shape=out_shape, interpret=on_cpu, compiler_params=params,
-                          name=name)
+    return pallas_base.call(kernel, grid=grid, out_shape=out_shape, name=name,
+                            num_warps=num_warps or blocks.num_warps, num_stages=blocks.num_stages)
 
 
 def _scaled(x_ref, mod_ref, rows, cols, mod_row, dtype):
@@ -87,12 +78,6 @@ def _scaled(x_ref, mod_ref, rows, cols, mod_row, dtype):
     the row's 1 / rms). (1 + scale) is formed in the scale's dtype first, as the reference does."""
     x = x_ref[rows, cols].astype(jnp.float32)
     return x, (x * (1 + mod_ref[pl.ds(mod_row, 1), cols]).astype(jnp.float32)).astype(dtype)
-
-
-def _dot(a, b, trans_b: bool = False):
-    """a @ b (or a @ b.T) with an f32 accumulator; f32 operands multiply in full f32 (Triton's IEEE mode)."""
-    dims = (((1,), (1 if trans_b else 0,)), ((), ()))
-    return jax.lax.dot_general(a, b, dims, preferred_element_type=jnp.float32)
 
 
 def _round(acc, dtype):
@@ -113,12 +98,12 @@ def _partials_kernel(y_ref, mod_ref, w_ref, o_ref, *side, m, bm, bn, bk, chunk, 
         ks = pl.ds(s * chunk + kk * bk, bk)
         w = w_ref[ks, cols]
         if not scaled:
-            return (acc[0] + _dot(y_ref[rows, ks], w),)
+            return (acc[0] + dot(y_ref[rows, ks], w),)
         x, h = _scaled(y_ref, mod_ref, rows, ks, mod_row, dtype)
-        acc = (acc[0] + _dot(h, w), acc[1] + jnp.sum(x * x, axis=1), *acc[2:])
+        acc = (acc[0] + dot(h, w), acc[1] + jnp.sum(x * x, axis=1), *acc[2:])
         if adaptive:
             shift = jnp.broadcast_to(mod_ref[pl.ds(mod_row + 1, 1), ks], (ALIGN, bk))
-            acc = (*acc[:2], acc[2] + _dot(shift, w))
+            acc = (*acc[:2], acc[2] + dot(shift, w))
         return acc
 
     init = (jnp.zeros((bm, bn), jnp.float32),)
@@ -146,7 +131,7 @@ def matmul_partials(y, w, mods=None, mod_row: int = 0, *, scaled: bool = False, 
     n = w.shape[1]
     splits = splits if e % (ALIGN * splits) == 0 else 1
     chunk = e // splits
-    bm, bn, bk = _fit(blocks.rows, m), _fit(cols, n), _fit(blocks.k, chunk)
+    bm, bn, bk = fit(blocks.rows, m), fit(cols, n), fit(blocks.k, chunk)
     kernel = functools.partial(_partials_kernel, m=m, bm=bm, bn=bn, bk=bk, chunk=chunk, mod_row=mod_row,
                                scaled=scaled, adaptive=adaptive)
     out = [jax.ShapeDtypeStruct((splits * m, n), jnp.float32)]
@@ -206,11 +191,11 @@ def _attention_kernel(qkv_ref, ck_ref, cv_ref, pmask_ref, smask_ref, o_ref, lse_
 
     def update(carry, k, v, valid):
         o, mx, l = carry
-        logits = jnp.where(valid, _dot(q, k, trans_b=True), BIG_NEG)  # f32
+        logits = jnp.where(valid, dot(q, k, trans_b=True), BIG_NEG)  # f32
         m_new = jnp.maximum(mx, jnp.max(logits, axis=1))
         corr = jnp.exp(mx - m_new)
         p = jnp.exp(logits - m_new[:, None])
-        return o * corr[:, None] + _dot(p.astype(dtype), v), m_new, l * corr + jnp.sum(p, axis=1)
+        return o * corr[:, None] + dot(p.astype(dtype), v), m_new, l * corr + jnp.sum(p, axis=1)
 
     def write(carry):
         o, mx, l = carry
@@ -251,7 +236,7 @@ def attention(qkv, cache_k, cache_v, prefix_mask, suffix_mask, *, batch: int, nu
     m, sp = suffix_mask.shape
     hd = qkv.shape[1] // (num_heads + 2 * num_kv_heads)
     pp = prefix_mask.shape[1]
-    bq, bkv = _fit(blocks.q, sp), _fit(blocks.kv, pp)
+    bq, bkv = fit(blocks.q, sp), fit(blocks.kv, pp)
     splits = max(1, min(blocks.kv_splits, pp // bkv))
     per_split = -(-(pp // bkv) // splits)
     kernel = functools.partial(_attention_kernel, m=m, bq=bq, bkv=bkv, sp=sp, pp=pp, hd=hd, num_heads=num_heads,

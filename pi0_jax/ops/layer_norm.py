@@ -24,9 +24,10 @@ import jax
 import jax.numpy as jnp
 from jax.experimental import pallas as pl
 from jax.experimental.custom_partitioning import custom_partitioning
-from jax.experimental.pallas import triton as plgpu
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
+
+from pi0_jax.ops.pallas_base import call, fit
 
 
 @dataclasses.dataclass(frozen=True)
@@ -37,13 +38,6 @@ class Blocks:
     rows: int = 8
     cols: int = 128
     num_warps: int = 8
-
-
-def _fit(block: int, n: int) -> int:
-    """The largest power of two <= block that divides n."""
-    while n % block:
-        block //= 2
-    return block
 
 
 def _kernel(x_ref, *refs, br, bc, chunks, eps, residual):
@@ -130,11 +124,9 @@ _add_norm.def_partition(**_rule(2))
 
 def _layer_norm(xs: tuple, scale, bias, eps: float, dtype, blocks: Blocks) -> tuple:
     r, d = xs[0].shape
-    br, bc = _fit(blocks.rows, r), _fit(blocks.cols, d)
+    br, bc = fit(blocks.rows, r), fit(blocks.cols, d)
     kernel = functools.partial(_kernel, br=br, bc=bc, chunks=d // bc, eps=eps, residual=len(xs) == 3)
     shapes = ((jax.ShapeDtypeStruct((r, d), xs[0].dtype),) if len(xs) == 3 else ()) + (
         jax.ShapeDtypeStruct((r, d), dtype),)
-    on_cpu = jax.default_backend() == "cpu"
-    params = None if on_cpu else plgpu.CompilerParams(num_warps=blocks.num_warps, num_stages=1)
-    return pl.pallas_call(kernel, grid=(r // br,), out_shape=shapes, interpret=on_cpu, compiler_params=params,
-                          name="layer_norm")(*xs, scale, bias)
+    return call(kernel, grid=(r // br,), out_shape=shapes, name="layer_norm", num_warps=blocks.num_warps,
+                num_stages=1)(*xs, scale, bias)

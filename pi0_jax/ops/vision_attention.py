@@ -31,7 +31,8 @@ from jax.experimental.pallas import triton as plgpu
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
-ALIGN = 16  # Triton's smallest dot dimension
+from pi0_jax.ops.pallas_base import ALIGN, call, dot, fit
+
 NEG = float(np.finfo(np.float32).min)  # the running max before any key (no key is masked here)
 
 
@@ -59,18 +60,6 @@ def pieces(head_dim: int) -> tuple:
     return (0, first, 0), (head_dim - width, width, first - (head_dim - width))
 
 
-def _fit(block: int, n: int) -> int:
-    """The largest power of two <= block that divides n."""
-    while n % block:
-        block //= 2
-    return block
-
-
-def _dot(a, b, trans_b: bool = False):
-    dims = (((1,), (1 if trans_b else 0,)), ((), ()))
-    return jax.lax.dot_general(a, b, dims, preferred_element_type=jnp.float32)
-
-
 def _kernel(qkv_ref, o_ref, *, t, bq, bkv, width, hd, parts, scale):
     """Program (i, n, qi): query block qi of image i, head n, over all T keys of image i."""
     i, n, qi = pl.program_id(0), pl.program_id(1), pl.program_id(2)
@@ -90,12 +79,12 @@ def _kernel(qkv_ref, o_ref, *, t, bq, bkv, width, hd, parts, scale):
     def body(j, carry):
         o, mx, l = carry
         keys = pl.ds(i * t + j * bkv, bkv)
-        logits = sum(_dot(q, qkv_ref[keys, cols(width, part)], trans_b=True) for q, part in zip(qs, parts)) * scale
+        logits = sum(dot(q, qkv_ref[keys, cols(width, part)], trans_b=True) for q, part in zip(qs, parts)) * scale
         m_new = jnp.maximum(mx, jnp.max(logits, axis=1))
         corr = jnp.exp(mx - m_new)
         p = jnp.exp(logits - m_new[:, None])
         pv = p.astype(dtype)
-        o = tuple(acc * corr[:, None] + _dot(pv, qkv_ref[keys, cols(2 * width, part)]) for acc, part in zip(o, parts))
+        o = tuple(acc * corr[:, None] + dot(pv, qkv_ref[keys, cols(2 * width, part)]) for acc, part in zip(o, parts))
         return o, m_new, l * corr + jnp.sum(p, axis=1)
 
     init = (tuple(jnp.zeros((bq, part[1]), jnp.float32) for part in parts), jnp.full((bq,), NEG, jnp.float32),
@@ -120,7 +109,7 @@ def attention(qkv, *, images: int, num_heads: int, blocks: Blocks = Blocks()):
     if hd * 3 * num_heads != c or t * images != r:
         raise ValueError(f"qkv {qkv.shape} is not {images} images x T rows of 3 x {num_heads} heads")
     pieces(hd)
-    if min(_fit(blocks.q, t), _fit(blocks.kv, t)) < ALIGN:
+    if min(fit(blocks.q, t), fit(blocks.kv, t)) < ALIGN:
         raise ValueError(f"the Pallas vision attention needs T divisible by {ALIGN}, got {t}")
     return _partitioned(qkv, images, num_heads, blocks)
 
@@ -155,11 +144,9 @@ _partitioned.def_partition(partition=_partition, infer_sharding_from_operands=_i
 def _attention(qkv, images: int, num_heads: int, blocks: Blocks):
     r, c = qkv.shape
     hd, t = c // (3 * num_heads), r // images
-    bq, bkv = _fit(blocks.q, t), _fit(blocks.kv, t)
+    bq, bkv = fit(blocks.q, t), fit(blocks.kv, t)
     kernel = functools.partial(_kernel, t=t, bq=bq, bkv=bkv, width=num_heads * hd, hd=hd, parts=pieces(hd),
                                scale=float(hd) ** -0.5)
-    on_cpu = jax.default_backend() == "cpu"
-    params = None if on_cpu else plgpu.CompilerParams(num_warps=blocks.num_warps, num_stages=blocks.num_stages)
-    return pl.pallas_call(kernel, grid=(images, num_heads, t // bq),
-                          out_shape=jax.ShapeDtypeStruct((r, num_heads * hd), qkv.dtype), interpret=on_cpu,
-                          compiler_params=params, name="vision_attention")(qkv)
+    out = jax.ShapeDtypeStruct((r, num_heads * hd), qkv.dtype)
+    return call(kernel, grid=(images, num_heads, t // bq), out_shape=out, name="vision_attention",
+                num_warps=blocks.num_warps, num_stages=blocks.num_stages)(qkv)
