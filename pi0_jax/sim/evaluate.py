@@ -19,6 +19,7 @@ Results (eval_info.json) follow LeRobot's eval_info: per_episode, per_task, per_
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import json
 import math
@@ -290,13 +291,26 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
             state = reset(keys, global_array(task_of_p[sl]), global_array(init_of_p[sl]))
             return Carry(state=state, pstate=init_pstate(), keys=keys)
 
-        carry0 = first_carry(0)
-        t0 = time.perf_counter()
-        lowered = make_segment(env, policy, cfg, n_video, mesh).lower(params, carry0)
-        segment = lowered.compile(matmul.compiler_options(params, policy.info.get("gemm", "xla")))
+        # The segment compiles in a thread while the first batch's reset compiles and runs (XLA's compiler drops
+        # the GIL), from the carry's shapes: every leaf batch-first under the batch sharding, as carry0's.
+        carry_spec = jax.tree.map(
+            lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=shard, weak_type=x.weak_type),
+            jax.eval_shape(lambda b=batch, env=env, keys=jax.random.split(base_key, batch): Carry(
+                state=jax.vmap(env.reset)(keys, jnp.zeros(b, jnp.int32), jnp.zeros(b, jnp.int32)),
+                pstate=policy.init(b), keys=keys)))
+
+        def compile_segment(env=env, n_video=n_video):
+            t0 = time.perf_counter()
+            exe = make_segment(env, policy, cfg, n_video, mesh).lower(params, carry_spec).compile(
+                matmul.compiler_options(params, policy.info.get("gemm", "xla")))
+            return exe, time.perf_counter() - t0
+
+        with concurrent.futures.ThreadPoolExecutor(1) as pool:
+            compiling = pool.submit(compile_segment)
+            carry0 = first_carry(0)
+            segment, seconds = compiling.result()
         need, free = program_bytes(segment), free_device_bytes(jax.local_devices()[0])
-        tried.append({"batch": batch, "program_bytes": need, "free_bytes": free,
-                      "compile_s": time.perf_counter() - t0})
+        tried.append({"batch": batch, "program_bytes": need, "free_bytes": free, "compile_s": seconds})
         if not auto or batch <= n_dev:
             break
         fits = need is None or free is None or need <= AUTO_MEMORY_FRACTION * free
