@@ -52,12 +52,16 @@ def engine_weights(config: Pi0Config, params: dict, *, unroll: bool = True, kern
     """The programs' weights (`weights.prepare`, on device); unroll: per-layer buffers for unrolled layers.
     kernels: only checked here ("pallas" needs unrolled, unquantised expert layers; their layout is made inside
     the programs)."""
-    w = jax.jit(functools.partial(weights_lib.prepare, config))(params)
-    if unroll:
-        depth = config.paligemma.depth
-        w["vlm"] = weights_lib.unstack(w["vlm"], depth)
-        w["expert"] = weights_lib.unstack(w["expert"], depth)
-        w["img"]["blocks"] = weights_lib.unstack(w["img"]["blocks"], config.siglip.depth)
+    def build(params):   # one program: per-layer slices taken eagerly would each compile and dispatch apart
+        w = weights_lib.prepare(config, params)
+        if unroll:
+            depth = config.paligemma.depth
+            w["vlm"] = weights_lib.unstack(w["vlm"], depth)
+            w["expert"] = weights_lib.unstack(w["expert"], depth)
+            w["img"]["blocks"] = weights_lib.unstack(w["img"]["blocks"], config.siglip.depth)
+        return w
+
+    w = jax.jit(build)(params)
     if kernels == "pallas":
         if not unroll:
             raise ValueError("kernels='pallas' needs unroll=True")
