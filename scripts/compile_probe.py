@@ -37,18 +37,18 @@ def main(argv=None) -> int:
     p.add_argument("--resolution", type=int, default=224, help="camera pixels (default: 224)")
     p.add_argument("--replan-steps", type=int, default=5, help="physics steps per plan (default: 5)")
     p.add_argument("--gemm", choices=("xla", "cublas"), default="cublas", help="as `pi0-jax eval` (default: cublas)")
-    p.add_argument("--scan-layers", action="store_true",
-                   help="the policy's layers under lax.scan instead of unrolled (a smaller program)")
     p.add_argument("--only", default="reset,physics,render,plan,segment,threads",
                    help="comma-separated parts to compile (default: all, in this order)")
     p.add_argument("--json", type=Path, default=None, help="also write the result here")
     args = p.parse_args(argv)
+    known = ("reset", "physics", "render", "plan", "segment", "threads")
+    if unknown := set(args.only.split(",")) - set(known):
+        p.error(f"--only: unknown parts {sorted(unknown)}; parts: {', '.join(known)}")
 
     import jax
     import jax.numpy as jnp
     import numpy as np
 
-    from pi0_jax import policy as policy_lib
     from pi0_jax.ops import matmul
     from pi0_jax.sim import evaluate as ev
     from pi0_jax.sim import tasks as tasks_lib
@@ -57,8 +57,6 @@ def main(argv=None) -> int:
     from pi0_jax.sim.realtime import Realtime
     from pi0_jax.sim.render import RenderConfig
 
-    if args.scan_layers:
-        policy_lib.PolicyCore.__init__.__kwdefaults__["unroll"] = False
     t0 = time.perf_counter()
     names = tuple(t.name for t in tasks_lib.suite_tasks("all"))
     n, r = args.batch, args.replan_steps

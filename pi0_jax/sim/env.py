@@ -66,7 +66,8 @@ class Env:
         device = jax.local_devices()[0]
         self.model = mjx.put_model(self.mj_model, device=device)
         self.render_scene = Scene.from_model(self.mj_model)
-        self._data0 = mjx.make_data(self.model, device=device)
+        with jax.default_device(device):   # one program: MJX's make_data runs 15 eager ops, each compiled apart
+            self._data0 = jax.jit(lambda: mjx.make_data(self.model))()
         self._mjx = mjx
         self.num_init_states = num_init_states
         self.q_home = jnp.asarray(scene.home_qpos(), jnp.float32)

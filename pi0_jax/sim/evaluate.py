@@ -293,11 +293,12 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
 
         # The segment compiles in a thread while the first batch's reset compiles and runs (XLA's compiler drops
         # the GIL), from the carry's shapes: every leaf batch-first under the batch sharding, as carry0's.
+        keys_spec, ints_spec = (jax.ShapeDtypeStruct((batch,), t) for t in (base_key.dtype, jnp.int32))
         carry_spec = jax.tree.map(
             lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=shard, weak_type=x.weak_type),
-            jax.eval_shape(lambda b=batch, env=env, keys=jax.random.split(base_key, batch): Carry(
-                state=jax.vmap(env.reset)(keys, jnp.zeros(b, jnp.int32), jnp.zeros(b, jnp.int32)),
-                pstate=policy.init(b), keys=keys)))
+            jax.eval_shape(lambda keys, t, i, b=batch, env=env: Carry(
+                state=jax.vmap(env.reset)(keys, t, i), pstate=policy.init(b), keys=keys),
+                keys_spec, ints_spec, ints_spec))
 
         def compile_segment(env=env, n_video=n_video):
             t0 = time.perf_counter()
