@@ -13,7 +13,7 @@ import einops
 import jax.numpy as jnp
 
 from pi0_jax.config import GemmaConfig
-from pi0_jax.ops.expert_kernels import ALIGN
+from pi0_jax.ops.pallas_base import ALIGN
 
 KEY_PAD = 64  # prefix keys are padded to a multiple of this (the attention kernel's largest key block)
 
