@@ -276,6 +276,10 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
 
     params = jax.tree.map(lambda x: global_array(x, repl), policy.params)
     ep_keys = jax.jit(lambda e: jax.vmap(lambda i: jax.random.fold_in(base_key, i))(e), out_shardings=shard)
+    bar = None
+    if progress and jax.process_index() == 0:   # up before the compile, which takes 30-60 s on a GPU
+        from tqdm import tqdm
+        bar = tqdm(total=n_ep, unit="ep", desc=f"eval {cfg.suite}: compiling", dynamic_ncols=True)
     t_compile = time.perf_counter()
     tried = []
     while True:   # the segment program compiled ahead; with --batch auto, halved until it fits in device memory
@@ -326,10 +330,8 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
     policy_stats: dict[str, int] = {}
     video_frames, video_done = [], []
     compile_s, wait_s, done_count, succ_count = 0.0, 0.0, 0, 0
-    bar = None
-    if progress and jax.process_index() == 0:
-        from tqdm import tqdm
-        bar = tqdm(total=n_ep, unit="ep", desc=f"eval {cfg.suite}", dynamic_ncols=True)
+    if bar is not None:
+        bar.set_description(f"eval {cfg.suite}")
     t_roll = t_compile
     for b in range(n_batches):
         sl = slice(b * batch, (b + 1) * batch)
@@ -355,8 +357,10 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
                 bar.update(n_done - prev_done)
                 tot_done = done_count + n_done
                 rate = (succ_count + int((ok & done & vmask).sum())) / max(tot_done, 1)
-                per_min = 60.0 * tot_done / max(time.perf_counter() - t_roll - compile_s, 1e-9)
-                bar.set_postfix_str(f"success {100 * rate:.1f}% of {tot_done}, {per_min:.0f} ep/min")
+                # episodes/min after the first segment (eval_info's episodes_per_min_after_compile): none before
+                after = time.perf_counter() - t_roll - compile_s
+                per_min = f", {60.0 * tot_done / after:.0f} ep/min" if b or s else ""
+                bar.set_postfix_str(f"success {100 * rate:.1f}% of {tot_done}{per_min}")
             prev_done = n_done
             if (done | ~vmask).all():
                 break
