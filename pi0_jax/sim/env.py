@@ -7,7 +7,8 @@
 
 One control step is 50 ms (20 Hz): the controller turns the 7-D action into servo targets once, then MJX integrates
 `substeps` physics steps. After them the kinematics are refreshed, so positions in the state, the observation and the
-success check all belong to the same instant. Rendering is separate from stepping (`observe`), so callers render
+success check all belong to the same instant. Each substep is `mjx.step` with its kinematics moved to its end
+(`_substep`): the same stages in the same order, but a step's HLO holds MJX's kinematics once instead of twice. Rendering is separate from stepping (`observe`), so callers render
 only when something will look at the images.
 
 Episode bookkeeping follows LIBERO: an episode is done at its first success or at the task's step limit; `success`
@@ -52,6 +53,8 @@ class Env:
     def __init__(self, task_names, render_cfg: RenderConfig = RenderConfig(),
                  scene_cfg: scene.SceneConfig = scene.SceneConfig(), num_init_states: int = tasks.NUM_INIT_STATES,
                  max_steps: int | None = None):
+        import mujoco
+
         mjx = import_mjx()
 
         self.task_names = tuple(task_names)
@@ -74,6 +77,7 @@ class Env:
         self.q_low = jnp.asarray(self.mj_model.jnt_range[:7, 0], jnp.float32)
         self.q_high = jnp.asarray(self.mj_model.jnt_range[:7, 1], jnp.float32)
         assert self.mj_model.nmocap == len(scene.FIXTURES)  # the fixtures are the only mocap bodies
+        assert self.mj_model.opt.integrator == mujoco.mjtIntegrator.mjINT_IMPLICITFAST   # `_substep`'s integrator
 
     @property
     def prompts(self) -> tuple[str, ...]:
@@ -117,6 +121,28 @@ class Env:
         mjx, m = self._mjx, self.model
         return mjx.camlight(m, mjx.com_pos(m, mjx.kinematics(m, d)))
 
+    def _substep(self, d):
+        """`mjx.step` on data refreshed for its qpos (`_refresh`), returning data refreshed for the new qpos.
+
+        MuJoCo 3.17's `mjx.step` is `forward` (whose position stage starts with kinematics, centres of mass and
+        cameras) and then, for this scene, the implicitfast integrator. Here those three stages run after the
+        integrator instead of before the rest: on a refreshed input they would recompute what it holds, and after
+        the last substep the state needs them anyway. So the substep loop holds the kinematics (12k of the 36k
+        HLO instructions one control step had, docs/BENCHMARKS.md) once. `tests/test_sim_env.py` checks this against
+        `mjx.step` and `_refresh`."""
+        from mujoco.mjx._src import collision_driver, constraint, forward, sensor, smooth, solver
+
+        m = self.model
+        for stage in (smooth.tendon, smooth.crb, smooth.tendon_armature, smooth.factor_m, collision_driver.collision,
+                      constraint.make_constraint, smooth.transmission, sensor.sensor_pos, forward.fwd_velocity,
+                      sensor.sensor_vel, forward.fwd_actuation, forward.fwd_acceleration):
+            d = stage(m, d)
+        if d._impl.efc_J.size == 0:
+            d = d.replace(qacc=d.qacc_smooth)
+        else:
+            d = sensor.sensor_acc(m, solver.solve(m, d))
+        return self._refresh(forward.implicit(m, d))
+
     def tcp_jacobian(self, data) -> jax.Array:
         """(6, 7) geometric Jacobian of the tool centre point w.r.t. the arm joints: rows [linear; angular]."""
         jacp, jacr = self._mjx.jac(self.model, data, data.site_xpos[self.index.tcp_site], self.index.hand_body)
@@ -124,13 +150,12 @@ class Env:
 
     def step(self, state: State, action: jax.Array) -> State:
         """Apply a 7-D action (see controller.py) for one 50 ms control step."""
-        mjx, m, d = self._mjx, self.model, state.data
+        d = state.data
         q = d.qpos[:7]
         q_target = controller.arm_targets(self.tcp_jacobian(d), q, self.q_home, action, self.q_low, self.q_high)
         grip = controller.gripper_target(action, scene.FINGER_OPEN)
         d = d.replace(ctrl=jnp.concatenate([q_target, jnp.stack([grip, grip])]))
-        d = jax.lax.fori_loop(0, self.scene_cfg.substeps, lambda _, x: mjx.step(m, x), d)
-        d = self._refresh(d)
+        d = jax.lax.fori_loop(0, self.scene_cfg.substeps, lambda _, x: self._substep(x), d)
         t = state.t + 1
         ok = state.success | (~state.done & self.success(state.task, d))
         limit = jnp.asarray(self.max_steps)[state.task]
