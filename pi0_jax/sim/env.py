@@ -8,8 +8,8 @@
 One control step is 50 ms (20 Hz): the controller turns the 7-D action into servo targets once, then MJX integrates
 `substeps` physics steps. After them the kinematics are refreshed, so positions in the state, the observation and the
 success check all belong to the same instant. Each substep is `mjx.step` with its kinematics moved to its end
-(`_substep`): the same stages in the same order, but a step's HLO holds MJX's kinematics once instead of twice. Rendering is separate from stepping (`observe`), so callers render
-only when something will look at the images.
+(`_substep`), so a step's program holds MJX's kinematics once instead of twice. Rendering is separate from stepping
+(`observe`), so callers render only when something will look at the images.
 
 Episode bookkeeping follows LIBERO: an episode is done at its first success or at the task's step limit; `success`
 latches. Steps after `done` still simulate (batched rollouts keep a fixed shape) but change no bookkeeping.
