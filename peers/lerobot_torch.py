@@ -174,7 +174,7 @@ def benchmark(config: Pi0Config, args, device: str = "cuda") -> list[dict]:
                 rows.append(row)
     finally:
         torch.set_float32_matmul_precision(precision)
-    del policy, model
+    del policy, model, fn   # fn (a bound method or a compiled module) holds the model too
     if torch.device(device).type == "cuda":
         torch.cuda.empty_cache()
     return rows

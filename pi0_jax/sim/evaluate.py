@@ -300,11 +300,11 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
         keys_spec, ints_spec = (jax.ShapeDtypeStruct((batch,), t) for t in (base_key.dtype, jnp.int32))
         carry_spec = jax.tree.map(
             lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=shard, weak_type=x.weak_type),
-            jax.eval_shape(lambda keys, t, i, b=batch, env=env: Carry(
-                state=jax.vmap(env.reset)(keys, t, i), pstate=policy.init(b), keys=keys),
+            jax.eval_shape(lambda keys, t, i: Carry(
+                state=jax.vmap(env.reset)(keys, t, i), pstate=policy.init(batch), keys=keys),
                 keys_spec, ints_spec, ints_spec))
 
-        def compile_segment(env=env, n_video=n_video):
+        def compile_segment():
             t0 = time.perf_counter()
             exe = make_segment(env, policy, cfg, n_video, mesh).lower(params, carry_spec).compile(
                 matmul.compiler_options(params, policy.info.get("gemm", "xla")))
