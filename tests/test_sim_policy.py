@@ -108,6 +108,42 @@ def test_engine_reference_and_dynamic_steps_plan_the_same(demo_ckpt):
     assert np.abs(other - chunks["dynamic"]).max() > 1e-3      # the traced count is really used
 
 
+@pytest.mark.parametrize("n_dev,local,chunk", [(1, 5, 2), (2, 5, 2), (2, 4, 4), (1, 3, 1), (2, 3, None)])
+def test_chunked_plan_layout(n_dev, local, chunk):
+    """chunked_plan: each call sees at most `chunk` rows per device (the same rows of every device's block), and the
+    result is the plan's on the whole batch, padding dropped."""
+    seen = []
+
+    def plan(params, x, keys):
+        seen.append(x.shape[0])
+        return {"y": x * params + jax.vmap(jax.random.uniform)(keys)[:, None], "b": x.sum(-1) > 0}
+
+    b = n_dev * local
+    x = jnp.arange(b * 3, dtype=jnp.float32).reshape(b, 3) - 7.0
+    keys = jax.random.split(jax.random.key(0), b)
+    want = plan(2.0, x, keys)
+    seen.clear()
+    got = jax.jit(policies.chunked_plan(plan, chunk, n_dev))(2.0, x, keys)
+    jax.tree.map(np.testing.assert_array_equal, got, want)
+    assert max(seen) <= n_dev * (chunk or local) and (chunk is None or chunk >= local or max(seen) < b)
+
+
+def test_chunked_plan_matches_whole_batch(demo_ckpt):
+    """The sim's π0.5 planning 5 environments in chunks of 2 (3 chunks, one padded row) gives the whole batch's
+    action chunks."""
+    ckpt, tokenizer = demo_ckpt
+    env = Env(TASKS, RenderConfig(RES, RES))
+    pol = policies.checkpoint_policy(ckpt, env, tokenizer_path=tokenizer, num_steps=NUM_STEPS)
+    n = 5
+    state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.key(2), n), jnp.arange(n) % 2, jnp.arange(n))
+    obs = jax.jit(jax.vmap(env.observe))(state)
+    keys = jax.random.split(jax.random.key(5), n)
+    whole = np.asarray(jax.jit(pol.plan)(pol.params, pol.init(n), obs, state, keys))
+    chunked = np.asarray(jax.jit(policies.chunked_plan(pol.plan, 2))(pol.params, pol.init(n), obs, state, keys))
+    assert np.abs(whole[1:] - whole[:-1]).max() > 1e-3                      # the rows differ
+    np.testing.assert_allclose(chunked, whole, rtol=1e-5, atol=1e-5)
+
+
 def test_eval_cli_with_checkpoint(demo_ckpt, tmp_path):
     ckpt, tokenizer = demo_ckpt
     out = tmp_path / "eval"
@@ -183,6 +219,29 @@ def test_eval_batch_auto(tmp_path, monkeypatch):
     assert info["aggregated"]["n_episodes"] == 2 and all(e["length"] <= 10 for e in info["per_episode"])
     with pytest.raises(SystemExit):
         cli.main(["eval", "--policy", "expert", "--batch", "0"])
+
+
+def test_eval_batch_auto_chunks_the_plan_first(tmp_path, monkeypatch):
+    """`--batch auto` halves the policy's chunk before the batch when the segment does not fit (its activations
+    are what grows with the batch), and records the chunk it ran."""
+    from pi0_jax.sim import evaluate
+
+    real, calls = evaluate.program_bytes, []
+
+    def program_bytes(compiled):
+        calls.append(real(compiled))
+        return 1 << 60 if len(calls) == 1 else calls[-1]
+
+    monkeypatch.setattr(evaluate, "program_bytes", program_bytes)
+    monkeypatch.setattr(evaluate, "AUTO_MIN_PLAN_CHUNK", 1)
+    out = tmp_path / "eval"
+    assert cli.main(["eval", "--policy", "preset:dummy", "--suite", "goal/red_block_on_plate", "--episodes-per-task",
+                     "4", "--batch", "auto", "--steps", "5", "--num-steps", "2", "--resolution", str(RES),
+                     "--videos", "0", "--output-dir", str(out), "--no-progress"]) == 0
+    info = json.loads((out / "eval_info.json").read_text())
+    tried = info["config"]["batch_auto"]["tried"]
+    assert [(t["batch"], t["plan_chunk"]) for t in tried] == [(4, None), (4, 2)]
+    assert info["config"]["plan_chunk"] == 2 and info["aggregated"]["n_episodes"] == 4
 
 
 def test_eval_quant(tmp_path, monkeypatch):

@@ -43,8 +43,13 @@ def add_eval_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--batch", type=batch_arg, default=32, metavar="N|auto",
                    help="environments simulated at once, rounded up to a multiple of the device count; 'auto': "
                         "the fewest even batches of at most 1024 per device whose compiled segment fits in 85 %% "
-                        "of the free device memory (halved until it does; what was tried goes into "
-                        "eval_info.json's config.batch_auto) (default: %(default)s)")
+                        "of the free device memory (the policy's --plan-chunk, then the batch, halved until it "
+                        "does; what was tried goes into eval_info.json's config.batch_auto) (default: %(default)s)")
+    p.add_argument("--plan-chunk", type=int, default=None, metavar="C",
+                   help="the policy plans at most C environments per device at a time, one chunk after another: "
+                        "a large batch's physics and rendering with the activation memory of C (a full-size π0.5 "
+                        "needs ~60 MB per environment); default: the whole batch at once, or with --batch auto "
+                        "halved from it (down to 128) before the batch is")
     p.add_argument("--replan-steps", type=int, default=5, metavar="R",
                    help="steps executed from each action chunk before the policy is called again; at most the "
                         "model's action horizon (default: %(default)s, openpi's LIBERO setting)")
@@ -183,7 +188,7 @@ def run(args: argparse.Namespace) -> int:
         enable_compilation_cache(args.cache_dir)
 
     cfg = EvalConfig(suite=args.suite, episodes_per_task=args.episodes_per_task, batch=args.batch,
-                     replan_steps=args.replan_steps, max_steps=args.steps,
+                     plan_chunk=args.plan_chunk, replan_steps=args.replan_steps, max_steps=args.steps,
                      resolution=args.resolution or default_resolution(args.policy),
                      seed=args.seed, videos=args.videos, segment_replans=args.segment_replans,
                      num_steps=default_num_steps(args.policy) if args.num_steps is None else args.num_steps,

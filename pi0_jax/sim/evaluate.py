@@ -23,6 +23,7 @@ import concurrent.futures
 import dataclasses
 import json
 import math
+import os
 import re
 import time
 from pathlib import Path
@@ -37,19 +38,21 @@ from jax.sharding import PartitionSpec as P
 from pi0_jax.ops import matmul
 from pi0_jax.sim import tasks as _tasks
 from pi0_jax.sim.env import Env
-from pi0_jax.sim.policies import SimPolicy, make_policy
-from pi0_jax.sim.render import RenderConfig
+from pi0_jax.sim.policies import SimPolicy, chunked_plan, make_policy
+from pi0_jax.sim.render import RenderConfig, write_video
 
 
 AUTO_MAX_PER_DEVICE = 1024      # --batch auto: the largest batch tried, per device
 AUTO_MEMORY_FRACTION = 0.85     # ... and the share of the free device memory its segment program may take
+AUTO_MIN_PLAN_CHUNK = 128       # ... the policy's chunk halved down to this before the batch is
 
 
 @dataclasses.dataclass(frozen=True)
 class EvalConfig:
     suite: str = "all"
     episodes_per_task: int = 10
-    batch: int | str = 32             # or "auto": balanced_batch under AUTO_MAX_PER_DEVICE, halved until it fits
+    batch: int | str = 32             # or "auto": the largest that fits (AUTO_*, the compile loop in evaluate)
+    plan_chunk: int | None = None     # the policy plans at most this many environments per device at a time
     replan_steps: int = 5
     max_steps: int | None = None      # None: each task's own limit (LIBERO's 220 / 280 / 300)
     resolution: int = 224
@@ -126,8 +129,6 @@ def free_device_bytes(device) -> int | None:
     if stats and "bytes_limit" in stats:
         return int(stats["bytes_limit"] - stats.get("bytes_in_use", 0))
     try:
-        import os
-
         return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
     except (ValueError, OSError, AttributeError):
         return None
@@ -161,6 +162,8 @@ def make_segment(env: Env, policy: SimPolicy, cfg: EvalConfig, n_video: int, mes
     compiled for; unpinned, the partitioner replicates MJX's zero-size `Data` fields. (A `shard_map` segment, with no
     collectives at all, crashed XLA's GPU compiler on two H200s with jax 0.11.2; see docs/BENCHMARKS.md.)"""
     r, n_replans = cfg.replan_steps, segment_replans(cfg, env)
+    plan = chunked_plan(policy.plan, cfg.plan_chunk, 1 if mesh is None else mesh.size,
+                        None if mesh is None else NamedSharding(mesh, P(None, "batch")))
 
     def observe(state, images: bool):
         if images:
@@ -170,7 +173,7 @@ def make_segment(env: Env, policy: SimPolicy, cfg: EvalConfig, n_video: int, mes
     def replan(params, carry: Carry, _):
         split = jax.vmap(jax.random.split)(carry.keys)
         keys, sub = split[:, 0], split[:, 1]
-        ps = policy.plan(params, carry.pstate, observe(carry.state, policy.needs_images), carry.state, sub)
+        ps = plan(params, carry.pstate, observe(carry.state, policy.needs_images), carry.state, sub)
 
         def inner(c, k):
             state, ps = c
@@ -205,19 +208,6 @@ def collectives(hlo: str) -> int:
                           hlo))
 
 
-def write_video(path: Path, frames: np.ndarray, fps: int = 20) -> None:
-    """(T, H, W, 3) uint8 -> H.264 MP4 through imageio-ffmpeg's bundled ffmpeg binary."""
-    import warnings
-
-    import imageio.v2 as imageio
-
-    with warnings.catch_warnings():   # ffmpeg runs as fork + exec, which JAX's fork warning does not distinguish
-        warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
-        with imageio.get_writer(path, fps=fps, codec="libx264", quality=7, macro_block_size=16) as w:
-            for f in frames:
-                w.append_data(f)
-
-
 def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None, *, progress: bool = True,
              policy_kwargs: dict | None = None, profile: bool = False) -> dict:
     """Run the evaluation; returns eval_info (also written to output_dir/eval_info.json with videos).
@@ -233,6 +223,8 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
     auto = cfg.batch == "auto"
     if not auto and (not isinstance(cfg.batch, int) or cfg.batch < 1):
         raise ValueError(f"batch {cfg.batch!r}: a positive number of environments or 'auto'")
+    if cfg.plan_chunk is not None and cfg.plan_chunk < 1:
+        raise ValueError(f"plan_chunk {cfg.plan_chunk}: a positive number of environments per device, or None")
     batch = (balanced_batch(n_episodes, AUTO_MAX_PER_DEVICE * n_dev, n_dev) if auto
              else math.ceil(min(cfg.batch, n_episodes) / n_dev) * n_dev)      # a multiple of the device count
     mesh = Mesh(np.array(devices), ("batch",))
@@ -281,49 +273,58 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
         from tqdm import tqdm
         bar = tqdm(total=n_ep, unit="ep", desc=f"eval {cfg.suite}: compiling", dynamic_ncols=True)
     t_compile = time.perf_counter()
-    tried = []
-    while True:   # the segment program compiled ahead; with --batch auto, halved until it fits in device memory
-        pad = math.ceil(n_ep / batch) * batch - n_ep
-        task_of_p, init_of_p = np.pad(task_of, (0, pad)), np.pad(init_of, (0, pad))
-        n_video = min(cfg.videos, batch) if output_dir is not None else 0
-        reset = jax.jit(lambda keys, t, i, env=env: jax.vmap(env.reset)(keys, t, i), out_shardings=shard)
-        init_pstate = jax.jit(lambda b=batch: policy.init(b), out_shardings=shard)
+    tried, chunk, carry0, shrank = [], cfg.plan_chunk, None, None
+    # The segment compiled ahead; --batch auto halves the plan's chunk (while that shrinks it), then the batch, to fit
+    while True:
+        if carry0 is None:    # a new batch
+            pad = math.ceil(n_ep / batch) * batch - n_ep
+            task_of_p, init_of_p = np.pad(task_of, (0, pad)), np.pad(init_of, (0, pad))
+            n_video = min(cfg.videos, batch) if output_dir is not None else 0
+            reset = jax.jit(lambda keys, t, i, env=env: jax.vmap(env.reset)(keys, t, i), out_shardings=shard)
+            init_pstate = jax.jit(lambda b=batch: policy.init(b), out_shardings=shard)
 
-        def first_carry(b: int) -> Carry:
-            sl = slice(b * batch, (b + 1) * batch)
-            keys = ep_keys(global_array(np.arange(b * batch, (b + 1) * batch, dtype=np.int32)))
-            state = reset(keys, global_array(task_of_p[sl]), global_array(init_of_p[sl]))
-            return Carry(state=state, pstate=init_pstate(), keys=keys)
+            def first_carry(b: int) -> Carry:
+                sl = slice(b * batch, (b + 1) * batch)
+                keys = ep_keys(global_array(np.arange(b * batch, (b + 1) * batch, dtype=np.int32)))
+                state = reset(keys, global_array(task_of_p[sl]), global_array(init_of_p[sl]))
+                return Carry(state=state, pstate=init_pstate(), keys=keys)
 
-        # The segment compiles in a thread while the first batch's reset compiles and runs (XLA's compiler drops
-        # the GIL), from the carry's shapes: every leaf batch-first under the batch sharding, as carry0's.
-        keys_spec, ints_spec = (jax.ShapeDtypeStruct((batch,), t) for t in (base_key.dtype, jnp.int32))
-        carry_spec = jax.tree.map(
-            lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=shard, weak_type=x.weak_type),
-            jax.eval_shape(lambda keys, t, i: Carry(
-                state=jax.vmap(env.reset)(keys, t, i), pstate=policy.init(batch), keys=keys),
-                keys_spec, ints_spec, ints_spec))
+            # The segment compiles in a thread while the first batch's reset compiles and runs (XLA's compiler
+            # drops the GIL), from the carry's shapes: every leaf batch-first under the batch sharding, as carry0's.
+            keys_spec, ints_spec = (jax.ShapeDtypeStruct((batch,), t) for t in (base_key.dtype, jnp.int32))
+            carry_spec = jax.tree.map(
+                lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=shard, weak_type=x.weak_type),
+                jax.eval_shape(lambda keys, t, i: Carry(
+                    state=jax.vmap(env.reset)(keys, t, i), pstate=policy.init(batch), keys=keys),
+                    keys_spec, ints_spec, ints_spec))
+        run_cfg = dataclasses.replace(cfg, plan_chunk=chunk)
 
         def compile_segment():
             t0 = time.perf_counter()
-            exe = make_segment(env, policy, cfg, n_video, mesh).lower(params, carry_spec).compile(
+            exe = make_segment(env, policy, run_cfg, n_video, mesh).lower(params, carry_spec).compile(
                 matmul.compiler_options(params, policy.info.get("gemm", "xla")))
             return exe, time.perf_counter() - t0
 
         with concurrent.futures.ThreadPoolExecutor(1) as pool:
             compiling = pool.submit(compile_segment)
-            carry0 = first_carry(0)
+            carry0 = first_carry(0) if carry0 is None else carry0
             segment, seconds = compiling.result()
         need, free = program_bytes(segment), free_device_bytes(jax.local_devices()[0])
-        tried.append({"batch": batch, "program_bytes": need, "free_bytes": free, "compile_s": seconds})
+        tried.append({"batch": batch, "plan_chunk": chunk, "program_bytes": need, "free_bytes": free,
+                      "compile_s": seconds})
         if not auto or batch <= n_dev:
             break
         fits = need is None or free is None or need <= AUTO_MEMORY_FRACTION * free
-        if _every_process(fits, f"pi0_jax.sim.evaluate: batch {batch} fits"):
+        if _every_process(fits, f"pi0_jax.sim.evaluate: batch {batch} (plan chunk {chunk}) fits"):
             break
-        del segment, carry0
-        batch = balanced_batch(n_episodes, batch // 2, n_dev)
-        env = make_env(batch)
+        del segment
+        local = min(chunk or batch // n_dev, batch // n_dev)
+        if local > AUTO_MIN_PLAN_CHUNK and (shrank is None or need < 0.75 * shrank):
+            chunk, shrank = -(-local // 2), need
+        else:
+            carry0, shrank = None, None
+            batch = balanced_batch(n_episodes, batch // 2, n_dev)
+            env = make_env(batch)
     n_batches = math.ceil(n_ep / batch)
     valid = np.arange(n_batches * batch) < n_ep
     success, length = np.zeros(n_ep, bool), np.zeros(n_ep, np.int32)
@@ -377,7 +378,7 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
     rollout_s = time.perf_counter() - t_roll
     eval_s = time.perf_counter() - t_start
 
-    info = _eval_info(env, cfg, policy, task_of, init_of, success, length, eval_s, rollout_s, compile_s, batch,
+    info = _eval_info(env, run_cfg, policy, task_of, init_of, success, length, eval_s, rollout_s, compile_s, batch,
                       n_dev, n_local)
     if auto:
         info["config"]["batch_auto"] = {"tried": tried, "max_per_device": AUTO_MAX_PER_DEVICE,
@@ -389,7 +390,7 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
         if policy_stats.get("plans"):
             info["realtime"]["prefix_recompute_fraction"] = policy_stats["prefix_recomputed"] / policy_stats["plans"]
     if profile:
-        info["timing"]["phases"] = profile_phases(env, policy, cfg, params, first_carry(0).state, batch)
+        info["timing"]["phases"] = profile_phases(env, policy, run_cfg, params, first_carry(0).state, batch)
     if output_dir is not None and jax.process_index() == 0:
         out = Path(output_dir)
         out.mkdir(parents=True, exist_ok=True)
@@ -433,7 +434,8 @@ def profile_phases(env: Env, policy: SimPolicy, cfg: EvalConfig, params, state, 
 
     def plan(params, state, obs):
         keys = jax.random.split(jax.random.key(0), batch)
-        return policy.plan(params, policy.init(batch), obs, state, keys)
+        return chunked_plan(policy.plan, cfg.plan_chunk, jax.device_count())(params, policy.init(batch), obs, state,
+                                                                               keys)
 
     def timed(fn, *args) -> float:
         jax.block_until_ready(fn(*args))

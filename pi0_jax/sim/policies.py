@@ -48,6 +48,37 @@ class SimPolicy:
     stats: Callable | None = None                   # pstate -> {name: (B,) counts}, summed into eval_info
 
 
+def chunked_plan(plan: Callable[..., Any], chunk: int | None, n_dev: int = 1, sharding=None) -> Callable[..., Any]:
+    """`plan` run on at most `chunk` environments per device at a time, one chunk after another (a lax.map), so a
+    large batch's policy activations (π0.5's prefix MLP: ~60 MB per environment) stay those of one chunk. Every
+    argument but params is batch-first with the batch laid out device-major (n_dev blocks of the local batch); each
+    chunk takes the same rows of every device's block, so all devices work on every chunk. A local batch that is not
+    a multiple of the chunk count is padded by repeating its last row; the padding is dropped from the result.
+    sharding: the chunks' (chunk, batch) sharding, e.g. NamedSharding(mesh, P(None, "batch")). chunk None, or a local
+    batch no larger than it: `plan` itself."""
+    def run(params, *xs):
+        local = jax.tree.leaves(xs)[0].shape[0] // n_dev
+        if chunk is None or local <= chunk:
+            return plan(params, *xs)
+        k = -(-local // chunk)
+        m = -(-local // k)
+
+        def split(x):   # (n_dev * local, ...) -> (k, n_dev * m, ...)
+            x = x.reshape((n_dev, local) + x.shape[1:])
+            if k * m > local:
+                x = jnp.concatenate([x, jnp.repeat(x[:, -1:], k * m - local, axis=1)], axis=1)
+            x = x.reshape((n_dev, k, m) + x.shape[2:]).swapaxes(0, 1).reshape((k, n_dev * m) + x.shape[2:])
+            return x if sharding is None else jax.lax.with_sharding_constraint(x, sharding)
+
+        def merge(y):   # the inverse, padding dropped
+            y = y.reshape((k, n_dev, m) + y.shape[2:]).swapaxes(0, 1).reshape((n_dev, k * m) + y.shape[2:])
+            return y[:, :local].reshape((n_dev * local,) + y.shape[2:])
+
+        return jax.tree.map(merge, jax.lax.map(lambda c: plan(params, *c), jax.tree.map(split, xs)))
+
+    return run
+
+
 def expert_policy(env, delay: int = 0, pos_gain: float = _expert.POS_GAIN) -> SimPolicy:
     """The scripted expert (privileged state, closed loop every step). delay D > 0: the action computed from the
     state at step t is executed at t + D (a FIFO of D actions; the first D steps hold still: zero motion, gripper

@@ -14,12 +14,15 @@ geom id -1 is background. Planes are one-sided (seen from +z) and drawn within t
 Cost is rays x geoms per image. Geoms are grouped by type (static under jit) and each group is reduced with one
 argmin over geoms, so the (rays x geoms) intermediates stay inside fused reductions; `ray_chunk` additionally bounds
 memory by processing the image in chunks of rays with lax.map (needed at 224 x 224 with thousands of environments).
+
+`write_video` writes a camera's frames as an MP4.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -218,3 +221,16 @@ def render(scene: Scene, cfg: RenderConfig, data, cam_ids=(0, 1)):
             for c in cam_ids]
     return {"rgb": jnp.stack([o[0] for o in outs]), "depth": jnp.stack([o[1] for o in outs]),
             "segmentation": jnp.stack([o[2] for o in outs])}
+
+
+def write_video(path: Path, frames: np.ndarray, fps: int = 20) -> None:
+    """(T, H, W, 3) uint8 -> H.264 MP4 through imageio-ffmpeg's bundled ffmpeg binary."""
+    import warnings
+
+    import imageio.v2 as imageio
+
+    with warnings.catch_warnings():   # ffmpeg runs as fork + exec, which JAX's fork warning does not distinguish
+        warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
+        with imageio.get_writer(path, fps=fps, codec="libx264", quality=7, macro_block_size=16) as w:
+            for f in frames:
+                w.append_data(f)
