@@ -65,13 +65,13 @@ def main(argv=None) -> int:
     import numpy as np
 
     import pi0_jax.sim  # noqa: F401  (XLA:CPU flags before the backend starts)
-    from pi0_jax.sim import evaluate, policies, tasks
+    from pi0_jax.sim import batching, policies, tasks
     from pi0_jax.sim.env import Env
     from pi0_jax.sim.render import RenderConfig
 
     half = args.batch // 2
     res = args.resolution
-    env = Env(tasks.SUITES["all"], RenderConfig(res, res, evaluate.auto_ray_chunk(res, res, half)))
+    env = Env(tasks.SUITES["all"], RenderConfig(res, res, batching.auto_ray_chunk(res, res, half)))
     policy = policies.preset_policy(args.model, env, num_steps=args.num_steps)
     params = jax.device_put(policy.params)
     t = len(env.tasks)

@@ -147,14 +147,14 @@ def policy_throughput(args: Args, weights: dict, n: int, sharding) -> dict:
     import jax.numpy as jnp
 
     from pi0_jax import normalize as nz
-    from pi0_jax.sim import evaluate, policies, tasks
+    from pi0_jax.sim import batching, evaluate, policies, tasks
     from pi0_jax.sim.env import Env
     from pi0_jax.sim.render import RenderConfig
 
     config, tok = weights["config"], weights["tok"]
     names = tasks.SUITES["all"]
     res = args.resolution
-    env = Env(names, RenderConfig(res, res, evaluate.auto_ray_chunk(res, res, n // len(jax.local_devices()))),
+    env = Env(names, RenderConfig(res, res, batching.auto_ray_chunk(res, res, n // len(jax.local_devices()))),
               max_steps=args.policy_episode_steps)
     policy = policies.model_policy(config, weights["params"], tok, nz.Normalizer.identity(), env,
                                    num_steps=args.num_steps,
@@ -214,7 +214,7 @@ def main(argv=None) -> int:
     import numpy as np
     from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-    from pi0_jax.sim import evaluate, tasks
+    from pi0_jax.sim import batching, tasks
     from pi0_jax.sim.env import Env
     from pi0_jax.sim.render import RenderConfig
 
@@ -233,7 +233,7 @@ def main(argv=None) -> int:
     res = args.resolution
     for n in () if args.skip_env else args.sizes:
         n = math.ceil(n / len(devices)) * len(devices)
-        env = Env(tasks.SUITES["all"], RenderConfig(res, res, evaluate.auto_ray_chunk(res, res, n // len(devices))))
+        env = Env(tasks.SUITES["all"], RenderConfig(res, res, batching.auto_ray_chunk(res, res, n // len(devices))))
         for render in (True,) if args.no_physics_only else (True, False):
             r = env_throughput(env, n, args.steps, render, sharding)
             result["env"].append(r)

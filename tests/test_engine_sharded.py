@@ -16,7 +16,7 @@ CHILD = textwrap.dedent("""
     from pi0_jax.config import get_config
     from pi0_jax.engine import programs, weights
     from pi0_jax.engine.runtime import engine_weights
-    from pi0_jax.sim.evaluate import collectives
+    from pi0_jax.sim.batching import collectives
 
     cfg = get_config("dummy_pi05")
     params = pi0.random_params(cfg, 0)

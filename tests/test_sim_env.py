@@ -6,6 +6,7 @@
 * The scripted expert through `pi0-jax eval`: two episodes of every task, eval_info.json, videos, the table.
 """
 
+import dataclasses
 import json
 
 import numpy as np
@@ -75,6 +76,43 @@ def test_expert_succeeds_via_eval_cli(tmp_path, capsys):
         assert p.endswith(".mp4") and (out / "videos").joinpath(p.rsplit("/", 1)[-1]).stat().st_size > 1000
     printed = capsys.readouterr().out
     assert "| **overall** | | 22 | 100.0% |" in printed
+
+
+def test_freed_slots_take_the_next_episodes(tmp_path):
+    """With fewer environments than episodes, a finished episode's slot starts the next one (the video slots only
+    once their videos end): every episode's result equals the one it gets in a single batch of all episodes."""
+    from pi0_jax.sim.evaluate import EvalConfig, evaluate
+
+    cfg = EvalConfig(suite="goal", episodes_per_task=3, max_steps=120, resolution=RES, videos=1)
+    whole = evaluate("expert", dataclasses.replace(cfg, batch=1000), tmp_path / "whole", progress=False)
+    slots = evaluate("expert", dataclasses.replace(cfg, batch=4), tmp_path / "slots", progress=False)
+    n = whole["aggregated"]["n_episodes"]
+    assert whole["timing"]["refilled_episodes"] == 0 and slots["timing"]["refilled_episodes"] == n - 4
+    assert slots["timing"]["segments"] > whole["timing"]["segments"]
+    key = [(e["episode_ix"], e["task"], e["success"], e["length"]) for e in whole["per_episode"]]
+    assert [(e["episode_ix"], e["task"], e["success"], e["length"]) for e in slots["per_episode"]] == key
+    assert len({e["length"] for e in whole["per_episode"]}) > 1       # episodes end at different steps
+    assert len(slots["video_paths"]) == 1
+
+
+def test_two_devices_with_a_padding_slot(tmp_path):
+    """Three episodes on two devices: four slots, the fourth a padding dummy that takes no episode. The results equal
+    one device's."""
+    import os
+    import subprocess
+    import sys
+
+    args = ["eval", "--policy", "expert", "--suite", "goal/red_block_on_plate", "--episodes-per-task", "3",
+            "--steps", "60", "--resolution", str(RES), "--videos", "0", "--no-progress"]
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    out = subprocess.run([sys.executable, "-m", "pi0_jax.cli", *args, "--batch", "4", "--output-dir",
+                          str(tmp_path / "two")], env=env, capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert cli.main([*args, "--batch", "3", "--output-dir", str(tmp_path / "one")]) == 0
+    two, one = (json.loads((tmp_path / d / "eval_info.json").read_text()) for d in ("two", "one"))
+    assert two["config"]["devices"] == 2 and two["config"]["batch_rounded"] == 4
+    assert [(e["success"], e["length"]) for e in two["per_episode"]] == [
+        (e["success"], e["length"]) for e in one["per_episode"]]
 
 
 def test_substep_is_mjx_step_with_its_kinematics_last():

@@ -188,7 +188,7 @@ def test_eval_preset_policy_with_timing_and_profile(tmp_path):
 
 
 def test_balanced_batch():
-    from pi0_jax.sim.evaluate import balanced_batch
+    from pi0_jax.sim.batching import balanced_batch
 
     assert balanced_batch(2000, 1024, 1) == 1000          # 2 even batches, not 1024 + 976
     assert balanced_batch(2000, 2048, 2) == 2000 and balanced_batch(2001, 2048, 2) == 2002

@@ -118,8 +118,8 @@ def add_eval_parser(subparsers) -> argparse.ArgumentParser:
                          "none. eval_info.json's realtime.prefix_recompute_fraction is recomputes / plans "
                          "(default: recompute every plan, the fused program)")
     p.add_argument("--segment-replans", type=int, default=8, metavar="M",
-                   help="policy calls per jitted segment; the progress bar updates and finished batches stop "
-                        "early between segments (default: %(default)s)")
+                   help="policy calls per jitted segment; between segments the progress bar updates and the slots of "
+                        "finished episodes start the next episodes (default: %(default)s)")
     p.add_argument("--profile", action="store_true",
                    help="also time physics, rendering and the policy of one replan cycle apart (extra compiles), "
                         "into eval_info.json's timing.phases")

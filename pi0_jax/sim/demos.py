@@ -33,8 +33,8 @@ import numpy as np
 
 from pi0_jax.sim import expert as _expert
 from pi0_jax.sim import tasks as _tasks
+from pi0_jax.sim.batching import episode_plan
 from pi0_jax.sim.env import Env
-from pi0_jax.sim.evaluate import episode_plan
 from pi0_jax.sim.render import RenderConfig
 
 FPS = 20

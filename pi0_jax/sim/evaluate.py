@@ -1,17 +1,21 @@
 """Batched, sharded evaluation: N environments vmapped, sharded over every device (all hosts), scanned on device.
 
 Layout of one evaluation:
-  episodes   K per task, ordered init-major (episode e = task e % T, initial state (e // T) % 50), so each batch
-             mixes tasks; padded to a multiple of the batch with masked dummies. Episode e's randomness (policy
-             noise) comes from fold_in(key(seed), e) only, so results do not depend on batch size or device count.
-  batch      N environments as one global jax.Array per field, sharded on a 1-D mesh ("batch") over jax.devices():
-             the same code runs on one CPU, k GPUs, or several hosts (jax.distributed), with no collectives inside
-             the rollout (every environment is independent).
-  segment    one jitted call: `segment_replans` x [policy.plan on the current observation, then lax.scan of
-             `replan_steps` x (policy.act, env.step)]. The host loops over segments until every episode of the batch
-             is done (first success or step limit), updating the progress bar in between.
-  videos     the first `videos` environments of the first batch also render both cameras after every step;
-             agent view and wrist view are written side by side as MP4 (20 fps).
+  episodes   K per task, ordered init-major (episode e = task e % T, initial state (e // T) % 50), so a batch
+             mixes tasks. Episode e's randomness (policy noise) comes from fold_in(key(seed), e) only, so results do
+             not depend on batch size or device count.
+  batch      N environment slots as one global jax.Array per field, sharded on a 1-D mesh ("batch") over
+             jax.devices(): the same code runs on one CPU, k GPUs, or several hosts (jax.distributed), with no
+             collectives inside the rollout (every environment is independent). Slots start episodes 0 .. N-1
+             (beyond the suite: masked dummies, to a multiple of the device count); between segments, each slot
+             whose episode has ended starts the next one, so the batch stays full until the suite runs out.
+  segment    one jitted call: `segment_replans` x [policy.plan on the current observation (in chunks of
+             `plan_chunk` environments per device), then lax.scan of `replan_steps` x (policy.act, env.step)]. The
+             host loops over segments until every episode is done (first success or step limit), recording finished
+             episodes and updating the progress bar in between.
+  videos     the first `videos` slots also render both cameras after every step while their first episodes run
+             (no other episode enters them meanwhile); agent view and wrist view are written side by side as MP4
+             (20 fps).
 
 Results (eval_info.json) follow LeRobot's eval_info: per_episode, per_task, per_group (family), aggregated
 {pc_success, eval_s, eval_ep_s, ...}, video_paths; plus the config and timings (compile vs rollout).
@@ -23,8 +27,6 @@ import concurrent.futures
 import dataclasses
 import json
 import math
-import os
-import re
 import time
 from pathlib import Path
 
@@ -37,6 +39,8 @@ from jax.sharding import PartitionSpec as P
 
 from pi0_jax.ops import matmul
 from pi0_jax.sim import tasks as _tasks
+from pi0_jax.sim.batching import (auto_ray_chunk, balanced_batch, barrier, collectives, episode_plan, every_process,
+                                   fetch, free_device_bytes, program_bytes)
 from pi0_jax.sim.env import Env
 from pi0_jax.sim.policies import SimPolicy, chunked_plan, make_policy
 from pi0_jax.sim.render import RenderConfig, write_video
@@ -72,81 +76,6 @@ class Carry:
     state: object                     # env State, batched
     pstate: object
     keys: jax.Array                   # (N,) per-episode PRNG keys
-
-
-def _fetch(x) -> np.ndarray:
-    """A global array's full value on every process."""
-    if jax.process_count() == 1:
-        return np.asarray(x)
-    from jax.experimental import multihost_utils
-    return np.asarray(multihost_utils.process_allgather(x, tiled=True))
-
-
-def _barrier(name: str, timeout_s: int = 3600) -> None:
-    """Wait for every process (jax.distributed's coordination service, no device collective). The first gather
-    creates the CPU backend's gloo context, which gives up after 30 s; processes that finish compiling at different
-    times meet here first."""
-    if jax.process_count() == 1:
-        return
-    try:
-        from jax._src import distributed
-        distributed.global_state.client.wait_at_barrier(name, timeout_in_ms=timeout_s * 1000)
-    except (ImportError, AttributeError):   # private API moved: a device-level barrier instead
-        from jax.experimental import multihost_utils
-        multihost_utils.sync_global_devices(name)
-
-
-def _every_process(flag: bool, name: str) -> bool:
-    """flag and-ed over processes, so that every host takes the same decision (each sees only its own devices)."""
-    if jax.process_count() == 1:
-        return flag
-    _barrier(name)
-    from jax.experimental import multihost_utils
-    return bool(np.asarray(multihost_utils.process_allgather(np.int32(flag))).min())
-
-
-def auto_ray_chunk(height: int, width: int, local_batch: int, budget: int = 1 << 22) -> int:
-    """Rays per renderer chunk so that local_batch x chunk stays under `budget` rays in flight (0 = no chunking)."""
-    rays = height * width
-    target = max(1, budget // max(local_batch, 1))
-    if target >= rays:
-        return 0
-    return max(d for d in range(1, target + 1) if rays % d == 0)
-
-
-def balanced_batch(n_episodes: int, cap: int, n_dev: int) -> int:
-    """The batch that covers n_episodes in the fewest batches of at most `cap` (>= n_dev), evened out and rounded up
-    to a multiple of the device count: 2000 episodes under a cap of 1024 -> 2 batches of 1000, not 1024 + 976."""
-    cap = max(n_dev, cap // n_dev * n_dev)
-    per = math.ceil(n_episodes / math.ceil(n_episodes / cap))
-    return math.ceil(per / n_dev) * n_dev
-
-
-def free_device_bytes(device) -> int | None:
-    """Bytes the allocator can still hand out on `device` (GPU: its limit minus what is in use; CPU: the host's
-    available memory; None if unknown)."""
-    stats = device.memory_stats() if hasattr(device, "memory_stats") else None
-    if stats and "bytes_limit" in stats:
-        return int(stats["bytes_limit"] - stats.get("bytes_in_use", 0))
-    try:
-        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (ValueError, OSError, AttributeError):
-        return None
-
-
-def program_bytes(compiled) -> int | None:
-    """Per-device memory a compiled segment needs beyond its (already resident) arguments: scratch plus outputs
-    that do not reuse a donated input."""
-    m = compiled.memory_analysis()
-    if m is None:
-        return None
-    return int(m.temp_size_in_bytes + max(m.output_size_in_bytes - m.alias_size_in_bytes, 0))
-
-
-def episode_plan(names: tuple[str, ...], episodes_per_task: int, num_init: int) -> tuple[np.ndarray, np.ndarray]:
-    """(task index, initial-state index) per episode, init-major so batches mix tasks."""
-    e = np.arange(len(names) * episodes_per_task)
-    return (e % len(names)).astype(np.int32), ((e // len(names)) % num_init).astype(np.int32)
 
 
 def segment_replans(cfg: EvalConfig, env: Env) -> int:
@@ -200,14 +129,6 @@ def make_segment(env: Env, policy: SimPolicy, cfg: EvalConfig, n_video: int, mes
     return jax.jit(segment, donate_argnums=1, out_shardings=(NamedSharding(mesh, P("batch")), None, None))
 
 
-def collectives(hlo: str) -> int:
-    """Cross-device collectives in an optimized HLO module's text. A segment's environments are independent, yet
-    the partitioner keeps small ones: MJX's solver loop and-reduces its stop flag (one on two H200s; on the CPU a
-    collision top_k also gathers its scores)."""
-    return len(re.findall(r" (?:all-gather|all-reduce|all-to-all|collective-permute|reduce-scatter)(?:-start)?\(",
-                          hlo))
-
-
 def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None, *, progress: bool = True,
              policy_kwargs: dict | None = None, profile: bool = False) -> dict:
     """Run the evaluation; returns eval_info (also written to output_dir/eval_info.json with videos).
@@ -257,7 +178,6 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
 
     task_of, init_of = episode_plan(names, cfg.episodes_per_task, env.num_init_states)
     n_ep = len(task_of)
-    max_steps = int(env.max_steps.max())
     steps_per_segment = segment_replans(cfg, env) * cfg.replan_steps
     base_key = jax.random.key(cfg.seed)
 
@@ -315,7 +235,7 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
         if not auto or batch <= n_dev:
             break
         fits = need is None or free is None or need <= AUTO_MEMORY_FRACTION * free
-        if _every_process(fits, f"pi0_jax.sim.evaluate: batch {batch} (plan chunk {chunk}) fits"):
+        if every_process(fits, f"pi0_jax.sim.evaluate: batch {batch} (plan chunk {chunk}) fits"):
             break
         del segment
         local = min(chunk or batch // n_dev, batch // n_dev)
@@ -326,53 +246,64 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
             batch = balanced_batch(n_episodes, batch // 2, n_dev)
             env = make_env(batch)
     n_batches = math.ceil(n_ep / batch)
-    valid = np.arange(n_batches * batch) < n_ep
     success, length = np.zeros(n_ep, bool), np.zeros(n_ep, np.int32)
     policy_stats: dict[str, int] = {}
     video_frames, video_done = [], []
     compile_s, wait_s, done_count, succ_count = 0.0, 0.0, 0, 0
     if bar is not None:
         bar.set_description(f"eval {cfg.suite}")
-    t_roll = t_compile
-    for b in range(n_batches):
-        sl = slice(b * batch, (b + 1) * batch)
-        carry = carry0 if b == 0 else first_carry(b)
-        prev_done = 0
-        for s in range(math.ceil(max_steps / steps_per_segment)):
-            t0 = time.perf_counter()
-            carry, frames, fdone = segment(params, carry)
-            if b == 0 and s == 0:
-                _barrier("pi0_jax.sim.evaluate: compiled")
-            done = _fetch(carry.state.done)
-            if b == 0 and s == 0:
-                compile_s = time.perf_counter() - t_compile
-            else:
-                wait_s += time.perf_counter() - t0
-            if b == 0 and n_video:
-                video_frames.append(_fetch(frames))
-                video_done.append(_fetch(fdone))
-            ok = _fetch(carry.state.success)
-            vmask = valid[sl]
-            n_done = int((done & vmask).sum())
+    # Slots: environment k runs episode slot_ep[k] (>= n_ep: a padding dummy, never recorded). After each segment,
+    # finished episodes are recorded and their slots start the next episodes (the video slots once their videos
+    # end), so the batch stays full until the suite runs out. Each episode starts from its own key and state.
+    slot_ep, next_ep = np.arange(batch), batch
+    running = slot_ep < n_ep
+    merge = jax.jit(lambda mask, new, old: jax.tree.map(
+        lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (b.ndim - 1)), a, b), new, old),
+        donate_argnums=2, out_shardings=shard)
+    carry, t_roll, s, refilled, filming = carry0, t_compile, 0, 0, bool(n_video)
+    while True:
+        t0 = time.perf_counter()
+        carry, frames, fdone = segment(params, carry)
+        if s == 0:
+            barrier("pi0_jax.sim.evaluate: compiled")
+        done = fetch(carry.state.done)
+        if s == 0:
+            compile_s = time.perf_counter() - t_compile
+        else:
+            wait_s += time.perf_counter() - t0
+        if filming:    # the first n_video slots' first episodes, which no other episode replaces until they end
+            video_frames.append(fetch(frames))
+            video_done.append(fetch(fdone))
+            filming = not done[:n_video].all()
+        finished = running & done
+        if finished.any():
+            ok, steps = fetch(carry.state.success), fetch(carry.state.length)
+            success[slot_ep[finished]], length[slot_ep[finished]] = ok[finished], steps[finished]
+            done_count += int(finished.sum())
+            succ_count += int(ok[finished].sum())
+            if policy.stats is not None:
+                for k, v in policy.stats(carry.pstate).items():
+                    policy_stats[k] = policy_stats.get(k, 0) + int(fetch(v)[finished].sum())
+            running &= ~finished
             if bar is not None:
-                bar.update(n_done - prev_done)
-                tot_done = done_count + n_done
-                rate = (succ_count + int((ok & done & vmask).sum())) / max(tot_done, 1)
+                bar.update(int(finished.sum()))
                 # episodes/min after the first segment (eval_info's episodes_per_min_after_compile): none before
                 after = time.perf_counter() - t_roll - compile_s
-                per_min = f", {60.0 * tot_done / after:.0f} ep/min" if b or s else ""
-                bar.set_postfix_str(f"success {100 * rate:.1f}% of {tot_done}{per_min}")
-            prev_done = n_done
-            if (done | ~vmask).all():
-                break
-        n = min(batch, n_ep - b * batch)
-        success[b * batch: b * batch + n] = _fetch(carry.state.success)[:n]
-        length[b * batch: b * batch + n] = _fetch(carry.state.length)[:n]
-        done_count += n
-        succ_count += int(success[b * batch: b * batch + n].sum())
-        if policy.stats is not None:
-            for k, v in policy.stats(carry.pstate).items():
-                policy_stats[k] = policy_stats.get(k, 0) + int(_fetch(v)[:n].sum())
+                per_min = f", {60.0 * done_count / after:.0f} ep/min" if s else ""
+                bar.set_postfix_str(f"success {100 * succ_count / done_count:.1f}% of {done_count}{per_min}")
+        free = np.flatnonzero(~running & (np.arange(batch) >= (n_video if filming else 0)))[: max(n_ep - next_ep, 0)]
+        if free.size:
+            slot_ep[free] = np.arange(next_ep, next_ep + free.size)
+            next_ep, refilled = next_ep + free.size, refilled + free.size
+            running[free] = True
+            eps = np.minimum(slot_ep, n_ep - 1)
+            keys = ep_keys(global_array(slot_ep.astype(np.int32)))
+            fresh = Carry(state=reset(keys, global_array(task_of[eps]), global_array(init_of[eps])),
+                          pstate=init_pstate(), keys=keys)
+            carry = merge(global_array(np.isin(np.arange(batch), free)), fresh, carry)
+        if not running.any():
+            break
+        s += 1
     if bar is not None:
         bar.close()
     rollout_s = time.perf_counter() - t_roll
@@ -384,6 +315,7 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
         info["config"]["batch_auto"] = {"tried": tried, "max_per_device": AUTO_MAX_PER_DEVICE,
                                         "memory_fraction": AUTO_MEMORY_FRACTION}
     info["timing"] = timing_section(info, rollout_s, compile_s, wait_s, n_batches, steps_per_segment, cfg)
+    info["timing"].update(segments=s + 1, refilled_episodes=refilled)
     info["timing"]["segment_collectives"] = collectives(segment.as_text()) if n_dev > 1 else 0   # (text: MBs)
     if "realtime" in policy.info:
         info["realtime"] = {**policy.info["realtime"], **policy_stats}
