@@ -7,6 +7,7 @@
 #   bash scripts/gpu_eval.sh pi05-auto              # pi05-1 with --batch auto (N from device memory and a probe)
 #   bash scripts/gpu_eval.sh pi05-1001              # 1001 environments on GPU 0 for 120 steps (3 segments): the
 #                                                   # steady segment at the batch --batch auto takes for 2000
+#                                                   # (the policy in chunks of 256: whole, it needs 61 GiB)
 #   bash scripts/gpu_eval.sh embedded-1 embedded-2  # the embedded model's 550 episodes on GPU 0, then on two GPUs
 #   DET=1 bash scripts/gpu_eval.sh embedded-1       # the same with --xla_gpu_deterministic_ops=true
 #   QUANT=prefix-mlp bash scripts/gpu_eval.sh pi05-fp8   # pi05-1 with FP8 weights and calibrated activation scales
@@ -56,7 +57,8 @@ for phase in "$@"; do
   case $phase in
     pi05-1) run pi05_1gpu 0 --policy "$POLICY" --episodes-per-task "$PER_TASK" --batch $((11 * PER_TASK)) ;;
     pi05-auto) run pi05_auto_1gpu 0 --policy "$POLICY" --episodes-per-task "$PER_TASK" --batch auto ;;
-    pi05-1001) run pi05_1001_1gpu 0 --policy "$POLICY" --episodes-per-task 91 --batch 1001 --steps 120 ;;
+    pi05-1001) run pi05_1001_1gpu 0 --policy "$POLICY" --episodes-per-task 91 --batch 1001 --steps 120 \
+                   --plan-chunk 256 ;;
     pi05-2) run pi05_2gpu 0,1 --policy "$POLICY" --episodes-per-task $((2 * PER_TASK)) --batch $((22 * PER_TASK)) ;;
     pi05-fp8) run "pi05_${QUANT:-prefix-mlp}_1gpu" 0 --policy "$POLICY" --episodes-per-task "$PER_TASK" \
                   --batch $((11 * PER_TASK)) --quant "${QUANT:-prefix-mlp}" ;;

@@ -197,16 +197,14 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
     # The segment compiled ahead; --batch auto halves the plan's chunk (while that shrinks it), then the batch, to fit
     while True:
         if carry0 is None:    # a new batch
-            pad = math.ceil(n_ep / batch) * batch - n_ep
-            task_of_p, init_of_p = np.pad(task_of, (0, pad)), np.pad(init_of, (0, pad))
             n_video = min(cfg.videos, batch) if output_dir is not None else 0
             reset = jax.jit(lambda keys, t, i, env=env: jax.vmap(env.reset)(keys, t, i), out_shardings=shard)
             init_pstate = jax.jit(lambda b=batch: policy.init(b), out_shardings=shard)
 
-            def first_carry(b: int) -> Carry:
-                sl = slice(b * batch, (b + 1) * batch)
-                keys = ep_keys(global_array(np.arange(b * batch, (b + 1) * batch, dtype=np.int32)))
-                state = reset(keys, global_array(task_of_p[sl]), global_array(init_of_p[sl]))
+            def fresh_carry(eps: np.ndarray) -> Carry:
+                """Slot k at the start of episode eps[k] (past the suite: a dummy, in the last episode's state)."""
+                keys, e = ep_keys(global_array(eps.astype(np.int32))), np.minimum(eps, n_ep - 1)
+                state = reset(keys, global_array(task_of[e]), global_array(init_of[e]))
                 return Carry(state=state, pstate=init_pstate(), keys=keys)
 
             # The segment compiles in a thread while the first batch's reset compiles and runs (XLA's compiler
@@ -227,7 +225,7 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
 
         with concurrent.futures.ThreadPoolExecutor(1) as pool:
             compiling = pool.submit(compile_segment)
-            carry0 = first_carry(0) if carry0 is None else carry0
+            carry0 = fresh_carry(np.arange(batch)) if carry0 is None else carry0
             segment, seconds = compiling.result()
         need, free = program_bytes(segment), free_device_bytes(jax.local_devices()[0])
         tried.append({"batch": batch, "plan_chunk": chunk, "program_bytes": need, "free_bytes": free,
@@ -296,11 +294,7 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
             slot_ep[free] = np.arange(next_ep, next_ep + free.size)
             next_ep, refilled = next_ep + free.size, refilled + free.size
             running[free] = True
-            eps = np.minimum(slot_ep, n_ep - 1)
-            keys = ep_keys(global_array(slot_ep.astype(np.int32)))
-            fresh = Carry(state=reset(keys, global_array(task_of[eps]), global_array(init_of[eps])),
-                          pstate=init_pstate(), keys=keys)
-            carry = merge(global_array(np.isin(np.arange(batch), free)), fresh, carry)
+            carry = merge(global_array(np.isin(np.arange(batch), free)), fresh_carry(slot_ep), carry)
         if not running.any():
             break
         s += 1
@@ -322,7 +316,7 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
         if policy_stats.get("plans"):
             info["realtime"]["prefix_recompute_fraction"] = policy_stats["prefix_recomputed"] / policy_stats["plans"]
     if profile:
-        info["timing"]["phases"] = profile_phases(env, policy, run_cfg, params, first_carry(0).state, batch)
+        info["timing"]["phases"] = profile_phases(env, policy, run_cfg, params, fresh_carry(np.arange(batch)).state, batch)
     if output_dir is not None and jax.process_index() == 0:
         out = Path(output_dir)
         out.mkdir(parents=True, exist_ok=True)
