@@ -219,6 +219,8 @@ def test_eval_batch_auto(tmp_path, monkeypatch):
     assert info["aggregated"]["n_episodes"] == 2 and all(e["length"] <= 10 for e in info["per_episode"])
     with pytest.raises(SystemExit):
         cli.main(["eval", "--policy", "expert", "--batch", "0"])
+    with pytest.raises(SystemExit):
+        cli.main(["eval", "--policy", "expert", "--plan-chunk", "0"])
 
 
 def test_eval_batch_auto_chunks_the_plan_first(tmp_path, monkeypatch):

@@ -45,7 +45,7 @@ def add_eval_parser(subparsers) -> argparse.ArgumentParser:
                         "the fewest even batches of at most 1024 per device whose compiled segment fits in 85 %% "
                         "of the free device memory (the policy's --plan-chunk, then the batch, halved until it "
                         "does; what was tried goes into eval_info.json's config.batch_auto) (default: %(default)s)")
-    p.add_argument("--plan-chunk", type=int, default=None, metavar="C",
+    p.add_argument("--plan-chunk", type=plan_chunk_arg, default=None, metavar="C",
                    help="the policy plans at most C environments per device at a time, one chunk after another: "
                         "a large batch's physics and rendering with the activation memory of C (a full-size π0.5 "
                         "needs ~60 MB per environment); default: the whole batch at once, or with --batch auto "
@@ -148,6 +148,13 @@ def batch_arg(text: str) -> int | str:
     if n < 1:
         raise argparse.ArgumentTypeError(f"{text!r}: a positive number of environments or 'auto'")
     return n
+
+
+def plan_chunk_arg(text: str) -> int:
+    """--plan-chunk: a positive integer."""
+    if not text.isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: a positive number of environments per device")
+    return int(text)
 
 
 def default_resolution(policy: str) -> int:
