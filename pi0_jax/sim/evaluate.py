@@ -309,7 +309,7 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
         info["config"]["batch_auto"] = {"tried": tried, "max_per_device": AUTO_MAX_PER_DEVICE,
                                         "memory_fraction": AUTO_MEMORY_FRACTION}
     info["timing"] = timing_section(info, rollout_s, compile_s, wait_s, n_batches, steps_per_segment, cfg)
-    info["timing"].update(segments=s + 1, refilled_episodes=refilled)
+    info["timing"].update(segments=s + 1, refilled_episodes=refilled)   # segments run; episodes begun in freed slots
     info["timing"]["segment_collectives"] = collectives(segment.as_text()) if n_dev > 1 else 0   # (text: MBs)
     if "realtime" in policy.info:
         info["realtime"] = {**policy.info["realtime"], **policy_stats}
@@ -336,7 +336,8 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
 
 def timing_section(info, rollout_s, compile_s, wait_s, n_batches, steps_per_segment, cfg) -> dict:
     """Where the wall time went. device_wait_s: the host blocked on segments after the first (whose time, compile
-    included, is first_segment_s); host_s: the rest of the rollout (resets, fetches, videos, the progress bar)."""
+    included, is first_segment_s); host_s: the rest of the rollout (resets, fetches, videos, the progress bar);
+    batches: episodes over environment slots, rounded up (slots take the next episode as soon as theirs ends)."""
     a = info["aggregated"]
     run_s = max(rollout_s - compile_s, 1e-9)
     return {"first_segment_s": compile_s, "rollout_s": rollout_s, "device_wait_s": wait_s,
