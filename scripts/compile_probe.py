@@ -50,6 +50,7 @@ def main(argv=None) -> int:
     import numpy as np
 
     from pi0_jax.ops import matmul
+    from pi0_jax.sim import batching
     from pi0_jax.sim import evaluate as ev
     from pi0_jax.sim import tasks as tasks_lib
     from pi0_jax.sim.env import Env
@@ -61,7 +62,7 @@ def main(argv=None) -> int:
     names = tuple(t.name for t in tasks_lib.suite_tasks("all"))
     n, r = args.batch, args.replan_steps
     env = Env(names, RenderConfig(args.resolution, args.resolution,
-                                  ev.auto_ray_chunk(args.resolution, args.resolution, n)))
+                                  batching.auto_ray_chunk(args.resolution, args.resolution, n)))
     policy = make_policy(args.policy, env, r, num_steps=10, gemm=args.gemm, realtime=Realtime())
     setup_s = time.perf_counter() - t0
     options = matmul.compiler_options(policy.params, policy.info.get("gemm", "xla"))
