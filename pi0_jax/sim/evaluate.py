@@ -247,7 +247,7 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
     success, length = np.zeros(n_ep, bool), np.zeros(n_ep, np.int32)
     policy_stats: dict[str, int] = {}
     video_frames, video_done = [], []
-    compile_s, wait_s, done_count, succ_count = 0.0, 0.0, 0, 0
+    compile_s, wait_s, done_count = 0.0, 0.0, 0
     if bar is not None:
         bar.set_description(f"eval {cfg.suite}")
     # Slots: environment k runs episode slot_ep[k] (>= n_ep: a padding dummy, never recorded). After each segment,
@@ -258,7 +258,7 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
     merge = jax.jit(lambda mask, new, old: jax.tree.map(
         lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (b.ndim - 1)), a, b), new, old),
         donate_argnums=2, out_shardings=shard)
-    carry, t_roll, s, refilled, filming = carry0, t_compile, 0, 0, bool(n_video)
+    carry, t_roll, s, filming = carry0, t_compile, 0, bool(n_video)
     while True:
         t0 = time.perf_counter()
         carry, frames, fdone = segment(params, carry)
@@ -278,7 +278,6 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
             ok, steps = fetch(carry.state.success), fetch(carry.state.length)
             success[slot_ep[finished]], length[slot_ep[finished]] = ok[finished], steps[finished]
             done_count += int(finished.sum())
-            succ_count += int(ok[finished].sum())
             if policy.stats is not None:
                 for k, v in policy.stats(carry.pstate).items():
                     policy_stats[k] = policy_stats.get(k, 0) + int(fetch(v)[finished].sum())
@@ -288,11 +287,11 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
                 # episodes/min after the first segment (eval_info's episodes_per_min_after_compile): none before
                 after = time.perf_counter() - t_roll - compile_s
                 per_min = f", {60.0 * done_count / after:.0f} ep/min" if s else ""
-                bar.set_postfix_str(f"success {100 * succ_count / done_count:.1f}% of {done_count}{per_min}")
+                bar.set_postfix_str(f"success {100 * success.sum() / done_count:.1f}% of {done_count}{per_min}")
         free = np.flatnonzero(~running & (np.arange(batch) >= (n_video if filming else 0)))[: max(n_ep - next_ep, 0)]
         if free.size:
             slot_ep[free] = np.arange(next_ep, next_ep + free.size)
-            next_ep, refilled = next_ep + free.size, refilled + free.size
+            next_ep += free.size
             running[free] = True
             carry = merge(global_array(np.isin(np.arange(batch), free)), fresh_carry(slot_ep), carry)
         if not running.any():
@@ -309,14 +308,16 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
         info["config"]["batch_auto"] = {"tried": tried, "max_per_device": AUTO_MAX_PER_DEVICE,
                                         "memory_fraction": AUTO_MEMORY_FRACTION}
     info["timing"] = timing_section(info, rollout_s, compile_s, wait_s, n_batches, steps_per_segment, cfg)
-    info["timing"].update(segments=s + 1, refilled_episodes=refilled)   # segments run; episodes begun in freed slots
+    # segments run, and episodes begun in freed slots
+    info["timing"].update(segments=s + 1, refilled_episodes=next_ep - batch)
     info["timing"]["segment_collectives"] = collectives(segment.as_text()) if n_dev > 1 else 0   # (text: MBs)
     if "realtime" in policy.info:
         info["realtime"] = {**policy.info["realtime"], **policy_stats}
         if policy_stats.get("plans"):
             info["realtime"]["prefix_recompute_fraction"] = policy_stats["prefix_recomputed"] / policy_stats["plans"]
     if profile:
-        info["timing"]["phases"] = profile_phases(env, policy, run_cfg, params, fresh_carry(np.arange(batch)).state, batch)
+        state = fresh_carry(np.arange(batch)).state
+        info["timing"]["phases"] = profile_phases(env, policy, run_cfg, params, state, batch)
     if output_dir is not None and jax.process_index() == 0:
         out = Path(output_dir)
         out.mkdir(parents=True, exist_ok=True)
