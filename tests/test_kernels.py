@@ -14,7 +14,7 @@ from pi0_jax.config import IMAGE_KEYS, get_config
 from pi0_jax.engine import Engine, layers
 from pi0_jax.ops import expert_kernels as ek
 from pi0_jax.ops import layout
-from pi0_jax.ops.expert_kernels import Blocks
+from pi0_jax.ops.expert_kernels import Blocks, Gemm
 from test_model import make_obs, randomize
 
 CFG = get_config("dummy").action_expert  # width 48, 4 heads x 16 (1 kv head), mlp 96: all padded by the layout
@@ -84,7 +84,7 @@ def test_norm_qkv_rope_matches_xla(adaptive):
     for splits in (1, 3):  # one K chunk; three (width 48: the sums of squares and shift products of 3 chunks)
         out = ek.norm_qkv_rope(layout.rows(x, sp), mods, row, adaptive, layout.expert_weights(w, CFG)["qkv"], cos,
                                sin, width=CFG.width, num_heads=CFG.num_heads, num_kv_heads=CFG.num_kv_heads,
-                               head_dim=CFG.head_dim, blocks=Blocks(qkv_splits=splits))
+                               head_dim=CFG.head_dim, blocks=Blocks(qkv=Gemm(128, splits)))
         got = _unheads(out.reshape(B, sp, -1)[:, :S], CFG.num_heads + 2 * CFG.num_kv_heads)
         np.testing.assert_allclose(got[:, :, : CFG.num_heads], q.reshape(B, S, CFG.num_heads, -1), **TOL)
         np.testing.assert_allclose(got[:, :, CFG.num_heads: -1], k, **TOL)
@@ -140,10 +140,10 @@ def test_mlp_kernels_match_xla(adaptive):
     sp = layout.suffix_rows(S)
     for splits in (3, 1):
         got_hidden = ek.norm_geglu(layout.rows(x, sp), mods, row, adaptive, wk["gate_up"], width=CFG.width,
-                                   blocks=Blocks(mlp_splits=splits))
+                                   blocks=Blocks(mlp=Gemm(64, splits)))
         np.testing.assert_allclose(_unrows(got_hidden, CFG.mlp_dim), hidden, **TOL)
     for splits in (1, 2):  # one kernel, and split-K (96 = 2 x 48)
-        got = ek.matmul_residual(got_hidden, wk["down"], layout.rows(x, sp), mods, gate_row, splits=splits)
+        got = ek.matmul_residual(got_hidden, wk["down"], layout.rows(x, sp), mods, gate_row, gemm=Gemm(64, splits))
         np.testing.assert_allclose(_unrows(got, CFG.width), want, **TOL)
 
 

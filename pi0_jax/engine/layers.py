@@ -189,9 +189,9 @@ def suffix_layers_pallas(cfg: GemmaConfig, weights, x, positions, cache_k, cache
                                            head_dim=cfg.head_dim, blocks=blocks, **heads)
         k, v = (c[i].reshape(b * c[i].shape[1], -1) for c in (cache_k, cache_v))
         y = expert_kernels.attention(qkv, k, v, pmask, smask, batch=b, blocks=blocks, **heads)
-        rows = expert_kernels.matmul_residual(y, w["attn_out"], rows, ma, ga, splits=blocks.out_splits,
-                                              blocks=blocks)
+        rows = expert_kernels.matmul_residual(y, w["attn_out"], rows, ma, ga, gemm=blocks.out, blocks=blocks,
+                                              name="expert_attn_out")
         h = expert_kernels.norm_geglu(rows, mf, rf, adaptive, w["gate_up"], width=d, blocks=blocks)
-        rows = expert_kernels.matmul_residual(h, w["down"], rows, mf, gf, splits=blocks.down_splits,
-                                              blocks=blocks)
+        rows = expert_kernels.matmul_residual(h, w["down"], rows, mf, gf, gemm=blocks.down, blocks=blocks,
+                                              name="expert_down")
     return rows.reshape(b, sp, -1)[:, :s, :d]

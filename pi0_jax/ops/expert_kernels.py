@@ -46,6 +46,17 @@ EPS = 1e-6
 
 
 @dataclasses.dataclass(frozen=True)
+class Gemm:
+    """One split-K GEMM's launch: output columns per program, K chunks per output tile (one program each), and
+    Triton's software-pipelining depth (it gives every stage its own shared-memory tiles, so the depth decides how
+    many programs share an SM)."""
+
+    cols: int
+    splits: int
+    stages: int = 3
+
+
+@dataclasses.dataclass(frozen=True)
 class Blocks:
     """Tile sizes (powers of two; each is shrunk to divide its padded dimension), split counts and Triton launch
     parameters. Defaults: the fastest of the sweeps at π0 full size, B=1, on an H200 (docs/BENCHMARKS.md, "Fused
@@ -53,24 +64,26 @@ class Blocks:
 
     rows: int = 64  # GEMM rows per program
     k: int = 256  # GEMM contraction chunk per loop step
-    qkv_cols: int = 128  # output columns per program of the q/k/v GEMM
-    qkv_splits: int = 8  # split-K programs per output tile of the q/k/v GEMM
-    mlp_cols: int = 64  # the same for the gate/up GEMM
-    mlp_splits: int = 4
-    out_cols: int = 64  # the same for the out-projection and the down-projection
-    out_splits: int = 4
-    down_splits: int = 8
+    qkv: Gemm = Gemm(128, 8)
+    mlp: Gemm = Gemm(64, 4)  # gate/up
+    out: Gemm = Gemm(64, 4)  # the attention's out-projection
+    down: Gemm = Gemm(64, 8)
     q: int = 64  # attention queries per program
     kv: int = 64  # attention keys per loop step
     kv_splits: int = 13  # programs that share one query block's prefix keys (+ one for the suffix keys)
     num_warps: int = 4  # the GEMM kernel's
     attention_warps: int = 8
-    num_stages: int = 3
+    attention_stages: int = 3
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Blocks":
+        """The inverse of `dataclasses.asdict` (a benchmark's JSON)."""
+        return cls(**{k: Gemm(**v) if isinstance(v, dict) else v for k, v in d.items()})
 
 
-def _call(kernel, grid, out_shape, blocks: Blocks, name: str, num_warps: int | None = None):
-    return pallas_base.call(kernel, grid=grid, out_shape=out_shape, name=name,
-                            num_warps=num_warps or blocks.num_warps, num_stages=blocks.num_stages)
+def _call(kernel, grid, out_shape, name: str, num_warps: int, num_stages: int):
+    return pallas_base.call(kernel, grid=grid, out_shape=out_shape, name=name, num_warps=num_warps,
+                            num_stages=num_stages)
 
 
 def _scaled(x_ref, mod_ref, rows, cols, mod_row, dtype):
@@ -122,33 +135,33 @@ def _partials_kernel(y_ref, mod_ref, w_ref, o_ref, *side, m, bm, bn, bk, chunk, 
 
 
 def matmul_partials(y, w, mods=None, mod_row: int = 0, *, scaled: bool = False, adaptive: bool = False,
-                    cols: int, splits: int, blocks: Blocks = Blocks()):
-    """y (M, E) @ w (E, N) as `splits` f32 partials over K chunks -> (parts (S, M, N), sums of squares (S, M) or None,
-    shift products (S, N) or None). scaled: y * (1 + mods[mod_row]) enters the GEMM (a norm's scale; mods (R, E));
+                    gemm: Gemm, blocks: Blocks = Blocks(), name: str = "matmul_partials"):
+    """y (M, E) @ w (E, N) as `gemm.splits` f32 partials over K chunks -> (parts (S, M, N), sums of squares (S, M) or
+    None, shift products (S, N) or None). scaled: y * (1 + mods[mod_row]) enters the GEMM (a norm's scale; mods (R, E));
     adaptive: also mods[mod_row + 1] @ w (adaRMS's shift). splits falls back to 1 where E does not split into
-    multiples of 16."""
+    multiples of 16. name: the kernel's (a profile tells the GEMMs apart by it)."""
     m, e = y.shape
     n = w.shape[1]
-    splits = splits if e % (ALIGN * splits) == 0 else 1
+    splits = gemm.splits if e % (ALIGN * gemm.splits) == 0 else 1
     chunk = e // splits
-    bm, bn, bk = fit(blocks.rows, m), fit(cols, n), fit(blocks.k, chunk)
+    bm, bn, bk = fit(blocks.rows, m), fit(gemm.cols, n), fit(blocks.k, chunk)
     kernel = functools.partial(_partials_kernel, m=m, bm=bm, bn=bn, bk=bk, chunk=chunk, mod_row=mod_row,
                                scaled=scaled, adaptive=adaptive)
     out = [jax.ShapeDtypeStruct((splits * m, n), jnp.float32)]
     out += [jax.ShapeDtypeStruct((splits * m,), jnp.float32)] if scaled else []
     out += [jax.ShapeDtypeStruct((splits * ALIGN, n), jnp.float32)] if adaptive else []
     mods = jnp.zeros((1, ALIGN), y.dtype) if mods is None else mods
-    res = _call(kernel, (m // bm, n // bn, splits), out, blocks, "matmul_partials")(y, mods, w)
+    res = _call(kernel, (m // bm, n // bn, splits), out, name, blocks.num_warps, gemm.stages)(y, mods, w)
     parts = res[0].reshape(splits, m, n)
     ss = res[1].reshape(splits, m) if scaled else None
     shift = res[-1].reshape(splits, ALIGN, n)[:, 0] if adaptive else None
     return parts, ss, shift
 
 
-def _normed_product(x, mods, mod_row, adaptive, w, *, width, cols, splits, blocks):
+def _normed_product(x, mods, mod_row, adaptive, w, *, width, gemm, blocks, name):
     """norm(x) @ w as the GEMM's f32 result (before rounding): the split sum times 1 / rms, plus shift @ w."""
-    parts, ss, shift = matmul_partials(x, w, mods, mod_row, scaled=True, adaptive=adaptive, cols=cols,
-                                       splits=splits, blocks=blocks)
+    parts, ss, shift = matmul_partials(x, w, mods, mod_row, scaled=True, adaptive=adaptive, gemm=gemm,
+                                       blocks=blocks, name=name)
     inv = jax.lax.rsqrt(sum(list(ss)) / width + EPS)[:, None]
     acc = sum(list(parts)) * inv
     return acc + sum(list(shift))[None] if adaptive else acc
@@ -163,11 +176,13 @@ def norm_qkv_rope(x, mods, mod_row: int, adaptive: bool, w_qkv, cos, sin, *, wid
     """
     m, dtype = x.shape[0], x.dtype
     heads, hp = num_heads + 2 * num_kv_heads, cos.shape[1]
-    acc = _normed_product(x, mods, mod_row, adaptive, w_qkv, width=width, cols=blocks.qkv_cols,
-                          splits=blocks.qkv_splits, blocks=blocks)
+    acc = _normed_product(x, mods, mod_row, adaptive, w_qkv, width=width, gemm=blocks.qkv, blocks=blocks,
+                          name="expert_qkv")
     a = _round(acc, dtype).reshape(m, heads, 2, hp)
     a1, a2, c, s = a[:, :, 0], a[:, :, 1], cos[:, None], sin[:, None]
-    # RoPE in f32, then the dtype, for q and k heads; q is then scaled in the dtype (q_scale is a dtype value)
+    # RoPE in f32, then the dtype, for q and k heads; q is then scaled in the dtype (q_scale is a dtype value). The
+    # stack costs a kernel of its own on the GPU, but a * c + swap(a) * [-s | s] (a reversed axis instead) cost two
+    # (H100, 2026-11-25, docs/BENCHMARKS.md "Launch parameters inside the step")
     rotary = (jnp.arange(heads) < num_heads + num_kv_heads)[None, :, None]
     r1 = jnp.where(rotary, _round(a1 * c - a2 * s, dtype), a1)
     r2 = jnp.where(rotary, _round(a2 * c + a1 * s, dtype), a2)
@@ -243,8 +258,8 @@ def attention(qkv, cache_k, cache_v, prefix_mask, suffix_mask, *, batch: int, nu
                                num_kv_heads=num_kv_heads, splits=splits, per_split=per_split)
     out = (jax.ShapeDtypeStruct(((splits + 1) * m, num_heads * hd), qkv.dtype),
            jax.ShapeDtypeStruct(((splits + 1) * m, num_heads), jnp.float32))
-    o, lse = _call(kernel, (batch, num_heads, sp // bq, splits + 1), out, blocks, "expert_attention",
-                   blocks.attention_warps)(qkv, cache_k, cache_v, prefix_mask, suffix_mask)
+    o, lse = _call(kernel, (batch, num_heads, sp // bq, splits + 1), out, "expert_attention",
+                   blocks.attention_warps, blocks.attention_stages)(qkv, cache_k, cache_v, prefix_mask, suffix_mask)
     # merge, elementwise over the splits (one XLA fusion): sum_s exp(lse_s - max) o_s / sum_s exp(lse_s - max)
     o = list(o.reshape(splits + 1, m, num_heads, hd).astype(jnp.float32))
     lse = list(lse.reshape(splits + 1, m, num_heads, 1))
@@ -255,10 +270,11 @@ def attention(qkv, cache_k, cache_v, prefix_mask, suffix_mask, *, batch: int, nu
 
 
 # -- GEMM + (gated) residual, norm + gate/up GEMM + GeGLU --------------------------------------------------------------
-def matmul_residual(y, w, x, mods=None, gate_row: int | None = None, *, splits: int, blocks: Blocks = Blocks()):
+def matmul_residual(y, w, x, mods=None, gate_row: int | None = None, *, gemm: Gemm, blocks: Blocks = Blocks(),
+                    name: str = "matmul_partials"):
     """x + (y @ w) [* mods[gate_row]]: y (M, E), w (E, D), x (M, D); the π0.5 adaRMS gate is a row of mods (R, D).
     The split sum is rounded to the dtype, then the gate and the residual (the XLA path's ops, in its order)."""
-    parts, _, _ = matmul_partials(y, w, cols=blocks.out_cols, splits=splits, blocks=blocks)
+    parts, _, _ = matmul_partials(y, w, gemm=gemm, blocks=blocks, name=name)
     z = sum(list(parts)).astype(x.dtype)
     return x + (z if gate_row is None else z * mods[gate_row])
 
@@ -266,7 +282,7 @@ def matmul_residual(y, w, x, mods=None, gate_row: int | None = None, *, splits: 
 def norm_geglu(x, mods, mod_row: int, adaptive: bool, w_gate_up, *, width: int, blocks: Blocks = Blocks()):
     """gelu_tanh(h @ w_gate) * (h @ w_up) with h = norm(x): x (M, D), w_gate_up (D, 2F) = [gate | up] -> (M, F)."""
     dtype, hidden = x.dtype, w_gate_up.shape[1] // 2
-    acc = _normed_product(x, mods, mod_row, adaptive, w_gate_up, width=width, cols=blocks.mlp_cols,
-                          splits=blocks.mlp_splits, blocks=blocks)
+    acc = _normed_product(x, mods, mod_row, adaptive, w_gate_up, width=width, gemm=blocks.mlp, blocks=blocks,
+                          name="expert_gate_up")
     gate = _round(jax.nn.gelu(_round(acc[:, :hidden], dtype), approximate=True), dtype)
     return (gate * _round(acc[:, hidden:], dtype)).astype(dtype)
