@@ -1,10 +1,15 @@
-"""The fused expert kernels (`pi0_jax.ops`) against the XLA path on one GPU: correctness, per-stage timings with a
-block-size sweep, the denoise step of both paths on the same weights and cache, and the pallas engine's whole call.
+"""The fused expert kernels (`pi0_jax.ops`) against the XLA path on one GPU: correctness, launch-parameter sweeps,
+the denoise step of both paths on the same weights and cache (kernel counts, a trace per kernel name), and the
+pallas engine's whole call.
 
-Per-stage times are medians over calls of one program that runs the stage on `--copies` independent inputs (separate
-buffers, so nothing is copied or de-duplicated), divided by the copies: one launch each, inside one executable.
+Two sweeps. The per-stage one (the default) times each stage as one program that runs it on `--copies` independent
+inputs, each with its own weights (one launch each, divided by the copies). Its ranking did not hold inside the step
+(run 19), so `--step-sweep depths|splits` compiles the 10-step denoise program once per variant and times the
+variants interleaved. Two probes: `--gemm-probe` runs each GEMM kernel once for a kernel profiler (ncu), and
+`--graph-probe` compiles the Pallas step with XLA's command buffers as default, off and all.
 
     python scripts/bench_kernels.py --out kernels.json
+    python scripts/bench_kernels.py --step-sweep splits --trace --skip-parity --presets pi0_base --out k.json
 """
 
 from __future__ import annotations
@@ -31,6 +36,23 @@ from pi0_jax.ops import expert_kernels as ek, layout
 sys.path.insert(0, str(Path(__file__).parent))
 from profile_engine import count_ops, kernel_times  # noqa: E402
 
+G = ek.Gemm
+# The launch variants of `step_sweep`, each one change from the defaults: run 20 swept the pipelining depth, run 22
+# the split-K counts (their f32 partials are written and read again: gate/up at 4 splits writes 8.4 MB beside its
+# 16.8 MB of weights). Neither moved the step by more than 1.1 % (docs/BENCHMARKS.md, "Launch parameters").
+STEP_SWEEPS = {
+    "depths": {"default": {}, "qkv 128x8 s1": dict(qkv=G(128, 8, 1)), "qkv 128x8 s2": dict(qkv=G(128, 8, 2)),
+               "mlp 128x4 s1": dict(mlp=G(128, 4, 1)), "mlp 64x4 s1": dict(mlp=G(64, 4, 1)),
+               "mlp 64x4 s2": dict(mlp=G(64, 4, 2)), "mlp 64x8 s1": dict(mlp=G(64, 8, 1)),
+               "out 128x8 s1": dict(out=G(128, 8, 1)), "out 64x4 s1": dict(out=G(64, 4, 1)),
+               "down 64x8 s1": dict(down=G(64, 8, 1)), "down 64x8 s2": dict(down=G(64, 8, 2)),
+               "attention s1": dict(attention_stages=1), "attention s2": dict(attention_stages=2)},
+    "splits": {"default": {}, "mlp 64x2": dict(mlp=G(64, 2)), "mlp 128x2": dict(mlp=G(128, 2)),
+               "mlp 64x1": dict(mlp=G(64, 1)), "mlp 32x2": dict(mlp=G(32, 2)), "qkv 64x4": dict(qkv=G(64, 4)),
+               "qkv 64x2": dict(qkv=G(64, 2)), "qkv 32x4": dict(qkv=G(32, 4)), "down 64x4": dict(down=G(64, 4)),
+               "down 32x4": dict(down=G(32, 4)), "out 64x2": dict(out=G(64, 2)), "out 32x2": dict(out=G(32, 2))},
+}
+
 
 def median_ms(fn, args, iters: int, warmup: int = 3) -> float:
     for _ in range(warmup):
@@ -44,8 +66,9 @@ def median_ms(fn, args, iters: int, warmup: int = 3) -> float:
 
 
 def stage_ms(stage, varying: list, fixed: tuple, iters: int) -> float:
-    """stage(v, *fixed) on each of the independent inputs `varying`, one program; ms per call."""
-    fn = jax.jit(lambda vs, fx: [stage(v, *fx) for v in vs])
+    """stage(*v, *fixed) on each of the independent inputs `varying` (an array or a tuple of them each), one program;
+    ms per call."""
+    fn = jax.jit(lambda vs, fx: [stage(*(v if isinstance(v, tuple) else (v,)), *fx) for v in vs])
     return median_ms(fn, (varying, fixed), iters) / len(varying)
 
 
@@ -109,34 +132,47 @@ def stages(config, args, key):
     ys = [rnd(sp, n * h) for _ in range(c)]
     hs = [rnd(sp, f) for _ in range(c)]
     kw = {"num_heads": n, "num_kv_heads": nk}
+    # the kernels' inputs: every copy has its own weights and cache, as every layer of the step does (one shared
+    # weight would stay in L2 across the copies: 16.8 MB of gate/up fits the H100's 50 MB)
+    ws = [{k: rnd(*v.shape, scale=float(jnp.std(v.astype(jnp.float32)))) for k, v in w.items() if k != "pre_attn"}
+          for _ in range(c)]
+    caches = [(rnd(pp, nk * h), rnd(pp, nk * h)) for _ in range(c)]
 
     out = {"xla": {}, "pallas": {}}
     if args.xla_stages:
         xla_stages(cfg, out, xs, w, pos, ck, cv, pmask, ys, hs, s, p, rnd, args)
-    # runs 1-3 (commits f0fa40a, 139b35b) swept warps, q / kv blocks and split-K of the residual GEMMs; run 4 the key
-    # splits of attention; these sweep the split-K GEMMs behind the norm kernels and the attention splits again
+    # runs 1-3 (commits f0fa40a, 139b35b) swept warps, q / kv blocks and split-K of the residual GEMMs; runs 4-5 the
+    # key splits of attention and the split-K GEMMs behind the norm kernels. Session 20 sweeps the pipelining depth
+    # with them: Triton gives every stage its own shared-memory tiles, so at 3 stages a 64 KB tile pair leaves room for
+    # one program per SM, and a grid of 512 one-iteration programs runs in 4 waves. The default comes first.
+    attn = ("q", "kv", "kv_splits", "attention_warps", "attention_stages")
     sweeps = {
-        "norm_qkv_rope": [dict(qkv_cols=a, qkv_splits=sp) for a, sp in
-                          ((64, 4), (64, 8), (32, 4), (32, 8), (128, 4), (128, 8), (64, 2))],
-        "attention": [dict(q=q, kv_splits=sp, attention_warps=wp) for q, sp, wp in
-                      ((64, 8, 8), (64, 4, 8), (64, 13, 8), (16, 4, 4), (32, 8, 4), (64, 8, 4))],
-        "out_residual": [dict(out_cols=a, out_splits=sp) for a, sp in ((32, 4), (32, 8), (64, 4), (16, 4))],
-        "norm_geglu": [dict(mlp_cols=a, mlp_splits=sp) for a, sp in
-                       ((64, 4), (64, 8), (128, 4), (32, 4), (64, 2), (128, 8))] + [dict(k=256), dict(num_warps=8)],
-        "down_residual": [dict(out_cols=a, down_splits=sp) for a, sp in ((32, 8), (32, 16), (64, 8), (16, 8))],
+        "norm_qkv_rope": [dict(qkv=G(*g)) for g in ((128, 8, 3), (128, 8, 1), (128, 8, 2), (64, 8, 1), (64, 4, 1),
+                                                    (128, 16, 1), (64, 16, 1))],
+        "attention": [dict(zip(attn, a)) for a in ((64, 64, 13, 8, 3), (64, 64, 13, 8, 1), (64, 64, 7, 8, 1),
+                                                   (64, 64, 7, 8, 2), (32, 64, 7, 4, 1), (16, 64, 4, 4, 1),
+                                                   (16, 64, 4, 4, 2), (64, 32, 26, 4, 1))],
+        "out_residual": [dict(out=G(*g)) for g in ((64, 4, 3), (64, 4, 1), (64, 8, 1), (32, 8, 1), (32, 16, 1),
+                                                   (64, 16, 1), (128, 8, 1))],
+        "norm_geglu": [dict(mlp=G(*g)) for g in ((64, 4, 3), (64, 4, 2), (64, 4, 1), (128, 4, 1), (128, 4, 2),
+                                                 (128, 8, 1), (64, 8, 1), (256, 4, 1), (256, 8, 1), (32, 8, 1))],
+        "down_residual": [dict(down=G(*g)) for g in ((64, 8, 3), (64, 8, 2), (64, 8, 1), (64, 16, 1), (32, 16, 1),
+                                                     (128, 16, 1), (64, 32, 1))],
     }
+    def each(inputs, key):
+        return [(a, wi[key]) for a, wi in zip(inputs, ws)]
+
     calls = {
         "norm_qkv_rope": (lambda bl: lambda x, w: ek.norm_qkv_rope(x, scale, 0, False, w, cos, sin, width=d,
-                                                                   head_dim=h, blocks=bl, **kw), xs, (w["qkv"],)),
+                                                                   head_dim=h, blocks=bl, **kw), each(xs, "qkv"), ()),
         "attention": (lambda bl: lambda q, ck, cv: ek.attention(q, ck, cv, pmask, smask, batch=1, blocks=bl, **kw),
-                      qkvs, (ck, cv)),
-        "out_residual": (lambda bl: lambda y, w, x: ek.matmul_residual(y, w, x, splits=bl.out_splits, blocks=bl), ys,
-                         (w["attn_out"], xs[0])),
-        "norm_geglu": (lambda bl: lambda x, w: ek.norm_geglu(x, scale, 0, False, w, width=d, blocks=bl), xs,
-                       (w["gate_up"],)),
-        "down_residual": (lambda bl: lambda hh, w, x: ek.matmul_residual(hh, w, x, splits=bl.down_splits, blocks=bl),
-                          hs,
-                          (w["down"], xs[0])),
+                      [(q, *kv) for q, kv in zip(qkvs, caches)], ()),
+        "out_residual": (lambda bl: lambda y, w, x: ek.matmul_residual(y, w, x, gemm=bl.out, blocks=bl),
+                         each(ys, "attn_out"), (xs[0],)),
+        "norm_geglu": (lambda bl: lambda x, w: ek.norm_geglu(x, scale, 0, False, w, width=d, blocks=bl),
+                       each(xs, "gate_up"), ()),
+        "down_residual": (lambda bl: lambda hh, w, x: ek.matmul_residual(hh, w, x, gemm=bl.down, blocks=bl),
+                          each(hs, "down"), (xs[0],)),
     }
     best = {}
     for name, variants in sweeps.items():
@@ -148,15 +184,15 @@ def stages(config, args, key):
             except Exception as e:  # a variant Triton rejects (e.g. out of shared memory) is reported, not fatal
                 rows.append((float("inf"), {**v, "error": f"{type(e).__name__}: {str(e)[:200]}"}))
         rows.sort(key=lambda r: r[0])
-        out["pallas"][name] = [{"ms": t, **v} for t, v in rows]
+        out["pallas"][name] = [{"ms": t, **{k: dataclasses.asdict(x) if dataclasses.is_dataclass(x) else x
+                                            for k, x in v.items()}} for t, v in rows]
         best[name] = rows[0]
         xla_us = out["xla"].get(name, float("nan")) * 1e3
-        print(f"{name:14s} xla {xla_us:7.1f} us   pallas best {rows[0][0] * 1e3:7.1f} us "
-              f"{rows[0][1]}", flush=True)
-    # shared fields (k, num_stages, out_cols) come from the stage that reads the most bytes
-    take = {"norm_qkv_rope": ("qkv_cols", "qkv_splits"), "attention": ("q", "kv", "kv_splits", "attention_warps"),
-            "out_residual": ("out_splits",), "norm_geglu": ("mlp_cols", "mlp_splits", "k", "num_stages", "num_warps"),
-            "down_residual": ("out_cols", "down_splits")}
+        default = next((t for t, v in rows if v is variants[0]), float("inf"))
+        print(f"{name:14s} xla {xla_us:7.1f} us   pallas default {default * 1e3:7.1f} us   best "
+              f"{rows[0][0] * 1e3:7.1f} us {rows[0][1]}", flush=True)
+    take = {"norm_qkv_rope": ("qkv",), "attention": ("q", "kv", "kv_splits", "attention_warps", "attention_stages"),
+            "out_residual": ("out",), "norm_geglu": ("mlp",), "down_residual": ("down",)}
     fields = {}
     for name, keys in take.items():
         fields.update({k: v for k, v in best[name][1].items() if k in keys})
@@ -166,67 +202,145 @@ def stages(config, args, key):
     return out, blocks
 
 
-def engine_runs(config, args, blocks, out):
-    """The engine with kernels="pallas" at B=1, and the XLA denoise program on the same weights and cache (at full
-    size the kernels' weight layout is the XLA one, and padded prefix keys are masked): correctness and timings."""
-    if time.perf_counter() - T0 > args.engine_before_s:
-        out[config.name] = "skipped: out of time"
-        return
+def interleaved_ms(fns: dict, iters: int, warmup: int = 3) -> dict:
+    """Median ms of each no-argument call, timed one call of each per round (the order reversed every other round),
+    so drift between variants cannot decide an A/B."""
+    for fn in fns.values():
+        for _ in range(warmup):
+            jax.block_until_ready(fn())
+    times = {name: [] for name in fns}
+    for i in range(iters):
+        for name in (list(fns) if i % 2 == 0 else list(fns)[::-1]):
+            start = time.perf_counter()
+            jax.block_until_ready(fns[name]())
+            times[name].append(time.perf_counter() - start)
+    return {name: float(np.median(t)) * 1e3 for name, t in times.items()}
+
+
+def pallas_engine(config):
+    """The engine with kernels="pallas" on random full-size weights at B=1 (3 cameras, a 48-token prompt, 200 for
+    π0.5) and its inputs: (engine, cameras, bucket, packed observation, noise, prefix cache)."""
     params = benchmark.random_params(config, 0)
-    prompt = 200 if config.pi05 else 48
-    obs, noise = benchmark.make_inputs(config, 1, 3, prompt, 0)
-    layers.suffix_layers_pallas.__defaults__ = (None, blocks)
+    obs, noise = benchmark.make_inputs(config, 1, 3, 200 if config.pi05 else 48, 0)
     engine = Engine(config, params, kernels="pallas", cache_dir=False)
     del params
     cams, bucket = engine.plan(obs)
     packed = engine.pack(obs, cams, bucket)
+    tokens = engine.executable("encode_images", 1, 0, cams, bucket)(engine.weights, packed[0])
+    cache = engine.executable("fill_prefix_cache", 1, 0, cams, bucket)(engine.weights, tokens, *packed[1:4])
+    return engine, cams, bucket, packed, noise, cache
+
+
+def engine_runs(config, args, variants: dict, out):
+    """The engine at B=1 with the XLA denoise program and each Pallas block variant on the same weights and cache (at
+    full size the kernels' weight layout is the XLA one, and padded prefix keys are masked): correctness, timings
+    (interleaved), kernel counts and traces, and the fused whole call of each Pallas variant."""
+    if time.perf_counter() - T0 > args.engine_before_s:
+        out[config.name] = "skipped: out of time"
+        return
+    engine, cams, bucket, packed, noise, cache = pallas_engine(config)
     w = engine.weights
-    tokens = engine.executable("encode_images", 1, 0, cams, bucket)(w, packed[0])
-    cache = engine.executable("fill_prefix_cache", 1, 0, cams, bucket)(w, tokens, *packed[1:4])
-    res, actions = {"prefix_keys": int(cache.mask.shape[1]), "blocks": dataclasses.asdict(blocks)}, {}
-    for kernels in ("xla", "pallas"):
-        r = {}
+    res = {"prefix_keys": int(cache.mask.shape[1]),
+           "blocks": {name: dataclasses.asdict(b) for name, b in variants.items() if b is not None}}
+    programs_, fused, actions = {}, {}, {}
+    for name, blocks in variants.items():
+        kernels = "xla" if blocks is None else "pallas"
+        if blocks is not None:
+            layers.suffix_layers_pallas.__defaults__ = (None, blocks)
+        r = res[name] = {}
         for steps in (1, 10):
-            sched = engine.schedule(steps)
             t0 = time.perf_counter()
-            if kernels == "pallas":
-                den = engine.executable("denoise", 1, steps, cams, bucket)
-            else:
-                fn = functools.partial(programs.denoise, config, num_steps=steps, unroll=True, unroll_steps=False)
-                den = jax.jit(fn).lower(w, sched, cache, packed[4], noise).compile()
+            fn = functools.partial(programs.denoise, config, num_steps=steps, unroll=True, unroll_steps=False,
+                                   kernels=kernels)
+            den = jax.jit(fn).lower(w, engine.schedule(steps), cache, packed[4], noise).compile()
             r[f"compile_denoise_{steps}_s"] = time.perf_counter() - t0
-            r[f"denoise_{steps}_ms"] = median_ms(lambda: den(w, sched, cache, packed[4], jnp.copy(noise)), (),
-                                                 args.iters)
-            if steps == 10 and args.trace:
-                try:
-                    r["trace"] = kernel_times(lambda: den(w, sched, cache, packed[4], jnp.copy(noise)), 5)
-                    t = r["trace"]
-                    print(f"{config.name} {kernels} trace: {t['kernels_per_call']:.0f} kernels, {t['kernel_ms']:.2f} "
-                          f"ms in kernels of {t['wall_ms']:.2f} ms ({t['busy']:.0%} busy); lines "
-                          f"{t['device_lines']}", flush=True)
-                    for row in t["by_name"][:25]:
-                        print(f"   {row['us_per_call']:9.1f} us  x{row['per_call']:6.1f}  {row['name'][:90]}",
-                              flush=True)
-                except Exception:
-                    r["trace"] = traceback.format_exc()[-2000:]
-                    print(r["trace"], flush=True)
-            if steps == 10:
-                actions[kernels] = np.asarray(den(w, sched, cache, packed[4], jnp.copy(noise)))
-                counts = count_ops(den.as_text())
-                body = {k: v for k, v in counts.items() if not k.startswith("ENTRY")}
-                big = max(body.items(), key=lambda kv: kv[1]["fusion"] + kv[1]["custom-call"])
-                r["loop_body_ops"] = big[1]
-                r["kernels_per_step"] = big[1]["fusion"] + big[1]["custom-call"] + big[1]["copy"]
+            programs_[(name, steps)] = den
+        counts = count_ops(programs_[(name, 10)].as_text())
+        body = {k: v for k, v in counts.items() if not k.startswith("ENTRY")}
+        big = max(body.items(), key=lambda kv: kv[1]["fusion"] + kv[1]["custom-call"])
+        r["loop_body_ops"] = big[1]
+        r["kernels_per_step"] = big[1]["fusion"] + big[1]["custom-call"] + big[1]["copy"]
+        if blocks is not None:
+            engine._executables.pop(("infer", 1, 10, tuple(cams), bucket), None)  # recompiled with these blocks
+            fused[name] = engine.executable("infer", 1, 10, cams, bucket)
+    calls = {}
+    for (name, steps), den in programs_.items():
+        sched = engine.schedule(steps)
+        calls[f"{name}/denoise_{steps}"] = functools.partial(
+            lambda den, sched: den(w, sched, cache, packed[4], jnp.copy(noise)), den, sched)
+        if steps == 10:
+            actions[name] = np.asarray(calls[f"{name}/denoise_{steps}"]())
+    sched10 = engine.schedule(10)
+    for name, fn in fused.items():
+        calls[f"{name}/infer_10"] = functools.partial(lambda fn: fn(w, sched10, *packed, jnp.copy(noise)), fn)
+    timed = interleaved_ms(calls, args.iters)
+    for key, ms in timed.items():
+        name, what = key.split("/")
+        res[name][f"{what}_ms"] = ms
+    for name in variants:
+        r = res[name]
         r["per_step_ms"] = (r["denoise_10_ms"] - r["denoise_1_ms"]) / 9
-        res[kernels] = r
-        print(config.name, kernels, json.dumps(r), flush=True)
-    res["pallas_vs_xla_rel_l2"] = rel_l2(actions["pallas"], actions["xla"])
-    print(config.name, "pallas vs xla rel L2 (bf16, 10 steps):", res["pallas_vs_xla_rel_l2"], flush=True)
+        r["rel_l2_vs_xla"] = rel_l2(actions[name], actions["xla"]) if "xla" in actions else None
+        if args.trace:
+            try:
+                r["trace"] = t = kernel_times(calls[f"{name}/denoise_10"], 5)
+                print(f"{config.name} {name} trace: {t['kernels_per_call']:.0f} kernels, {t['kernel_ms']:.2f} ms in "
+                      f"kernels of {t['wall_ms']:.2f} ms ({t['busy']:.0%} busy)", flush=True)
+                for row in t["by_name"][:12]:
+                    print(f"   {row['us_per_call']:9.1f} us  x{row['per_call']:6.1f}  {row['name'][:90]}", flush=True)
+            except Exception:
+                r["trace"] = traceback.format_exc()[-2000:]
+                print(r["trace"], flush=True)
+        print(f"{config.name} {name}: " + json.dumps({k: v for k, v in r.items() if k != "trace"}), flush=True)
     out[config.name] = res
-    sched = engine.schedule(10)
-    fused = engine.executable("infer", 1, 10, cams, bucket)
-    res["pallas"]["infer_10_ms"] = median_ms(lambda: fused(w, sched, *packed, jnp.copy(noise)), (), args.iters)
-    print(config.name, "pallas infer 10 steps ms", res["pallas"]["infer_10_ms"], flush=True)
+
+
+def step_sweep(config, args, out) -> ek.Blocks:
+    """Launch variants of the kernels timed where they run: the 10-step denoise program (π0 B=1, the engine's
+    weights and cache), one compile per variant, interleaved timing. Each variant changes one GEMM or the attention
+    from the defaults; then the fields that beat the defaults are combined and timed again beside the best single
+    change. Returns the fastest Blocks. (A stage timed alone, as `stages` does, ranked them differently: run 19.)"""
+    base, singles = ek.Blocks(), STEP_SWEEPS[args.step_sweep]
+    engine, cams, bucket, packed, noise, cache = pallas_engine(config)
+    w, sched = engine.weights, engine.schedule(10)
+    fn = functools.partial(programs.denoise, config, num_steps=10, unroll=True, unroll_steps=False, kernels="pallas")
+    res = out["step_sweep"] = {"model": config.name, "rounds": []}
+
+    def timed(variants: dict) -> dict:
+        calls, kernels = {}, {}
+        for name, fields in variants.items():
+            layers.suffix_layers_pallas.__defaults__ = (None, dataclasses.replace(base, **fields))
+            den = jax.jit(fn).lower(w, sched, cache, packed[4], noise).compile()
+            body = [v for k, v in count_ops(den.as_text()).items() if not k.startswith("ENTRY")]
+            kernels[name] = max(v["fusion"] + v["custom-call"] + v["copy"] for v in body)
+            calls[name] = functools.partial(lambda den: den(w, sched, cache, packed[4], jnp.copy(noise)), den)
+        ms = interleaved_ms(calls, args.iters)
+        rows = [{"variant": n, "denoise_10_ms": ms[n], "vs_default": ms[n] / ms["default"],
+                 "kernels_per_step": kernels[n], "fields": {k: dataclasses.asdict(v) if dataclasses.is_dataclass(v)
+                                                            else v for k, v in variants[n].items()}}
+                for n in variants]
+        res["rounds"].append(rows)
+        for r in sorted(rows, key=lambda r: r["denoise_10_ms"]):
+            print(f"  {r['variant']:28s} {r['denoise_10_ms']:7.3f} ms  {r['vs_default']:.3f}  "
+                  f"{r['kernels_per_step']} kernels/step", flush=True)
+        return {r["variant"]: r for r in rows}
+
+    first = timed(singles)
+    winners = {}   # per field, the single change that beat the default by more than 0.5 %
+    for name, r in sorted(first.items(), key=lambda kv: kv[1]["denoise_10_ms"]):
+        field = next(iter(singles[name]), None)
+        if field and r["vs_default"] < 0.995 and field not in winners:
+            winners[field] = singles[name][field]
+    best_single = min(first, key=lambda n: first[n]["denoise_10_ms"])
+    second = {"default": {}, best_single: singles[best_single]}
+    if len(winners) > 1:
+        second["combined"] = winners
+    second = timed(second) if len(second) > 1 else first
+    best = min(second, key=lambda n: second[n]["denoise_10_ms"])
+    blocks = dataclasses.replace(base, **(winners if best == "combined" else singles[best]))
+    res["best"] = {"variant": best, "blocks": dataclasses.asdict(blocks)}
+    print("step sweep best:", best, blocks, flush=True)
+    return blocks
 
 
 def f32_parity(out):
@@ -248,38 +362,123 @@ def f32_parity(out):
             print(name, "f32 pallas vs reference max abs", out[f"f32_{name}_max_abs"], flush=True)
 
 
+def graph_probe(config, args, out):
+    """Is the Pallas step paced by the host? The 10-step Pallas denoise (B=1) compiled three ways in one process:
+    XLA's default command buffers (CUDA graphs), none, and every command type including the loop; interleaved timing
+    and a trace of each. If the kernels ran inside graphs, turning graphs off would cost launch time."""
+    engine, cams, bucket, packed, noise, cache = pallas_engine(config)
+    w, sched = engine.weights, engine.schedule(10)
+    fn = functools.partial(programs.denoise, config, num_steps=10, unroll=True, unroll_steps=False, kernels="pallas")
+    everything = "FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,WHILE,CONDITIONAL"
+    variants = {"default": None, "no graphs": {"xla_gpu_enable_command_buffer": ""},
+                "all commands": {"xla_gpu_enable_command_buffer": everything, "xla_gpu_graph_min_graph_size": 1}}
+    calls, res = {}, {}
+    out["graph_probe"] = res
+    for name, options in variants.items():
+        den = jax.jit(fn).lower(w, sched, cache, packed[4], noise).compile(options)
+        calls[name] = functools.partial(lambda den: den(w, sched, cache, packed[4], jnp.copy(noise)), den)
+    for name, ms in interleaved_ms(calls, args.iters).items():
+        t = kernel_times(calls[name], 5)
+        res[name] = {"denoise_10_ms": ms, "kernels_per_call": t["kernels_per_call"], "kernel_ms": t["kernel_ms"],
+                     "trace_wall_ms": t["wall_ms"], "options": variants[name]}
+        print(f"{name:14s} {ms:7.3f} ms   {t['kernels_per_call']:.0f} kernels, {t['kernel_ms']:.2f} ms in kernels, "
+              f"trace wall {t['wall_ms']:.2f} ms", flush=True)
+
+
+def gemm_probe(config):
+    """Each of the expert's four GEMM kernels once at full size (B=1), π0's norms, for a kernel profiler:
+    `ncu --clock-control none --kernel-name regex:expert_ --launch-skip 12 python3 scripts/bench_kernels.py
+    --gemm-probe`. Then the gate/up GEMM alone under other launch parameters."""
+    cfg, dt = config.action_expert, jnp.bfloat16
+    sp, d, f = layout.suffix_rows(config.suffix_len), cfg.width, cfg.mlp_dim
+    hd = 2 * layout.half_dim(cfg.head_dim)   # a head in the kernels' layout (= head_dim at full size)
+    heads, attn = (cfg.num_heads + 2 * cfg.num_kv_heads) * hd, cfg.num_heads * hd
+    ks = iter(jax.random.split(jax.random.key(0), 16))
+
+    def rnd(*shape):
+        return jax.random.normal(next(ks), shape, jnp.float32).astype(dt) * shape[0] ** -0.5
+
+    x, scale = rnd(sp, d), rnd(1, d)
+    cos, sin = layout.rope_tables(jnp.arange(sp)[None] + 800, cfg.head_dim)
+    kw = {"num_heads": cfg.num_heads, "num_kv_heads": cfg.num_kv_heads, "head_dim": cfg.head_dim}
+    blocks = ek.Blocks()
+    calls = [jax.jit(lambda x, w: ek.norm_qkv_rope(x, scale, 0, False, w, cos, sin, width=d, **kw)),
+             jax.jit(lambda y, w: ek.matmul_residual(y, w, x, gemm=blocks.out, name="expert_attn_out")),
+             jax.jit(lambda x, w: ek.norm_geglu(x, scale, 0, False, w, width=d)),
+             jax.jit(lambda h, w: ek.matmul_residual(h, w, x, gemm=blocks.down, name="expert_down"))]
+    inputs = [(x, rnd(d, heads)), (rnd(sp, attn), rnd(attn, d)),
+              (x, rnd(d, 2 * f)), (rnd(sp, f), rnd(f, d))]
+    # and the gate/up kernel alone under other launches (named apart): does the tiling move its time?
+    for g, warps in ((G(64, 4, 3), 4), (G(128, 4, 1), 4), (G(128, 4, 1), 8), (G(64, 8, 1), 4), (G(128, 8, 1), 4),
+                     (G(64, 2, 3), 4), (G(256, 4, 1), 8), (G(32, 4, 1), 4)):
+        calls.append(jax.jit(functools.partial(
+            lambda x, w, g, warps: ek.matmul_partials(x, w, scale, scaled=True, gemm=g, name=f"expert_mlp_{g.cols}x"
+                                                      f"{g.splits}s{g.stages}w{warps}",
+                                                      blocks=dataclasses.replace(blocks, num_warps=warps))[0],
+            g=g, warps=warps)))
+        inputs.append(inputs[2])
+    for _ in range(2):   # the second round is the one to read (module load and autotuning are past)
+        for fn, args in zip(calls, inputs):
+            jax.block_until_ready(fn(*args))
+
+
 T0 = time.perf_counter()
 
 
 def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--iters", type=int, default=30)
-    p.add_argument("--copies", type=int, default=16)
+    p.add_argument("--iters", type=int, default=30, help="timed calls per median (default: %(default)s)")
+    p.add_argument("--copies", type=int, default=16,
+                   help="independent inputs per stage program in the per-stage sweep (default: %(default)s)")
     p.add_argument("--engine-before-s", type=float, default=150.0, help="start an engine run only before this")
     p.add_argument("--xla-stages", action="store_true", help="also time each stage's XLA ops (the first run did)")
-    p.add_argument("--skip-sweep", action="store_true")
+    p.add_argument("--skip-sweep", action="store_true", help="no sweep: the engine runs with the default blocks")
+    p.add_argument("--step-sweep", choices=sorted(STEP_SWEEPS), default=None,
+                   help="sweep these launch variants inside the 10-step denoise program (instead of the per-stage "
+                        "sweep, whose ranking did not hold in the step)")
+    p.add_argument("--graph-probe", action="store_true",
+                   help="only time the Pallas 10-step denoise with XLA's command buffers as default, off and all")
+    p.add_argument("--gemm-probe", action="store_true",
+                   help="only run each expert GEMM kernel twice at full size (for ncu), then exit")
     p.add_argument("--blocks", type=Path, default=None,
                    help="a previous run's JSON: its best_blocks for the engine runs (with --skip-sweep)")
     p.add_argument("--skip-parity", action="store_true", help="skip the f32 parity of the dummy presets")
     p.add_argument("--trace", action="store_true", help="sum the 10-step denoise's GPU kernels from a profiler trace")
     p.add_argument("--max-variants", type=int, default=100, help="block variants per stage in the sweep")
-    p.add_argument("--presets", default="pi0_base,pi05_base", help="engine runs (the sweep uses the first)")
-    p.add_argument("--out", type=Path, default=Path("kernels.json"))
+    p.add_argument("--presets", default="pi0_base,pi05_base",
+                   help="engine runs (the sweeps and probes use the first; default: %(default)s)")
+    p.add_argument("--out", type=Path, default=Path("kernels.json"), help="JSON results (default: %(default)s)")
     args = p.parse_args()
+    if args.gemm_probe:
+        return gemm_probe(get_config(args.presets.split(",")[0], dtype="bfloat16"))
+    if args.graph_probe:
+        out = {"device": jax.devices()[0].device_kind, "jax": jax.__version__}
+        graph_probe(get_config(args.presets.split(",")[0], dtype="bfloat16"), args, out)
+        return args.out.write_text(json.dumps(out, indent=1, default=str))
     dev = jax.devices()[0]
     out = {"device": dev.device_kind, "jax": jax.__version__, "xla_flags": os.environ.get("XLA_FLAGS", ""),
            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
     print(out, flush=True)
     sections = [] if args.skip_parity else [("f32_parity", lambda: f32_parity(out))]
-    blocks = ek.Blocks(**json.loads(args.blocks.read_text())["stages"]["best_blocks"]) if args.blocks else ek.Blocks()
+    blocks = ek.Blocks.from_dict(json.loads(args.blocks.read_text())["stages"]["best_blocks"]) if args.blocks \
+        else ek.Blocks()
     out["blocks_given"] = dataclasses.asdict(blocks)
-    if not args.skip_sweep:
+    best = None
+    if args.step_sweep:
         def sweep():
-            nonlocal blocks
+            nonlocal best
+            best = step_sweep(get_config(args.presets.split(",")[0], dtype="bfloat16"), args, out)
+        sections.append(("step_sweep", sweep))
+    elif not args.skip_sweep:
+        def sweep():
+            nonlocal best
             config = get_config(args.presets.split(",")[0], dtype="bfloat16")
-            out["stages"], blocks = stages(config, args, jax.random.key(0))
+            out["stages"], best = stages(config, args, jax.random.key(0))
         sections.append(("sweep", sweep))
-    sections += [(name, lambda name=name: engine_runs(get_config(name, dtype="bfloat16"), args, blocks, out))
+    def variants():   # the given blocks, and the sweep's best where it differs
+        return {"xla": None, "pallas": blocks} | ({"pallas_best": best} if best not in (None, blocks) else {})
+
+    sections += [(name, lambda name=name: engine_runs(get_config(name, dtype="bfloat16"), args, variants(), out))
                  for name in args.presets.split(",")]
     for name, fn in sections:
         try:
