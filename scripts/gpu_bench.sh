@@ -11,6 +11,14 @@ nvidia-smi -L; date -u; git rev-parse --short HEAD 2>/dev/null
 for phase in "$@"; do
   echo "=== $phase"; start=$(date +%s)
   case $phase in
+    kernels_graph) python3 scripts/bench_kernels.py --graph-probe --presets pi0_base --iters 30 \
+               --out "$OUT/graph_probe.json" ;;   # the Pallas step with XLA's command buffers default / off / all
+    kernels_ncu) ncu --clock-control none --kernel-name regex:expert_ --launch-skip 12 --launch-count 12 \
+               --section SpeedOfLight --section LaunchStats --section Occupancy \
+               python3 scripts/bench_kernels.py --gemm-probe --presets pi0_base > "$OUT/ncu_gemms.txt" 2>&1
+               grep -E "^  expert_|Duration|DRAM Throughput|Registers Per|Waves Per SM" "$OUT/ncu_gemms.txt" ;;
+    kernels_sweep) python3 scripts/bench_kernels.py --step-sweep "${SWEEP:-splits}" --trace --skip-parity \
+               --presets pi0_base --iters 30 --out "$OUT/step_sweep.json" ;;   # launch variants inside the step
     stages_b1) python3 scripts/profile_engine.py --preset pi0_base --batch 1 --prompt-tokens 48 --attention xla \
                --attention vision=cudnn --attention vision=cudnn,prefix=cudnn --attention cudnn --time --iters 30 \
                --trace-stages --out "$OUT/stages_b1.json" ;;
