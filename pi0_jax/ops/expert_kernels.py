@@ -48,8 +48,8 @@ EPS = 1e-6
 @dataclasses.dataclass(frozen=True)
 class Gemm:
     """One split-K GEMM's launch: output columns per program, K chunks per output tile (one program each), and
-    Triton's software-pipelining depth (it gives every stage its own shared-memory tiles, so the depth decides how
-    many programs share an SM)."""
+    Triton's software-pipelining depth (a K loop of several steps gets a shared-memory tile pair per stage, so a
+    deeper pipeline leaves room for fewer programs per SM)."""
 
     cols: int
     splits: int
@@ -60,7 +60,7 @@ class Gemm:
 class Blocks:
     """Tile sizes (powers of two; each is shrunk to divide its padded dimension), split counts and Triton launch
     parameters. Defaults: the fastest of the sweeps at π0 full size, B=1, on an H200 (docs/BENCHMARKS.md, "Fused
-    kernels")."""
+    kernels"); inside the step on an H100 no other tiling, split count or depth moved it by more than 1 %."""
 
     rows: int = 64  # GEMM rows per program
     k: int = 256  # GEMM contraction chunk per loop step
@@ -180,9 +180,9 @@ def norm_qkv_rope(x, mods, mod_row: int, adaptive: bool, w_qkv, cos, sin, *, wid
                           name="expert_qkv")
     a = _round(acc, dtype).reshape(m, heads, 2, hp)
     a1, a2, c, s = a[:, :, 0], a[:, :, 1], cos[:, None], sin[:, None]
-    # RoPE in f32, then the dtype, for q and k heads; q is then scaled in the dtype (q_scale is a dtype value). The
-    # stack costs a kernel of its own on the GPU, but a * c + swap(a) * [-s | s] (a reversed axis instead) cost two
-    # (H100, 2026-11-25, docs/BENCHMARKS.md "Launch parameters inside the step")
+    # RoPE in f32, then the dtype, for q and k heads; q is then scaled in the dtype (q_scale is a dtype value). On a
+    # GPU the stack is a kernel of its own; a * c + swap(a) * [-s | s] (a reversed axis, no stack) became two
+    # (docs/BENCHMARKS.md, "Launch parameters inside the step")
     rotary = (jnp.arange(heads) < num_heads + num_kv_heads)[None, :, None]
     r1 = jnp.where(rotary, _round(a1 * c - a2 * s, dtype), a1)
     r2 = jnp.where(rotary, _round(a2 * c + a1 * s, dtype), a2)
