@@ -142,9 +142,9 @@ def stages(config, args, key):
     if args.xla_stages:
         xla_stages(cfg, out, xs, w, pos, ck, cv, pmask, ys, hs, s, p, rnd, args)
     # runs 1-3 (commits f0fa40a, 139b35b) swept warps, q / kv blocks and split-K of the residual GEMMs; runs 4-5 the
-    # key splits of attention and the split-K GEMMs behind the norm kernels. Session 20 sweeps the pipelining depth
-    # with them: Triton gives every stage its own shared-memory tiles, so at 3 stages a 64 KB tile pair leaves room for
-    # one program per SM, and a grid of 512 one-iteration programs runs in 4 waves. The default comes first.
+    # key splits of attention and the split-K GEMMs behind the norm kernels; session 20 (run 19) the pipelining depth
+    # with them (ncu: a K loop of one step keeps one tile pair at any depth; the out- and down-projections' loops of
+    # two steps take three pairs at depth 3, 197 KB, one program per SM). The default comes first.
     attn = ("q", "kv", "kv_splits", "attention_warps", "attention_stages")
     sweeps = {
         "norm_qkv_rope": [dict(qkv=G(*g)) for g in ((128, 8, 3), (128, 8, 1), (128, 8, 2), (64, 8, 1), (64, 4, 1),
