@@ -319,10 +319,17 @@ def step_sweep(config, args, out) -> ek.Blocks:
                  "kernels_per_step": kernels[n], "fields": {k: dataclasses.asdict(v) if dataclasses.is_dataclass(v)
                                                             else v for k, v in variants[n].items()}}
                 for n in variants]
+        if args.trace:   # did the changed kernel get faster inside the step, and did the step follow it?
+            for r in rows:
+                t = kernel_times(calls[r["variant"]], 5)
+                r["trace"] = {"kernel_ms": t["kernel_ms"], "wall_ms": t["wall_ms"], "busy": t["busy"],
+                              "us_per_call": {row["name"]: row["us_per_call"] for row in t["by_name"][:12]}}
         res["rounds"].append(rows)
         for r in sorted(rows, key=lambda r: r["denoise_10_ms"]):
+            traced = (f"  {r['trace']['kernel_ms']:.2f} ms in kernels, {r['trace']['busy']:.0%} busy"
+                      if "trace" in r else "")
             print(f"  {r['variant']:28s} {r['denoise_10_ms']:7.3f} ms  {r['vs_default']:.3f}  "
-                  f"{r['kernels_per_step']} kernels/step", flush=True)
+                  f"{r['kernels_per_step']} kernels/step{traced}", flush=True)
         return {r["variant"]: r for r in rows}
 
     first = timed(singles)
