@@ -231,6 +231,23 @@ def pallas_engine(config):
     return engine, cams, bucket, packed, noise, cache
 
 
+def denoise_program(config, engine, cache, packed, noise, steps: int, kernels: str = "pallas", options=None):
+    """The `steps`-step denoise program on the engine's weights and this cache, compiled (with XLA `options`) under
+    the kernels' current default blocks: (compiled, a no-argument call with a fresh copy of the noise)."""
+    w, sched = engine.weights, engine.schedule(steps)
+    fn = functools.partial(programs.denoise, config, num_steps=steps, unroll=True, unroll_steps=False, kernels=kernels)
+    den = jax.jit(fn).lower(w, sched, cache, packed[4], noise).compile(options)
+    return den, lambda: den(w, sched, cache, packed[4], jnp.copy(noise))
+
+
+def step_ops(den) -> dict:
+    """The op counts of a compiled denoise program's loop body (its largest computation but the entry), and the
+    kernels per step (fusions, custom calls and copies)."""
+    body = {k: v for k, v in count_ops(den.as_text()).items() if not k.startswith("ENTRY")}
+    ops = max(body.values(), key=lambda v: v["fusion"] + v["custom-call"])
+    return {"loop_body_ops": ops, "kernels_per_step": ops["fusion"] + ops["custom-call"] + ops["copy"]}
+
+
 def engine_runs(config, args, variants: dict, out):
     """The engine at B=1 with the XLA denoise program and each Pallas block variant on the same weights and cache (at
     full size the kernels' weight layout is the XLA one, and padded prefix keys are masked): correctness, timings
@@ -242,7 +259,7 @@ def engine_runs(config, args, variants: dict, out):
     w = engine.weights
     res = {"prefix_keys": int(cache.mask.shape[1]),
            "blocks": {name: dataclasses.asdict(b) for name, b in variants.items() if b is not None}}
-    programs_, fused, actions = {}, {}, {}
+    calls, fused, actions = {}, {}, {}
     for name, blocks in variants.items():
         kernels = "xla" if blocks is None else "pallas"
         if blocks is not None:
@@ -250,26 +267,14 @@ def engine_runs(config, args, variants: dict, out):
         r = res[name] = {}
         for steps in (1, 10):
             t0 = time.perf_counter()
-            fn = functools.partial(programs.denoise, config, num_steps=steps, unroll=True, unroll_steps=False,
-                                   kernels=kernels)
-            den = jax.jit(fn).lower(w, engine.schedule(steps), cache, packed[4], noise).compile()
+            den, calls[f"{name}/denoise_{steps}"] = denoise_program(config, engine, cache, packed, noise, steps,
+                                                                    kernels)
             r[f"compile_denoise_{steps}_s"] = time.perf_counter() - t0
-            programs_[(name, steps)] = den
-        counts = count_ops(programs_[(name, 10)].as_text())
-        body = {k: v for k, v in counts.items() if not k.startswith("ENTRY")}
-        big = max(body.items(), key=lambda kv: kv[1]["fusion"] + kv[1]["custom-call"])
-        r["loop_body_ops"] = big[1]
-        r["kernels_per_step"] = big[1]["fusion"] + big[1]["custom-call"] + big[1]["copy"]
+        r.update(step_ops(den))
+        actions[name] = np.asarray(calls[f"{name}/denoise_10"]())
         if blocks is not None:
             engine._executables.pop(("infer", 1, 10, tuple(cams), bucket), None)  # recompiled with these blocks
             fused[name] = engine.executable("infer", 1, 10, cams, bucket)
-    calls = {}
-    for (name, steps), den in programs_.items():
-        sched = engine.schedule(steps)
-        calls[f"{name}/denoise_{steps}"] = functools.partial(
-            lambda den, sched: den(w, sched, cache, packed[4], jnp.copy(noise)), den, sched)
-        if steps == 10:
-            actions[name] = np.asarray(calls[f"{name}/denoise_{steps}"]())
     sched10 = engine.schedule(10)
     for name, fn in fused.items():
         calls[f"{name}/infer_10"] = functools.partial(lambda fn: fn(w, sched10, *packed, jnp.copy(noise)), fn)
@@ -302,18 +307,14 @@ def step_sweep(config, args, out) -> ek.Blocks:
     change. Returns the fastest Blocks. (A stage timed alone, as `stages` does, ranked them differently: run 19.)"""
     base, singles = ek.Blocks(), STEP_SWEEPS[args.step_sweep]
     engine, cams, bucket, packed, noise, cache = pallas_engine(config)
-    w, sched = engine.weights, engine.schedule(10)
-    fn = functools.partial(programs.denoise, config, num_steps=10, unroll=True, unroll_steps=False, kernels="pallas")
     res = out["step_sweep"] = {"model": config.name, "rounds": []}
 
     def timed(variants: dict) -> dict:
         calls, kernels = {}, {}
         for name, fields in variants.items():
             layers.suffix_layers_pallas.__defaults__ = (None, dataclasses.replace(base, **fields))
-            den = jax.jit(fn).lower(w, sched, cache, packed[4], noise).compile()
-            body = [v for k, v in count_ops(den.as_text()).items() if not k.startswith("ENTRY")]
-            kernels[name] = max(v["fusion"] + v["custom-call"] + v["copy"] for v in body)
-            calls[name] = functools.partial(lambda den: den(w, sched, cache, packed[4], jnp.copy(noise)), den)
+            den, calls[name] = denoise_program(config, engine, cache, packed, noise, 10)
+            kernels[name] = step_ops(den)["kernels_per_step"]
         ms = interleaved_ms(calls, args.iters)
         rows = [{"variant": n, "denoise_10_ms": ms[n], "vs_default": ms[n] / ms["default"],
                  "kernels_per_step": kernels[n], "fields": {k: dataclasses.asdict(v) if dataclasses.is_dataclass(v)
@@ -374,16 +375,13 @@ def graph_probe(config, args, out):
     XLA's default command buffers (CUDA graphs), none, and every command type including the loop; interleaved timing
     and a trace of each. If the kernels ran inside graphs, turning graphs off would cost launch time."""
     engine, cams, bucket, packed, noise, cache = pallas_engine(config)
-    w, sched = engine.weights, engine.schedule(10)
-    fn = functools.partial(programs.denoise, config, num_steps=10, unroll=True, unroll_steps=False, kernels="pallas")
     everything = "FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,WHILE,CONDITIONAL"
     variants = {"default": None, "no graphs": {"xla_gpu_enable_command_buffer": ""},
                 "all commands": {"xla_gpu_enable_command_buffer": everything, "xla_gpu_graph_min_graph_size": 1}}
     calls, res = {}, {}
     out["graph_probe"] = res
     for name, options in variants.items():
-        den = jax.jit(fn).lower(w, sched, cache, packed[4], noise).compile(options)
-        calls[name] = functools.partial(lambda den: den(w, sched, cache, packed[4], jnp.copy(noise)), den)
+        _, calls[name] = denoise_program(config, engine, cache, packed, noise, 10, options=options)
     for name, ms in interleaved_ms(calls, args.iters).items():
         t = kernel_times(calls[name], 5)
         res[name] = {"denoise_10_ms": ms, "kernels_per_call": t["kernels_per_call"], "kernel_ms": t["kernel_ms"],
