@@ -59,8 +59,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="steps at which the fused program is also timed (default: all of --steps)")
     p.add_argument("--quant", default=None, choices=sorted(SCHEMES),
                    help="FP8 scheme applied to the random weights (calibrated on synthetic observations); a "
-                        "quantised --checkpoint is used as stored. prefix-vision: every FP8 x FP8 GEMM (the "
-                        "prefix's and SigLIP's), for large batches")
+                        "quantised --checkpoint is used as stored. prefix-vision: FP8 x FP8 GEMMs in the prefix "
+                        "and SigLIP, for large batches; every-gemm: the action expert's too (calibrated over the "
+                        "denoise loop), for hundreds of samples")
     p.add_argument("--no-unroll", action="store_true", help="scan over layers instead of unrolling them")
     p.add_argument("--unroll-steps", action="store_true", help="unroll the denoise loop as well")
     p.add_argument("--attention", default="auto", type=attention_spec,
@@ -314,7 +315,7 @@ def run(args: argparse.Namespace) -> dict:
                 from pi0_jax.quant import schemes
 
                 stats = schemes.calibrate(config, params, schemes.sample_observations(config, 4, seed=args.seed),
-                                          "all", percentile=None)
+                                          args.quant, percentile=None, num_steps=max(args.steps))
                 params = schemes.quantize_params(config, params, args.quant, stats["amax"])
         engine = Engine(config, params, unroll=not args.no_unroll, unroll_steps=args.unroll_steps,
                         attention=args.attention, kernels=args.kernels, gemm=args.gemm, cache_dir=cache_dir)

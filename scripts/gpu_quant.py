@@ -144,7 +144,7 @@ def main() -> int:
         params = benchmark.random_params(config, args.seed)
         tok = report.demo_tokenizer(config)
         calib = schemes.sample_observations(config, args.calib_samples, seed=args.seed + 1000, tokenizer=tok)
-        stats = schemes.calibrate(config, params, calib, "all", percentile=args.percentile)
+        stats = schemes.calibrate(config, params, calib, percentile=args.percentile, num_steps=args.steps)
         variants = report.Variants(config, params, stats)
         if preset == args.preset and not args.no_timing:
             timings, hlo = {}, {}

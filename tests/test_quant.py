@@ -15,13 +15,15 @@ from pi0_jax.engine import Engine, programs
 from pi0_jax.ops import formats, matmul
 from pi0_jax.quant import report, schemes
 
+_sample = jax.jit(pi0.sample_actions, static_argnums=(0, 4))
+
 
 @pytest.fixture(scope="module")
 def dummy():
     config = get_config("dummy")
     params = benchmark.random_params(config, 0)
     calib = schemes.sample_observations(config, 2, seed=1)
-    return config, params, calib, schemes.calibrate(config, params, calib, "all", percentile=99.0)
+    return config, params, calib, schemes.calibrate(config, params, calib, percentile=99.0)
 
 
 def test_e4m3_weights_round_like_ml_dtypes():
@@ -103,12 +105,12 @@ def test_fp4_pads_partial_blocks():
 
 def test_calibration_is_deterministic_and_ordered(dummy):
     config, params, calib, stats = dummy
-    again = schemes.calibrate(config, params, calib, "all", percentile=99.0)
+    again = schemes.calibrate(config, params, calib, percentile=99.0)
     for method in ("amax", "percentile"):
         assert stats[method].keys() == again[method].keys()
         for k in stats[method]:
             np.testing.assert_array_equal(stats[method][k], again[method][k])
-    assert stats["amax"]["vlm/gate_up"].shape == (config.paligemma.depth,)
+    assert stats["amax"]["vlm/gate_up"].shape == stats["amax"]["expert/down"].shape == (config.paligemma.depth,)
     assert stats["amax"]["img/head"].shape == ()
     for k in stats["amax"]:
         assert (stats["percentile"][k] <= stats["amax"][k]).all() and (stats["amax"][k] > 0).all()
@@ -125,15 +127,25 @@ def test_quantized_checkpoint_round_trips(dummy, tmp_path):
         assert a.contract == b.contract and b.q.dtype == jnp.float8_e4m3fn
         np.testing.assert_array_equal(np.asarray(a.q).view(np.uint8), np.asarray(b.q).view(np.uint8))
         np.testing.assert_array_equal(np.asarray(a.scale), np.asarray(b.scale))
-    sample = jax.jit(pi0.sample_actions, static_argnums=(0, 4))
     noise = jnp.asarray(np.random.default_rng(0).normal(size=(1, config.action_horizon, config.action_dim)),
                         jnp.float32)
-    on_the_fly = sample(config, qp, calib[0], noise, 2)
-    np.testing.assert_array_equal(np.asarray(sample(config2, loaded, calib[0], noise, 2)), np.asarray(on_the_fly))
-    plain = sample(config, params, calib[0], noise, 2)
+    on_the_fly = _sample(config, qp, calib[0], noise, 2)
+    np.testing.assert_array_equal(np.asarray(_sample(config2, loaded, calib[0], noise, 2)), np.asarray(on_the_fly))
+    plain = _sample(config, params, calib[0], noise, 2)
     assert not np.array_equal(np.asarray(plain), np.asarray(on_the_fly))  # the quantised weights are in use
     with pytest.raises(FileExistsError):
         checkpoint.save_checkpoint(tmp_path / "q", qp, config)
+
+
+def _engine_and_reference(config, qp, params, obs, steps):
+    """The engine's actions with the quantised params `qp`, and the reference sampler's with `qp` and with the plain
+    `params`, all from one noise: (engine, noise, engine's, reference's, plain reference's)."""
+    engine = Engine(config, qp, cache_dir=False)
+    noise = jnp.asarray(np.random.default_rng(0).normal(size=(1, config.action_horizon, config.action_dim)),
+                        jnp.float32)
+    got = np.asarray(engine.sample_actions(obs, jnp.copy(noise), num_steps=steps))
+    return (engine, noise, got, np.asarray(_sample(config, qp, obs, noise, steps)),
+            np.asarray(_sample(config, params, obs, noise, steps)))
 
 
 def test_engine_fp8_equals_the_reference_with_the_same_weights_and_hands_xla_fp8_dots():
@@ -145,13 +157,7 @@ def test_engine_fp8_equals_the_reference_with_the_same_weights_and_hands_xla_fp8
     calib = schemes.sample_observations(config, 2, seed=1)
     qp = schemes.quantize_params(config, params, "all", schemes.calibrate(config, params, calib, "all",
                                                                            percentile=None)["amax"])
-    engine = Engine(config, qp, cache_dir=False)
-    noise = jnp.asarray(np.random.default_rng(0).normal(size=(1, config.action_horizon, config.action_dim)),
-                        jnp.float32)
-    got = np.asarray(engine.sample_actions(calib[1], jnp.copy(noise), num_steps=2))
-    sample = jax.jit(pi0.sample_actions, static_argnums=(0, 4))
-    want = np.asarray(sample(config, qp, calib[1], noise, 2))
-    plain = np.asarray(sample(config, params, calib[1], noise, 2))
+    engine, noise, got, want, plain = _engine_and_reference(config, qp, params, calib[1], 2)
     assert np.linalg.norm(got - want) / np.linalg.norm(want) < 1e-5
     assert np.linalg.norm(want - plain) / np.linalg.norm(plain) > 1e-3  # FP8 is in use
     kernel = Engine(config, qp, attention="vision=pallas", cache_dir=False)   # the vision kernel after FP8 GEMMs
@@ -177,6 +183,45 @@ def test_engine_fp8_equals_the_reference_with_the_same_weights_and_hands_xla_fp8
             assert all(o.endswith("f8E4M3FN") for o in operands), line
             rhs_rank = operands[1].count("x")
             assert re.search(rf"contracting_dims = \[\d+\] x \[{rhs_rank - 1}\]", line), line
+
+
+def test_every_gemm_quantises_the_expert_activations_calibrated_over_the_denoise_loop():
+    """"every-gemm": the action expert's GEMMs FP8 x FP8 too, with static scales calibrated over every denoise step
+    (more steps record more, never less); the engine equals the reference with the same quantised params, and its
+    fused program hands XLA e4m3 x e4m3 dots in the expert's loop as well."""
+    config = get_config("dummy", dtype="float32")
+    params = benchmark.random_params(config, 0)
+    calib = schemes.sample_observations(config, 2, seed=1)
+    one, three = (schemes.calibrate(config, params, calib, "every-gemm", percentile=None, num_steps=n)["amax"]
+                  for n in (1, 3))
+    depth, expert = config.paligemma.depth, ("expert/qkv", "expert/attn_out", "expert/gate_up", "expert/down")
+    assert set(expert) <= one.keys() and "expert/qkv" not in schemes.calibrate(
+        config, params, calib[:1], "prefix-vision", percentile=None)["amax"]
+    for k in expert:
+        assert one[k].shape == (depth,) and (one[k] > 0).all() and (three[k] >= one[k] * (1 - 1e-6)).all(), k
+    assert any((three[k] > one[k] * 1.01).any() for k in expert)   # the later steps were recorded
+    qp = schemes.quantize_params(config, params, "every-gemm", three)
+    gate_up = schemes._get(qp, ("PaliGemma", "llm", "layers", "mlp_1", "gating_einsum"))
+    np.testing.assert_allclose(np.asarray(gate_up.act_scale), three["expert/gate_up"] / 448, rtol=1e-6)
+
+    engine, noise, got, want, plain = _engine_and_reference(config, qp, params, calib[1], 3)
+    weights_only = np.asarray(_sample(config, schemes.quantize_params(config, params, "all", three), calib[1], noise,
+                                      3))
+    assert np.linalg.norm(got - want) / np.linalg.norm(want) < 1e-5
+    assert np.linalg.norm(want - weights_only) / np.linalg.norm(weights_only) > 1e-4   # activations quantised too
+    assert report.cosine(want, plain) > 0.99
+
+    cameras, bucket = engine.plan(calib[1])
+    spec = jax.ShapeDtypeStruct
+    weights = jax.tree.map(lambda x: spec(x.shape, x.dtype), engine.weights)
+    size = config.image_size
+    fused = jax.jit(functools.partial(programs.infer, config, num_steps=3, unroll=True, unroll_steps=False)).lower(
+        weights, engine.schedule(3), spec((len(cameras), 1, size, size, 3), jnp.float32),
+        spec((len(cameras), 1), bool), spec((1, bucket), jnp.int32), spec((1, bucket), bool),
+        spec((1, config.action_dim), jnp.float32), noise)
+    dots = [line for line in fused.as_text().splitlines() if "dot_general" in line and "f8E4M3FN" in line]
+    # vision (4 per block + the head) and prefix (the last layer: K/V only) as above; the expert's loop: 4 per layer
+    assert len(dots) == 4 * config.siglip.depth + 1 + depth + 3 * (depth - 1) + 4 * depth
 
 
 def test_gemm_library_per_program():

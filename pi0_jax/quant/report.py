@@ -30,6 +30,8 @@ def canonical(scheme: str, stage: str) -> str:
         return "vision" if "vision" in groups else "bf16"
     if stage == "fill_prefix_cache":
         return "prefix-all" if "prefix-attn" in groups else ("prefix-mlp" if "prefix-mlp" in groups else "bf16")
+    if "expert-act" in groups:
+        return "every-gemm"
     return "expert-weights" if "expert" in groups else "bf16"
 
 
@@ -183,7 +185,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("dst", type=Path, help="the quantised checkpoint directory to write (atomically)")
     p.add_argument("--scheme", required=True, choices=sorted(sch.SCHEMES),
                    help="which GEMMs become FP8: prefix-mlp (VLM MLPs of the prefix), prefix-all (VLM q/k/v/o + "
-                        "MLP), vision (SigLIP), expert-weights (action expert, weight-only), all")
+                        "MLP), vision (SigLIP), prefix-vision (both), expert-weights (action expert, weight-only), all "
+                        "(all four), every-gemm (prefix, SigLIP and the action expert, all FP8 x FP8: large batches)")
     p.add_argument("--calib-samples", type=int, default=8,
                    help="calibration observations (realistic synthetic inputs, fixed seed) (default: %(default)s)")
     p.add_argument("--calib-method", choices=["amax", "percentile"], default="amax",
@@ -226,7 +229,7 @@ def main(args: argparse.Namespace) -> int:
     config, params, assets = _load(args.src, args.dtype, args.seed)
     tok = demo_tokenizer(config)
     calib = sch.sample_observations(config, args.calib_samples, seed=args.seed + 1000, tokenizer=tok)
-    stats = sch.calibrate(config, params, calib, "all", percentile=args.percentile)
+    stats = sch.calibrate(config, params, calib, percentile=args.percentile, num_steps=args.steps)
     qparams = sch.quantize_params(config, params, args.scheme, stats[args.calib_method],
                                   per_channel=not args.per_tensor)
     meta = {"quant": {"scheme": args.scheme, "calib_method": args.calib_method, "calib_samples": args.calib_samples,

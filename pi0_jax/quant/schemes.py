@@ -1,8 +1,10 @@
 """Quantisation schemes over the openpi param tree, calibration of static activation scales, checkpoint storage.
 
 A scheme is a set of GEMM groups; each group is a list of weight leaves (path in the openpi tree, contracting axes,
-the engine GEMM whose input calibrates it). Activations are quantised (FP8 x FP8 GEMMs) in every group but the
-action expert's, which is weight-only: its denoise step is bandwidth-bound at small batch and runs at M = horizon.
+the engine GEMM whose input calibrates it). Activations are quantised (FP8 x FP8 GEMMs) in every group but "expert",
+the action expert's weight-only group: at small batch its denoise step runs M = horizon rows and is not
+compute-bound. "expert-act" is the same weights with their activations quantised, for large batches (a simulator's
+hundreds of environments: M = batch x horizon rows), calibrated over every step of the denoise loop.
 """
 
 from __future__ import annotations
@@ -24,6 +26,12 @@ _LLM = ("PaliGemma", "llm", "layers")
 _IMG = ("PaliGemma", "img", "Transformer", "encoderblock")
 _MHA = "MultiHeadDotProductAttention_0"
 
+# the action expert's GEMMs; keys: "expert/<name>" per layer (`weights.prepare`'s names), recorded in the denoise loop
+_EXPERT = [(_LLM + ("attn", "q_einsum_1", "w"), (-2,), "expert/qkv"),
+           (_LLM + ("attn", "kv_einsum_1", "w"), (-2,), "expert/qkv"),
+           (_LLM + ("attn", "attn_vec_einsum_1", "w"), (-3, -2), "expert/attn_out"),
+           (_LLM + ("mlp_1", "gating_einsum"), (-2,), "expert/gate_up"),
+           (_LLM + ("mlp_1", "linear"), (-2,), "expert/down")]
 # group -> [(path, contracting axes, engine calibration key)]; keys: "vlm/<name>" per layer, "img/<name>" per block
 # (both the engine's GEMM names: `weights.prepare`, `weights.vision_weights`), and "img/head".
 GROUPS: dict[str, list[tuple[tuple[str, ...], tuple[int, ...], str | None]]] = {
@@ -36,25 +44,26 @@ GROUPS: dict[str, list[tuple[tuple[str, ...], tuple[int, ...], str | None]]] = {
     + [(_IMG + (_MHA, "out", "kernel"), (-3, -2), "img/out")]
     + [(_IMG + ("MlpBlock_0", n, "kernel"), (-2,), f"img/{k}") for n, k in (("Dense_0", "fc1"), ("Dense_1", "fc2"))]
     + [(("PaliGemma", "img", "head", "kernel"), (-2,), "img/head")],
-    "expert": [(_LLM + ("attn", n, "w"), c, None) for n, c in
-               (("q_einsum_1", (-2,)), ("kv_einsum_1", (-2,)), ("attn_vec_einsum_1", (-3, -2)))]
-    + [(_LLM + ("mlp_1", "gating_einsum"), (-2,), None), (_LLM + ("mlp_1", "linear"), (-2,), None)],
+    "expert": [(path, contract, None) for path, contract, _ in _EXPERT],   # weight-only: nothing to calibrate
+    "expert-act": _EXPERT,
 }
 WEIGHT_ONLY = {"expert"}
 SCHEMES: dict[str, tuple[str, ...]] = {
     "prefix-mlp": ("prefix-mlp",),
     "prefix-all": ("prefix-mlp", "prefix-attn"),
     "vision": ("vision",),
-    "prefix-vision": ("prefix-mlp", "prefix-attn", "vision"),   # every FP8 x FP8 GEMM: for large batches
+    "prefix-vision": ("prefix-mlp", "prefix-attn", "vision"),   # FP8 x FP8 in the prefix and SigLIP: large batches
     "expert-weights": ("expert",),
     "all": ("prefix-mlp", "prefix-attn", "vision", "expert"),
+    "every-gemm": ("prefix-mlp", "prefix-attn", "vision", "expert-act"),   # and the expert's: hundreds of samples
 }
 
 
-def _leaves(scheme: str):
-    if scheme not in SCHEMES:
+def _leaves(scheme: str | None):
+    """(group, path, contract, key) of the scheme's weights; None: of every group."""
+    if scheme is not None and scheme not in SCHEMES:
         raise ValueError(f"unknown scheme {scheme!r}; schemes: {sorted(SCHEMES)}")
-    return [(group, *leaf) for group in SCHEMES[scheme] for leaf in GROUPS[group]]
+    return [(group, *leaf) for group in (GROUPS if scheme is None else SCHEMES[scheme]) for leaf in GROUPS[group]]
 
 
 def sample_observations(config: Pi0Config, n: int, seed: int = 0, batch: int = 1, tokenizer=None):
@@ -93,50 +102,63 @@ def sample_observations(config: Pi0Config, n: int, seed: int = 0, batch: int = 1
     return out
 
 
-def calibrate(config: Pi0Config, params: dict, observations, scheme: str = "all", *,
-              percentile: float | None = 99.99) -> dict[str, dict[str, np.ndarray]]:
+def calibrate(config: Pi0Config, params: dict, observations, scheme: str | None = None, *,
+              percentile: float | None = 99.99, num_steps: int = 10, seed: int = 0) -> dict[str, dict[str, np.ndarray]]:
     """Static activation magnitudes {"amax": {key: m}, "percentile": {key: m}} (percentile only if given), m of
-    shape (L,) per layer (or () for the SigLIP head). Calibrate once with "all": every scheme reads its keys.
+    shape (L,) per layer (or () for the SigLIP head), for the activation-quantised GEMMs of `scheme` (None: of every
+    scheme, so that any scheme can read its keys).
 
-    Runs the engine's vision and prefix stages (one jit) over `observations` with every activation-quantised GEMM's
-    weight tapped. Deterministic: fixed inputs, no sampling; amax is a max, percentile a max of per-call values."""
+    Runs the engine's vision and prefix stages (one jit) over `observations` with every such GEMM's weight tapped;
+    with the action expert's GEMMs ("expert-act") also the `num_steps` denoise loop from fixed noise (`seed`), whose
+    every step is recorded. Deterministic: fixed inputs; amax is a max, percentile a max of per-call values."""
     from pi0_jax.engine import programs, weights as weights_lib
 
     keys = {key for group, _, _, key in _leaves(scheme) if group not in WEIGHT_ONLY}
     w = weights_lib.prepare(config, params)
-    depth, vdepth = config.paligemma.depth, config.siglip.depth
-    w["vlm"] = weights_lib.unstack(w["vlm"], depth)
-    w["img"]["blocks"] = weights_lib.unstack(w["img"]["blocks"], vdepth)
-    for prefix, blocks in (("vlm", w["vlm"]), ("img", w["img"]["blocks"])):
+    depths = {"vlm": config.paligemma.depth, "expert": config.paligemma.depth, "img": config.siglip.depth}
+    w["vlm"], w["expert"] = (weights_lib.unstack(w[p], depths[p]) for p in ("vlm", "expert"))
+    w["img"]["blocks"] = weights_lib.unstack(w["img"]["blocks"], depths["img"])
+    for prefix, blocks in (("vlm", w["vlm"]), ("expert", w["expert"]), ("img", w["img"]["blocks"])):
         for i, block in enumerate(blocks):
             for name in block:
                 if f"{prefix}/{name}" in keys:
                     block[name] = hooks.Tap(block[name], f"{prefix}/{name}/{i}")
     if "img/head" in keys:
         w["img"]["head"]["kernel"] = hooks.Tap(w["img"]["head"]["kernel"], "img/head")
+    expert = any(k.startswith("expert/") for k in keys)
+    sched = weights_lib.precompute_schedule(config, params, num_steps)
 
-    def stages(w, images, image_masks, tokens, token_mask):
+    def stages(w, images, image_masks, tokens, token_mask, state, noise):
         image_tokens = programs.encode_images(config, w, images, unroll=True)
-        return programs.fill_prefix_cache(config, w, image_tokens, image_masks, tokens, token_mask, unroll=True).k
+        cache = programs.fill_prefix_cache(config, w, image_tokens, image_masks, tokens, token_mask, unroll=True)
+        if not expert:
+            return cache.k
+        return programs.denoise(config, w, sched, cache, state, noise, num_steps=num_steps, unroll=True,
+                                unroll_steps=False)
 
+    rng = np.random.default_rng(seed)
     with hooks.recording(percentile) as rec:
-        run = jax.jit(stages)  # traced inside the recording: the taps' callbacks are in the program
+        # traced inside the recording: the taps' callbacks are in the program. It runs once, so on a GPU its GEMMs
+        # are cuBLAS's: XLA's autotuner would compile Triton GEMMs for each new shape first
+        run = jax.jit(stages, compiler_options=hooks.compiler_options(w, "cublas"))
         for obs in observations:
             cams = IMAGE_KEYS[: config.num_cameras]
             images = jnp.stack([jnp.asarray(obs.images[k], jnp.float32) for k in cams])
             image_masks = jnp.stack([jnp.asarray(obs.image_masks[k], bool) for k in cams])
+            state = jnp.asarray(obs.state, jnp.float32)
+            noise = rng.standard_normal((state.shape[0], config.action_horizon, config.action_dim), np.float32)
             jax.block_until_ready(run(w, images, image_masks, jnp.asarray(obs.tokenized_prompt),
-                                      jnp.asarray(obs.tokenized_prompt_mask)))
+                                      jnp.asarray(obs.tokenized_prompt_mask), state, jnp.asarray(noise)))
         jax.effects_barrier()
     result = {}
     for method in ("amax", "percentile") if percentile is not None else ("amax",):
         per_call = hooks.summarize(rec, method)
         out = result[method] = {}
         for key in keys:
-            n = 0 if key == "img/head" else (vdepth if key.startswith("img/") else depth)
-            if n == 0:
+            if key == "img/head":
                 out[key] = np.asarray(per_call[key], np.float32)
             else:
+                n = depths[key.split("/")[0]]
                 out[key] = np.asarray([per_call[f"{key}/{i}"] for i in range(n)], np.float32)
     return result
 

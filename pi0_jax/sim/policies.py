@@ -125,7 +125,7 @@ def checkpoint_policy(path: str | os.PathLike, env, *, tokenizer_path=None, num_
 
     config, params, tok, normalizer = load_parts(path, tokenizer_path=tokenizer_path, norm_stats=norm_stats,
                                                  dtype=dtype)
-    params = quantize_for_suite(config, params, tok, normalizer, quant)
+    params = quantize_for_suite(config, params, tok, normalizer, quant, num_steps=num_steps)
     return model_policy(config, params, tok, normalizer, env, num_steps=num_steps, name=str(path), sampler=sampler,
                         realtime=realtime, replan_steps=replan_steps, quant=quant, gemm=gemm, attention=attention)
 
@@ -255,7 +255,7 @@ def preset_policy(name: str, env, *, num_steps: int = 10, dtype: str | None = No
     tok = PaligemmaTokenizer(find_tokenizer(Path(__file__).parents[1] / "assets" / "pi0_small"),
                              config.max_token_len)
     normalizer = nz.Normalizer.identity()
-    params = quantize_for_suite(config, pi0.random_params(config, seed), tok, normalizer, quant)
+    params = quantize_for_suite(config, pi0.random_params(config, seed), tok, normalizer, quant, num_steps=num_steps)
     return model_policy(config, params, tok, normalizer, env, num_steps=num_steps,
                         name=f"preset:{name} (random weights)", sampler=sampler, realtime=realtime,
                         replan_steps=replan_steps, quant=quant, gemm=gemm, attention=attention)
@@ -280,7 +280,7 @@ QUANT_FORMATS = ("nvfp4", "mxfp4")     # weight-only FP4 emulation; the FP8 sche
 
 
 def quantize_for_suite(config, params, tok, normalizer, quant: str | None, *, calib_samples: int = 64,
-                       seed: int = 0, calib=None):
+                       seed: int = 0, calib=None, num_steps: int = 10):
     """params in number format `quant`: None = unchanged; an FP8 scheme of `pi0_jax.quant.schemes` (real e4m3
     GEMMs where XLA emits them) with static activation scales, amax over `calib_samples` rendered suite observations
     from initial states 50..99 (never evaluated); "nvfp4" / "mxfp4": weight emulation (quantised and dequantised
@@ -295,7 +295,7 @@ def quantize_for_suite(config, params, tok, normalizer, quant: str | None, *, ca
         raise ValueError(f"unknown number format {quant!r}: {', '.join([*schemes.SCHEMES, *QUANT_FORMATS])}")
     if calib is None:
         calib = calibration_observation(config, tok, normalizer, calib_samples, seed)
-    amax = schemes.calibrate(config, params, [calib], "all", percentile=None)["amax"]
+    amax = schemes.calibrate(config, params, [calib], quant, percentile=None, num_steps=num_steps, seed=seed)["amax"]
     return schemes.quantize_params(config, params, quant, amax)
 
 
