@@ -60,12 +60,14 @@ class Gemm:
 class Blocks:
     """Tile sizes (powers of two; each is shrunk to divide its padded dimension), split counts and Triton launch
     parameters. Defaults: the fastest of the sweeps at π0 full size, B=1, on an H200 (docs/BENCHMARKS.md, "Fused
-    kernels"); inside the step on an H100 no other tiling, split count or depth moved it by more than 1 %."""
+    kernels"), then of sweeps inside the 10-step denoise on H100s: gate/up at 128 columns without pipelining took
+    π0's step 3-4 % faster on two machines and was level on a third and for π0.5 ("Launch parameters inside the
+    step"); no other tiling, split count or depth moved the step by more than 1 %."""
 
     rows: int = 64  # GEMM rows per program
     k: int = 256  # GEMM contraction chunk per loop step
     qkv: Gemm = Gemm(128, 8)
-    mlp: Gemm = Gemm(64, 4)  # gate/up
+    mlp: Gemm = Gemm(128, 4, 1)  # gate/up
     out: Gemm = Gemm(64, 4)  # the attention's out-projection
     down: Gemm = Gemm(64, 8)
     q: int = 64  # attention queries per program
