@@ -4,9 +4,10 @@ pallas engine's whole call.
 
 Two sweeps. The per-stage one (the default) times each stage as one program that runs it on `--copies` independent
 inputs, each with its own weights (one launch each, divided by the copies). Its ranking did not hold inside the step
-(run 19), so `--step-sweep depths|splits|gate_up` compiles the 10-step denoise program once per variant and times the
-variants interleaved. Two probes: `--gemm-probe` runs each GEMM kernel once for a kernel profiler (ncu), and
-`--graph-probe` compiles the Pallas step with XLA's command buffers as default, off and all.
+(run 19), so `--step-sweep depths|splits|gate_up` compiles the 10-step denoise program once per variant and times
+the variants interleaved. Two probes: `--gemm-probe` runs each GEMM kernel once for a kernel profiler (ncu), and
+`--graph-probe` compiles the Pallas step with XLA's command buffers as default, off and all, and with programmatic
+dependent launch off and on.
 
     python scripts/bench_kernels.py --out kernels.json
     python scripts/bench_kernels.py --step-sweep splits --trace --skip-parity --presets pi0_base --out k.json
@@ -39,7 +40,8 @@ from profile_engine import count_ops, kernel_times  # noqa: E402
 G = ek.Gemm
 # The launch variants of `step_sweep`, each one change from the defaults: run 20 swept the pipelining depth, run 22
 # the split-K counts (their f32 partials are written and read again: gate/up at 4 splits writes 8.4 MB beside its
-# 16.8 MB of weights). Neither moved the step by more than 1.1 % (docs/BENCHMARKS.md, "Launch parameters").
+# 16.8 MB of weights). Neither moved the step by more than 1.1 % (docs/BENCHMARKS.md, "Launch parameters"). Runs 23
+# and 25 put gate/up at 128 columns without pipelining (3-4 % for π0); `gate_up` times it against the old default.
 STEP_SWEEPS = {
     "depths": {"default": {}, "qkv 128x8 s1": dict(qkv=G(128, 8, 1)), "qkv 128x8 s2": dict(qkv=G(128, 8, 2)),
                "mlp 64x4 s3": dict(mlp=G(64, 4, 3)), "mlp 64x4 s1": dict(mlp=G(64, 4, 1)),
@@ -459,7 +461,8 @@ def main():
                    help="sweep these launch variants inside the 10-step denoise program (instead of the per-stage "
                         "sweep, whose ranking did not hold in the step)")
     p.add_argument("--graph-probe", action="store_true",
-                   help="only time the Pallas 10-step denoise with XLA's command buffers as default, off and all")
+                   help="only time the Pallas 10-step denoise with XLA's command buffers as default, off and all, "
+                        "and with PDL off and on")
     p.add_argument("--gemm-probe", action="store_true",
                    help="only run each expert GEMM kernel twice at full size (for ncu), then exit")
     p.add_argument("--blocks", type=Path, default=None,

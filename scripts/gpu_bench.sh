@@ -12,7 +12,7 @@ for phase in "$@"; do
   echo "=== $phase"; start=$(date +%s)
   case $phase in
     kernels_graph) python3 scripts/bench_kernels.py --graph-probe --presets pi0_base --iters 30 \
-               --out "$OUT/graph_probe.json" ;;   # the Pallas step with XLA's command buffers default / off / all
+               --out "$OUT/graph_probe.json" ;;   # the Pallas step: command buffers default / off / all, PDL off / on
     kernels_ncu) ncu --clock-control none --kernel-name regex:expert_ --launch-skip 12 --launch-count 12 \
                --section SpeedOfLight --section LaunchStats --section Occupancy \
                python3 scripts/bench_kernels.py --gemm-probe --presets pi0_base > "$OUT/ncu_gemms.txt" 2>&1

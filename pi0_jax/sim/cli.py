@@ -72,9 +72,9 @@ def add_eval_parser(subparsers) -> argparse.ArgumentParser:
                    help="param and compute dtype of a checkpoint policy (default: the checkpoint's own)")
     p.add_argument("--quant", default=None, metavar="FORMAT",
                    help="number format of a checkpoint or preset policy's weights: an FP8 scheme of pi0_jax.quant "
-                        "(prefix-mlp, prefix-all, vision, prefix-vision, expert-weights, all, every-gemm: FP8 x FP8 in the "
-                        "action expert too, for hundreds of environments; static activation scales calibrated on 64 "
-                        "rendered observations from initial states 50-99, which are never evaluated) or an "
+                        "(prefix-mlp, prefix-all, vision, prefix-vision, expert-weights, all, every-gemm: FP8 x FP8 "
+                        "in the action expert too, for hundreds of environments; static activation scales calibrated "
+                        "on 64 rendered observations from initial states 50-99, which are never evaluated) or an "
                         "FP4 weight emulation (nvfp4, mxfp4) (default: as stored)")
     p.add_argument("--sampler", choices=("engine", "reference"), default="engine",
                    help="how a checkpoint policy samples: the compiled engine's programs (default), or openpi's "
