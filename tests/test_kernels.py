@@ -138,9 +138,10 @@ def test_mlp_kernels_match_xla(adaptive):
     down = hidden @ w["down"]
     want = x + (down if gate is None else down * gate)
     sp = layout.suffix_rows(S)
-    for splits in (3, 1):
+    for blocks in (Blocks(mlp=Gemm(64, 3)), Blocks(mlp=Gemm(64, 1)), Blocks(mlp=Gemm(32, 1), geglu_in_kernel=True),
+                   Blocks(mlp=Gemm(256, 1), geglu_in_kernel=True)):   # one pass: 16 or 32 hidden units a program
         got_hidden = ek.norm_geglu(layout.rows(x, sp), mods, row, adaptive, wk["gate_up"], width=CFG.width,
-                                   blocks=Blocks(mlp=Gemm(64, splits)))
+                                   blocks=blocks)
         np.testing.assert_allclose(_unrows(got_hidden, CFG.mlp_dim), hidden, **TOL)
     for splits in (1, 2):  # one kernel, and split-K (96 = 2 x 48)
         got = ek.matmul_residual(got_hidden, wk["down"], layout.rows(x, sp), mods, gate_row, gemm=Gemm(64, splits))

@@ -10,7 +10,9 @@ over K (hundreds of short programs, f32 partials), and the cheap elementwise wor
                    splits in parallel (flash-decoding), merged by their log-sum-exp
 
   norm_qkv_rope    = matmul_partials, then (XLA) the split sum, 1 / rms, RoPE and q's scaling
-  norm_geglu       = matmul_partials, then (XLA) the split sum, 1 / rms, GELU-tanh(gate) * up
+  norm_geglu       = matmul_partials, then (XLA) the split sum, 1 / rms, GELU-tanh(gate) * up; or, with
+                   `Blocks.geglu_in_kernel`, one kernel: each program walks all of K for a block of hidden units'
+                   gate and up columns and writes GELU-tanh(gate) * up itself
   matmul_residual  = matmul_partials, then (XLA) the split sum, adaRMS's gate and the residual
 
 Kernel layout (`pi0_jax.ops.layout`): rows are (batch, suffix padded to Sp) flattened; each head is stored as
@@ -76,6 +78,7 @@ class Blocks:
     num_warps: int = 4  # the GEMM kernel's
     attention_warps: int = 8
     attention_stages: int = 3
+    geglu_in_kernel: bool = False  # gate/up as `norm_geglu`'s one-pass kernel (no split-K, no XLA epilogue)
 
     @classmethod
     def from_dict(cls, d: dict) -> "Blocks":
@@ -281,8 +284,51 @@ def matmul_residual(y, w, x, mods=None, gate_row: int | None = None, *, gemm: Ge
     return x + (z if gate_row is None else z * mods[gate_row])
 
 
+def _geglu_kernel(x_ref, mod_ref, w_ref, o_ref, *, bm, bh, bk, hidden, width, mod_row, adaptive):
+    """Program (i, j): rows block i, hidden units block j, all of K: o = gelu_tanh(g) * u for g, u the norm's
+    products with the gate and up columns of those units. The ops and roundings of `norm_geglu`'s XLA epilogue."""
+    i, j = pl.program_id(0), pl.program_id(1)
+    rows = pl.ds(i * bm, bm)
+    gate_cols, up_cols = pl.ds(j * bh, bh), pl.ds(hidden + j * bh, bh)
+    dtype = x_ref.dtype
+
+    def body(kk, acc):
+        ks = pl.ds(kk * bk, bk)
+        x, h = _scaled(x_ref, mod_ref, rows, ks, mod_row, dtype)
+        wg, wu = w_ref[ks, gate_cols], w_ref[ks, up_cols]
+        acc = (acc[0] + dot(h, wg), acc[1] + dot(h, wu), acc[2] + jnp.sum(x * x, axis=1), *acc[3:])
+        if adaptive:
+            shift = jnp.broadcast_to(mod_ref[pl.ds(mod_row + 1, 1), ks], (ALIGN, bk))
+            acc = (*acc[:3], acc[3] + dot(shift, wg), acc[4] + dot(shift, wu))
+        return acc
+
+    init = (jnp.zeros((bm, bh), jnp.float32), jnp.zeros((bm, bh), jnp.float32), jnp.zeros((bm,), jnp.float32))
+    init += (jnp.zeros((ALIGN, bh), jnp.float32),) * 2 if adaptive else ()
+    acc = jax.lax.fori_loop(0, x_ref.shape[1] // bk, body, init)
+    inv = jax.lax.rsqrt(acc[2] / width + EPS)[:, None]
+    g, u = acc[0] * inv, acc[1] * inv
+    if adaptive:   # the shift products' rows are equal: a max reads one without slicing a value in the kernel
+        g, u = g + jnp.max(acc[3], axis=0, keepdims=True), u + jnp.max(acc[4], axis=0, keepdims=True)
+    gate = _round(jax.nn.gelu(_round(g, dtype), approximate=True), dtype)
+    o_ref[rows, gate_cols] = (gate * _round(u, dtype)).astype(o_ref.dtype)
+
+
+def _geglu_one_pass(x, mods, mod_row, adaptive, w_gate_up, *, width, blocks):
+    m, e = x.shape
+    hidden = w_gate_up.shape[1] // 2
+    bm, bh, bk = fit(blocks.rows, m), fit(max(blocks.mlp.cols // 2, ALIGN), hidden), fit(blocks.k, e)
+    kernel = functools.partial(_geglu_kernel, bm=bm, bh=bh, bk=bk, hidden=hidden, width=width, mod_row=mod_row,
+                               adaptive=adaptive)
+    return _call(kernel, (m // bm, hidden // bh), jax.ShapeDtypeStruct((m, hidden), x.dtype), "expert_gate_up",
+                 blocks.num_warps, blocks.mlp.stages)(x, mods, w_gate_up)
+
+
 def norm_geglu(x, mods, mod_row: int, adaptive: bool, w_gate_up, *, width: int, blocks: Blocks = Blocks()):
-    """gelu_tanh(h @ w_gate) * (h @ w_up) with h = norm(x): x (M, D), w_gate_up (D, 2F) = [gate | up] -> (M, F)."""
+    """gelu_tanh(h @ w_gate) * (h @ w_up) with h = norm(x): x (M, D), w_gate_up (D, 2F) = [gate | up] -> (M, F).
+    With `blocks.geglu_in_kernel` one kernel does it all (`blocks.mlp.cols` weight columns per program: half gate,
+    half up; its splits are not used); else a split-K GEMM and an XLA epilogue."""
+    if blocks.geglu_in_kernel:
+        return _geglu_one_pass(x, mods, mod_row, adaptive, w_gate_up, width=width, blocks=blocks)
     dtype, hidden = x.dtype, w_gate_up.shape[1] // 2
     acc = _normed_product(x, mods, mod_row, adaptive, w_gate_up, width=width, gemm=blocks.mlp, blocks=blocks,
                           name="expert_gate_up")
