@@ -4,8 +4,8 @@ pallas engine's whole call.
 
 Two sweeps. The per-stage one (the default) times each stage as one program that runs it on `--copies` independent
 inputs, each with its own weights (one launch each, divided by the copies). Its ranking did not hold inside the step
-(run 19), so `--step-sweep depths|splits|gate_up` compiles the 10-step denoise program once per variant and times
-the variants interleaved. Two probes: `--gemm-probe` runs each GEMM kernel once for a kernel profiler (ncu), and
+(run 19), so `--step-sweep depths|splits|gate_up|geglu` compiles the 10-step denoise program once per variant and
+times the variants interleaved. Two probes: `--gemm-probe` runs each GEMM kernel once for a kernel profiler (ncu), and
 `--graph-probe` compiles the Pallas step with XLA's command buffers as default, off and all, and with programmatic
 dependent launch off and on.
 
@@ -54,6 +54,10 @@ STEP_SWEEPS = {
                "qkv 64x2": dict(qkv=G(64, 2)), "qkv 32x4": dict(qkv=G(32, 4)), "down 64x4": dict(down=G(64, 4)),
                "down 32x4": dict(down=G(32, 4)), "out 64x2": dict(out=G(64, 2)), "out 32x2": dict(out=G(32, 2))},
     "gate_up": {"default": {}, "mlp 64x4 s3": dict(mlp=G(64, 4, 3)), "mlp 256x4 s1": dict(mlp=G(256, 4, 1))},
+    # gate/up and GeGLU in one pass (`Blocks.geglu_in_kernel`): no partials, no XLA epilogue; columns per program
+    # (half gate, half up) and pipelining depth (3 stages of 128 columns would take 288 KB of shared memory)
+    "geglu": {"default": {}, **{f"geglu {c} s{d}": dict(geglu_in_kernel=True, mlp=G(c, 1, d))
+                                for c, d in ((32, 3), (64, 3), (64, 2), (128, 2), (128, 1))}},
 }
 
 
