@@ -9,7 +9,9 @@ over K (hundreds of short programs, f32 partials), and the cheap elementwise wor
   attention        the suffix queries over [cached prefix | suffix] keys: an online softmax over each of several key
                    splits in parallel (flash-decoding), merged by their log-sum-exp
 
-  norm_qkv_rope    = matmul_partials, then (XLA) the split sum, 1 / rms, RoPE and q's scaling
+  norm_qkv_rope    = matmul_partials, then (XLA) the split sum, 1 / rms, RoPE and q's scaling; or, with
+                   `Blocks.rope_in_kernel`, one kernel: each program walks all of K for matching columns of a head's
+                   two RoPE halves and rotates and scales them itself
   norm_geglu       = matmul_partials, then (XLA) the split sum, 1 / rms, GELU-tanh(gate) * up; or, with
                    `Blocks.geglu_in_kernel`, one kernel: each program walks all of K for a block of hidden units'
                    gate and up columns and writes GELU-tanh(gate) * up itself
@@ -79,6 +81,7 @@ class Blocks:
     attention_warps: int = 8
     attention_stages: int = 3
     geglu_in_kernel: bool = False  # gate/up as `norm_geglu`'s one-pass kernel (no split-K, no XLA epilogue)
+    rope_in_kernel: bool = False  # q/k/v likewise (`norm_qkv_rope`)
 
     @classmethod
     def from_dict(cls, d: dict) -> "Blocks":
@@ -172,15 +175,45 @@ def _normed_product(x, mods, mod_row, adaptive, w, *, width, gemm, blocks, name)
     return acc + sum(list(shift))[None] if adaptive else acc
 
 
+def _qkv_rope_kernel(x_ref, mod_ref, w_ref, cos_ref, sin_ref, o_ref, *, bm, bc, bk, hp, width, mod_row, adaptive,
+                     num_heads, num_kv_heads, q_scale):
+    """Program (i, n, j): rows block i, head n, columns block j of each RoPE half, all of K: both halves' normed
+    products, rotated (q and k heads) and scaled (q heads) as `norm_qkv_rope`'s XLA epilogue does. The head's kind
+    is a full-tile predicate: a select on a scalar one did not lower to Triton."""
+    i, n, j = pl.program_id(0), pl.program_id(1), pl.program_id(2)
+    rows, half = pl.ds(i * bm, bm), pl.ds(j * bc, bc)
+    cols1, cols2 = pl.ds(n * 2 * hp + j * bc, bc), pl.ds(n * 2 * hp + hp + j * bc, bc)
+    dtype = x_ref.dtype
+    g1, g2 = _normed_pair(x_ref, mod_ref, w_ref, rows, cols1, cols2, bm=bm, bn=bc, bk=bk, width=width,
+                          mod_row=mod_row, adaptive=adaptive)
+    a1, a2, c, s = _round(g1, dtype), _round(g2, dtype), cos_ref[rows, half], sin_ref[rows, half]
+    head = jnp.full((bm, bc), n, jnp.int32)
+    rotary = head < num_heads + num_kv_heads
+    r1 = jnp.where(rotary, _round(a1 * c - a2 * s, dtype), a1)
+    r2 = jnp.where(rotary, _round(a2 * c + a1 * s, dtype), a2)
+    scale = jnp.where(head < num_heads, jnp.float32(q_scale), jnp.float32(1.0))
+    o_ref[rows, cols1] = (r1 * scale).astype(o_ref.dtype)
+    o_ref[rows, cols2] = (r2 * scale).astype(o_ref.dtype)
+
+
 def norm_qkv_rope(x, mods, mod_row: int, adaptive: bool, w_qkv, cos, sin, *, width: int, num_heads: int,
                   num_kv_heads: int, head_dim: int, blocks: Blocks = Blocks()):
     """x (M, D) -> qkv (M, (N + 2K) * 2hp): normed, projected, q/k rotated, q scaled by head_dim^-0.5.
 
     mods (R, D): row mod_row is the norm scale, +1 the adaRMS shift (adaptive); w_qkv (D, (N + 2K) * 2hp);
-    cos / sin (M, hp) f32 (`layout.rope_tables`); width: the true D (the mean's divisor).
+    cos / sin (M, hp) f32 (`layout.rope_tables`); width: the true D (the mean's divisor). With
+    `blocks.rope_in_kernel` one kernel does it all (`blocks.qkv.cols` weight columns per program, half from each
+    RoPE half of one head; its splits are not used); else a split-K GEMM and an XLA epilogue.
     """
     m, dtype = x.shape[0], x.dtype
     heads, hp = num_heads + 2 * num_kv_heads, cos.shape[1]
+    if blocks.rope_in_kernel:
+        bm, bc, bk = fit(blocks.rows, m), fit(max(blocks.qkv.cols // 2, ALIGN), hp), fit(blocks.k, x.shape[1])
+        kernel = functools.partial(_qkv_rope_kernel, bm=bm, bc=bc, bk=bk, hp=hp, width=width, mod_row=mod_row,
+                                   adaptive=adaptive, num_heads=num_heads, num_kv_heads=num_kv_heads,
+                                   q_scale=float(np.asarray(head_dim**-0.5, dtype)))
+        return _call(kernel, (m // bm, heads, hp // bc), jax.ShapeDtypeStruct((m, heads * 2 * hp), dtype),
+                     "expert_qkv", blocks.num_warps, blocks.qkv.stages)(x, mods, w_qkv, cos, sin)
     acc = _normed_product(x, mods, mod_row, adaptive, w_qkv, width=width, gemm=blocks.qkv, blocks=blocks,
                           name="expert_qkv")
     a = _round(acc, dtype).reshape(m, heads, 2, hp)
@@ -284,31 +317,40 @@ def matmul_residual(y, w, x, mods=None, gate_row: int | None = None, *, gemm: Ge
     return x + (z if gate_row is None else z * mods[gate_row])
 
 
-def _geglu_kernel(x_ref, mod_ref, w_ref, o_ref, *, bm, bh, bk, hidden, width, mod_row, adaptive):
-    """Program (i, j): rows block i, hidden units block j, all of K: o = gelu_tanh(g) * u for g, u the norm's
-    products with the gate and up columns of those units. The ops and roundings of `norm_geglu`'s XLA epilogue."""
-    i, j = pl.program_id(0), pl.program_id(1)
-    rows = pl.ds(i * bm, bm)
-    gate_cols, up_cols = pl.ds(j * bh, bh), pl.ds(hidden + j * bh, bh)
+def _normed_pair(x_ref, mod_ref, w_ref, rows, cols_a, cols_b, *, bm, bn, bk, width, mod_row, adaptive):
+    """In one program: norm(x[rows]) @ w[:, cols_a] and @ w[:, cols_b] over all of K, as f32 (before rounding):
+    the K loop accumulates both products, the rows' sums of squares and adaRMS's shift products, then applies
+    1 / rms and adds the shift as `_normed_product` does after its split sum."""
     dtype = x_ref.dtype
 
     def body(kk, acc):
         ks = pl.ds(kk * bk, bk)
         x, h = _scaled(x_ref, mod_ref, rows, ks, mod_row, dtype)
-        wg, wu = w_ref[ks, gate_cols], w_ref[ks, up_cols]
-        acc = (acc[0] + dot(h, wg), acc[1] + dot(h, wu), acc[2] + jnp.sum(x * x, axis=1), *acc[3:])
+        wa, wb = w_ref[ks, cols_a], w_ref[ks, cols_b]
+        acc = (acc[0] + dot(h, wa), acc[1] + dot(h, wb), acc[2] + jnp.sum(x * x, axis=1), *acc[3:])
         if adaptive:
             shift = jnp.broadcast_to(mod_ref[pl.ds(mod_row + 1, 1), ks], (ALIGN, bk))
-            acc = (*acc[:3], acc[3] + dot(shift, wg), acc[4] + dot(shift, wu))
+            acc = (*acc[:3], acc[3] + dot(shift, wa), acc[4] + dot(shift, wb))
         return acc
 
-    init = (jnp.zeros((bm, bh), jnp.float32), jnp.zeros((bm, bh), jnp.float32), jnp.zeros((bm,), jnp.float32))
-    init += (jnp.zeros((ALIGN, bh), jnp.float32),) * 2 if adaptive else ()
+    init = (jnp.zeros((bm, bn), jnp.float32), jnp.zeros((bm, bn), jnp.float32), jnp.zeros((bm,), jnp.float32))
+    init += (jnp.zeros((ALIGN, bn), jnp.float32),) * 2 if adaptive else ()
     acc = jax.lax.fori_loop(0, x_ref.shape[1] // bk, body, init)
     inv = jax.lax.rsqrt(acc[2] / width + EPS)[:, None]
-    g, u = acc[0] * inv, acc[1] * inv
+    a, b = acc[0] * inv, acc[1] * inv
     if adaptive:   # the shift products' rows are equal: a max reads one without slicing a value in the kernel
-        g, u = g + jnp.max(acc[3], axis=0, keepdims=True), u + jnp.max(acc[4], axis=0, keepdims=True)
+        a, b = a + jnp.max(acc[3], axis=0, keepdims=True), b + jnp.max(acc[4], axis=0, keepdims=True)
+    return a, b
+
+
+def _geglu_kernel(x_ref, mod_ref, w_ref, o_ref, *, bm, bh, bk, hidden, width, mod_row, adaptive):
+    """Program (i, j): rows block i, hidden units block j, all of K: o = gelu_tanh(g) * u for g, u the norm's
+    products with the gate and up columns of those units. The ops and roundings of `norm_geglu`'s XLA epilogue."""
+    i, j = pl.program_id(0), pl.program_id(1)
+    rows, gate_cols = pl.ds(i * bm, bm), pl.ds(j * bh, bh)
+    dtype = x_ref.dtype
+    g, u = _normed_pair(x_ref, mod_ref, w_ref, rows, gate_cols, pl.ds(hidden + j * bh, bh), bm=bm, bn=bh, bk=bk,
+                        width=width, mod_row=mod_row, adaptive=adaptive)
     gate = _round(jax.nn.gelu(_round(g, dtype), approximate=True), dtype)
     o_ref[rows, gate_cols] = (gate * _round(u, dtype)).astype(o_ref.dtype)
 
