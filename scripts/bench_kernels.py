@@ -4,7 +4,7 @@ pallas engine's whole call.
 
 Two sweeps. The per-stage one (the default) times each stage as one program that runs it on `--copies` independent
 inputs, each with its own weights (one launch each, divided by the copies). Its ranking did not hold inside the step
-(run 19), so `--step-sweep depths|splits|gate_up|geglu` compiles the 10-step denoise program once per variant and
+(run 19), so `--step-sweep depths|splits|gate_up|one_pass` compiles the 10-step denoise program once per variant and
 times the variants interleaved. Two probes: `--gemm-probe` runs each GEMM kernel once for a kernel profiler (ncu), and
 `--graph-probe` compiles the Pallas step with XLA's command buffers as default, off and all, and with programmatic
 dependent launch off and on.
@@ -54,10 +54,14 @@ STEP_SWEEPS = {
                "qkv 64x2": dict(qkv=G(64, 2)), "qkv 32x4": dict(qkv=G(32, 4)), "down 64x4": dict(down=G(64, 4)),
                "down 32x4": dict(down=G(32, 4)), "out 64x2": dict(out=G(64, 2)), "out 32x2": dict(out=G(32, 2))},
     "gate_up": {"default": {}, "mlp 64x4 s3": dict(mlp=G(64, 4, 3)), "mlp 256x4 s1": dict(mlp=G(256, 4, 1))},
-    # gate/up and GeGLU in one pass (`Blocks.geglu_in_kernel`): no partials, no XLA epilogue; columns per program
-    # (half gate, half up) and pipelining depth (3 stages of 128 columns would take 288 KB of shared memory)
-    "geglu": {"default": {}, **{f"geglu {c} s{d}": dict(geglu_in_kernel=True, mlp=G(c, 1, d))
-                                for c, d in ((32, 3), (64, 3), (64, 2), (128, 2), (128, 1))}},
+    # gate/up and GeGLU, or q/k/v and RoPE, in one pass (`Blocks.geglu_in_kernel`, `rope_in_kernel`): no partials, no
+    # XLA epilogue; columns per program (half gate and half up, or half from each RoPE half) and pipelining depth
+    # (3 stages of 128 gate/up columns would take 288 KB of shared memory)
+    "one_pass": {"default": {},
+                 **{f"geglu {c} s{d}": dict(geglu_in_kernel=True, mlp=G(c, 1, d))
+                    for c, d in ((32, 3), (64, 3), (64, 2), (128, 2))},
+                 **{f"rope {c} s{d}": dict(rope_in_kernel=True, qkv=G(c, 1, d))
+                    for c, d in ((32, 3), (32, 2), (64, 2))}},
 }
 
 
@@ -348,14 +352,15 @@ def step_sweep(config, args, out) -> ek.Blocks:
         return {r["variant"]: r for r in rows}
 
     first = timed(singles)
-    winners = {}   # per field, the single change that beat the default by more than 0.5 %
+    winners, merged = {}, 0   # the fastest change per set of fields, where it beat the default by more than 0.5 %
     for name, r in sorted(first.items(), key=lambda kv: kv[1]["denoise_10_ms"]):
-        field = next(iter(singles[name]), None)
-        if field and r["vs_default"] < 0.995 and field not in winners:
-            winners[field] = singles[name][field]
+        fields = singles[name]
+        if fields and r["vs_default"] < 0.995 and not set(fields) & set(winners):
+            winners.update(fields)
+            merged += 1
     best_single = min(first, key=lambda n: first[n]["denoise_10_ms"])
     second = {"default": {}, best_single: singles[best_single]}
-    if len(winners) > 1:
+    if merged > 1:
         second["combined"] = winners
     second = timed(second) if len(second) > 1 else first
     best = min(second, key=lambda n: second[n]["denoise_10_ms"])
