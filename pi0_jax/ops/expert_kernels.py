@@ -106,6 +106,18 @@ def _round(acc, dtype):
     return acc.astype(dtype).astype(jnp.float32)
 
 
+def _rotate(a1, a2, c, s, rotary, dtype):
+    """RoPE of one head's two (rounded) halves in f32, then the dtype, where `rotary` (q and k heads); else as is."""
+    return (jnp.where(rotary, _round(a1 * c - a2 * s, dtype), a1),
+            jnp.where(rotary, _round(a2 * c + a1 * s, dtype), a2))
+
+
+def _geglu(g, u, dtype):
+    """GELU-tanh(gate) * up from the f32 products, rounded where XLA's `x @ w` and each op would round."""
+    gate = _round(jax.nn.gelu(_round(g, dtype), approximate=True), dtype)
+    return (gate * _round(u, dtype)).astype(dtype)
+
+
 # -- split-K GEMM (with a norm's prologue) --------------------------------------------------------------------------
 def _partials_kernel(y_ref, mod_ref, w_ref, o_ref, *side, m, bm, bn, bk, chunk, mod_row, scaled, adaptive):
     """Program (i, j, s): rows block i, columns block j, K chunk s -> o[s] = y' @ w over the chunk, y' = y, or
@@ -188,9 +200,7 @@ def _qkv_rope_kernel(x_ref, mod_ref, w_ref, cos_ref, sin_ref, o_ref, *, bm, bc, 
                           mod_row=mod_row, adaptive=adaptive)
     a1, a2, c, s = _round(g1, dtype), _round(g2, dtype), cos_ref[rows, half], sin_ref[rows, half]
     head = jnp.full((bm, bc), n, jnp.int32)
-    rotary = head < num_heads + num_kv_heads
-    r1 = jnp.where(rotary, _round(a1 * c - a2 * s, dtype), a1)
-    r2 = jnp.where(rotary, _round(a2 * c + a1 * s, dtype), a2)
+    r1, r2 = _rotate(a1, a2, c, s, head < num_heads + num_kv_heads, dtype)
     scale = jnp.where(head < num_heads, jnp.float32(q_scale), jnp.float32(1.0))
     o_ref[rows, cols1] = (r1 * scale).astype(o_ref.dtype)
     o_ref[rows, cols2] = (r2 * scale).astype(o_ref.dtype)
@@ -221,9 +231,7 @@ def norm_qkv_rope(x, mods, mod_row: int, adaptive: bool, w_qkv, cos, sin, *, wid
     # RoPE in f32, then the dtype, for q and k heads; q is then scaled in the dtype (q_scale is a dtype value). On a
     # GPU the stack is a kernel of its own; a * c + swap(a) * [-s | s] (a reversed axis, no stack) became two
     # (docs/BENCHMARKS.md, "Launch parameters inside the step")
-    rotary = (jnp.arange(heads) < num_heads + num_kv_heads)[None, :, None]
-    r1 = jnp.where(rotary, _round(a1 * c - a2 * s, dtype), a1)
-    r2 = jnp.where(rotary, _round(a2 * c + a1 * s, dtype), a2)
+    r1, r2 = _rotate(a1, a2, c, s, (jnp.arange(heads) < num_heads + num_kv_heads)[None, :, None], dtype)
     q_scale = float(np.asarray(head_dim**-0.5, dtype))
     scale = jnp.where(jnp.arange(heads) < num_heads, q_scale, 1.0)[None, :, None, None]
     return (jnp.stack([r1, r2], axis=2) * scale).astype(dtype).reshape(m, heads * 2 * hp)
@@ -348,31 +356,22 @@ def _geglu_kernel(x_ref, mod_ref, w_ref, o_ref, *, bm, bh, bk, hidden, width, mo
     products with the gate and up columns of those units. The ops and roundings of `norm_geglu`'s XLA epilogue."""
     i, j = pl.program_id(0), pl.program_id(1)
     rows, gate_cols = pl.ds(i * bm, bm), pl.ds(j * bh, bh)
-    dtype = x_ref.dtype
     g, u = _normed_pair(x_ref, mod_ref, w_ref, rows, gate_cols, pl.ds(hidden + j * bh, bh), bm=bm, bn=bh, bk=bk,
                         width=width, mod_row=mod_row, adaptive=adaptive)
-    gate = _round(jax.nn.gelu(_round(g, dtype), approximate=True), dtype)
-    o_ref[rows, gate_cols] = (gate * _round(u, dtype)).astype(o_ref.dtype)
-
-
-def _geglu_one_pass(x, mods, mod_row, adaptive, w_gate_up, *, width, blocks):
-    m, e = x.shape
-    hidden = w_gate_up.shape[1] // 2
-    bm, bh, bk = fit(blocks.rows, m), fit(max(blocks.mlp.cols // 2, ALIGN), hidden), fit(blocks.k, e)
-    kernel = functools.partial(_geglu_kernel, bm=bm, bh=bh, bk=bk, hidden=hidden, width=width, mod_row=mod_row,
-                               adaptive=adaptive)
-    return _call(kernel, (m // bm, hidden // bh), jax.ShapeDtypeStruct((m, hidden), x.dtype), "expert_gate_up",
-                 blocks.num_warps, blocks.mlp.stages)(x, mods, w_gate_up)
+    o_ref[rows, gate_cols] = _geglu(g, u, x_ref.dtype)
 
 
 def norm_geglu(x, mods, mod_row: int, adaptive: bool, w_gate_up, *, width: int, blocks: Blocks = Blocks()):
     """gelu_tanh(h @ w_gate) * (h @ w_up) with h = norm(x): x (M, D), w_gate_up (D, 2F) = [gate | up] -> (M, F).
     With `blocks.geglu_in_kernel` one kernel does it all (`blocks.mlp.cols` weight columns per program: half gate,
     half up; its splits are not used); else a split-K GEMM and an XLA epilogue."""
+    (m, e), hidden = x.shape, w_gate_up.shape[1] // 2
     if blocks.geglu_in_kernel:
-        return _geglu_one_pass(x, mods, mod_row, adaptive, w_gate_up, width=width, blocks=blocks)
-    dtype, hidden = x.dtype, w_gate_up.shape[1] // 2
+        bm, bh, bk = fit(blocks.rows, m), fit(max(blocks.mlp.cols // 2, ALIGN), hidden), fit(blocks.k, e)
+        kernel = functools.partial(_geglu_kernel, bm=bm, bh=bh, bk=bk, hidden=hidden, width=width, mod_row=mod_row,
+                                   adaptive=adaptive)
+        return _call(kernel, (m // bm, hidden // bh), jax.ShapeDtypeStruct((m, hidden), x.dtype), "expert_gate_up",
+                     blocks.num_warps, blocks.mlp.stages)(x, mods, w_gate_up)
     acc = _normed_product(x, mods, mod_row, adaptive, w_gate_up, width=width, gemm=blocks.mlp, blocks=blocks,
                           name="expert_gate_up")
-    gate = _round(jax.nn.gelu(_round(acc[:, :hidden], dtype), approximate=True), dtype)
-    return (gate * _round(acc[:, hidden:], dtype)).astype(dtype)
+    return _geglu(acc[:, :hidden], acc[:, hidden:], x.dtype)

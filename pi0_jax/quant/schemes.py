@@ -126,7 +126,7 @@ def calibrate(config: Pi0Config, params: dict, observations, scheme: str | None 
     if "img/head" in keys:
         w["img"]["head"]["kernel"] = hooks.Tap(w["img"]["head"]["kernel"], "img/head")
     expert = any(k.startswith("expert/") for k in keys)
-    sched = weights_lib.precompute_schedule(config, params, num_steps)
+    sched = weights_lib.precompute_schedule(config, params, num_steps) if expert else None
 
     def stages(w, images, image_masks, tokens, token_mask, state, noise):
         image_tokens = programs.encode_images(config, w, images, unroll=True)
