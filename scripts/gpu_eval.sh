@@ -50,6 +50,10 @@ a, t = info["aggregated"], info["timing"]
 print(f"{dst}: {a['n_episodes']} episodes, {a['pc_success']:.1f} %, eval {a['eval_s']:.1f} s, first segment "
       f"{t['first_segment_s']:.1f} s, device wait {t['device_wait_s']:.1f} s, "
       f"{t['episodes_per_min_after_compile']:.0f} ep/min after it; {info['note']}")
+if "setup_s" in t:
+    print(f"  setup {t['setup_s']:.1f} s: " + ", ".join(f"{k} {v:.1f}" for k, v in t["policy_setup_s"].items()))
+if "phases" in t:
+    print("  phases:", json.dumps(t["phases"]))
 EOF
 }
 for phase in "$@"; do

@@ -10,6 +10,7 @@ hundreds of environments: M = batch x horizon rows), calibrated over every step 
 from __future__ import annotations
 
 import functools
+import time
 
 import jax
 import jax.numpy as jnp
@@ -103,14 +104,16 @@ def sample_observations(config: Pi0Config, n: int, seed: int = 0, batch: int = 1
 
 
 def calibrate(config: Pi0Config, params: dict, observations, scheme: str | None = None, *,
-              percentile: float | None = 99.99, num_steps: int = 10, seed: int = 0) -> dict[str, dict[str, np.ndarray]]:
+              percentile: float | None = 99.99, num_steps: int = 10, seed: int = 0,
+              timing: dict | None = None) -> dict[str, dict[str, np.ndarray]]:
     """Static activation magnitudes {"amax": {key: m}, "percentile": {key: m}} (percentile only if given), m of
     shape (L,) per layer (or () for the SigLIP head), for the activation-quantised GEMMs of `scheme` (None: of every
     scheme, so that any scheme can read its keys).
 
     Runs the engine's vision and prefix stages (one jit) over `observations` with every such GEMM's weight tapped;
     with the action expert's GEMMs ("expert-act") also the `num_steps` denoise loop from fixed noise (`seed`), whose
-    every step is recorded. Deterministic: fixed inputs; amax is a max, percentile a max of per-call values."""
+    every step is recorded. Deterministic: fixed inputs; amax is a max, percentile a max of per-call values.
+    timing: a dict to receive the seconds spent compiling (`compile_s`) and running (`run_s`) the program."""
     from pi0_jax.engine import programs, weights as weights_lib
 
     keys = {key for group, _, _, key in _leaves(scheme) if group not in WEIGHT_ONLY}
@@ -137,19 +140,32 @@ def calibrate(config: Pi0Config, params: dict, observations, scheme: str | None 
                                 unroll_steps=False)
 
     rng = np.random.default_rng(seed)
+    compiled, seconds = {}, {"compile_s": 0.0, "run_s": 0.0}
     with hooks.recording(percentile) as rec:
         # traced inside the recording: the taps' callbacks are in the program. It runs once, so on a GPU its GEMMs
         # are cuBLAS's: XLA's autotuner would compile Triton GEMMs for each new shape first
-        run = jax.jit(stages, compiler_options=hooks.compiler_options(w, "cublas"))
+        run = jax.jit(stages)
         for obs in observations:
             cams = IMAGE_KEYS[: config.num_cameras]
             images = jnp.stack([jnp.asarray(obs.images[k], jnp.float32) for k in cams])
             image_masks = jnp.stack([jnp.asarray(obs.image_masks[k], bool) for k in cams])
             state = jnp.asarray(obs.state, jnp.float32)
             noise = rng.standard_normal((state.shape[0], config.action_horizon, config.action_dim), np.float32)
-            jax.block_until_ready(run(w, images, image_masks, jnp.asarray(obs.tokenized_prompt),
-                                      jnp.asarray(obs.tokenized_prompt_mask), state, jnp.asarray(noise)))
+            args = (w, images, image_masks, jnp.asarray(obs.tokenized_prompt), jnp.asarray(obs.tokenized_prompt_mask),
+                    state, jnp.asarray(noise))
+            shapes = tuple(a.shape for a in jax.tree.leaves(args[1:]))
+            t0 = time.perf_counter()
+            if shapes not in compiled:
+                compiled[shapes] = run.lower(*args).compile(hooks.compiler_options(w, "cublas"))
+            t1 = time.perf_counter()
+            jax.block_until_ready(compiled[shapes](*args))
+            seconds["compile_s"] += t1 - t0
+            seconds["run_s"] += time.perf_counter() - t1
+        t1 = time.perf_counter()
         jax.effects_barrier()
+        seconds["run_s"] += time.perf_counter() - t1
+    if timing is not None:
+        timing.update(seconds)
     result = {}
     for method in ("amax", "percentile") if percentile is not None else ("amax",):
         per_call = hooks.summarize(rec, method)

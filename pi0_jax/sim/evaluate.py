@@ -308,6 +308,8 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
         info["config"]["batch_auto"] = {"tried": tried, "max_per_device": AUTO_MAX_PER_DEVICE,
                                         "memory_fraction": AUTO_MEMORY_FRACTION}
     info["timing"] = timing_section(info, rollout_s, compile_s, wait_s, n_batches, steps_per_segment, cfg)
+    # before the rollout: the policy's build (weights, FP8 calibration and quantisation) and the environments'
+    info["timing"].update(setup_s=t_compile - t_start, policy_setup_s=policy.setup_s)
     # segments run, and episodes begun in freed slots
     info["timing"].update(segments=s + 1, refilled_episodes=next_ep - batch)
     info["timing"]["segment_collectives"] = collectives(segment.as_text()) if n_dev > 1 else 0   # (text: MBs)

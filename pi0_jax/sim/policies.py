@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -46,6 +47,7 @@ class SimPolicy:
     observation: Callable | None = None             # model policies: (obs, env_state) -> pi0.Observation
     info: dict = dataclasses.field(default_factory=dict)
     stats: Callable | None = None                   # pstate -> {name: (B,) counts}, summed into eval_info
+    setup_s: dict = dataclasses.field(default_factory=dict)   # seconds spent building it, by part
 
 
 def chunked_plan(plan: Callable[..., Any], chunk: int | None, n_dev: int = 1, sharding=None) -> Callable[..., Any]:
@@ -123,11 +125,16 @@ def checkpoint_policy(path: str | os.PathLike, env, *, tokenizer_path=None, num_
     `model_policy`."""
     from pi0_jax.policy import load_parts
 
+    t0 = time.perf_counter()
     config, params, tok, normalizer = load_parts(path, tokenizer_path=tokenizer_path, norm_stats=norm_stats,
                                                  dtype=dtype)
-    params = quantize_for_suite(config, params, tok, normalizer, quant, num_steps=num_steps)
-    return model_policy(config, params, tok, normalizer, env, num_steps=num_steps, name=str(path), sampler=sampler,
-                        realtime=realtime, replan_steps=replan_steps, quant=quant, gemm=gemm, attention=attention)
+    setup = {"load_s": time.perf_counter() - t0}
+    params = quantize_for_suite(config, params, tok, normalizer, quant, num_steps=num_steps, timing=setup)
+    t0 = time.perf_counter()
+    policy = model_policy(config, params, tok, normalizer, env, num_steps=num_steps, name=str(path),
+                          sampler=sampler, realtime=realtime, replan_steps=replan_steps, quant=quant, gemm=gemm,
+                          attention=attention)
+    return dataclasses.replace(policy, setup_s={**setup, "policy_s": time.perf_counter() - t0})
 
 
 def model_policy(config, params, tok, normalizer, env, *, num_steps: int = 10, dynamic_steps: bool = False,
@@ -255,10 +262,15 @@ def preset_policy(name: str, env, *, num_steps: int = 10, dtype: str | None = No
     tok = PaligemmaTokenizer(find_tokenizer(Path(__file__).parents[1] / "assets" / "pi0_small"),
                              config.max_token_len)
     normalizer = nz.Normalizer.identity()
-    params = quantize_for_suite(config, pi0.random_params(config, seed), tok, normalizer, quant, num_steps=num_steps)
-    return model_policy(config, params, tok, normalizer, env, num_steps=num_steps,
-                        name=f"preset:{name} (random weights)", sampler=sampler, realtime=realtime,
-                        replan_steps=replan_steps, quant=quant, gemm=gemm, attention=attention)
+    t0 = time.perf_counter()
+    params = jax.block_until_ready(pi0.random_params(config, seed))
+    setup = {"random_params_s": time.perf_counter() - t0}
+    params = quantize_for_suite(config, params, tok, normalizer, quant, num_steps=num_steps, timing=setup)
+    t0 = time.perf_counter()
+    policy = model_policy(config, params, tok, normalizer, env, num_steps=num_steps,
+                          name=f"preset:{name} (random weights)", sampler=sampler, realtime=realtime,
+                          replan_steps=replan_steps, quant=quant, gemm=gemm, attention=attention)
+    return dataclasses.replace(policy, setup_s={**setup, "policy_s": time.perf_counter() - t0})
 
 
 def make_policy(spec: str, env, replan_steps: int, **kw) -> SimPolicy:
@@ -280,11 +292,12 @@ QUANT_FORMATS = ("nvfp4", "mxfp4")     # weight-only FP4 emulation; the FP8 sche
 
 
 def quantize_for_suite(config, params, tok, normalizer, quant: str | None, *, calib_samples: int = 64,
-                       seed: int = 0, calib=None, num_steps: int = 10):
+                       seed: int = 0, calib=None, num_steps: int = 10, timing: dict | None = None):
     """params in number format `quant`: None = unchanged; an FP8 scheme of `pi0_jax.quant.schemes` (real e4m3
     GEMMs where XLA emits them) with static activation scales, amax over `calib_samples` rendered suite observations
     from initial states 50..99 (never evaluated); "nvfp4" / "mxfp4": weight emulation (quantised and dequantised
-    back) of every GEMM the FP8 scheme "all" covers. calib: a precomputed `calibration_observation`."""
+    back) of every GEMM the FP8 scheme "all" covers. calib: a precomputed `calibration_observation`. timing: a dict
+    to receive the seconds of each part (observations, the calibration's compile and run, quantising)."""
     if quant is None:
         return params
     from pi0_jax.quant import schemes
@@ -293,10 +306,19 @@ def quantize_for_suite(config, params, tok, normalizer, quant: str | None, *, ca
         return jax.device_put(schemes.fake_quant_fp4_params(params, quant, "all"), jax.devices()[0])
     if quant not in schemes.SCHEMES:
         raise ValueError(f"unknown number format {quant!r}: {', '.join([*schemes.SCHEMES, *QUANT_FORMATS])}")
+    timing = {} if timing is None else timing
+    t0 = time.perf_counter()
     if calib is None:
         calib = calibration_observation(config, tok, normalizer, calib_samples, seed)
-    amax = schemes.calibrate(config, params, [calib], quant, percentile=None, num_steps=num_steps, seed=seed)["amax"]
-    return schemes.quantize_params(config, params, quant, amax)
+    timing["observations_s"] = time.perf_counter() - t0
+    calib_timing = {}
+    amax = schemes.calibrate(config, params, [calib], quant, percentile=None, num_steps=num_steps, seed=seed,
+                             timing=calib_timing)["amax"]
+    timing.update({f"calibrate_{k}": v for k, v in calib_timing.items()})
+    t0 = time.perf_counter()
+    params = jax.block_until_ready(schemes.quantize_params(config, params, quant, amax))
+    timing["quantize_s"] = time.perf_counter() - t0
+    return params
 
 
 def calibration_observation(config, tok, normalizer, n: int, seed: int = 0):
