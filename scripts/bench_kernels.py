@@ -4,7 +4,7 @@ pallas engine's whole call.
 
 Two sweeps. The per-stage one (the default) times each stage as one program that runs it on `--copies` independent
 inputs, each with its own weights (one launch each, divided by the copies). Its ranking did not hold inside the step
-(run 19), so `--step-sweep depths|splits|gate_up|one_pass` compiles the 10-step denoise program once per variant and
+(run 19), so `--step-sweep depths|splits|gate_up` compiles the 10-step denoise program once per variant and
 times the variants interleaved. Two probes: `--gemm-probe` runs each GEMM kernel once for a kernel profiler (ncu), and
 `--graph-probe` compiles the Pallas step with XLA's command buffers as default, off and all, and with programmatic
 dependent launch off and on.
@@ -42,6 +42,8 @@ G = ek.Gemm
 # the split-K counts (their f32 partials are written and read again: gate/up at 4 splits writes 8.4 MB beside its
 # 16.8 MB of weights). Neither moved the step by more than 1.1 % (docs/BENCHMARKS.md, "Launch parameters"). Runs 23
 # and 25 put gate/up at 128 columns without pipelining (3-4 % for π0); `gate_up` times it against the old default.
+# Run 27 timed gate/up + GeGLU and q/k/v + RoPE each as one kernel walking all of K (no partials, no epilogue): the
+# step 13-74 % slower for every launch tried, so those kernels were removed ("One pass per GEMM, measured").
 STEP_SWEEPS = {
     "depths": {"default": {}, "qkv 128x8 s1": dict(qkv=G(128, 8, 1)), "qkv 128x8 s2": dict(qkv=G(128, 8, 2)),
                "mlp 64x4 s3": dict(mlp=G(64, 4, 3)), "mlp 64x4 s1": dict(mlp=G(64, 4, 1)),
@@ -54,14 +56,6 @@ STEP_SWEEPS = {
                "qkv 64x2": dict(qkv=G(64, 2)), "qkv 32x4": dict(qkv=G(32, 4)), "down 64x4": dict(down=G(64, 4)),
                "down 32x4": dict(down=G(32, 4)), "out 64x2": dict(out=G(64, 2)), "out 32x2": dict(out=G(32, 2))},
     "gate_up": {"default": {}, "mlp 64x4 s3": dict(mlp=G(64, 4, 3)), "mlp 256x4 s1": dict(mlp=G(256, 4, 1))},
-    # gate/up and GeGLU, or q/k/v and RoPE, in one pass (`Blocks.geglu_in_kernel`, `rope_in_kernel`): no partials, no
-    # XLA epilogue; columns per program (half gate and half up, or half from each RoPE half) and pipelining depth
-    # (3 stages of 128 gate/up columns would take 288 KB of shared memory)
-    "one_pass": {"default": {},
-                 **{f"geglu {c} s{d}": dict(geglu_in_kernel=True, mlp=G(c, 1, d))
-                    for c, d in ((32, 3), (64, 3), (64, 2), (128, 2))},
-                 **{f"rope {c} s{d}": dict(rope_in_kernel=True, qkv=G(c, 1, d))
-                    for c, d in ((32, 3), (32, 2), (64, 2))}},
 }
 
 

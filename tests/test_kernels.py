@@ -81,12 +81,10 @@ def test_norm_qkv_rope_matches_xla(adaptive):
     q, k, v = layers._qkv(h, w["qkv"], CFG, positions)
     sp = layout.suffix_rows(S)
     cos, sin = layout.rope_tables(jnp.pad(positions, ((0, 0), (0, sp - S))), CFG.head_dim)
-    # one K chunk; three (width 48: the sums of squares and shift products of 3 chunks); one pass with RoPE inside
-    for blocks in (Blocks(qkv=Gemm(128, 1)), Blocks(qkv=Gemm(128, 3)), Blocks(qkv=Gemm(32, 1), rope_in_kernel=True),
-                   Blocks(qkv=Gemm(32, 1), rope_in_kernel=True, rows=16)):   # two row blocks
+    for splits in (1, 3):  # one K chunk; three (width 48: the sums of squares and shift products of 3 chunks)
         out = ek.norm_qkv_rope(layout.rows(x, sp), mods, row, adaptive, layout.expert_weights(w, CFG)["qkv"], cos,
                                sin, width=CFG.width, num_heads=CFG.num_heads, num_kv_heads=CFG.num_kv_heads,
-                               head_dim=CFG.head_dim, blocks=blocks)
+                               head_dim=CFG.head_dim, blocks=Blocks(qkv=Gemm(128, splits)))
         got = _unheads(out.reshape(B, sp, -1)[:, :S], CFG.num_heads + 2 * CFG.num_kv_heads)
         np.testing.assert_allclose(got[:, :, : CFG.num_heads], q.reshape(B, S, CFG.num_heads, -1), **TOL)
         np.testing.assert_allclose(got[:, :, CFG.num_heads: -1], k, **TOL)
@@ -140,10 +138,9 @@ def test_mlp_kernels_match_xla(adaptive):
     down = hidden @ w["down"]
     want = x + (down if gate is None else down * gate)
     sp = layout.suffix_rows(S)
-    for blocks in (Blocks(mlp=Gemm(64, 3)), Blocks(mlp=Gemm(64, 1)), Blocks(mlp=Gemm(32, 1), geglu_in_kernel=True),
-                   Blocks(mlp=Gemm(256, 1), geglu_in_kernel=True, rows=16)):   # one pass: 16 or 32 units a program
+    for splits in (3, 1):
         got_hidden = ek.norm_geglu(layout.rows(x, sp), mods, row, adaptive, wk["gate_up"], width=CFG.width,
-                                   blocks=blocks)
+                                   blocks=Blocks(mlp=Gemm(64, splits)))
         np.testing.assert_allclose(_unrows(got_hidden, CFG.mlp_dim), hidden, **TOL)
     for splits in (1, 2):  # one kernel, and split-K (96 = 2 x 48)
         got = ek.matmul_residual(got_hidden, wk["down"], layout.rows(x, sp), mods, gate_row, gemm=Gemm(64, splits))
@@ -167,19 +164,6 @@ def test_engine_with_kernels_matches_reference(model):
     _, cache, staged = engine.run_stages(obs, jnp.array(noise), 3)
     assert cache.mask.shape[1] % layout.KEY_PAD == 0 and cache.k[0].shape[-1] == 2 * layout.half_dim(16)
     np.testing.assert_allclose(staged, ref, **TOL)
-
-
-def test_engine_with_one_pass_kernels_matches_reference(model, monkeypatch):
-    """q/k/v + RoPE and gate/up + GeGLU each as one kernel (`Blocks.rope_in_kernel`, `geglu_in_kernel`), in the
-    engine's denoise step: the same actions as the reference sampler."""
-    config, params = model
-    obs = make_obs(config)
-    noise = jax.random.normal(jax.random.key(1), (2, config.action_horizon, config.action_dim))
-    ref = jax.jit(pi0.sample_actions, static_argnums=(0, 4))(config, params, obs, noise, 3)
-    one_pass = Blocks(qkv=Gemm(32, 1), mlp=Gemm(64, 1), rope_in_kernel=True, geglu_in_kernel=True)
-    monkeypatch.setattr(layers.suffix_layers_pallas, "__defaults__", (None, one_pass))
-    engine = Engine(config, params, kernels="pallas", cache_dir=False)
-    np.testing.assert_allclose(engine.sample_actions(obs, jnp.array(noise), 3), ref, **TOL)
 
 
 def test_engine_with_kernels_skips_a_camera_masked_everywhere():

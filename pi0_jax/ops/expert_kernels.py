@@ -9,12 +9,8 @@ over K (hundreds of short programs, f32 partials), and the cheap elementwise wor
   attention        the suffix queries over [cached prefix | suffix] keys: an online softmax over each of several key
                    splits in parallel (flash-decoding), merged by their log-sum-exp
 
-  norm_qkv_rope    = matmul_partials, then (XLA) the split sum, 1 / rms, RoPE and q's scaling; or, with
-                   `Blocks.rope_in_kernel`, one kernel: each program walks all of K for matching columns of a head's
-                   two RoPE halves and rotates and scales them itself
-  norm_geglu       = matmul_partials, then (XLA) the split sum, 1 / rms, GELU-tanh(gate) * up; or, with
-                   `Blocks.geglu_in_kernel`, one kernel: each program walks all of K for a block of hidden units'
-                   gate and up columns and writes GELU-tanh(gate) * up itself
+  norm_qkv_rope    = matmul_partials, then (XLA) the split sum, 1 / rms, RoPE and q's scaling
+  norm_geglu       = matmul_partials, then (XLA) the split sum, 1 / rms, GELU-tanh(gate) * up
   matmul_residual  = matmul_partials, then (XLA) the split sum, adaRMS's gate and the residual
 
 Kernel layout (`pi0_jax.ops.layout`): rows are (batch, suffix padded to Sp) flattened; each head is stored as
@@ -80,8 +76,6 @@ class Blocks:
     num_warps: int = 4  # the GEMM kernel's
     attention_warps: int = 8
     attention_stages: int = 3
-    geglu_in_kernel: bool = False  # gate/up as `norm_geglu`'s one-pass kernel (no split-K, no XLA epilogue)
-    rope_in_kernel: bool = False  # q/k/v likewise (`norm_qkv_rope`)
 
     @classmethod
     def from_dict(cls, d: dict) -> "Blocks":
@@ -104,18 +98,6 @@ def _scaled(x_ref, mod_ref, rows, cols, mod_row, dtype):
 def _round(acc, dtype):
     """A GEMM's f32 accumulator as XLA returns `x @ w`: rounded to the activation dtype (kept in f32 to compute)."""
     return acc.astype(dtype).astype(jnp.float32)
-
-
-def _rotate(a1, a2, c, s, rotary, dtype):
-    """RoPE of one head's two (rounded) halves in f32, then the dtype, where `rotary` (q and k heads); else as is."""
-    return (jnp.where(rotary, _round(a1 * c - a2 * s, dtype), a1),
-            jnp.where(rotary, _round(a2 * c + a1 * s, dtype), a2))
-
-
-def _geglu(g, u, dtype):
-    """GELU-tanh(gate) * up from the f32 products, rounded where XLA's `x @ w` and each op would round."""
-    gate = _round(jax.nn.gelu(_round(g, dtype), approximate=True), dtype)
-    return (gate * _round(u, dtype)).astype(dtype)
 
 
 # -- split-K GEMM (with a norm's prologue) --------------------------------------------------------------------------
@@ -187,43 +169,15 @@ def _normed_product(x, mods, mod_row, adaptive, w, *, width, gemm, blocks, name)
     return acc + sum(list(shift))[None] if adaptive else acc
 
 
-def _qkv_rope_kernel(x_ref, mod_ref, w_ref, cos_ref, sin_ref, o_ref, *, bm, bc, bk, hp, width, mod_row, adaptive,
-                     num_heads, num_kv_heads, q_scale):
-    """Program (i, n, j): rows block i, head n, columns block j of each RoPE half, all of K: both halves' normed
-    products, rotated (q and k heads) and scaled (q heads) as `norm_qkv_rope`'s XLA epilogue does. The head's kind
-    is a full-tile predicate: a select on a scalar one did not lower to Triton."""
-    i, n, j = pl.program_id(0), pl.program_id(1), pl.program_id(2)
-    rows, half = pl.ds(i * bm, bm), pl.ds(j * bc, bc)
-    cols1, cols2 = pl.ds(n * 2 * hp + j * bc, bc), pl.ds(n * 2 * hp + hp + j * bc, bc)
-    dtype = x_ref.dtype
-    g1, g2 = _normed_pair(x_ref, mod_ref, w_ref, rows, cols1, cols2, bm=bm, bn=bc, bk=bk, width=width,
-                          mod_row=mod_row, adaptive=adaptive)
-    a1, a2, c, s = _round(g1, dtype), _round(g2, dtype), cos_ref[rows, half], sin_ref[rows, half]
-    head = jnp.full((bm, bc), n, jnp.int32)
-    r1, r2 = _rotate(a1, a2, c, s, head < num_heads + num_kv_heads, dtype)
-    scale = jnp.where(head < num_heads, jnp.float32(q_scale), jnp.float32(1.0))
-    o_ref[rows, cols1] = (r1 * scale).astype(o_ref.dtype)
-    o_ref[rows, cols2] = (r2 * scale).astype(o_ref.dtype)
-
-
 def norm_qkv_rope(x, mods, mod_row: int, adaptive: bool, w_qkv, cos, sin, *, width: int, num_heads: int,
                   num_kv_heads: int, head_dim: int, blocks: Blocks = Blocks()):
     """x (M, D) -> qkv (M, (N + 2K) * 2hp): normed, projected, q/k rotated, q scaled by head_dim^-0.5.
 
     mods (R, D): row mod_row is the norm scale, +1 the adaRMS shift (adaptive); w_qkv (D, (N + 2K) * 2hp);
-    cos / sin (M, hp) f32 (`layout.rope_tables`); width: the true D (the mean's divisor). With
-    `blocks.rope_in_kernel` one kernel does it all (`blocks.qkv.cols` weight columns per program, half from each
-    RoPE half of one head; its splits are not used); else a split-K GEMM and an XLA epilogue.
+    cos / sin (M, hp) f32 (`layout.rope_tables`); width: the true D (the mean's divisor).
     """
     m, dtype = x.shape[0], x.dtype
     heads, hp = num_heads + 2 * num_kv_heads, cos.shape[1]
-    if blocks.rope_in_kernel:
-        bm, bc, bk = fit(blocks.rows, m), fit(max(blocks.qkv.cols // 2, ALIGN), hp), fit(blocks.k, x.shape[1])
-        kernel = functools.partial(_qkv_rope_kernel, bm=bm, bc=bc, bk=bk, hp=hp, width=width, mod_row=mod_row,
-                                   adaptive=adaptive, num_heads=num_heads, num_kv_heads=num_kv_heads,
-                                   q_scale=float(np.asarray(head_dim**-0.5, dtype)))
-        return _call(kernel, (m // bm, heads, hp // bc), jax.ShapeDtypeStruct((m, heads * 2 * hp), dtype),
-                     "expert_qkv", blocks.num_warps, blocks.qkv.stages)(x, mods, w_qkv, cos, sin)
     acc = _normed_product(x, mods, mod_row, adaptive, w_qkv, width=width, gemm=blocks.qkv, blocks=blocks,
                           name="expert_qkv")
     a = _round(acc, dtype).reshape(m, heads, 2, hp)
@@ -231,7 +185,9 @@ def norm_qkv_rope(x, mods, mod_row: int, adaptive: bool, w_qkv, cos, sin, *, wid
     # RoPE in f32, then the dtype, for q and k heads; q is then scaled in the dtype (q_scale is a dtype value). On a
     # GPU the stack is a kernel of its own; a * c + swap(a) * [-s | s] (a reversed axis, no stack) became two
     # (docs/BENCHMARKS.md, "Launch parameters inside the step")
-    r1, r2 = _rotate(a1, a2, c, s, (jnp.arange(heads) < num_heads + num_kv_heads)[None, :, None], dtype)
+    rotary = (jnp.arange(heads) < num_heads + num_kv_heads)[None, :, None]
+    r1 = jnp.where(rotary, _round(a1 * c - a2 * s, dtype), a1)
+    r2 = jnp.where(rotary, _round(a2 * c + a1 * s, dtype), a2)
     q_scale = float(np.asarray(head_dim**-0.5, dtype))
     scale = jnp.where(jnp.arange(heads) < num_heads, q_scale, 1.0)[None, :, None, None]
     return (jnp.stack([r1, r2], axis=2) * scale).astype(dtype).reshape(m, heads * 2 * hp)
@@ -325,53 +281,10 @@ def matmul_residual(y, w, x, mods=None, gate_row: int | None = None, *, gemm: Ge
     return x + (z if gate_row is None else z * mods[gate_row])
 
 
-def _normed_pair(x_ref, mod_ref, w_ref, rows, cols_a, cols_b, *, bm, bn, bk, width, mod_row, adaptive):
-    """In one program: norm(x[rows]) @ w[:, cols_a] and @ w[:, cols_b] over all of K, as f32 (before rounding):
-    the K loop accumulates both products, the rows' sums of squares and adaRMS's shift products, then applies
-    1 / rms and adds the shift as `_normed_product` does after its split sum."""
-    dtype = x_ref.dtype
-
-    def body(kk, acc):
-        ks = pl.ds(kk * bk, bk)
-        x, h = _scaled(x_ref, mod_ref, rows, ks, mod_row, dtype)
-        wa, wb = w_ref[ks, cols_a], w_ref[ks, cols_b]
-        acc = (acc[0] + dot(h, wa), acc[1] + dot(h, wb), acc[2] + jnp.sum(x * x, axis=1), *acc[3:])
-        if adaptive:
-            shift = jnp.broadcast_to(mod_ref[pl.ds(mod_row + 1, 1), ks], (ALIGN, bk))
-            acc = (*acc[:3], acc[3] + dot(shift, wa), acc[4] + dot(shift, wb))
-        return acc
-
-    init = (jnp.zeros((bm, bn), jnp.float32), jnp.zeros((bm, bn), jnp.float32), jnp.zeros((bm,), jnp.float32))
-    init += (jnp.zeros((ALIGN, bn), jnp.float32),) * 2 if adaptive else ()
-    acc = jax.lax.fori_loop(0, x_ref.shape[1] // bk, body, init)
-    inv = jax.lax.rsqrt(acc[2] / width + EPS)[:, None]
-    a, b = acc[0] * inv, acc[1] * inv
-    if adaptive:   # the shift products' rows are equal: a max reads one without slicing a value in the kernel
-        a, b = a + jnp.max(acc[3], axis=0, keepdims=True), b + jnp.max(acc[4], axis=0, keepdims=True)
-    return a, b
-
-
-def _geglu_kernel(x_ref, mod_ref, w_ref, o_ref, *, bm, bh, bk, hidden, width, mod_row, adaptive):
-    """Program (i, j): rows block i, hidden units block j, all of K: o = gelu_tanh(g) * u for g, u the norm's
-    products with the gate and up columns of those units. The ops and roundings of `norm_geglu`'s XLA epilogue."""
-    i, j = pl.program_id(0), pl.program_id(1)
-    rows, gate_cols = pl.ds(i * bm, bm), pl.ds(j * bh, bh)
-    g, u = _normed_pair(x_ref, mod_ref, w_ref, rows, gate_cols, pl.ds(hidden + j * bh, bh), bm=bm, bn=bh, bk=bk,
-                        width=width, mod_row=mod_row, adaptive=adaptive)
-    o_ref[rows, gate_cols] = _geglu(g, u, x_ref.dtype)
-
-
 def norm_geglu(x, mods, mod_row: int, adaptive: bool, w_gate_up, *, width: int, blocks: Blocks = Blocks()):
-    """gelu_tanh(h @ w_gate) * (h @ w_up) with h = norm(x): x (M, D), w_gate_up (D, 2F) = [gate | up] -> (M, F).
-    With `blocks.geglu_in_kernel` one kernel does it all (`blocks.mlp.cols` weight columns per program: half gate,
-    half up; its splits are not used); else a split-K GEMM and an XLA epilogue."""
-    (m, e), hidden = x.shape, w_gate_up.shape[1] // 2
-    if blocks.geglu_in_kernel:
-        bm, bh, bk = fit(blocks.rows, m), fit(max(blocks.mlp.cols // 2, ALIGN), hidden), fit(blocks.k, e)
-        kernel = functools.partial(_geglu_kernel, bm=bm, bh=bh, bk=bk, hidden=hidden, width=width, mod_row=mod_row,
-                                   adaptive=adaptive)
-        return _call(kernel, (m // bm, hidden // bh), jax.ShapeDtypeStruct((m, hidden), x.dtype), "expert_gate_up",
-                     blocks.num_warps, blocks.mlp.stages)(x, mods, w_gate_up)
+    """gelu_tanh(h @ w_gate) * (h @ w_up) with h = norm(x): x (M, D), w_gate_up (D, 2F) = [gate | up] -> (M, F)."""
+    dtype, hidden = x.dtype, w_gate_up.shape[1] // 2
     acc = _normed_product(x, mods, mod_row, adaptive, w_gate_up, width=width, gemm=blocks.mlp, blocks=blocks,
                           name="expert_gate_up")
-    return _geglu(acc[:, :hidden], acc[:, hidden:], x.dtype)
+    gate = _round(jax.nn.gelu(_round(acc[:, :hidden], dtype), approximate=True), dtype)
+    return (gate * _round(acc[:, hidden:], dtype)).astype(dtype)
