@@ -182,6 +182,8 @@ def test_eval_preset_policy_with_timing_and_profile(tmp_path):
     assert info["config"]["policy"] == "preset:dummy (random weights)"
     assert info["config"]["policy_info"]["sampler"] == "engine"
     assert t["episodes_per_min"] > 0 and t["rollout_s"] >= t["first_segment_s"] > 0
+    assert set(t["policy_setup_s"]) == {"random_params_s", "policy_s"}    # no quantising asked
+    assert t["setup_s"] >= sum(t["policy_setup_s"].values()) > 0
     assert {"physics_ms", "render_ms", "policy_ms"} <= set(t["phases"]) and all(
         t["phases"][k] > 0 for k in ("physics_ms", "render_ms", "policy_ms"))
     assert abs(sum(t["phases"]["share"].values()) - 1) < 1e-6
@@ -259,5 +261,8 @@ def test_eval_quant(tmp_path, monkeypatch):
                      "prefix-mlp"]) == 0
     info = json.loads((out / "eval_info.json").read_text())
     assert info["config"]["policy_info"]["quant"] == "prefix-mlp" and info["aggregated"]["n_episodes"] == 2
+    setup = info["timing"]["policy_setup_s"]
+    assert set(setup) == {"random_params_s", "observations_s", "calibrate_compile_s", "calibrate_run_s", "quantize_s",
+                          "policy_s"} and setup["calibrate_compile_s"] > 0 and setup["calibrate_run_s"] > 0
     with pytest.raises(ValueError, match="unknown number format 'fp7'"):
         policies.quantize_for_suite(None, {}, None, None, "fp7")
