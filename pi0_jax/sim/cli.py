@@ -218,8 +218,8 @@ def run(args: argparse.Namespace) -> int:
                   + (f", prefix recomputed at {100 * r['prefix_recompute_fraction']:.1f}% of plans"
                      if r.get("reuse_prefix") is not None and "prefix_recompute_fraction" in r else ""))
         print(f"{a['n_episodes']} episodes in {a['eval_s']:.1f} s ({a['eval_ep_s']:.2f} s/episode; setup "
-              f"{t['setup_s']:.1f} s; first segment incl. compile {a['first_segment_s']:.1f} s) on {info['config']['devices']} "
-              f"{info['config']['backend']} device(s)")
+              f"{t['setup_s']:.1f} s; first segment incl. compile {a['first_segment_s']:.1f} s) on "
+              f"{info['config']['devices']} {info['config']['backend']} device(s)")
         if args.output_dir is not None:
             print(f"wrote {args.output_dir / 'eval_info.json'}" + "".join(f"\n      {v}" for v in info["video_paths"]))
         else:
