@@ -346,15 +346,14 @@ def step_sweep(config, args, out) -> ek.Blocks:
         return {r["variant"]: r for r in rows}
 
     first = timed(singles)
-    winners, merged = {}, 0   # the fastest change per set of fields, where it beat the default by more than 0.5 %
+    winners = {}   # per field, the single change that beat the default by more than 0.5 %
     for name, r in sorted(first.items(), key=lambda kv: kv[1]["denoise_10_ms"]):
-        fields = singles[name]
-        if fields and r["vs_default"] < 0.995 and not set(fields) & set(winners):
-            winners.update(fields)
-            merged += 1
+        field = next(iter(singles[name]), None)
+        if field and r["vs_default"] < 0.995 and field not in winners:
+            winners[field] = singles[name][field]
     best_single = min(first, key=lambda n: first[n]["denoise_10_ms"])
     second = {"default": {}, best_single: singles[best_single]}
-    if merged > 1:
+    if len(winners) > 1:
         second["combined"] = winners
     second = timed(second) if len(second) > 1 else first
     best = min(second, key=lambda n: second[n]["denoise_10_ms"])

@@ -128,12 +128,16 @@ def checkpoint_policy(path: str | os.PathLike, env, *, tokenizer_path=None, num_
     t0 = time.perf_counter()
     config, params, tok, normalizer = load_parts(path, tokenizer_path=tokenizer_path, norm_stats=norm_stats,
                                                  dtype=dtype)
-    setup = {"load_s": time.perf_counter() - t0}
+    return _quantized_policy(config, params, tok, normalizer, env, {"load_s": time.perf_counter() - t0},
+                             quant=quant, num_steps=num_steps, name=str(path), sampler=sampler, realtime=realtime,
+                             replan_steps=replan_steps, gemm=gemm, attention=attention)
+
+
+def _quantized_policy(config, params, tok, normalizer, env, setup: dict, *, quant, num_steps, **kw) -> SimPolicy:
+    """`quantize_for_suite`, then `model_policy`; each part's seconds join `setup` (the policy's `setup_s`)."""
     params = quantize_for_suite(config, params, tok, normalizer, quant, num_steps=num_steps, timing=setup)
     t0 = time.perf_counter()
-    policy = model_policy(config, params, tok, normalizer, env, num_steps=num_steps, name=str(path),
-                          sampler=sampler, realtime=realtime, replan_steps=replan_steps, quant=quant, gemm=gemm,
-                          attention=attention)
+    policy = model_policy(config, params, tok, normalizer, env, num_steps=num_steps, quant=quant, **kw)
     return dataclasses.replace(policy, setup_s={**setup, "policy_s": time.perf_counter() - t0})
 
 
@@ -264,13 +268,10 @@ def preset_policy(name: str, env, *, num_steps: int = 10, dtype: str | None = No
     normalizer = nz.Normalizer.identity()
     t0 = time.perf_counter()
     params = jax.block_until_ready(pi0.random_params(config, seed))
-    setup = {"random_params_s": time.perf_counter() - t0}
-    params = quantize_for_suite(config, params, tok, normalizer, quant, num_steps=num_steps, timing=setup)
-    t0 = time.perf_counter()
-    policy = model_policy(config, params, tok, normalizer, env, num_steps=num_steps,
-                          name=f"preset:{name} (random weights)", sampler=sampler, realtime=realtime,
-                          replan_steps=replan_steps, quant=quant, gemm=gemm, attention=attention)
-    return dataclasses.replace(policy, setup_s={**setup, "policy_s": time.perf_counter() - t0})
+    return _quantized_policy(config, params, tok, normalizer, env, {"random_params_s": time.perf_counter() - t0},
+                             quant=quant, num_steps=num_steps, name=f"preset:{name} (random weights)",
+                             sampler=sampler, realtime=realtime, replan_steps=replan_steps, gemm=gemm,
+                             attention=attention)
 
 
 def make_policy(spec: str, env, replan_steps: int, **kw) -> SimPolicy:
