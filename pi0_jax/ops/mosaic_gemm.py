@@ -1,0 +1,166 @@
+"""A skinny GEMM as one Pallas Mosaic GPU kernel (Hopper: TMA, wgmma, a producer warpgroup), for the denoise step's
+weight-streaming GEMMs (64 rows against megabytes of weights).
+
+The Triton split-K kernel of `expert_kernels` issues a program's loads and waits: the bytes in flight are what the
+resident programs hold, and it reads the weights at 17-32 % of an H200's bandwidth. Here a producer warpgroup streams
+(TK x cols) weight tiles by TMA, `stages` deep, into shared memory while the compute warpgroups' wgmma consume them,
+so each SM keeps several tiles in flight whatever its registers (docs/BENCHMARKS.md, "A Mosaic GPU GEMM").
+
+A CTA takes `wgs * cols` output columns of one K chunk for 64 rows; each compute warpgroup owns `cols` of them as a
+(64 x cols) f32 accumulator. splits > 1: f32 partials per K chunk, summed by the caller's XLA epilogue (as the
+Triton kernel's); splits == 1: the product rounded to x's dtype, as XLA's `x @ w` returns it. `geglu`: the Gemma
+MLP's gate/up GEMM with GELU-tanh(gate) * up in the epilogue; a CTA streams `cols` gate columns and their `cols` up
+partners (two accumulators) and writes only the product. Its numerics: gate and up rounded to the dtype (as XLA's
+GEMM output), GELU-tanh and the product in f32, rounded once; XLA's fusion may round between its bf16 ops, so the
+two agree to bf16 rounding (in f32, to f32 rounding).
+
+bf16 only on a GPU (wgmma would take f32 as tf32); `applies` says when. On a CPU the kernel runs in Mosaic GPU's
+interpreter (tests). Axis legend: M rows, K contraction, N output columns, S splits.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.experimental.pallas as pl
+import jax.experimental.pallas.mosaic_gpu as plgpu
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+ROWS = 64  # a warpgroup's wgmma rows; M is padded to a multiple
+TK = 64  # contraction per pipeline step: one 128-byte swizzled row of bf16
+
+
+@dataclasses.dataclass(frozen=True)
+class Launch:
+    """Output columns per compute warpgroup (`geglu`: hidden units), K chunks (one CTA each per column block), TMA
+    pipeline depth, compute warpgroups per CTA, and whether the gate/up GEMM ends in GeGLU (`geglu`; one chunk, one
+    warpgroup). On a GPU, cols is a multiple of 64: 32-column accumulators failed Mosaic GPU's layout inference
+    (jax 0.11.2), where the CPU interpreter took them."""
+
+    cols: int = 64
+    splits: int = 1
+    stages: int = 4
+    wgs: int = 1
+    geglu: bool = False
+
+    def __post_init__(self):
+        if self.geglu and (self.splits, self.wgs) != (1, 1):
+            raise ValueError(f"{self}: the GeGLU epilogue needs the whole K in one CTA of one compute warpgroup")
+
+
+def _interpret():
+    """Mosaic GPU's CPU interpreter (its parameters class moved into the public module in jax 0.11)."""
+    params = getattr(plgpu, "InterpretGPUParams", None)
+    if params is None:
+        from jax._src.pallas.mosaic_gpu.interpret.params import InterpretGPUParams as params
+    return params()
+
+
+def applies(x, w, launch: Launch) -> bool:
+    """Whether this kernel takes x @ w: bf16 on a Hopper GPU (or any float on the CPU interpreter), K splitting into
+    TK steps, N (geglu: each half) into column blocks."""
+    k, n = w.shape
+    n = n // 2 if launch.geglu else n
+    tiles = k % (launch.splits * TK) == 0 and n % (launch.cols * launch.wgs) == 0
+    if jax.default_backend() == "cpu":
+        return tiles
+    hopper = jax.default_backend() == "gpu" and getattr(jax.devices()[0], "compute_capability", "") == "9.0"
+    return tiles and hopper and launch.cols % 64 == 0 and x.dtype == w.dtype == jnp.bfloat16
+
+
+def _padded(x):
+    m = x.shape[0]
+    mp = -(-m // ROWS) * ROWS
+    return (jnp.pad(x, ((0, mp - m), (0, 0))) if mp != m else x), mp
+
+
+def partials(x, w, launch: Launch = Launch(), name: str = "mosaic_gemm"):
+    """x (M, K) @ w (K, N) -> (S, M, N): f32 partials over S = launch.splits K chunks, or (1, M, N) in x's dtype
+    when S == 1. Rows are padded to a multiple of ROWS (zeros) and cut back. name: the kernel's (for a profile)."""
+    assert not launch.geglu, launch
+    xp, mp = _padded(x)
+    out = _call(mp, x.shape[1], w.shape[1], x.dtype, launch, name)(xp, w)
+    return out.reshape(launch.splits, mp, -1)[:, :x.shape[0]]
+
+
+def geglu(x, w, launch: Launch = Launch(geglu=True), name: str = "mosaic_geglu"):
+    """x (M, K) @ w (K, 2F) = [gate | up] -> GELU-tanh(gate) * up (M, F) in x's dtype."""
+    assert launch.geglu, launch
+    xp, mp = _padded(x)
+    return _call(mp, x.shape[1], w.shape[1] // 2, x.dtype, launch, name)(xp, w)[:x.shape[0]]
+
+
+def _gelu_product(g, u, dtype):
+    g, u = (a.astype(dtype).astype(jnp.float32) for a in (g, u))
+    inner = np.float32(np.sqrt(2 / np.pi)) * (g + np.float32(0.044715) * g * g * g)
+    return (np.float32(0.5) * g * (1 + jnp.tanh(inner)) * u).astype(dtype)
+
+
+@functools.lru_cache(maxsize=None)
+def _call(m: int, k: int, n: int, dtype, launch: Launch, name: str):
+    """The kernel for x (m, k) and n output columns (geglu: n hidden units of a (k, 2n) weight)."""
+    cols, splits, wgs, pair = launch.cols, launch.splits, launch.wgs, launch.geglu
+    chunk, cta_n = k // splits, cols * wgs
+    out_dtype = dtype if splits == 1 else jnp.float32
+
+    def transforms(minor, dt):   # TMA tiles of 8 rows, swizzled by the row's bytes (at most 128)
+        size = jnp.dtype(dt).itemsize
+        swizzle = plgpu.find_swizzle(minor * size * 8)
+        return plgpu.TilingTransform((8, swizzle // size)), plgpu.SwizzleTransform(swizzle)
+
+    def pipeline(body, context):
+        spec = functools.partial(plgpu.BlockSpec, memory_space=plgpu.SMEM)
+        w_spec = spec((TK, cta_n), lambda kk: (kk, 0), transforms=transforms(cta_n, dtype))
+        return plgpu.emit_pipeline_warp_specialized(
+            body, grid=(chunk // TK,), memory_registers=40, wg_axis="wg", num_compute_wgs=wgs,
+            max_concurrent_steps=launch.stages, compute_context=context,
+            in_specs=[spec((ROWS, TK), lambda kk: (0, kk), transforms=transforms(TK, dtype)),
+                      *([w_spec] * (2 if pair else 1))])
+
+    def kernel(x_gmem, w_gmem, o_gmem):
+        j, s, i = lax.axis_index("n"), lax.axis_index("s"), lax.axis_index("m")
+        ks, cta_cols, rows = pl.ds(s * chunk, chunk), pl.ds(j * cta_n, cta_n), pl.ds(i * ROWS, ROWS)
+        w_tiles = (w_gmem.at[ks, cta_cols], w_gmem.at[ks, pl.ds(n + j * cta_n, cta_n)])[:2 if pair else 1]
+
+        def nothing(*_, **__):
+            return None
+
+        @functools.partial(pl.run_scoped, allocs=pipeline(nothing, nothing).get_allocations(x_gmem, *w_tiles),
+                           out_smem=plgpu.SMEM((wgs, ROWS, cols), out_dtype, transforms=transforms(cols, out_dtype)),
+                           collective_axes="wg")
+        def scope(allocs, out_smem):
+            wg = lax.axis_index("wg")
+            wg_cols = pl.ds(wg * cols, cols)
+
+            def context(run):
+                acc = plgpu.ACC((ROWS, cols), jnp.float32)
+
+                @functools.partial(pl.run_scoped, accs=(acc, acc) if pair else (acc,))
+                def accumulate(accs):
+                    run(accs)
+                    y = accs[0][...]
+                    out_smem[wg] = _gelu_product(y, accs[1][...], dtype) if pair else y.astype(out_dtype)
+                    plgpu.commit_smem()
+                    out_rows = pl.ds(s * m + i * ROWS, ROWS)
+                    plgpu.copy_smem_to_gmem(out_smem.at[wg], o_gmem.at[out_rows, cta_cols].at[:, wg_cols])
+                    plgpu.wait_smem_to_gmem(0)
+
+            def step(_, x_smem, *w_and_accs):
+                w_smems, accs = w_and_accs[:-1], w_and_accs[-1]
+                for w_smem, acc in zip(w_smems, accs):
+                    plgpu.wgmma(acc, x_smem, w_smem.at[:, wg_cols])
+                plgpu.wgmma_wait(0)
+                return accs
+
+            pipeline(step, context)(x_gmem.at[rows, ks], *w_tiles, allocations=allocs)
+
+    on_cpu = jax.default_backend() == "cpu"
+    return plgpu.kernel(kernel, out_type=jax.ShapeDtypeStruct((splits * m, n), out_dtype),
+                        grid=(n // cta_n, splits, m // ROWS), grid_names=("n", "s", "m"), num_threads=wgs + 1,
+                        thread_name="wg", kernel_name=name,
+                        compiler_params=plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup),
+                        **({"interpret": _interpret()} if on_cpu else {}))

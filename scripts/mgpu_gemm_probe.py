@@ -1,0 +1,183 @@
+"""The denoise step's four GEMM shapes (π0 full size, B = 1: 64 rows) as Pallas Mosaic GPU kernels (TMA, wgmma, a
+producer warpgroup streaming the weight tiles STAGES deep) against the engine's Triton split-K kernel and XLA's dot.
+
+The Triton kernels run at 24-44 % of the weight-read bandwidth (docs/BENCHMARKS.md, "Launch parameters inside the
+step"): a program issues its loads and waits, so the bytes in flight are set by the programs resident. A TMA
+pipeline keeps STAGES tiles in flight per SM whatever the registers; this probe measures whether that closes the gap.
+
+Each variant runs on `--copies` independent weights in one program (the caches see a layer's weights once, as in the
+step) and is timed as the program's median over `--iters` calls divided by the copies, interleaved across variants,
+and by its kernels' durations in a profiler trace. Each is checked against XLA's f32-accumulated product first.
+
+    python scripts/mgpu_gemm_probe.py --out mgpu_gemm.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import sys
+import time
+import traceback
+from pathlib import Path
+
+import jax
+import jax.experimental.pallas as pl
+import jax.experimental.pallas.mosaic_gpu as plgpu
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+from pi0_jax.ops import expert_kernels as ek
+
+sys.path.insert(0, str(Path(__file__).parent))
+from profile_engine import kernel_times  # noqa: E402
+
+INTERPRET = None   # a Mosaic GPU InterpretGPUParams runs the kernel on a CPU (a check of its indexing)
+
+
+def mgpu_partials(x, w, *, cols: int, splits: int, tk: int = 64, stages: int = 4, wgs: int = 1):
+    """x (M, K) @ w (K, N) -> f32 partials (splits, M, N) over K chunks (splits == 1: the product in x's dtype).
+    A CTA takes `wgs * cols` output columns of one K chunk; each compute warpgroup `cols` of them, all M rows."""
+    m, k = x.shape
+    n = w.shape[1]
+    chunk, cta_n = k // splits, cols * wgs
+    assert m % 64 == 0 and chunk % tk == 0 and n % cta_n == 0, (x.shape, w.shape, cols, splits, tk, wgs)
+    out_dtype = x.dtype if splits == 1 else jnp.float32
+    item, out_item = jnp.dtype(x.dtype).itemsize, jnp.dtype(out_dtype).itemsize
+
+    def transforms(minor, size):
+        swizzle = plgpu.find_swizzle(minor * size * 8)
+        return plgpu.TilingTransform((8, swizzle // size)), plgpu.SwizzleTransform(swizzle)
+
+    def pipeline(body, context):
+        spec = functools.partial(plgpu.BlockSpec, memory_space=plgpu.SMEM)
+        return plgpu.emit_pipeline_warp_specialized(
+            body, grid=(chunk // tk,), memory_registers=40, wg_axis="wg", num_compute_wgs=wgs,
+            max_concurrent_steps=stages, compute_context=context,
+            in_specs=[spec((m, tk), lambda kk: (0, kk), transforms=transforms(tk, item)),
+                      spec((tk, cta_n), lambda kk: (kk, 0), transforms=transforms(tk, item))])
+
+    def kernel(x_gmem, w_gmem, o_gmem):
+        j, s = lax.axis_index("n"), lax.axis_index("s")
+        ks, cta_cols = pl.ds(s * chunk, chunk), pl.ds(j * cta_n, cta_n)
+
+        def nothing(*_, **__):
+            return None
+
+        @functools.partial(pl.run_scoped, allocs=pipeline(nothing, nothing).get_allocations(x_gmem, w_gmem),
+                           out_smem=plgpu.SMEM((wgs, m, cols), out_dtype, transforms=transforms(cols, out_item)),
+                           collective_axes="wg")
+        def scope(allocs, out_smem):
+            wg = lax.axis_index("wg")
+            wg_cols = pl.ds(wg * cols, cols)
+
+            def context(run):
+                @functools.partial(pl.run_scoped, acc=plgpu.ACC((m, cols), jnp.float32))
+                def accumulate(acc):
+                    run(acc)
+                    out_smem[wg] = acc[...].astype(out_dtype)
+                    plgpu.commit_smem()
+                    plgpu.copy_smem_to_gmem(out_smem.at[wg], o_gmem.at[pl.ds(s * m, m), cta_cols].at[:, wg_cols])
+                    plgpu.wait_smem_to_gmem(0)
+
+            def step(_, x_smem, w_smem, acc):
+                plgpu.wgmma(acc, x_smem, w_smem.at[:, wg_cols])
+                plgpu.wgmma_wait(0)
+                return acc
+
+            pipeline(step, context)(x_gmem.at[:, ks], w_gmem.at[ks, cta_cols], allocations=allocs)
+
+    out = plgpu.kernel(kernel, out_type=jax.ShapeDtypeStruct((splits * m, n), out_dtype),
+                       grid=(n // cta_n, splits), grid_names=("n", "s"), num_threads=wgs + 1, thread_name="wg",
+                       compiler_params=plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup),
+                       **({"interpret": INTERPRET} if INTERPRET is not None else {}))(x, w)
+    return out.reshape(splits, m, n)
+
+
+# π0 full size, B = 1 (64 rows): (name, K, N, the engine's Triton launch)
+SHAPES = [("qkv", 1024, 2560, ek.Gemm(128, 8)), ("attn_out", 2048, 1024, ek.Gemm(64, 4)),
+          ("gate_up", 1024, 8192, ek.Gemm(128, 4, 1)), ("down", 4096, 1024, ek.Gemm(64, 8))]
+
+# Mosaic launches per shape: (cols per warpgroup, warpgroups, splits, stages); each gives 64-256 CTAs
+MGPU = {"qkv": [(64, 1, 4, 4), (64, 1, 2, 6), (64, 2, 4, 4), (128, 1, 4, 4), (64, 1, 8, 2)],
+        "attn_out": [(64, 1, 8, 4), (64, 1, 4, 6), (64, 2, 8, 4), (128, 1, 8, 4), (64, 1, 16, 2)],
+        "gate_up": [(64, 1, 1, 8), (64, 1, 2, 4), (64, 2, 2, 4), (128, 1, 2, 4), (64, 2, 1, 8), (128, 1, 1, 6)],
+        "down": [(64, 1, 8, 4), (64, 1, 4, 8), (64, 2, 8, 4), (128, 1, 8, 4), (64, 1, 16, 4)]}
+
+
+def interleaved_ms(fns: dict, iters: int, warmup: int = 3) -> dict:
+    for fn in fns.values():
+        for _ in range(warmup):
+            jax.block_until_ready(fn())
+    times = {name: [] for name in fns}
+    for i in range(iters):
+        for name in (list(fns) if i % 2 == 0 else list(fns)[::-1]):
+            start = time.perf_counter()
+            jax.block_until_ready(fns[name]())
+            times[name].append(time.perf_counter() - start)
+    return {name: float(np.median(t)) * 1e3 for name, t in times.items()}
+
+
+def probe_shape(name, k, n, triton, args, rows: int = 64):
+    key = jax.random.key(hash(name) % 2**31)
+    kx, kw = jax.random.split(key)
+    x = (jax.random.normal(kx, (rows, k), jnp.float32)).astype(jnp.bfloat16)
+    ws = [(jax.random.normal(w, (k, n), jnp.float32) * k**-0.5).astype(jnp.bfloat16)
+          for w in jax.random.split(kw, args.copies)]
+    want = np.asarray(jnp.dot(x, ws[0], preferred_element_type=jnp.float32))
+
+    def total(parts):   # the split sum in f32 (the engine's epilogue fusion does it)
+        return parts.astype(jnp.float32).sum(0)
+
+    variants = {"xla": lambda x, w: jnp.dot(x, w, preferred_element_type=jnp.float32)[None],
+                f"triton {triton.cols}x{triton.splits}s{triton.stages}":
+                    lambda x, w: ek.matmul_partials(x, w, gemm=triton, name=f"expert_{name}")[0]}
+    for cols, wgs, splits, stages in MGPU[name]:
+        variants[f"mgpu {cols}x{wgs}wg {splits}s {stages}st"] = functools.partial(
+            mgpu_partials, cols=cols, wgs=wgs, splits=splits, stages=stages)
+    res, calls = {}, {}
+    for label, fn in variants.items():
+        try:
+            got = np.asarray(jax.jit(lambda x, w: total(fn(x, w)))(x, ws[0]))
+            err = float(np.abs(got - want).max() / np.abs(want).max())
+            prog = jax.jit(lambda x, ws, fn=fn: [fn(x, w) for w in ws])
+            prog(x, ws)
+            calls[label] = functools.partial(prog, x, ws)
+            res[label] = {"max_rel_err": err}
+        except Exception:
+            res[label] = {"error": traceback.format_exc()[-1500:]}
+            print(label, res[label]["error"], flush=True)
+    floor_us = k * n * 2 / args.bandwidth * 1e6
+    for label, ms in interleaved_ms(calls, args.iters).items():
+        us = ms * 1e3 / args.copies
+        t = kernel_times(calls[label], 5)
+        kus = t["kernel_ms"] * 1e3 / args.copies
+        res[label].update(us=us, floor_us=floor_us, bandwidth_frac=floor_us / us, trace_kernel_us=kus,
+                          kernels_per_copy=t["kernels_per_call"] / args.copies, trace_wall_ms=t["wall_ms"],
+                          by_name=t["by_name"][:4])
+        print(f"{name:9s} {label:28s} {us:7.2f} us wall, {kus:6.2f} us in kernels "
+              f"({t['kernels_per_call'] / args.copies:.1f} per copy; {floor_us / kus:5.1%} of "
+              f"{args.bandwidth / 1e12:.2f} TB/s)  err {res[label]['max_rel_err']:.1e}", flush=True)
+    return res
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--iters", type=int, default=30, help="timed calls per median (default: %(default)s)")
+    p.add_argument("--copies", type=int, default=18, help="independent weights per program (default: %(default)s)")
+    p.add_argument("--bandwidth", type=float, default=4.8e12, help="the floor's bytes/s (default: H200's 4.8e12)")
+    p.add_argument("--shapes", default=",".join(s[0] for s in SHAPES), help="which of the four (default: all)")
+    p.add_argument("--out", type=Path, default=Path("mgpu_gemm.json"), help="JSON results (default: %(default)s)")
+    args = p.parse_args()
+    out = {"device": jax.devices()[0].device_kind, "jax": jax.__version__,
+           "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "copies": args.copies}
+    for name, k, n, triton in SHAPES:
+        if name in args.shapes.split(","):
+            out[name] = probe_shape(name, k, n, triton, args)
+            args.out.write_text(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()

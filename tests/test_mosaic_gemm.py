@@ -1,0 +1,126 @@
+"""The Mosaic GPU GEMM (`pi0_jax.ops.mosaic_gemm`, Mosaic GPU's interpreter on CPU) equals XLA's product, and the
+expert's layers with every GEMM on it equal the XLA layer, for π0 and π0.5's adaRMS. The `dummy` expert's widths
+(48) do not tile its 64-wide K steps, so these tests build their own expert: width 128, two heads of 64 (one kv
+head), MLP 256, which every launch below tiles. f32: the kernel and XLA differ only in summation order."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from pi0_jax import pi0
+from pi0_jax.config import GemmaConfig
+from pi0_jax.engine import layers
+from pi0_jax.ops import expert_kernels as ek
+from pi0_jax.ops import layout, mosaic_gemm
+from pi0_jax.ops.mosaic_gemm import Launch
+
+TOL = {"rtol": 1e-5, "atol": 1e-5}
+CFG = GemmaConfig(width=128, depth=1, mlp_dim=256, num_heads=2, num_kv_heads=1, head_dim=64)
+B, S, P = 1, 11, 100   # a 100-key prefix (padded to 128, the padding masked) and 11 suffix rows (padded to 16)
+MOSAIC = ek.Blocks(mosaic_qkv=Launch(64, 2, 2), mosaic_mlp=Launch(64, 1, 3, 2), mosaic_out=Launch(64, 2, 2),
+                   mosaic_down=Launch(128, 4, 1))
+GEGLU = dataclasses.replace(MOSAIC, mosaic_mlp=Launch(64, 1, 3, geglu=True))
+
+
+def _rand(key, *shape, scale=1.0):
+    return jax.random.normal(jax.random.key(key), shape, jnp.float32) * scale
+
+
+@pytest.mark.parametrize("rows,k,n,launch", [(64, 256, 256, Launch(64, 2, 2)), (100, 128, 256, Launch(64, 1, 2, 2)),
+                                             (130, 256, 128, Launch(128, 4, 3))])
+def test_partials_equal_xla(rows, k, n, launch):
+    """Rows padded to 64 and cut back; split-K partials in f32; one chunk in the input's dtype."""
+    x, w = _rand(0, rows, k), _rand(1, k, n, scale=k**-0.5)
+    assert mosaic_gemm.applies(x, w, launch)
+    got = mosaic_gemm.partials(x, w, launch)
+    assert got.shape == (launch.splits, rows, n) and got.dtype == jnp.float32
+    np.testing.assert_allclose(got.sum(0), x @ w, **TOL)
+    # bf16: one chunk comes back rounded to bf16, as XLA's x @ w does
+    xb, wb = x.astype(jnp.bfloat16), w.astype(jnp.bfloat16)
+    got = mosaic_gemm.partials(xb, wb, launch).astype(jnp.float32).sum(0)
+    want = jnp.dot(xb, wb, preferred_element_type=jnp.float32)
+    np.testing.assert_allclose(got, want, rtol=1e-2, atol=1e-2)
+    assert not np.allclose(got, jnp.dot(xb, wb[::-1], preferred_element_type=jnp.float32), rtol=1e-2, atol=1e-2)
+
+
+def test_geglu_equals_xla():
+    """Gate and up columns of the same hidden units in one CTA; rows padded."""
+    x, w = _rand(2, 100, 128), _rand(3, 128, 512, scale=128**-0.5)
+    gate, up = jnp.split(x @ w, 2, axis=-1)
+    want = jax.nn.gelu(gate, approximate=True) * up
+    for launch in (Launch(64, 1, 2, geglu=True), Launch(128, 1, 3, geglu=True)):
+        assert mosaic_gemm.applies(x, w, launch)
+        np.testing.assert_allclose(mosaic_gemm.geglu(x, w, launch), want, **TOL)
+    assert not np.allclose(jax.nn.gelu(up, approximate=True) * gate, want, **TOL)   # gate and up not swapped
+    xb, wb = x.astype(jnp.bfloat16), w.astype(jnp.bfloat16)
+    gate, up = jnp.split(xb @ wb, 2, axis=-1)
+    got = mosaic_gemm.geglu(xb, wb, Launch(64, 1, 2, geglu=True))
+    assert got.dtype == jnp.bfloat16
+    np.testing.assert_allclose(got.astype(jnp.float32), jax.nn.gelu(gate, approximate=True) * up, rtol=1e-2,
+                               atol=4e-2)   # one bf16 ulp at |y| < 8, rounded once here and per op in XLA
+    with pytest.raises(ValueError, match="GeGLU epilogue"):
+        Launch(64, 2, geglu=True)
+
+
+def test_applies_only_where_the_launch_tiles():
+    x = jnp.zeros((64, 48))
+    assert not mosaic_gemm.applies(x, jnp.zeros((48, 128)), Launch())        # the dummy expert's width
+    assert not mosaic_gemm.applies(x, jnp.zeros((128, 96)), Launch(64))      # 96 columns in blocks of 64
+    assert not mosaic_gemm.applies(x, jnp.zeros((128, 128)), Launch(64, 4))  # 4 chunks of 32 < one 64-wide step
+    assert mosaic_gemm.applies(x, jnp.zeros((128, 128)), Launch(64, 2))
+    assert not mosaic_gemm.applies(x, jnp.zeros((128, 192)), Launch(64, geglu=True))   # 96 hidden units
+
+
+def _layers_inputs(pi05: bool):
+    d, f, n, kh, h = CFG.width, CFG.mlp_dim, CFG.num_heads, CFG.num_kv_heads, CFG.head_dim
+    weights = [{"qkv": _rand(10 * i, d, (n + 2 * kh) * h, scale=d**-0.5),
+                "attn_out": _rand(10 * i + 1, n * h, d, scale=0.1),
+                "gate_up": _rand(10 * i + 2, d, 2 * f, scale=d**-0.5),
+                "down": _rand(10 * i + 3, f, d, scale=f**-0.5)} for i in range(CFG.depth)]
+    if not pi05:
+        for i, w in enumerate(weights):
+            w.update(pre_attn=_rand(10 * i + 4, d, scale=0.2), pre_ffw=_rand(10 * i + 5, d, scale=0.2))
+    mods = (_rand(50, CFG.depth, 3 * d, scale=0.3), _rand(51, CFG.depth, 3 * d, scale=0.3)) if pi05 else None
+    x = _rand(60, B, S, d)
+    positions = 90 + jnp.arange(S)[None]
+    ck, cv = _rand(61, CFG.depth, B, P, kh, h), _rand(62, CFG.depth, B, P, kh, h)
+    pmask = jnp.arange(P)[None] < 90   # the last 10 prefix keys are padding
+    ar = jnp.asarray([True] + [False] * (S - 1) if pi05 else [True, True] + [False] * (S - 2))
+    smask = jnp.broadcast_to(pi0.make_attn_mask(jnp.ones((1, S), bool), ar), (B, S, S))
+    return weights, mods, x, positions, ck, cv, pmask, smask
+
+
+@pytest.mark.parametrize("pi05,blocks", [(False, MOSAIC), (True, MOSAIC), (False, GEGLU), (True, GEGLU)])
+def test_expert_layers_on_the_mosaic_gemm_equal_xla(pi05, blocks, monkeypatch):
+    weights, mods, x, positions, ck, cv, pmask, smask = _layers_inputs(pi05)
+    want = x
+    for i, w in enumerate(weights):
+        layer_mods = None if mods is None else (mods[0][i:i + 1], mods[1][i:i + 1])
+        want, _, _ = layers.suffix_layer(CFG, w, want, positions, ck[i], cv[i],
+                                         jnp.broadcast_to(pmask[:, None], (B, S, P)), smask, layer_mods)
+    calls = []
+    for fn in ("partials", "geglu"):
+        kernel = getattr(mosaic_gemm, fn)
+        monkeypatch.setattr(mosaic_gemm, fn,
+                            lambda *a, kernel=kernel, **kw: calls.append(kw["name"]) or kernel(*a, **kw))
+    cache_k, cache_v = ([layout.cache_kv(c[i], CFG.head_dim) for i in range(CFG.depth)] for c in (ck, cv))
+    got = layers.suffix_layers_pallas(CFG, weights, x, positions, cache_k, cache_v, layout.cache_mask(pmask), smask,
+                                      mods, blocks=blocks)
+    assert calls == ["expert_qkv", "expert_attn_out", "expert_gate_up", "expert_down"] * CFG.depth
+    np.testing.assert_allclose(got, want, **TOL)
+    # the norm scale / adaRMS shift enter: without them the result differs
+    if pi05:
+        mods = (mods[0].at[:, CFG.width:2 * CFG.width].set(0), mods[1])
+    else:
+        weights = [dict(w, pre_attn=jnp.zeros_like(w["pre_attn"])) for w in weights]
+    other = layers.suffix_layers_pallas(CFG, weights, x, positions, cache_k, cache_v, layout.cache_mask(pmask), smask,
+                                        mods, blocks=blocks)
+    assert not np.allclose(other, want, **TOL)
+
+
+def test_blocks_with_launches_round_trip_through_json():
+    assert ek.Blocks.from_dict(dataclasses.asdict(GEGLU)) == GEGLU
+    assert ek.Blocks.from_dict(dataclasses.asdict(ek.Blocks())) == ek.Blocks()
