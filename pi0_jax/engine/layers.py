@@ -190,8 +190,8 @@ def suffix_layers_pallas(cfg: GemmaConfig, weights, x, positions, cache_k, cache
         k, v = (c[i].reshape(b * c[i].shape[1], -1) for c in (cache_k, cache_v))
         y = expert_kernels.attention(qkv, k, v, pmask, smask, batch=b, blocks=blocks, **heads)
         rows = expert_kernels.matmul_residual(y, w["attn_out"], rows, ma, ga, gemm=blocks.out, blocks=blocks,
-                                              name="expert_attn_out")
+                                              name="expert_attn_out", mosaic=blocks.mosaic_out)
         h = expert_kernels.norm_geglu(rows, mf, rf, adaptive, w["gate_up"], width=d, blocks=blocks)
         rows = expert_kernels.matmul_residual(h, w["down"], rows, mf, gf, gemm=blocks.down, blocks=blocks,
-                                              name="expert_down")
+                                              name="expert_down", mosaic=blocks.mosaic_down)
     return rows.reshape(b, sp, -1)[:, :s, :d]

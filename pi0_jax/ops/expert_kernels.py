@@ -13,6 +13,10 @@ over K (hundreds of short programs, f32 partials), and the cheap elementwise wor
   norm_geglu       = matmul_partials, then (XLA) the split sum, 1 / rms, GELU-tanh(gate) * up
   matmul_residual  = matmul_partials, then (XLA) the split sum, adaRMS's gate and the residual
 
+Any of the four GEMMs may instead run `ops.mosaic_gemm` (a TMA-pipelined Mosaic GPU kernel, bf16 on Hopper): the
+Blocks field mosaic_<gemm> names its launch; gate/up's may end in GeGLU. Its GEMM is plain, so a norm before it is
+one XLA fusion in `layers.rms_norm`'s order, and the product is the XLA path's to f32 rounding.
+
 Kernel layout (`pi0_jax.ops.layout`): rows are (batch, suffix padded to Sp) flattened; each head is stored as
 [x1 | 0 | x2 | 0], the two RoPE halves each padded to hp (a multiple of 16); widths are multiples of 16 (Triton's
 smallest dot). Padding is zeros and padded keys are masked, so every valid number is the one the XLA path computes.
@@ -38,7 +42,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.experimental import pallas as pl
 
-from pi0_jax.ops import pallas_base
+from pi0_jax.ops import mosaic_gemm, pallas_base
+from pi0_jax.ops.mosaic_gemm import Launch  # noqa: F401  (re-exported: a Blocks field's type)
 from pi0_jax.ops.pallas_base import ALIGN, dot, fit
 
 BIG_NEG = -2.3819763e38  # masked logits: the value pi0_jax.gemma fills (a test checks they agree)
@@ -62,7 +67,9 @@ class Blocks:
     parameters. Defaults: the fastest of the sweeps at π0 full size, B=1, on an H200 (docs/BENCHMARKS.md, "Fused
     kernels"), then of sweeps inside the 10-step denoise on H100s: gate/up at 128 columns without pipelining took
     π0's step 3-4 % faster on two machines and was level on a third and for π0.5 ("Launch parameters inside the
-    step"); no other tiling, split count or depth moved the step by more than 1 %."""
+    step"); no other tiling, split count or depth moved the step by more than 1 %. On Hopper, gate/up runs the Mosaic
+    GPU kernel with GeGLU in its epilogue: π0's step 4.7 % and π0.5's 9.5 % faster on an H200; the other three
+    GEMMs on it were 1-2 % slower, each needing its norm or sum apart ("A Mosaic GPU GEMM")."""
 
     rows: int = 64  # GEMM rows per program
     k: int = 256  # GEMM contraction chunk per loop step
@@ -76,11 +83,17 @@ class Blocks:
     num_warps: int = 4  # the GEMM kernel's
     attention_warps: int = 8
     attention_stages: int = 3
+    # a GEMM as `ops.mosaic_gemm` with this launch where it applies (bf16 on Hopper), None: the Triton kernel
+    mosaic_qkv: Launch | None = None
+    mosaic_mlp: Launch | None = Launch(64, 1, 6, geglu=True)
+    mosaic_out: Launch | None = None
+    mosaic_down: Launch | None = None
 
     @classmethod
     def from_dict(cls, d: dict) -> "Blocks":
         """The inverse of `dataclasses.asdict` (a benchmark's JSON)."""
-        return cls(**{k: Gemm(**v) if isinstance(v, dict) else v for k, v in d.items()})
+        return cls(**{k: (Launch if k.startswith("mosaic_") else Gemm)(**v) if isinstance(v, dict) else v
+                      for k, v in d.items()})
 
 
 def _call(kernel, grid, out_shape, name: str, num_warps: int, num_stages: int):
@@ -160,8 +173,23 @@ def matmul_partials(y, w, mods=None, mod_row: int = 0, *, scaled: bool = False, 
     return parts, ss, shift
 
 
-def _normed_product(x, mods, mod_row, adaptive, w, *, width, gemm, blocks, name):
-    """norm(x) @ w as the GEMM's f32 result (before rounding): the split sum times 1 / rms, plus shift @ w."""
+def _mosaic(y, w, launch: Launch | None) -> bool:
+    return launch is not None and mosaic_gemm.applies(y, w, launch)
+
+
+def _norm(x, mods, mod_row, adaptive, width):
+    """RMSNorm (or adaRMS) of the rows in `layers.rms_norm`'s order, rounded to the dtype: the input of a plain GEMM."""
+    inv = jax.lax.rsqrt(jnp.sum(jnp.square(x.astype(jnp.float32)), axis=1, keepdims=True) / width + EPS)
+    h = x * inv * (1 + mods[mod_row])
+    return (h + mods[mod_row + 1] if adaptive else h).astype(x.dtype)
+
+
+def _normed_product(x, mods, mod_row, adaptive, w, *, width, gemm, blocks, name, mosaic=None):
+    """norm(x) @ w as the GEMM's f32 result (before rounding): the split sum times 1 / rms, plus shift @ w. With a
+    Mosaic launch: the norm first, in `layers.rms_norm`'s order (one XLA fusion), then the plain GEMM."""
+    if _mosaic(x, w, mosaic):
+        h = _norm(x, mods, mod_row, adaptive, width)
+        return sum(list(mosaic_gemm.partials(h, w, mosaic, name=name).astype(jnp.float32)))
     parts, ss, shift = matmul_partials(x, w, mods, mod_row, scaled=True, adaptive=adaptive, gemm=gemm,
                                        blocks=blocks, name=name)
     inv = jax.lax.rsqrt(sum(list(ss)) / width + EPS)[:, None]
@@ -179,7 +207,7 @@ def norm_qkv_rope(x, mods, mod_row: int, adaptive: bool, w_qkv, cos, sin, *, wid
     m, dtype = x.shape[0], x.dtype
     heads, hp = num_heads + 2 * num_kv_heads, cos.shape[1]
     acc = _normed_product(x, mods, mod_row, adaptive, w_qkv, width=width, gemm=blocks.qkv, blocks=blocks,
-                          name="expert_qkv")
+                          name="expert_qkv", mosaic=blocks.mosaic_qkv)
     a = _round(acc, dtype).reshape(m, heads, 2, hp)
     a1, a2, c, s = a[:, :, 0], a[:, :, 1], cos[:, None], sin[:, None]
     # RoPE in f32, then the dtype, for q and k heads; q is then scaled in the dtype (q_scale is a dtype value). On a
@@ -273,10 +301,14 @@ def attention(qkv, cache_k, cache_v, prefix_mask, suffix_mask, *, batch: int, nu
 
 # -- GEMM + (gated) residual, norm + gate/up GEMM + GeGLU --------------------------------------------------------------
 def matmul_residual(y, w, x, mods=None, gate_row: int | None = None, *, gemm: Gemm, blocks: Blocks = Blocks(),
-                    name: str = "matmul_partials"):
+                    name: str = "matmul_partials", mosaic: Launch | None = None):
     """x + (y @ w) [* mods[gate_row]]: y (M, E), w (E, D), x (M, D); the π0.5 adaRMS gate is a row of mods (R, D).
-    The split sum is rounded to the dtype, then the gate and the residual (the XLA path's ops, in its order)."""
-    parts, _, _ = matmul_partials(y, w, gemm=gemm, blocks=blocks, name=name)
+    The split sum is rounded to the dtype, then the gate and the residual (the XLA path's ops, in its order).
+    mosaic: the GEMM as `ops.mosaic_gemm` with this launch, where it applies."""
+    if _mosaic(y, w, mosaic):
+        parts = mosaic_gemm.partials(y, w, mosaic, name=name).astype(jnp.float32)
+    else:
+        parts, _, _ = matmul_partials(y, w, gemm=gemm, blocks=blocks, name=name)
     z = sum(list(parts)).astype(x.dtype)
     return x + (z if gate_row is None else z * mods[gate_row])
 
@@ -284,7 +316,13 @@ def matmul_residual(y, w, x, mods=None, gate_row: int | None = None, *, gemm: Ge
 def norm_geglu(x, mods, mod_row: int, adaptive: bool, w_gate_up, *, width: int, blocks: Blocks = Blocks()):
     """gelu_tanh(h @ w_gate) * (h @ w_up) with h = norm(x): x (M, D), w_gate_up (D, 2F) = [gate | up] -> (M, F)."""
     dtype, hidden = x.dtype, w_gate_up.shape[1] // 2
+    launch = blocks.mosaic_mlp
+    if launch is not None and launch.geglu:
+        if _mosaic(x, w_gate_up, launch):
+            return mosaic_gemm.geglu(_norm(x, mods, mod_row, adaptive, width), w_gate_up, launch,
+                                     name="expert_gate_up")
+        launch = None   # the Triton kernel
     acc = _normed_product(x, mods, mod_row, adaptive, w_gate_up, width=width, gemm=blocks.mlp, blocks=blocks,
-                          name="expert_gate_up")
+                          name="expert_gate_up", mosaic=launch)
     gate = _round(jax.nn.gelu(_round(acc[:, :hidden], dtype), approximate=True), dtype)
     return (gate * _round(acc[:, hidden:], dtype)).astype(dtype)
