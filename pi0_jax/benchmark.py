@@ -13,6 +13,7 @@ from the `peers` package, which may import torch; this module does not.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime
 import functools
 import json
@@ -33,6 +34,7 @@ from pi0_jax.pi0 import random_params
 from pi0_jax.config import IMAGE_KEYS, PRESETS, Pi0Config, get_config
 from pi0_jax.engine import Engine
 from pi0_jax.engine.programs import KERNELS, attention_spec, vision_norm
+from pi0_jax.ops import expert_kernels
 from pi0_jax.ops.matmul import GEMMS
 from pi0_jax.quant.schemes import SCHEMES
 
@@ -72,7 +74,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "(default: %(default)s)")
     p.add_argument("--kernels", choices=KERNELS, default="auto",
                    help="the action expert's layers as XLA ops, as the fused Pallas kernels of pi0_jax.ops "
-                        "(Triton on GPU), or auto: the kernels at batch 1 and 2 on a GPU, XLA otherwise; each row "
+                        "(Triton on GPU; gate/up with GeGLU on Mosaic GPU on Hopper), or auto: the kernels at batch 1 "
+                        "and 2 on a GPU, XLA otherwise; each row "
                         "records the path it ran. SigLIP's LayerNorm likewise, auto: the kernel on a GPU from 24 "
                         "images a call (default: %(default)s)")
     p.add_argument("--gemm", choices=GEMMS, default="xla",
@@ -297,7 +300,8 @@ def chart(results: dict, path: Path) -> None:
 def run(args: argparse.Namespace) -> dict:
     cache_dir = args.cache_dir or Path(tempfile.mkdtemp(prefix="pi0-jax-xla-"))
     results = {"preset": args.preset, "env": {**environment(), "kernels": args.kernels, "attention": args.attention,
-                                               "gemm": args.gemm},
+                                               "gemm": args.gemm,
+                                               "expert_blocks": dataclasses.asdict(expert_kernels.Blocks())},
                "rows": [], "peers": [],
                "compile": {},
                "args": {k: str(v) for k, v in vars(args).items() if k != "func"}}

@@ -37,13 +37,15 @@ from pi0_jax.ops import expert_kernels as ek, layout
 sys.path.insert(0, str(Path(__file__).parent))
 from profile_engine import count_ops, kernel_times  # noqa: E402
 
-G = ek.Gemm
+G, L = ek.Gemm, ek.Launch
 # The launch variants of `step_sweep`, each one change from the defaults: run 20 swept the pipelining depth, run 22
 # the split-K counts (their f32 partials are written and read again: gate/up at 4 splits writes 8.4 MB beside its
 # 16.8 MB of weights). Neither moved the step by more than 1.1 % (docs/BENCHMARKS.md, "Launch parameters"). Runs 23
 # and 25 put gate/up at 128 columns without pipelining (3-4 % for π0); `gate_up` times it against the old default.
 # Run 27 timed gate/up + GeGLU and q/k/v + RoPE each as one kernel walking all of K (no partials, no epilogue): the
 # step 13-74 % slower for every launch tried, so those kernels were removed ("One pass per GEMM, measured").
+# Since run 30 gate/up runs the Mosaic GPU kernel on Hopper, so the `mlp` variants above change nothing there unless
+# they also set mosaic_mlp=None.
 STEP_SWEEPS = {
     "depths": {"default": {}, "qkv 128x8 s1": dict(qkv=G(128, 8, 1)), "qkv 128x8 s2": dict(qkv=G(128, 8, 2)),
                "mlp 64x4 s3": dict(mlp=G(64, 4, 3)), "mlp 64x4 s1": dict(mlp=G(64, 4, 1)),
@@ -56,6 +58,20 @@ STEP_SWEEPS = {
                "qkv 64x2": dict(qkv=G(64, 2)), "qkv 32x4": dict(qkv=G(32, 4)), "down 64x4": dict(down=G(64, 4)),
                "down 32x4": dict(down=G(32, 4)), "out 64x2": dict(out=G(64, 2)), "out 32x2": dict(out=G(32, 2))},
     "gate_up": {"default": {}, "mlp 64x4 s3": dict(mlp=G(64, 4, 3)), "mlp 256x4 s1": dict(mlp=G(256, 4, 1))},
+    # each GEMM as the TMA-pipelined Mosaic GPU kernel (`ops.mosaic_gemm`), at the launches that led
+    # scripts/mgpu_gemm_probe.py (cols per warpgroup, splits, stages, warpgroups)
+    "mosaic": {"default": {}, "mlp mosaic 64 1s 8st": dict(mosaic_mlp=L(64, 1, 8)),
+               "mlp mosaic 64x2wg 2s 4st": dict(mosaic_mlp=L(64, 2, 4, 2)),
+               "qkv mosaic 64 2s 6st": dict(mosaic_qkv=L(64, 2, 6)),
+               "qkv mosaic 128 4s 4st": dict(mosaic_qkv=L(128, 4, 4)),
+               "out mosaic 64 8s 4st": dict(mosaic_out=L(64, 8, 4)),
+               "down mosaic 64 8s 4st": dict(mosaic_down=L(64, 8, 4))},
+    # gate/up: the Triton kernel, the Mosaic kernel plain (XLA's GeGLU after it), or with GeGLU in its epilogue (the
+    # default since run 30; 32 hidden units per CTA failed Mosaic's layout inference there)
+    "mosaic_geglu": {"default": {}, "mlp triton": dict(mosaic_mlp=None),
+                     "mlp mosaic 64 1s 8st": dict(mosaic_mlp=L(64, 1, 8)),
+                     "mlp geglu 64 8st": dict(mosaic_mlp=L(64, 1, 8, geglu=True)),
+                     "mlp geglu 128 4st": dict(mosaic_mlp=L(128, 1, 4, geglu=True))},
 }
 
 
