@@ -60,8 +60,8 @@ STEP_SWEEPS = {
     "gate_up": {"default": {}, "mlp 64x4 s3": dict(mlp=G(64, 4, 3)), "mlp 256x4 s1": dict(mlp=G(256, 4, 1))},
     # each GEMM as the TMA-pipelined Mosaic GPU kernel (`ops.mosaic_gemm`), at the launches that led
     # scripts/mgpu_gemm_probe.py (cols per warpgroup, splits, stages, warpgroups)
-    # (run 29 ran the q/k/v and plain gate/up variants with the norm before the kernel, as XLA's fusion; since run 33
-    # it is inside the kernel)
+    # (q/k/v and plain gate/up with the norm before the kernel as XLA's fusion; run 33 had it inside the kernel,
+    # `git show 092647b:pi0_jax/ops/mosaic_gemm.py`, and was no faster)
     "mosaic": {"default": {}, "mlp mosaic 64 1s 8st": dict(mosaic_mlp=L(64, 1, 8)),
                "qkv mosaic 64 2s 6st": dict(mosaic_qkv=L(64, 2, 6)),
                "qkv mosaic 128 4s 4st": dict(mosaic_qkv=L(128, 4, 4)),

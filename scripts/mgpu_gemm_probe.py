@@ -8,6 +8,7 @@ pipeline keeps STAGES tiles in flight per SM whatever the registers; this probe 
 Each variant runs on `--copies` independent weights in one program (the caches see a layer's weights once, as in the
 step) and is timed as the program's median over `--iters` calls divided by the copies, interleaved across variants,
 and by its kernels' durations in a profiler trace. Each is checked against XLA's f32-accumulated product first.
+(Run 32 also timed the norm inside the kernel: `git show 092647b:scripts/mgpu_gemm_probe.py`.)
 
     python scripts/mgpu_gemm_probe.py --out mgpu_gemm.json
 """
@@ -30,7 +31,6 @@ import numpy as np
 from jax import lax
 
 from pi0_jax.ops import expert_kernels as ek
-from pi0_jax.ops import mosaic_gemm
 
 sys.path.insert(0, str(Path(__file__).parent))
 from profile_engine import kernel_times  # noqa: E402
@@ -108,11 +108,6 @@ MGPU = {"qkv": [(64, 1, 4, 4), (64, 1, 2, 6), (64, 2, 4, 4), (128, 1, 4, 4), (64
         "down": [(64, 1, 8, 4), (64, 1, 4, 8), (64, 2, 8, 4), (128, 1, 8, 4), (64, 1, 16, 4)]}
 
 
-# the norm inside the kernel (`mosaic_gemm.normed_partials`) against Triton's norm prologue, π0 (scale) and π0.5
-# (scale and adaRMS shift): (cols, splits, stages)
-NORMED = {"qkv": [(64, 2, 6), (128, 4, 4), (64, 4, 4)], "gate_up": [(64, 1, 8), (64, 2, 4)]}
-
-
 def interleaved_ms(fns: dict, iters: int, warmup: int = 3) -> dict:
     for fn in fns.values():
         for _ in range(warmup):
@@ -140,22 +135,9 @@ def probe_shape(name, k, n, triton, args, rows: int = 64):
     variants = {"xla": lambda x, w: jnp.dot(x, w, preferred_element_type=jnp.float32)[None],
                 f"triton {triton.cols}x{triton.splits}s{triton.stages}":
                     lambda x, w: ek.matmul_partials(x, w, gemm=triton, name=f"expert_{name}")[0]}
-    for cols, wgs, splits, stages in MGPU[name] if not args.normed_only else ():
+    for cols, wgs, splits, stages in MGPU[name]:
         variants[f"mgpu {cols}x{wgs}wg {splits}s {stages}st"] = functools.partial(
             mgpu_partials, cols=cols, wgs=wgs, splits=splits, stages=stages)
-    # normed: scale 1 and shift 0, so the partials are x @ w's (the work is the same for any values)
-    mods = jnp.concatenate([jnp.zeros((1, k), x.dtype), jnp.zeros((1, k), x.dtype)])
-    one, zero = jnp.ones((k,), jnp.float32), jnp.zeros((k,), jnp.float32)
-    for adaptive in (False, True) if name in NORMED else ():
-        tag = "adaRMS" if adaptive else "norm"
-        variants[f"triton {tag}"] = functools.partial(
-            lambda x, w, adaptive: ek.matmul_partials(x, w, mods, 0, scaled=True, adaptive=adaptive, gemm=triton,
-                                                      name=f"expert_{name}")[0], adaptive=adaptive)
-        for cols, splits, stages in NORMED[name]:
-            variants[f"mgpu {tag} {cols} {splits}s {stages}st"] = functools.partial(
-                lambda x, w, launch, adaptive: mosaic_gemm.normed_partials(
-                    x, w, one, zero if adaptive else None, launch)[0],
-                launch=mosaic_gemm.Launch(cols, splits, stages), adaptive=adaptive)
     res, calls = {}, {}
     for label, fn in variants.items():
         try:
@@ -188,8 +170,6 @@ def main():
     p.add_argument("--copies", type=int, default=18, help="independent weights per program (default: %(default)s)")
     p.add_argument("--bandwidth", type=float, default=4.8e12, help="the floor's bytes/s (default: H200's 4.8e12)")
     p.add_argument("--shapes", default=",".join(s[0] for s in SHAPES), help="which of the four (default: all)")
-    p.add_argument("--normed-only", action="store_true",
-                   help="of the Mosaic kernels, only the ones with the norm inside (q/k/v and gate/up)")
     p.add_argument("--out", type=Path, default=Path("mgpu_gemm.json"), help="JSON results (default: %(default)s)")
     args = p.parse_args()
     out = {"device": jax.devices()[0].device_kind, "jax": jax.__version__,

@@ -20,7 +20,7 @@ from pi0_jax.ops.mosaic_gemm import Launch
 TOL = {"rtol": 1e-5, "atol": 1e-5}
 CFG = GemmaConfig(width=128, depth=1, mlp_dim=256, num_heads=2, num_kv_heads=1, head_dim=64)
 B, S, P = 1, 11, 100   # a 100-key prefix (padded to 128, the padding masked) and 11 suffix rows (padded to 16)
-MOSAIC = ek.Blocks(mosaic_qkv=Launch(64, 2, 2), mosaic_mlp=Launch(64, 1, 3), mosaic_out=Launch(64, 2, 1, 2),
+MOSAIC = ek.Blocks(mosaic_qkv=Launch(64, 2, 2), mosaic_mlp=Launch(64, 1, 3, 2), mosaic_out=Launch(64, 2, 1, 2),
                    mosaic_down=Launch(128, 4, 1))
 GEGLU = dataclasses.replace(MOSAIC, mosaic_mlp=Launch(64, 1, 3, geglu=True))
 
@@ -65,22 +65,6 @@ def test_geglu_equals_xla():
         Launch(64, 2, geglu=True)
 
 
-@pytest.mark.parametrize("adaptive", [False, True])
-def test_normed_partials_equal_xla(adaptive):
-    """The norm prologue: x * scale enters the GEMM, the rows' sums of squares and shift @ w come beside it."""
-    x, w = _rand(4, 100, 256), _rand(5, 256, 128, scale=0.1)
-    scale, shift = 1 + _rand(6, 256, scale=0.2), _rand(7, 256, scale=0.3) if adaptive else None
-    parts, ss, sh = mosaic_gemm.normed_partials(x, w, scale, shift, Launch(64, 2, 2))
-    assert parts.shape == (2, 100, 128) and ss.shape == (2, 100)
-    np.testing.assert_allclose(parts.sum(0), (x * scale) @ w, **TOL)
-    np.testing.assert_allclose(ss.sum(0), jnp.sum(x * x, axis=1), rtol=1e-5)
-    if adaptive:
-        np.testing.assert_allclose(sh.sum(0), shift @ w, **TOL)
-    else:
-        assert sh is None
-    assert not np.allclose(parts.sum(0), x @ w, **TOL)   # the scale enters
-
-
 def test_applies_only_where_the_launch_tiles():
     x = jnp.zeros((64, 48))
     assert not mosaic_gemm.applies(x, jnp.zeros((48, 128)), Launch())        # the dummy expert's width
@@ -118,7 +102,7 @@ def test_expert_layers_on_the_mosaic_gemm_equal_xla(pi05, blocks, monkeypatch):
         want, _, _ = layers.suffix_layer(CFG, w, want, positions, ck[i], cv[i],
                                          jnp.broadcast_to(pmask[:, None], (B, S, P)), smask, layer_mods)
     calls = []
-    for fn in ("partials", "normed_partials", "geglu"):
+    for fn in ("partials", "geglu"):
         kernel = getattr(mosaic_gemm, fn)
         monkeypatch.setattr(mosaic_gemm, fn,
                             lambda *a, kernel=kernel, **kw: calls.append(kw["name"]) or kernel(*a, **kw))

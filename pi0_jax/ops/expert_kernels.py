@@ -14,9 +14,10 @@ over K (hundreds of short programs, f32 partials), and the cheap elementwise wor
   matmul_residual  = matmul_partials, then (XLA) the split sum, adaRMS's gate and the residual
 
 Any of the four GEMMs may instead run `ops.mosaic_gemm` (a TMA-pipelined Mosaic GPU kernel, bf16 on Hopper): the
-Blocks field mosaic_<gemm> names its launch. q/k/v and gate/up then take the same norm prologue inside the kernel
-(`normed_partials`), except gate/up with GeGLU in its epilogue, whose norm runs first as one XLA fusion in
-`layers.rms_norm`'s order (the prologue cost that kernel 3 us alone: docs/BENCHMARKS.md, "A Mosaic GPU GEMM").
+Blocks field mosaic_<gemm> names its launch; gate/up's may end in GeGLU. Its GEMM is plain, so a norm before it is
+one XLA fusion in `layers.rms_norm`'s order, and the product is the XLA path's to f32 rounding. (The norm inside
+the kernel, as the Triton prologue, cost gate/up 3 us and did not pay for q/k/v: docs/BENCHMARKS.md, "A Mosaic GPU
+GEMM".)
 
 Kernel layout (`pi0_jax.ops.layout`): rows are (batch, suffix padded to Sp) flattened; each head is stored as
 [x1 | 0 | x2 | 0], the two RoPE halves each padded to hp (a multiple of 16); widths are multiples of 16 (Triton's
@@ -186,16 +187,13 @@ def _norm(x, mods, mod_row, adaptive, width):
 
 
 def _normed_product(x, mods, mod_row, adaptive, w, *, width, gemm, blocks, name, mosaic=None):
-    """norm(x) @ w as the GEMM's f32 result (before rounding): the split sum times 1 / rms, plus shift @ w. The
-    partials, sums of squares and shift products come from the Triton kernel, or from the Mosaic one
-    (`mosaic_gemm.normed_partials`, the same prologue) with a Mosaic launch."""
+    """norm(x) @ w as the GEMM's f32 result (before rounding): the split sum times 1 / rms, plus shift @ w. With a
+    Mosaic launch: the norm first, in `layers.rms_norm`'s order (one XLA fusion), then the plain GEMM."""
     if _mosaic(x, w, mosaic):
-        scale = (1 + mods[mod_row]).astype(jnp.float32)
-        shift = mods[mod_row + 1].astype(jnp.float32) if adaptive else None
-        parts, ss, shift = mosaic_gemm.normed_partials(x, w, scale, shift, mosaic, name=name)
-    else:
-        parts, ss, shift = matmul_partials(x, w, mods, mod_row, scaled=True, adaptive=adaptive, gemm=gemm,
-                                           blocks=blocks, name=name)
+        h = _norm(x, mods, mod_row, adaptive, width)
+        return sum(list(mosaic_gemm.partials(h, w, mosaic, name=name).astype(jnp.float32)))
+    parts, ss, shift = matmul_partials(x, w, mods, mod_row, scaled=True, adaptive=adaptive, gemm=gemm,
+                                       blocks=blocks, name=name)
     inv = jax.lax.rsqrt(sum(list(ss)) / width + EPS)[:, None]
     acc = sum(list(parts)) * inv
     return acc + sum(list(shift))[None] if adaptive else acc

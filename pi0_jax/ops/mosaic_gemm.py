@@ -10,9 +10,7 @@ A CTA takes `wgs * cols` output columns of one K chunk for 64 rows; each compute
 (64 x cols) f32 accumulator. splits > 1: f32 partials per K chunk, summed by the caller's XLA epilogue (as the
 Triton kernel's); splits == 1: the product rounded to x's dtype, as XLA's `x @ w` returns it. `geglu`: the Gemma
 MLP's gate/up GEMM with GELU-tanh(gate) * up in the epilogue; a CTA streams `cols` gate columns and their `cols` up
-partners (two accumulators) and writes only the product. `normed_partials`: the Triton kernel's norm prologue on
-one compute warpgroup: each x tile goes through registers (its rows' sums of squares, times 1 + the norm scale)
-back to shared memory before the wgmma; adaRMS's shift, broadcast to the rows, gets an accumulator of its own. Its numerics: gate and up rounded to the dtype (as XLA's
+partners (two accumulators) and writes only the product. Its numerics: gate and up rounded to the dtype (as XLA's
 GEMM output), GELU-tanh and the product in f32, rounded once; XLA's fusion may round between its bf16 ops, so the
 two agree to bf16 rounding (in f32, to f32 rounding).
 
@@ -164,114 +162,5 @@ def _call(m: int, k: int, n: int, dtype, launch: Launch, name: str):
     return plgpu.kernel(kernel, out_type=jax.ShapeDtypeStruct((splits * m, n), out_dtype),
                         grid=(n // cta_n, splits, m // ROWS), grid_names=("n", "s", "m"), num_threads=wgs + 1,
                         thread_name="wg", kernel_name=name,
-                        compiler_params=plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup),
-                        **({"interpret": _interpret()} if on_cpu else {}))
-
-
-def normed_partials(x, w, scale, shift=None, launch: Launch = Launch(), name: str = "mosaic_gemm_normed"):
-    """The Triton `matmul_partials(scaled=True)` on the Mosaic kernel: x (M, K) bf16, w (K, N), scale (K,) f32 =
-    1 + the norm's scale, shift (K,) f32 or None (adaRMS). Each K step loads its x tile into registers, adds its
-    rows' sums of squares and feeds x * scale (rounded to x's dtype) to wgmma from registers; a shift tile
-    (broadcast to the rows) gets its own accumulator. -> (parts (S, M, N) f32, sums of squares (S, M) f32,
-    shift @ w (S, N) f32 or None)."""
-    assert not launch.geglu and launch.wgs == 1, f"{launch}: the norm prologue runs on one compute warpgroup"
-    xp, mp = _padded(x)
-    args = (xp, w, scale) + (() if shift is None else (shift,))
-    parts, ss, sh = _normed_call(mp, x.shape[1], w.shape[1], x.dtype, launch, shift is not None, name)(*args)
-    parts = parts.reshape(launch.splits, mp, -1)[:, :x.shape[0]]
-    ss = ss.reshape(launch.splits, mp)[:, :x.shape[0]]
-    return parts, ss, None if shift is None else sh.reshape(launch.splits, ROWS, -1)[:, 0]
-
-
-@functools.lru_cache(maxsize=None)
-def _normed_call(m: int, k: int, n: int, dtype, launch: Launch, adaptive: bool, name: str):
-    cols, splits = launch.cols, launch.splits
-    chunk = k // splits
-    f32 = jnp.float32
-    wgmma_layout, col_layout = plgpu.Layout.WGMMA, plgpu.Layout.WGMMA.reduce(0)
-    on_cpu = jax.default_backend() == "cpu"
-    cast = (lambda x, _: x) if on_cpu else plgpu.layout_cast   # the interpreter has no layouts
-
-    def transforms(minor, dt):
-        size = jnp.dtype(dt).itemsize
-        swizzle = plgpu.find_swizzle(minor * size * 8)
-        return plgpu.TilingTransform((8, swizzle // size)), plgpu.SwizzleTransform(swizzle)
-
-    def pipeline(body, context):
-        spec = functools.partial(plgpu.BlockSpec, memory_space=plgpu.SMEM)
-        return plgpu.emit_pipeline_warp_specialized(
-            body, grid=(chunk // TK,), memory_registers=40, wg_axis="wg", num_compute_wgs=1,
-            max_concurrent_steps=launch.stages, compute_context=context,
-            in_specs=[spec((ROWS, TK), lambda kk: (0, kk), transforms=transforms(TK, dtype)),
-                      spec((TK, cols), lambda kk: (kk, 0), transforms=transforms(cols, dtype)),
-                      *[spec((TK,), lambda kk: (kk,))] * (2 if adaptive else 1)])
-
-    def kernel(x_gmem, w_gmem, scale_gmem, *rest):
-        shift_gmem = rest[0] if adaptive else None
-        o_gmem, ss_gmem, sh_gmem = rest[-3:]
-        j, s, i = lax.axis_index("n"), lax.axis_index("s"), lax.axis_index("m")
-        ks, cta_cols, rows = pl.ds(s * chunk, chunk), pl.ds(j * cols, cols), pl.ds(i * ROWS, ROWS)
-        w_tile = w_gmem.at[ks, cta_cols]
-        vectors = (scale_gmem.at[ks],) + ((shift_gmem.at[ks],) if adaptive else ())
-
-        def nothing(*_, **__):
-            return None
-
-        @functools.partial(pl.run_scoped, allocs=pipeline(nothing, nothing).get_allocations(x_gmem, w_tile,
-                                                                                             *vectors),
-                           out_smem=plgpu.SMEM((ROWS, cols), f32, transforms=transforms(cols, f32)),
-                           ss_smem=plgpu.SMEM((ROWS,), f32),
-                           sh_smem=plgpu.SMEM((ROWS, TK), dtype, transforms=transforms(TK, dtype)),
-                           collective_axes="wg")
-        def scope(allocs, out_smem, ss_smem, sh_smem):
-            def context(run):
-                acc = plgpu.ACC((ROWS, cols), f32)
-
-                @functools.partial(pl.run_scoped, accs=(acc, acc) if adaptive else (acc,))
-                def accumulate(accs):
-                    _, ss = run((accs, jnp.zeros((ROWS,), f32)))
-                    out_rows = pl.ds(s * m + i * ROWS, ROWS)
-                    out_smem[...] = accs[0][...]
-                    plgpu.commit_smem()
-                    plgpu.copy_smem_to_gmem(out_smem, o_gmem.at[out_rows, cta_cols])
-                    plgpu.wait_smem_to_gmem(0)
-
-                    @pl.when(j == 0)
-                    def _():
-                        ss_smem[...] = ss
-                        plgpu.commit_smem()
-                        plgpu.copy_smem_to_gmem(ss_smem, ss_gmem.at[out_rows])
-                        plgpu.wait_smem_to_gmem(0)
-
-                    if adaptive:
-                        @pl.when(i == 0)
-                        def _():
-                            out_smem[...] = accs[1][...]
-                            plgpu.commit_smem()
-                            plgpu.copy_smem_to_gmem(out_smem, sh_gmem.at[pl.ds(s * ROWS, ROWS), cta_cols])
-                            plgpu.wait_smem_to_gmem(0)
-
-            def step(_, x_smem, w_smem, scale_smem, *rest):
-                (accs, ss), shift_smem = rest[-1], rest[0] if adaptive else None
-                xt = cast(x_smem[...], wgmma_layout).astype(f32)
-                ss = ss + jnp.sum(xt * xt, axis=1)
-                scale = cast(scale_smem[...], col_layout)
-                x_smem[...] = (xt * lax.broadcast_in_dim(scale, (ROWS, TK), [1])).astype(dtype)
-                if adaptive:
-                    shift = cast(shift_smem[...], col_layout)
-                    sh_smem[...] = lax.broadcast_in_dim(shift, (ROWS, TK), [1]).astype(dtype)
-                plgpu.commit_smem()   # the stores, before wgmma reads them
-                plgpu.wgmma(accs[0], x_smem, w_smem)
-                if adaptive:
-                    plgpu.wgmma(accs[1], sh_smem, w_smem)
-                plgpu.wgmma_wait(0)
-                return accs, ss
-
-            pipeline(step, context)(x_gmem.at[rows, ks], w_tile, *vectors, allocations=allocs)
-
-    out = (jax.ShapeDtypeStruct((splits * m, n), f32), jax.ShapeDtypeStruct((splits * m,), f32),
-           jax.ShapeDtypeStruct((splits * ROWS, n), f32))
-    return plgpu.kernel(kernel, out_type=out, grid=(n // cols, splits, m // ROWS), grid_names=("n", "s", "m"),
-                        num_threads=2, thread_name="wg", kernel_name=name,
                         compiler_params=plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup),
                         **({"interpret": _interpret()} if on_cpu else {}))
