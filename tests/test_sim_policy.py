@@ -250,10 +250,7 @@ def test_eval_batch_auto_chunks_the_plan_first(tmp_path, monkeypatch):
 
 def test_eval_quant(tmp_path, monkeypatch):
     """`--quant` runs an FP8 scheme (static scales calibrated on rendered suite frames) in the loop and says so."""
-    import functools
-
-    monkeypatch.setattr(policies, "quantize_for_suite", functools.partial(policies.quantize_for_suite,
-                                                                          calib_samples=2))
+    monkeypatch.setattr(policies, "CALIB_SAMPLES", 2)
     out = tmp_path / "eval"
     assert cli.main(["eval", "--policy", "preset:dummy", "--suite", "goal/red_block_on_plate", "--episodes-per-task",
                      "2", "--batch", "2", "--steps", "5", "--replan-steps", "5", "--num-steps", "2", "--resolution",

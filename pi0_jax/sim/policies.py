@@ -23,6 +23,7 @@ import dataclasses
 import os
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -133,9 +134,11 @@ def checkpoint_policy(path: str | os.PathLike, env, *, tokenizer_path=None, num_
                              replan_steps=replan_steps, gemm=gemm, attention=attention)
 
 
-def _quantized_policy(config, params, tok, normalizer, env, setup: dict, *, quant, num_steps, **kw) -> SimPolicy:
+def _quantized_policy(config, params, tok, normalizer, env, setup: dict, *, quant, num_steps, calib=None,
+                      **kw) -> SimPolicy:
     """`quantize_for_suite`, then `model_policy`; each part's seconds join `setup` (the policy's `setup_s`)."""
-    params = quantize_for_suite(config, params, tok, normalizer, quant, num_steps=num_steps, timing=setup)
+    params = quantize_for_suite(config, params, tok, normalizer, quant, num_steps=num_steps, calib=calib,
+                                timing=setup)
     t0 = time.perf_counter()
     policy = model_policy(config, params, tok, normalizer, env, num_steps=num_steps, quant=quant, **kw)
     return dataclasses.replace(policy, setup_s={**setup, "policy_s": time.perf_counter() - t0})
@@ -262,16 +265,30 @@ def preset_policy(name: str, env, *, num_steps: int = 10, dtype: str | None = No
     from pi0_jax.policy import find_tokenizer
     from pi0_jax.tokenizer import PaligemmaTokenizer
 
+    from pi0_jax.quant import schemes
+
     config = get_config(name, **({"dtype": dtype} if dtype else {}))
     tok = PaligemmaTokenizer(find_tokenizer(Path(__file__).parents[1] / "assets" / "pi0_small"),
                              config.max_token_len)
     normalizer = nz.Normalizer.identity()
+    # an FP8 scheme's calibration frames render (and their programs compile) beside the weights' init: both are
+    # mostly compiling, cold (docs/BENCHMARKS.md, "every-gemm's setup, measured by part")
+    with ThreadPoolExecutor(1) as pool:
+        calib = pool.submit(_timed, calibration_observation, config, tok, normalizer, CALIB_SAMPLES) \
+            if quant in schemes.SCHEMES else None
+        t0 = time.perf_counter()
+        params = jax.block_until_ready(pi0.random_params(config, seed))
+        setup = {"random_params_s": time.perf_counter() - t0}
+        if calib is not None:
+            calib, setup["observations_s"] = calib.result()   # seconds in its thread, beside random_params_s
+    return _quantized_policy(config, params, tok, normalizer, env, setup, quant=quant, num_steps=num_steps,
+                             calib=calib, name=f"preset:{name} (random weights)", sampler=sampler,
+                             realtime=realtime, replan_steps=replan_steps, gemm=gemm, attention=attention)
+
+
+def _timed(fn, *args):
     t0 = time.perf_counter()
-    params = jax.block_until_ready(pi0.random_params(config, seed))
-    return _quantized_policy(config, params, tok, normalizer, env, {"random_params_s": time.perf_counter() - t0},
-                             quant=quant, num_steps=num_steps, name=f"preset:{name} (random weights)",
-                             sampler=sampler, realtime=realtime, replan_steps=replan_steps, gemm=gemm,
-                             attention=attention)
+    return fn(*args), time.perf_counter() - t0
 
 
 def make_policy(spec: str, env, replan_steps: int, **kw) -> SimPolicy:
@@ -290,15 +307,17 @@ def make_policy(spec: str, env, replan_steps: int, **kw) -> SimPolicy:
 
 
 QUANT_FORMATS = ("nvfp4", "mxfp4")     # weight-only FP4 emulation; the FP8 schemes are pi0_jax.quant.schemes.SCHEMES
+CALIB_SAMPLES = 64   # rendered suite observations an FP8 scheme's static scales are calibrated on
 
 
-def quantize_for_suite(config, params, tok, normalizer, quant: str | None, *, calib_samples: int = 64,
+def quantize_for_suite(config, params, tok, normalizer, quant: str | None, *, calib_samples: int | None = None,
                        seed: int = 0, calib=None, num_steps: int = 10, timing: dict | None = None):
     """params in number format `quant`: None = unchanged; an FP8 scheme of `pi0_jax.quant.schemes` (real e4m3
-    GEMMs where XLA emits them) with static activation scales, amax over `calib_samples` rendered suite observations
-    from initial states 50..99 (never evaluated); "nvfp4" / "mxfp4": weight emulation (quantised and dequantised
-    back) of every GEMM the FP8 scheme "all" covers. calib: a precomputed `calibration_observation`. timing: a dict
-    to receive the seconds of each part (observations, the calibration's compile and run, quantising)."""
+    GEMMs where XLA emits them) with static activation scales, amax over `calib_samples` (None: CALIB_SAMPLES)
+    rendered suite observations from initial states 50..99 (never evaluated); "nvfp4" / "mxfp4": weight emulation
+    (quantised and dequantised back) of every GEMM the FP8 scheme "all" covers. calib: a precomputed
+    `calibration_observation` (then no observations_s here). timing: a dict to receive the seconds of each part
+    (observations, the calibration's compile and run, quantising)."""
     if quant is None:
         return params
     from pi0_jax.quant import schemes
@@ -308,10 +327,10 @@ def quantize_for_suite(config, params, tok, normalizer, quant: str | None, *, ca
     if quant not in schemes.SCHEMES:
         raise ValueError(f"unknown number format {quant!r}: {', '.join([*schemes.SCHEMES, *QUANT_FORMATS])}")
     timing = {} if timing is None else timing
-    t0 = time.perf_counter()
     if calib is None:
-        calib = calibration_observation(config, tok, normalizer, calib_samples, seed)
-    timing["observations_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        calib = calibration_observation(config, tok, normalizer, calib_samples or CALIB_SAMPLES, seed)
+        timing["observations_s"] = time.perf_counter() - t0
     calib_timing = {}
     amax = schemes.calibrate(config, params, [calib], quant, percentile=None, num_steps=num_steps, seed=seed,
                              timing=calib_timing)["amax"]
