@@ -15,7 +15,8 @@
 #   bash scripts/gpu_eval.sh overlap                # scripts/overlap_probe.py: physics beside the policy on 2 streams
 #   TREE=.old_tree TAG=_old bash scripts/gpu_eval.sh pi05-1   # the same with an older package (carried, made by
 #                              # `git archive REV pi0_jax converters | tar -x -C .old_tree`, and ':!pi0_jax/assets'
-#                              # to fit the carry beside .simwhl: --policy paths name this tree's); outputs *_old
+#                              # to fit the carry beside .simwhl: --policy paths name this tree's; a preset:
+#                              # policy needs pi0_jax/assets/pi0_small/tokenizer.model copied in); outputs *_old
 #   EXTRA="--gemm cublas" TAG=_cublas bash scripts/gpu_eval.sh pi05-1   # pi05-1 with cuBLAS for every GEMM
 #   POLICY=preset:dummy PER_TASK=1 EXTRA="--steps 10" bash scripts/gpu_eval.sh pi05-1   # CPU smoke run
 #
