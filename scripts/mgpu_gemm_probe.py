@@ -1,5 +1,6 @@
-"""The denoise step's four GEMM shapes (π0 full size, B = 1: 64 rows) as Pallas Mosaic GPU kernels (TMA, wgmma, a
-producer warpgroup streaming the weight tiles STAGES deep) against the engine's Triton split-K kernel and XLA's dot.
+"""The denoise step's four GEMM shapes (π0 full size, B = 1: 64 rows) on the Pallas Mosaic GPU kernel
+(`pi0_jax.ops.mosaic_gemm`: TMA, wgmma, a producer warpgroup streaming the weight tiles STAGES deep) against the
+engine's Triton split-K kernel and XLA's dot.
 
 The Triton kernels run at 24-44 % of the weight-read bandwidth (docs/BENCHMARKS.md, "Launch parameters inside the
 step"): a program issues its loads and waits, so the bytes in flight are set by the programs resident. A TMA
@@ -24,78 +25,15 @@ import traceback
 from pathlib import Path
 
 import jax
-import jax.experimental.pallas as pl
-import jax.experimental.pallas.mosaic_gpu as plgpu
 import jax.numpy as jnp
 import numpy as np
-from jax import lax
 
 from pi0_jax.ops import expert_kernels as ek
+from pi0_jax.ops import mosaic_gemm
 
 sys.path.insert(0, str(Path(__file__).parent))
+from bench_kernels import interleaved_ms  # noqa: E402
 from profile_engine import kernel_times  # noqa: E402
-
-INTERPRET = None   # a Mosaic GPU InterpretGPUParams runs the kernel on a CPU (a check of its indexing)
-
-
-def mgpu_partials(x, w, *, cols: int, splits: int, tk: int = 64, stages: int = 4, wgs: int = 1):
-    """x (M, K) @ w (K, N) -> f32 partials (splits, M, N) over K chunks (splits == 1: the product in x's dtype).
-    A CTA takes `wgs * cols` output columns of one K chunk; each compute warpgroup `cols` of them, all M rows."""
-    m, k = x.shape
-    n = w.shape[1]
-    chunk, cta_n = k // splits, cols * wgs
-    assert m % 64 == 0 and chunk % tk == 0 and n % cta_n == 0, (x.shape, w.shape, cols, splits, tk, wgs)
-    out_dtype = x.dtype if splits == 1 else jnp.float32
-    item, out_item = jnp.dtype(x.dtype).itemsize, jnp.dtype(out_dtype).itemsize
-
-    def transforms(minor, size):
-        swizzle = plgpu.find_swizzle(minor * size * 8)
-        return plgpu.TilingTransform((8, swizzle // size)), plgpu.SwizzleTransform(swizzle)
-
-    def pipeline(body, context):
-        spec = functools.partial(plgpu.BlockSpec, memory_space=plgpu.SMEM)
-        return plgpu.emit_pipeline_warp_specialized(
-            body, grid=(chunk // tk,), memory_registers=40, wg_axis="wg", num_compute_wgs=wgs,
-            max_concurrent_steps=stages, compute_context=context,
-            in_specs=[spec((m, tk), lambda kk: (0, kk), transforms=transforms(tk, item)),
-                      spec((tk, cta_n), lambda kk: (kk, 0), transforms=transforms(tk, item))])
-
-    def kernel(x_gmem, w_gmem, o_gmem):
-        j, s = lax.axis_index("n"), lax.axis_index("s")
-        ks, cta_cols = pl.ds(s * chunk, chunk), pl.ds(j * cta_n, cta_n)
-
-        def nothing(*_, **__):
-            return None
-
-        @functools.partial(pl.run_scoped, allocs=pipeline(nothing, nothing).get_allocations(x_gmem, w_gmem),
-                           out_smem=plgpu.SMEM((wgs, m, cols), out_dtype, transforms=transforms(cols, out_item)),
-                           collective_axes="wg")
-        def scope(allocs, out_smem):
-            wg = lax.axis_index("wg")
-            wg_cols = pl.ds(wg * cols, cols)
-
-            def context(run):
-                @functools.partial(pl.run_scoped, acc=plgpu.ACC((m, cols), jnp.float32))
-                def accumulate(acc):
-                    run(acc)
-                    out_smem[wg] = acc[...].astype(out_dtype)
-                    plgpu.commit_smem()
-                    plgpu.copy_smem_to_gmem(out_smem.at[wg], o_gmem.at[pl.ds(s * m, m), cta_cols].at[:, wg_cols])
-                    plgpu.wait_smem_to_gmem(0)
-
-            def step(_, x_smem, w_smem, acc):
-                plgpu.wgmma(acc, x_smem, w_smem.at[:, wg_cols])
-                plgpu.wgmma_wait(0)
-                return acc
-
-            pipeline(step, context)(x_gmem.at[:, ks], w_gmem.at[ks, cta_cols], allocations=allocs)
-
-    out = plgpu.kernel(kernel, out_type=jax.ShapeDtypeStruct((splits * m, n), out_dtype),
-                       grid=(n // cta_n, splits), grid_names=("n", "s"), num_threads=wgs + 1, thread_name="wg",
-                       compiler_params=plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup),
-                       **({"interpret": INTERPRET} if INTERPRET is not None else {}))(x, w)
-    return out.reshape(splits, m, n)
-
 
 # π0 full size, B = 1 (64 rows): (name, K, N, the engine's Triton launch)
 SHAPES = [("qkv", 1024, 2560, ek.Gemm(128, 8)), ("attn_out", 2048, 1024, ek.Gemm(64, 4)),
@@ -108,21 +46,8 @@ MGPU = {"qkv": [(64, 1, 4, 4), (64, 1, 2, 6), (64, 2, 4, 4), (128, 1, 4, 4), (64
         "down": [(64, 1, 8, 4), (64, 1, 4, 8), (64, 2, 8, 4), (128, 1, 8, 4), (64, 1, 16, 4)]}
 
 
-def interleaved_ms(fns: dict, iters: int, warmup: int = 3) -> dict:
-    for fn in fns.values():
-        for _ in range(warmup):
-            jax.block_until_ready(fn())
-    times = {name: [] for name in fns}
-    for i in range(iters):
-        for name in (list(fns) if i % 2 == 0 else list(fns)[::-1]):
-            start = time.perf_counter()
-            jax.block_until_ready(fns[name]())
-            times[name].append(time.perf_counter() - start)
-    return {name: float(np.median(t)) * 1e3 for name, t in times.items()}
-
-
 def probe_shape(name, k, n, triton, args, rows: int = 64):
-    key = jax.random.key(hash(name) % 2**31)
+    key = jax.random.key([s[0] for s in SHAPES].index(name))
     kx, kw = jax.random.split(key)
     x = (jax.random.normal(kx, (rows, k), jnp.float32)).astype(jnp.bfloat16)
     ws = [(jax.random.normal(w, (k, n), jnp.float32) * k**-0.5).astype(jnp.bfloat16)
@@ -137,7 +62,8 @@ def probe_shape(name, k, n, triton, args, rows: int = 64):
                     lambda x, w: ek.matmul_partials(x, w, gemm=triton, name=f"expert_{name}")[0]}
     for cols, wgs, splits, stages in MGPU[name]:
         variants[f"mgpu {cols}x{wgs}wg {splits}s {stages}st"] = functools.partial(
-            mgpu_partials, cols=cols, wgs=wgs, splits=splits, stages=stages)
+            lambda x, w, launch: mosaic_gemm.partials(x, w, launch),
+            launch=mosaic_gemm.Launch(cols, splits, stages, wgs))
     res, calls = {}, {}
     for label, fn in variants.items():
         try:
@@ -154,7 +80,7 @@ def probe_shape(name, k, n, triton, args, rows: int = 64):
     for label, ms in interleaved_ms(calls, args.iters).items():
         us = ms * 1e3 / args.copies
         t = kernel_times(calls[label], 5)
-        kus = t["kernel_ms"] * 1e3 / args.copies
+        kus = t["kernel_ms"] * 1e3 / args.copies or float("nan")   # no GPU kernels traced on a CPU
         res[label].update(us=us, floor_us=floor_us, bandwidth_frac=floor_us / us, trace_kernel_us=kus,
                           kernels_per_copy=t["kernels_per_call"] / args.copies, trace_wall_ms=t["wall_ms"],
                           by_name=t["by_name"][:4])
