@@ -74,10 +74,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "(default: %(default)s)")
     p.add_argument("--kernels", choices=KERNELS, default="auto",
                    help="the action expert's layers as XLA ops, as the fused Pallas kernels of pi0_jax.ops "
-                        "(Triton on GPU; gate/up with GeGLU on Mosaic GPU on Hopper), or auto: the kernels at batch 1 "
-                        "and 2 on a GPU, XLA otherwise; each row "
-                        "records the path it ran. SigLIP's LayerNorm likewise, auto: the kernel on a GPU from 24 "
-                        "images a call (default: %(default)s)")
+                        "(Triton on GPU; gate/up with GeGLU on Mosaic GPU on Hopper), or auto: the kernels at "
+                        "batch 1 and 2 on a GPU, XLA otherwise; each row records the path it ran (the JSON's "
+                        "env.expert_blocks the kernels' launches). SigLIP's LayerNorm likewise, auto: the kernel on "
+                        "a GPU from 24 images a call (default: %(default)s)")
     p.add_argument("--gemm", choices=GEMMS, default="xla",
                    help="the library of XLA's GEMMs on a GPU: xla (XLA's autotuned choice of Triton or cuBLAS per "
                         "GEMM) or cublas (XLA's Triton GEMMs off, so bias, GELU and residual adds become cuBLASLt "

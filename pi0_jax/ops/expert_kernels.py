@@ -45,7 +45,7 @@ import numpy as np
 from jax.experimental import pallas as pl
 
 from pi0_jax.ops import mosaic_gemm, pallas_base
-from pi0_jax.ops.mosaic_gemm import Launch  # noqa: F401  (re-exported: a Blocks field's type)
+from pi0_jax.ops.mosaic_gemm import Launch
 from pi0_jax.ops.pallas_base import ALIGN, dot, fit
 
 BIG_NEG = -2.3819763e38  # masked logits: the value pi0_jax.gemma fills (a test checks they agree)

@@ -263,9 +263,8 @@ def preset_policy(name: str, env, *, num_steps: int = 10, dtype: str | None = No
     from pi0_jax import pi0
     from pi0_jax.config import get_config
     from pi0_jax.policy import find_tokenizer
-    from pi0_jax.tokenizer import PaligemmaTokenizer
-
     from pi0_jax.quant import schemes
+    from pi0_jax.tokenizer import PaligemmaTokenizer
 
     config = get_config(name, **({"dtype": dtype} if dtype else {}))
     tok = PaligemmaTokenizer(find_tokenizer(Path(__file__).parents[1] / "assets" / "pi0_small"),
