@@ -74,6 +74,11 @@ STEP_SWEEPS = {
                      "mlp mosaic 64 1s 8st": dict(mosaic_mlp=L(64, 1, 8)),
                      "mlp geglu 64 8st": dict(mosaic_mlp=L(64, 1, 8, geglu=True)),
                      "mlp geglu 128 4st": dict(mosaic_mlp=L(128, 1, 4, geglu=True))},
+    # the same with the next step's wgmma issued before the last one finished (`Launch.delay`)
+    "mosaic_delay": {"default": {}, "mlp geglu 64 6st d1": dict(mosaic_mlp=L(64, 1, 6, geglu=True, delay=1)),
+                     "mlp geglu 64 8st d1": dict(mosaic_mlp=L(64, 1, 8, geglu=True, delay=1)),
+                     "mlp geglu 64 8st d2": dict(mosaic_mlp=L(64, 1, 8, geglu=True, delay=2)),
+                     "mlp mosaic 64 1s 8st d1": dict(mosaic_mlp=L(64, 1, 8, delay=1))},
 }
 
 

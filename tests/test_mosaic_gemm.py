@@ -29,7 +29,8 @@ def _rand(key, *shape, scale=1.0):
     return jax.random.normal(jax.random.key(key), shape, jnp.float32) * scale
 
 
-@pytest.mark.parametrize("rows,k,n,launch", [(64, 256, 256, Launch(64, 2, 2)), (100, 128, 256, Launch(64, 1, 2, 2)),
+@pytest.mark.parametrize("rows,k,n,launch", [(64, 256, 256, Launch(64, 2, 2)),
+                                             (100, 128, 256, Launch(64, 1, 2, 2, delay=1)),
                                              (130, 256, 128, Launch(128, 4, 3))])
 def test_partials_equal_xla(rows, k, n, launch):
     """Rows padded to 64 and cut back; split-K partials in f32; one chunk in the input's dtype."""
@@ -51,7 +52,7 @@ def test_geglu_equals_xla():
     x, w = _rand(2, 100, 128), _rand(3, 128, 512, scale=128**-0.5)
     gate, up = jnp.split(x @ w, 2, axis=-1)
     want = jax.nn.gelu(gate, approximate=True) * up
-    for launch in (Launch(64, 1, 2, geglu=True), Launch(128, 1, 3, geglu=True)):
+    for launch in (Launch(64, 1, 2, geglu=True), Launch(128, 1, 3, geglu=True, delay=1)):
         assert mosaic_gemm.applies(x, w, launch)
         np.testing.assert_allclose(mosaic_gemm.geglu(x, w, launch), want, **TOL)
     assert not np.allclose(jax.nn.gelu(up, approximate=True) * gate, want, **TOL)   # gate and up not swapped
@@ -63,6 +64,8 @@ def test_geglu_equals_xla():
                                atol=4e-2)   # one bf16 ulp at |y| < 8, rounded once here and per op in XLA
     with pytest.raises(ValueError, match="GeGLU epilogue"):
         Launch(64, 2, geglu=True)
+    with pytest.raises(ValueError, match="delay"):
+        Launch(64, 1, 2, delay=2)
 
 
 def test_applies_only_where_the_launch_tiles():

@@ -37,19 +37,23 @@ TK = 64  # contraction per pipeline step: one 128-byte swizzled row of bf16
 @dataclasses.dataclass(frozen=True)
 class Launch:
     """Output columns per compute warpgroup (`geglu`: hidden units), K chunks (one CTA each per column block), TMA
-    pipeline depth, compute warpgroups per CTA, and whether the gate/up GEMM ends in GeGLU (`geglu`; one chunk, one
-    warpgroup). On a GPU, cols is a multiple of 64: 32-column accumulators failed Mosaic GPU's layout inference
-    (jax 0.11.2), where the CPU interpreter took them."""
+    pipeline depth, compute warpgroups per CTA, whether the gate/up GEMM ends in GeGLU (`geglu`; one chunk, one
+    warpgroup), and how many steps' wgmma may still run when the next is issued (`delay`: their tiles are released
+    that many steps later). On a GPU, cols is a multiple of 64: 32-column accumulators failed Mosaic GPU's layout
+    inference (jax 0.11.2), where the CPU interpreter took them."""
 
     cols: int = 64
     splits: int = 1
     stages: int = 4
     wgs: int = 1
     geglu: bool = False
+    delay: int = 0
 
     def __post_init__(self):
         if self.geglu and (self.splits, self.wgs) != (1, 1):
             raise ValueError(f"{self}: the GeGLU epilogue needs the whole K in one CTA of one compute warpgroup")
+        if not 0 <= self.delay < self.stages:
+            raise ValueError(f"{self}: delay must be below the pipeline depth (stages)")
 
 
 def _interpret():
@@ -113,7 +117,7 @@ def _call(m: int, k: int, n: int, dtype, launch: Launch, name: str):
         return plgpu.TilingTransform((8, swizzle // size)), plgpu.SwizzleTransform(swizzle)
 
     def pipeline(body, context):
-        spec = functools.partial(plgpu.BlockSpec, memory_space=plgpu.SMEM)
+        spec = functools.partial(plgpu.BlockSpec, memory_space=plgpu.SMEM, delay_release=launch.delay)
         w_spec = spec((TK, cta_n), lambda kk: (kk, 0), transforms=transforms(cta_n, dtype))
         return plgpu.emit_pipeline_warp_specialized(
             body, grid=(chunk // TK,), memory_registers=40, wg_axis="wg", num_compute_wgs=wgs,
@@ -153,7 +157,7 @@ def _call(m: int, k: int, n: int, dtype, launch: Launch, name: str):
                 w_smems, accs = w_and_accs[:-1], w_and_accs[-1]
                 for w_smem, acc in zip(w_smems, accs):
                     plgpu.wgmma(acc, x_smem, w_smem.at[:, wg_cols])
-                plgpu.wgmma_wait(0)
+                plgpu.wgmma_wait(launch.delay)
                 return accs
 
             pipeline(step, context)(x_gmem.at[rows, ks], *w_tiles, allocations=allocs)
