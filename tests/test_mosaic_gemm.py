@@ -74,6 +74,7 @@ def test_applies_only_where_the_launch_tiles():
     assert not mosaic_gemm.applies(x, jnp.zeros((128, 96)), Launch(64))      # 96 columns in blocks of 64
     assert not mosaic_gemm.applies(x, jnp.zeros((128, 128)), Launch(64, 4))  # 4 chunks of 32 < one 64-wide step
     assert mosaic_gemm.applies(x, jnp.zeros((128, 128)), Launch(64, 2))
+    assert not mosaic_gemm.applies(x, jnp.zeros((128, 128)), Launch(64, 2, 3, delay=1))  # one step per chunk
     assert not mosaic_gemm.applies(x, jnp.zeros((128, 192)), Launch(64, geglu=True))   # 96 hidden units
 
 

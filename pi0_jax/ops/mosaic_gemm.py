@@ -66,10 +66,11 @@ def _interpret():
 
 def applies(x, w, launch: Launch) -> bool:
     """Whether this kernel takes x @ w: bf16 on a Hopper GPU (or any float on the CPU interpreter), K splitting into
-    TK steps, N (geglu: each half) into column blocks."""
+    TK steps (more than `delay` of them), N (geglu: each half) into column blocks."""
     k, n = w.shape
     n = n // 2 if launch.geglu else n
     tiles = k % (launch.splits * TK) == 0 and n % (launch.cols * launch.wgs) == 0
+    tiles = tiles and k // (launch.splits * TK) > launch.delay   # the pipeline is no deeper than its steps
     if jax.default_backend() == "cpu":
         return tiles
     hopper = jax.default_backend() == "gpu" and getattr(jax.devices()[0], "compute_capability", "") == "9.0"
