@@ -4,7 +4,7 @@ pallas engine's whole call.
 
 Two sweeps. The per-stage one (the default) times each stage as one program that runs it on `--copies` independent
 inputs, each with its own weights (one launch each, divided by the copies). Its ranking did not hold inside the step
-(run 19), so `--step-sweep depths|splits|gate_up` compiles the 10-step denoise program once per variant and
+(run 19), so `--step-sweep NAME` (a set of STEP_SWEEPS) compiles the 10-step denoise program once per variant and
 times the variants interleaved. Two probes: `--gemm-probe` runs each GEMM kernel once for a kernel profiler (ncu), and
 `--graph-probe` compiles the Pallas step with XLA's command buffers as default, off and all, and with programmatic
 dependent launch off and on.
