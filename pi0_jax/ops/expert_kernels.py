@@ -71,7 +71,7 @@ class Blocks:
     π0's step 3-4 % faster on two machines and was level on a third and for π0.5 ("Launch parameters inside the
     step"); no other tiling, split count or depth moved the step by more than 1 %. On Hopper, gate/up runs the Mosaic
     GPU kernel with GeGLU in its epilogue: π0's step 4.7 % and π0.5's 9.5 % faster on an H200; the other three
-    GEMMs on it were 1-2 % slower, each needing its norm or sum apart ("A Mosaic GPU GEMM")."""
+    GEMMs on it were 1-3 % slower, each needing its norm or sum apart ("A Mosaic GPU GEMM")."""
 
     rows: int = 64  # GEMM rows per program
     k: int = 256  # GEMM contraction chunk per loop step
