@@ -43,6 +43,13 @@ CHILD = textwrap.dedent("""
     sharded = jax.jit(enc, in_shardings=(None, sh(None, "batch")))
     print("layer_norm collectives", collectives(sharded.lower(w, images).compile().as_text()))
     np.testing.assert_allclose(sharded(w, images), jax.jit(enc)(w, images), rtol=1e-5, atol=1e-5)
+    # with FP8 vision the kernels also take the GEMMs' scales and quantise their outputs
+    from pi0_jax.quant import schemes
+    calib = schemes.sample_observations(cfg, 1, seed=1)
+    amax = schemes.calibrate(cfg, params, calib, "vision", percentile=None)["amax"]
+    wq = engine_weights(cfg, schemes.quantize_params(cfg, params, "vision", amax), unroll=True)
+    print("fp8 collectives", collectives(sharded.lower(wq, images).compile().as_text()))
+    np.testing.assert_allclose(sharded(wq, images), jax.jit(enc)(wq, images), rtol=1e-5, atol=1e-5)
 """)
 
 
@@ -56,3 +63,4 @@ def test_engine_program_on_a_batch_mesh_has_no_collectives():
     # the Pallas vision attention is a kernel XLA cannot split: without its own partitioning rule, 12 collectives here
     assert "pallas collectives 0" in out.stdout, out.stdout
     assert "layer_norm collectives 0" in out.stdout, out.stdout   # likewise for the LayerNorm kernel
+    assert "fp8 collectives 0" in out.stdout, out.stdout

@@ -5,6 +5,7 @@ SigLIP's attention) matches the reference sampler. f32 throughout: the kernels a
 order (measured ~1e-6)."""
 
 import jax
+import jax.extend
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -234,6 +235,82 @@ def test_layer_norm_kernel_matches_xla(width):
         ln.layer_norm(x, p["scale"][:3], p["bias"])
     with pytest.raises(ValueError, match="residual"):
         ln.layer_norm(x, p["scale"], p["bias"], residual=(y[:1], y_bias))
+
+
+def _e4m3_close(got, want):
+    """e4m3 tensors from two paths whose inputs agree to f32 rounding: equal but for rare ties broken apart, each
+    one e4m3 step (2^-3 relative) at most."""
+    assert got.dtype == want.dtype == jnp.float8_e4m3fn
+    g, w = np.asarray(got, np.float32), np.asarray(want, np.float32)
+    assert np.mean(g != w) < 1e-3
+    np.testing.assert_allclose(g, w, rtol=2.0**-3, atol=2.0**-9)
+
+
+def test_fp8_ends_in_the_vision_kernels_match_xla():
+    """With FP8 GEMMs in SigLIP, the LayerNorm kernel scales the residual's raw product (its FP8 output scale) as it
+    adds it and writes the next GEMM's e4m3 input, and the attention kernel scales and biases q, k, v as it reads the
+    raw q/k/v product and writes the out-projection's e4m3 input: each equals XLA's ops in the same order
+    (`formats.quantise`, `vision._finish`). f32, So400m's widths (1152, 16 heads of 72), 2 images of 16 tokens."""
+    import flax.linen as nn
+
+    from pi0_jax.engine import vision
+    from pi0_jax.ops import formats, layer_norm as ln, vision_attention as va
+
+    width, heads, hd = 1152, 16, 72
+    x, y = _rand(1, 2, 16, width, scale=3.0) + 1.5, _rand(2, 2, 16, width, scale=20.0)
+    p, y_bias, y_scale = {"scale": _rand(3, width), "bias": _rand(4, width)}, _rand(5, width), _rand(6, width) * 0.1
+    act = jnp.float32(4.0 / 448)   # |LN| up to ~4 fills e4m3's range; larger values saturate
+    for f in (None, (y, y_bias, y_scale)):
+        want = vision.add_norm(x, f, p, jnp.float32, "xla", quantise=act)
+        got = vision.add_norm(x, f, p, jnp.float32, "pallas", quantise=act)
+        np.testing.assert_allclose(got[0], want[0], **TOL)
+        _e4m3_close(got[1], want[1])
+    assert float(jnp.max(jnp.abs(want[0] - vision.add_norm(x, f[:2], p, jnp.float32, "xla")[0]))) > 1e-2  # scaled
+    with pytest.raises(ValueError, match="residual"):
+        ln.layer_norm(x, p["scale"], p["bias"], residual=(y, y_bias, y_scale[:3]))
+
+    qkv = _rand(7, 2 * 16, 3 * heads * hd, scale=8.0)
+    q_scale, q_bias = jnp.abs(_rand(8, 3 * heads * hd)) * 0.1 + 0.05, _rand(9, 3 * heads * hd)
+    act = jnp.float32(2.0 / 448)
+    z = va.scale_bias(qkv, q_scale, q_bias).reshape(2, 16, 3, heads, hd)
+    want = formats.quantise(nn.dot_product_attention(z[:, :, 0], z[:, :, 1], z[:, :, 2]).reshape(32, -1), act)
+    _e4m3_close(va.attention(qkv, images=2, num_heads=heads, col_scale=q_scale, bias=q_bias, quantise=act), want)
+    with pytest.raises(ValueError, match="col_scale and bias go together"):
+        va.attention(qkv, images=2, num_heads=heads, col_scale=q_scale)
+
+
+def test_fp8_vision_quantises_only_the_mlp_in_xla_with_the_kernels():
+    """The engine's FP8 tower with the LayerNorm and attention kernels leaves XLA one e4m3 conversion per block
+    (the GELU output, fc2's input) where XLA's path has four (before q/k/v, the out-projection, fc1 and fc2)."""
+    import functools
+
+    from pi0_jax import benchmark
+    from pi0_jax.engine import programs
+    from pi0_jax.quant import schemes
+
+    config = get_config("dummy", dtype="float32")
+    params = benchmark.random_params(config, 0)
+    calib = schemes.sample_observations(config, 1, seed=1)
+    qp = schemes.quantize_params(config, params, "vision",
+                                 schemes.calibrate(config, params, calib, "vision", percentile=None)["amax"])
+    engine = Engine(config, qp, cache_dir=False)
+    images = jax.ShapeDtypeStruct((2, 1, config.image_size, config.image_size, 3), jnp.float32)
+    def outside_kernels(jaxpr) -> int:   # e4m3 conversions, not counting those inside kernels
+        n = 0
+        for eqn in jaxpr.eqns:
+            if eqn.primitive.name in ("pallas_call", "custom_partitioning"):
+                continue
+            n += eqn.primitive.name == "convert_element_type" and eqn.params["new_dtype"] == jnp.float8_e4m3fn
+            n += sum(outside_kernels(sub) for sub in jax.extend.core.jaxprs_in_params(eqn.params))
+        return n
+
+    counts = {}
+    for attention, kernels in (("xla", "xla"), ("pallas", "pallas")):
+        fn = functools.partial(programs.encode_images, config, unroll=True, attention=programs.Attention(
+            vision=attention), kernels=kernels)
+        counts[kernels] = outside_kernels(jax.make_jaxpr(fn)(engine.weights, images).jaxpr)
+    depth = config.siglip.depth   # + 1: the head's input
+    assert counts == {"xla": 4 * depth + 1, "pallas": depth + 1}, counts
 
 
 def test_vision_norm_choice():

@@ -12,6 +12,12 @@ kernel that reads q, k and v in place from the fused GEMM's output ("pallas", `o
 add is done with the LayerNorm after it (`add_norm`): XLA's ops, or one Pallas kernel (norm="pallas",
 `ops.layer_norm`), so a block hands the next its MLP output with the bias not yet added.
 
+FP8 x FP8 GEMMs (`matmul.raw_matmul`) take an e4m3 input and give a raw product whose f32 output scale is applied by
+whoever reads it. With the kernels, that is no pass of its own: the LayerNorm kernel writes the next GEMM's e4m3
+input and scales the residual's product as it adds it, and the Pallas attention scales and biases q, k and v as it
+reads them and writes the out-projection's e4m3 input. XLA's path computes the same ops in the same order
+(`formats.quantise`, `_finish`), so the two agree as the kernels do in bf16.
+
 Axis legend: B images, T tokens (256 patches), D width, N heads, H head dim.
 """
 
@@ -25,6 +31,7 @@ import jax.numpy as jnp
 from pi0_jax.config import SiglipConfig
 from pi0_jax.engine import layers
 from pi0_jax.ops import attention as ops_attention
+from pi0_jax.ops import formats, matmul
 from pi0_jax.ops import layer_norm as ops_layer_norm
 from pi0_jax.ops import vision_attention
 
@@ -36,16 +43,33 @@ def layer_norm(x, p, dtype):
     return ((xf - mean) * (jax.lax.rsqrt(var + 1e-6) * p["scale"]) + p["bias"]).astype(dtype)
 
 
-def add_norm(x, f, p, dtype, norm: str):
-    """(x', LayerNorm(x')), x' = x + (y + b) for f = (y, b), a Dense's product and bias not yet added (x' = x for f
-    None): the residual add and the norm after it, one kernel with norm="pallas" (`ops.layer_norm`) where XLA runs
-    two or three."""
+def _finish(y, b, scale=None):
+    """A Dense's output from its raw product: the FP8 output scale (if any, `matmul.raw_matmul`), then the bias,
+    each rounded to the dtype."""
+    return y + b if scale is None else vision_attention.scale_bias(y, scale, b)
+
+
+def add_norm(x, f, p, dtype, norm: str, quantise=None):
+    """(x', LayerNorm(x')), x' = x + f's Dense output for f = (y, b[, scale]), a raw product, its bias and FP8 output
+    scale not yet applied (`_finish`; x' = x for f None): the residual add and the norm after it, one kernel with
+    norm="pallas" (`ops.layer_norm`) where XLA runs two or three. quantise: the next GEMM's `matmul.input_scale`;
+    the norm then comes as that GEMM's e4m3 input (in the kernel: no pass of its own)."""
     if norm == "pallas":
         if f is None:
-            return x, ops_layer_norm.layer_norm(x, p["scale"], p["bias"], eps=1e-6, dtype=dtype)
-        return ops_layer_norm.layer_norm(x, p["scale"], p["bias"], residual=f, eps=1e-6, dtype=dtype)
-    x = x if f is None else x + (f[0] + f[1])
-    return x, layer_norm(x, p, dtype)
+            return x, ops_layer_norm.layer_norm(x, p["scale"], p["bias"], eps=1e-6, dtype=dtype, quantise=quantise)
+        f = tuple(v for v in f if v is not None)
+        return ops_layer_norm.layer_norm(x, p["scale"], p["bias"], residual=f, eps=1e-6, dtype=dtype,
+                                         quantise=quantise)
+    x = x if f is None else x + _finish(*f)
+    h = layer_norm(x, p, dtype)
+    return x, (h if quantise is None else formats.quantise(h, quantise))
+
+
+def _product(h, w, dtype):
+    """h @ w through the one entry point, FP8's output scale left to the reader: (y, scale or None)."""
+    fp8_layout = isinstance(w, formats.QArray) and w.contract == (-1,)
+    y, scale = matmul.raw_matmul("...D,FD->...F" if fp8_layout else "...D,DF->...F", h, w, dtype)
+    return y, (None if scale is None else jnp.broadcast_to(scale, y.shape[-1:]))
 
 
 def _dense(x, w, b):
@@ -54,21 +78,30 @@ def _dense(x, w, b):
 
 def block(cfg: SiglipConfig, w, x, f, *, attention: str, norm: str = "xla"):
     """One pre-LN encoder block. x (B, T, D) the residual stream in the activation dtype, f the previous block's
-    MLP output (product, bias) not yet added to it (None before the first block) -> (x, f) likewise: each residual
-    add runs with the norm after it."""
+    MLP output (raw product, bias, FP8 output scale or None) not yet added to it (None before the first block) ->
+    (x, f) likewise: each residual add runs with the norm after it. With FP8 weights the activations' quantisation
+    happens inside the kernels where there are kernels (the norms' and the Pallas attention's outputs, the
+    attention's q/k/v scaling as it reads them)."""
     dtype = x.dtype
     b, t = x.shape[:2]
-    x, h = add_norm(x, f, w["ln1"], dtype, norm)
-    qkv = _dense(h, w["qkv"], w["qkv_bias"])
+    x, h = add_norm(x, f, w["ln1"], dtype, norm, matmul.input_scale(w["qkv"]))
+    qkv, scale = _product(h, w["qkv"], dtype)
     if attention == "pallas":   # reads q, k, v in place: no copies
-        y = vision_attention.attention(qkv.reshape(b * t, -1), images=b, num_heads=cfg.num_heads).reshape(b, t, -1)
+        bias = {} if scale is None else dict(col_scale=scale, bias=w["qkv_bias"])
+        qkv = qkv if scale is not None else qkv + w["qkv_bias"]
+        y = vision_attention.attention(qkv.reshape(b * t, -1), images=b, num_heads=cfg.num_heads,
+                                       quantise=matmul.input_scale(w["out"]), **bias).reshape(b, t, -1)
     else:
+        qkv = _finish(qkv, w["qkv_bias"], scale)
         q, k, v = einops.rearrange(qkv, "B T (three N H) -> three B T N H", three=3, N=cfg.num_heads)
         y = ops_attention.fused(q, k, v) if attention == "cudnn" else nn.dot_product_attention(q, k, v, dtype=dtype)
         y = einops.rearrange(y, "B T N H -> B T (N H)")
-    x, h = add_norm(x, (layers._mm(y, w["out"]), w["out_bias"]), w["ln2"], dtype, norm)
-    h = nn.gelu(_dense(h, w["fc1"], w["fc1_bias"]), approximate=True)
-    return x, (layers._mm(h, w["fc2"]), w["fc2_bias"])
+    out, scale = _product(y, w["out"], dtype)
+    x, h = add_norm(x, (out, w["out_bias"], scale), w["ln2"], dtype, norm, matmul.input_scale(w["fc1"]))
+    y, scale = _product(h, w["fc1"], dtype)
+    h = nn.gelu(_finish(y, w["fc1_bias"], scale), approximate=True)
+    y, scale = _product(h, w["fc2"], dtype)
+    return x, (y, w["fc2_bias"], scale)
 
 
 def encode(cfg: SiglipConfig, w: dict, images, *, dtype, unroll: bool, attention: str = "xla", norm: str = "xla"):
@@ -86,7 +119,8 @@ def encode(cfg: SiglipConfig, w: dict, images, *, dtype, unroll: bool, attention
         x, f = block(cfg, blocks[0], x, None, attention=attention, norm=norm)
         blocks = blocks[1:]
     else:        # lax.scan's carry keeps one structure: a zero MLP output (x + 0 is x)
-        f = (jnp.zeros_like(x), jnp.zeros(x.shape[-1:], dtype))
+        fp8 = matmul.input_scale(blocks["fc2"]) is not None
+        f = (jnp.zeros_like(x), jnp.zeros(x.shape[-1:], dtype), jnp.ones(x.shape[-1:], jnp.float32) if fp8 else None)
     (x, f), _ = layers.run_layers(lambda wi, c: (block(cfg, wi, *c, attention=attention, norm=norm),), blocks,
                                   (x, f), unroll=unroll)
     _, x = add_norm(x, f, w["norm"], dtype, norm)

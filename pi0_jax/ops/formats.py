@@ -93,10 +93,15 @@ def act_scale_from_amax(amax) -> np.ndarray:
     return np.where(amax > 0, amax / E4M3_MAX, 1.0).astype(np.float32)
 
 
+def quantise(x: jax.Array, act_scale: jax.Array) -> jax.Array:
+    """x -> e4m3 with a static activation scale (f32, any shape that broadcasts): x / scale in f32, clipped to ±448
+    (saturating), rounded to nearest even."""
+    return jnp.clip(x.astype(jnp.float32) / act_scale.astype(jnp.float32), -E4M3_MAX, E4M3_MAX).astype(E4M3)
+
+
 def qdq_fp8(x: jax.Array, scale: jax.Array) -> jax.Array:
     """Quantise x to e4m3 with a static scalar scale and dequantise back to x.dtype (saturating)."""
-    xq = jnp.clip(x.astype(jnp.float32) / scale, -E4M3_MAX, E4M3_MAX).astype(E4M3)
-    return xq.astype(x.dtype) * scale.astype(x.dtype)
+    return quantise(x, scale).astype(x.dtype) * scale.astype(x.dtype)
 
 
 def _labels(eqn: str):
@@ -125,17 +130,27 @@ def qmatmul(eqn: str, x: jax.Array, w: QArray) -> jax.Array:
     f32 inside the GEMM), then (act_scale x weight scale) applied in f32. Weight-only: the weight dequantised to
     x.dtype (no FP8 tensor cores: bf16 x FP8 is not an FP8 GEMM)."""
     dtype = x.dtype
-    per_tensor = w.scale.size == 1
     if w.act_scale is None:
         wq = w.q.astype(dtype)
-        if per_tensor:
+        if w.scale.size == 1:
             return jnp.einsum(eqn, x, wq * w.scale.reshape(()).astype(dtype))
         return jnp.einsum(eqn, x, wq) * _output_scale(eqn, w, dtype)
-    s = w.act_scale.astype(jnp.float32)
-    xq = jnp.clip(x.astype(jnp.float32) / s, -E4M3_MAX, E4M3_MAX).astype(E4M3)
-    y = jnp.einsum(eqn, xq, w.q, preferred_element_type=dtype)
-    scale = s * (w.scale.reshape(()) if per_tensor else _output_scale(eqn, w, jnp.float32))
-    return (y.astype(jnp.float32) * scale).astype(dtype)
+    y = fp8_product(eqn, quantise(x, w.act_scale), w, dtype)
+    return (y.astype(jnp.float32) * output_scale(eqn, w)).astype(dtype)
+
+
+def fp8_product(eqn: str, xq: jax.Array, w: QArray, dtype) -> jax.Array:
+    """einsum(eqn, xq, w.q) of an e4m3 input, contracted straight into dtype and not yet scaled: `qmatmul` without
+    its two ends, for a kernel that quantises the input before it or scales the output after it."""
+    return jnp.einsum(eqn, xq, w.q, preferred_element_type=dtype)
+
+
+def output_scale(eqn: str, w: QArray) -> jax.Array:
+    """The f32 factor of an FP8 x FP8 product (`fp8_product`): act_scale x the weight's scale, laid out to broadcast
+    against the einsum output."""
+    per_tensor = w.scale.size == 1
+    return w.act_scale.astype(jnp.float32) * (w.scale.reshape(()) if per_tensor
+                                              else _output_scale(eqn, w, jnp.float32))
 
 
 def has_fp8(tree) -> bool:

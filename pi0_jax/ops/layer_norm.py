@@ -11,6 +11,10 @@ Numerics as `pi0_jax.engine.vision.add_norm`'s XLA path (Flax's): each add round
 the fast variance E[x²] - E[x]² clamped at 0, eps inside the rsqrt, scale and bias applied in f32, one rounding to
 the output dtype. Only the order of the sums differs (chunk by chunk here), so the two agree to f32 rounding.
 
+Between FP8 GEMMs (`engine.vision`) the kernel also takes the residual's raw product with its f32 output scale and
+writes the next GEMM's e4m3 input, so neither needs a pass of its own. Triton divides f32 approximately (within 2
+ulp), so a value that close to a rounding boundary of e4m3 may round the other way: rare, one e4m3 step.
+
 Axis legend: R rows, D width.
 """
 
@@ -27,6 +31,7 @@ from jax.experimental.custom_partitioning import custom_partitioning
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
+from pi0_jax.ops.formats import E4M3, E4M3_MAX
 from pi0_jax.ops.pallas_base import call, fit
 
 
@@ -40,20 +45,24 @@ class Blocks:
     num_warps: int = 8
 
 
-def _kernel(x_ref, *refs, br, bc, chunks, eps, residual):
+def _kernel(x_ref, *refs, br, bc, chunks, eps, residual, scaled, dtype):
     """Program i: rows block i, the whole width in `chunks` column chunks held in registers between the statistics
     and the store. The chunks are summed elementwise first, so each statistic is one reduction across threads."""
-    f_ref, fb_ref, scale_ref, bias_ref, *outs = refs if residual else (None, None, *refs)
+    f_ref, fb_ref, fs_ref, scale_ref, bias_ref, act_ref, *outs = refs if residual else (None, None, None, *refs)
     rows = pl.ds(pl.program_id(0) * br, br)
     cols = [pl.ds(c * bc, bc) for c in range(chunks)]
     scale = [scale_ref[c].astype(jnp.float32)[None, :] for c in cols]
     bias = [bias_ref[c].astype(jnp.float32)[None, :] for c in cols]
     xs = [x_ref[rows, c] for c in cols]
-    if residual:   # x + (f + f's bias), each add rounded to x's dtype as XLA's; stored, and normalised
-        dtype = x_ref.dtype
-        f = [(f_ref[rows, c].astype(jnp.float32) + fb_ref[c].astype(jnp.float32)[None, :]).astype(dtype)
-             for c in cols]
-        xs = [(x.astype(jnp.float32) + y.astype(jnp.float32)).astype(dtype) for x, y in zip(xs, f)]
+    if residual:   # x + (f [* f's scale] + f's bias), each op rounded to x's dtype as XLA's; stored, and normalised
+        xt = x_ref.dtype
+
+        def product(c):
+            y = f_ref[rows, c].astype(jnp.float32)
+            return (y * fs_ref[c][None, :]).astype(xt).astype(jnp.float32) if scaled else y
+
+        f = [(product(c) + fb_ref[c].astype(jnp.float32)[None, :]).astype(xt) for c in cols]
+        xs = [(x.astype(jnp.float32) + y.astype(jnp.float32)).astype(xt) for x, y in zip(xs, f)]
         for x, c in zip(xs, cols):
             outs[0][rows, c] = x
     xs = [x.astype(jnp.float32) for x in xs]
@@ -62,39 +71,48 @@ def _kernel(x_ref, *refs, br, bc, chunks, eps, residual):
     var = jnp.maximum(jnp.sum(sum(x * x for x in xs), axis=1) / n - mean * mean, 0.0)
     inv = jax.lax.rsqrt(var + eps)[:, None]
     for x, c, sc, b in zip(xs, cols, scale, bias):
-        outs[-1][rows, c] = ((x - mean[:, None]) * (inv * sc) + b).astype(outs[-1].dtype)
+        y = ((x - mean[:, None]) * (inv * sc) + b).astype(dtype)
+        if outs[-1].dtype != dtype:   # e4m3 as `formats.quantise` (Triton's f32 division: module doc)
+            y = jnp.clip(y.astype(jnp.float32) / act_ref[...][None, :], -E4M3_MAX, E4M3_MAX)
+        outs[-1][rows, c] = y.astype(outs[-1].dtype)
 
 
-def layer_norm(x, scale, bias, *, residual=None, eps: float = 1e-6, dtype=None, blocks: Blocks = Blocks()):
+def layer_norm(x, scale, bias, *, residual=None, eps: float = 1e-6, dtype=None, quantise=None,
+               blocks: Blocks = Blocks()):
     """x (..., D) -> (..., D) in dtype (default x's): LayerNorm over the last axis with scale and bias (D,).
-    With `residual` = (f, f_bias), f x's shape and f_bias (D,) (a Dense's product and its bias): the residual add
-    as well, (x + (f + f_bias), its LayerNorm), each add rounded to x's dtype as XLA rounds them.
+    With `residual` = (f, f_bias) or (f, f_bias, f_scale), f x's shape and the vectors (D,) (a Dense's product, its
+    bias, and an FP8 GEMM's f32 output scale, `formats.output_scale`): the residual add as well, (x + (f [* f_scale]
+    + f_bias), its LayerNorm), each op rounded to x's dtype as XLA rounds them. quantise: an activation scale (f32
+    scalar, `matmul.input_scale`): the LayerNorm, in dtype, then quantised to e4m3 as `formats.quantise` does (the
+    input of an FP8 GEMM).
 
     Under a sharded jit (the simulator's batch mesh) each device normalises its own rows: XLA cannot split a kernel
     it does not know, and would otherwise gather every row onto every device."""
     d = x.shape[-1]
     if scale.shape != (d,) or bias.shape != (d,):
         raise ValueError(f"layer_norm: scale {scale.shape} and bias {bias.shape} must be ({d},) for x {x.shape}")
-    if residual is not None and (residual[0].shape != x.shape or residual[1].shape != (d,)):
-        raise ValueError(f"layer_norm: residual {residual[0].shape} and its bias {residual[1].shape} must be x's "
-                         f"shape {x.shape} and ({d},)")
+    if residual is not None and (residual[0].shape != x.shape or any(v.shape != (d,) for v in residual[1:])):
+        raise ValueError(f"layer_norm: residual {residual[0].shape} and its vectors {[v.shape for v in residual[1:]]} "
+                         f"must be x's shape {x.shape} and ({d},)")
     rows = math.prod(x.shape[:-1])
-    static = (float(eps), jnp.dtype(dtype or x.dtype), blocks)
+    act = jnp.ones((1,), jnp.float32) if quantise is None else jnp.reshape(quantise, (1,)).astype(jnp.float32)
+    static = (float(eps), jnp.dtype(dtype or x.dtype), quantise is not None, blocks)
     if residual is None:
-        return _norm(x.reshape(rows, d), scale, bias, *static)[0].reshape(x.shape)
-    f, f_bias = residual
-    return tuple(o.reshape(x.shape) for o in _add_norm(x.reshape(rows, d), f.reshape(rows, d), f_bias, scale, bias,
-                                                         *static))
+        return _norm(x.reshape(rows, d), scale, bias, act, *static)[0].reshape(x.shape)
+    f, f_bias, *f_scale = residual
+    f_scale = f_scale[0].astype(jnp.float32) if f_scale else jnp.ones((d,), jnp.float32)
+    return tuple(o.reshape(x.shape) for o in _add_norm(x.reshape(rows, d), f.reshape(rows, d), f_bias, f_scale,
+                                                         scale, bias, act, *static, len(residual) == 3))
 
 
-@functools.partial(custom_partitioning, static_argnums=(3, 4, 5))
-def _norm(x, scale, bias, eps, dtype, blocks):
-    return _layer_norm((x,), scale, bias, eps, dtype, blocks)
+@functools.partial(custom_partitioning, static_argnums=(4, 5, 6, 7))
+def _norm(x, scale, bias, act, eps, dtype, quantised, blocks):
+    return _layer_norm((x,), scale, bias, act, eps, dtype, quantised, blocks, False)
 
 
-@functools.partial(custom_partitioning, static_argnums=(5, 6, 7))
-def _add_norm(x, f, f_bias, scale, bias, eps, dtype, blocks):
-    return _layer_norm((x, f, f_bias), scale, bias, eps, dtype, blocks)
+@functools.partial(custom_partitioning, static_argnums=(7, 8, 9, 10, 11))
+def _add_norm(x, f, f_bias, f_scale, scale, bias, act, eps, dtype, quantised, blocks, scaled):
+    return _layer_norm((x, f, f_bias, f_scale), scale, bias, act, eps, dtype, quantised, blocks, scaled)
 
 
 def _shardings(mesh, sharding) -> tuple:
@@ -104,29 +122,39 @@ def _shardings(mesh, sharding) -> tuple:
 
 
 def _rule(n: int):
-    """The partitioning of a kernel over n row arrays (x, or x and the residual; n outputs likewise) and n + 1
-    vectors (the residual's bias, the scale and the bias)."""
-    def partition(eps, dtype, blocks, mesh, arg_shapes, result_shape):
-        rows, full = _shardings(mesh, arg_shapes[0].sharding)
-        fn = lambda *a: _layer_norm(a[:-2], *a[-2:], eps, dtype, blocks)  # noqa: E731
-        return mesh, fn, (rows,) * n, (rows,) * n + (full,) * (n + 1)
+    """The partitioning of a kernel over n row arrays (x, or x and the residual; n outputs likewise), 2 n vectors
+    (the residual's bias and scale, the norm's scale and bias) and the quantisation's (1,) scale."""
+    vectors = 2 * n
 
-    def infer(eps, dtype, blocks, mesh, arg_shapes, result_shape):
+    def partition(*static_and_shapes):
+        *static, mesh, arg_shapes, result_shape = static_and_shapes
+        rows, full = _shardings(mesh, arg_shapes[0].sharding)
+        eps, dtype, quantised, blocks, *scaled = static   # scaled: _add_norm's only
+
+        def fn(*a):
+            return _layer_norm(a[:-3], *a[-3:], eps, dtype, quantised, blocks, bool(scaled) and scaled[0])
+        return mesh, fn, (rows,) * n, (rows,) * n + (full,) * (vectors + 1)
+
+    def infer(*static_and_shapes):
+        mesh, arg_shapes = static_and_shapes[-3:-1]
         return (_shardings(mesh, arg_shapes[0].sharding)[0],) * n
 
-    return dict(partition=partition, infer_sharding_from_operands=infer, need_replication_factors=("d",),
-                sharding_rule=", ".join(["r d"] * n + ["d"] * (n + 1)) + " -> " + ", ".join(["r d"] * n))
+    return dict(partition=partition, infer_sharding_from_operands=infer, need_replication_factors=("d", "o"),
+                sharding_rule=", ".join(["r d"] * n + ["d"] * vectors + ["o"]) + " -> " + ", ".join(["r d"] * n))
 
 
 _norm.def_partition(**_rule(1))
 _add_norm.def_partition(**_rule(2))
 
 
-def _layer_norm(xs: tuple, scale, bias, eps: float, dtype, blocks: Blocks) -> tuple:
+def _layer_norm(xs: tuple, scale, bias, act, eps: float, dtype, quantised: bool, blocks: Blocks,
+                scaled: bool) -> tuple:
     r, d = xs[0].shape
     br, bc = fit(blocks.rows, r), fit(blocks.cols, d)
-    kernel = functools.partial(_kernel, br=br, bc=bc, chunks=d // bc, eps=eps, residual=len(xs) == 3)
-    shapes = ((jax.ShapeDtypeStruct((r, d), xs[0].dtype),) if len(xs) == 3 else ()) + (
-        jax.ShapeDtypeStruct((r, d), dtype),)
+    residual = len(xs) > 1
+    kernel = functools.partial(_kernel, br=br, bc=bc, chunks=d // bc, eps=eps, residual=residual, scaled=scaled,
+                               dtype=dtype)
+    shapes = ((jax.ShapeDtypeStruct((r, d), xs[0].dtype),) if residual else ()) + (
+        jax.ShapeDtypeStruct((r, d), E4M3 if quantised else dtype),)
     return call(kernel, grid=(r // br,), out_shape=shapes, name="layer_norm", num_warps=blocks.num_warps,
-                num_stages=1)(*xs, scale, bias)
+                num_stages=1)(*xs, scale, bias, act)

@@ -27,6 +27,7 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 
+from pi0_jax.ops import formats
 from pi0_jax.ops.formats import QArray, has_fp8, qmatmul
 
 GEMMS = ("xla", "cublas")
@@ -100,6 +101,24 @@ def matmul(eqn: str, x: jax.Array, w) -> jax.Array:
         _record(w.key, x)
         return jnp.einsum(eqn, x, w.w.astype(x.dtype))
     return jnp.einsum(eqn, x, w.astype(x.dtype))
+
+
+def input_scale(w) -> jax.Array | None:
+    """w's activation scale where w is an FP8 x FP8 weight, whose GEMM takes an e4m3 input (`formats.quantise`);
+    else None."""
+    return w.act_scale if isinstance(w, QArray) and w.act_scale is not None else None
+
+
+def raw_matmul(eqn: str, x: jax.Array, w, dtype) -> tuple[jax.Array, jax.Array | None]:
+    """`matmul` with an FP8 x FP8 weight's two ends left to kernels around it: (product, its f32 output scale laid
+    out against the output, `formats.output_scale`). x may come quantised (e4m3, by a kernel before this GEMM with
+    `input_scale(w)`); otherwise it is quantised here. Any other weight: (matmul(eqn, x, w), None). dtype: the
+    product's (the activation dtype)."""
+    s = input_scale(w)
+    if s is None:
+        return matmul(eqn, x, w), None
+    xq = x if x.dtype == formats.E4M3 else formats.quantise(x, s)
+    return formats.fp8_product(eqn, xq, w, dtype), formats.output_scale(eqn, w)
 
 
 def _dense(module, x):
