@@ -35,6 +35,7 @@ from pi0_jax import benchmark
 from pi0_jax.config import get_config
 from pi0_jax.engine import Engine, programs
 from pi0_jax.ops import matmul
+from pi0_jax.quant import schemes
 
 
 def count_ops(hlo: str) -> dict:
@@ -127,12 +128,21 @@ def main() -> None:
                    help="sum each stage program's GPU kernels from a profiler trace (`kernel_times`)")
     p.add_argument("--trace", type=Path, default=None, help="write a jax.profiler trace of 3 fused calls here")
     p.add_argument("--out", type=Path, default=None, help="JSON of the counts, times and traces")
+    p.add_argument("--dump-hlo", type=Path, default=None, help="write each stage program's optimized HLO here")
+    p.add_argument("--quant", default=None, choices=sorted(schemes.SCHEMES),
+                   help="an FP8 scheme for every variant, calibrated on 4 sampled observations (as `pi0-jax "
+                        "benchmark --quant`; default: none)")
     args = p.parse_args()
 
     config = get_config(args.preset, dtype=args.dtype)
     params = benchmark.random_params(config, 0)
+    if args.quant:
+        stats = schemes.calibrate(config, params, schemes.sample_observations(config, 4, seed=0), args.quant,
+                                  percentile=None, num_steps=args.steps)
+        params = schemes.quantize_params(config, params, args.quant, stats["amax"])
     obs, noise = benchmark.make_inputs(config, args.batch, args.cameras, args.prompt_tokens, 0)
-    report = {"preset": args.preset, "batch": args.batch, "steps": args.steps, "env": benchmark.environment(),
+    report = {"preset": args.preset, "batch": args.batch, "steps": args.steps, "quant": args.quant,
+              "env": benchmark.environment(),
               "variants": []}
     outputs, timed = {}, []
     vision_norm = programs.vision_norm
@@ -152,6 +162,10 @@ def main() -> None:
         for stage in ("encode_images", "fill_prefix_cache", "denoise", "infer"):
             exe = engine.executable(stage, args.batch, args.steps, cameras, bucket)
             counts = var["counts"][stage] = count_ops(exe.as_text())
+            if args.dump_hlo:
+                args.dump_hlo.mkdir(parents=True, exist_ok=True)
+                tag = f"{var['attention']}_{kernels}_{gemm}_{norm}".replace(",", "_").replace("=", "-")
+                (args.dump_hlo / f"{stage}_b{args.batch}_{tag}.hlo.txt").write_text(exe.as_text())
             for comp, c in counts.items():
                 if comp.startswith("ENTRY") or c["fusion"] + c["custom-call"] > 20:
                     print(f"   {stage:18s} {comp[:50]:50s} {json.dumps(c)}", flush=True)

@@ -1,0 +1,93 @@
+"""What an FP8 activation quantisation costs as an XLA fusion, by form, at the prefix's and SigLIP's shapes.
+
+Every e4m3 GEMM of the engine gets its input from an XLA fusion that ends in "x / act_scale, clipped to ±448,
+converted to e4m3" (`ops.formats.qmatmul`); the one before the down-projection also applies gate/up's per-column
+weight scale and GeGLU. This times such fusions alone on a GPU, as bytes moved per second against a plain bf16
+pass of the same size, so a slow form shows as a fraction of the bandwidth:
+
+  copy     y + 1 in bf16 (reads and writes bf16: the bandwidth reference)
+  div      the quantisation as qmatmul writes it: x / s
+  mul      x * (1 / s), the reciprocal computed outside the fusion
+  geglu-*  gate/up's epilogue: per-column scale, GELU-tanh(gate) * up in bf16, then div or mul; geglu-f32-mul:
+           GELU and the product in f32, rounded to bf16 once
+
+    python scripts/quantise_probe.py --rows 51200 --out quantise.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+E4M3, F32, BF16 = jnp.float8_e4m3fn, jnp.float32, jnp.bfloat16
+
+
+def _clip(x):
+    return jnp.clip(x, -448.0, 448.0).astype(E4M3)
+
+
+def _geglu(y, col, f32: bool):
+    h = (y.astype(F32) * col).astype(BF16)
+    gate, up = jnp.split(h, 2, axis=-1)
+    if f32:
+        gate, up = gate.astype(F32), up.astype(F32)
+        return (jax.nn.gelu(gate, approximate=True) * up).astype(BF16)
+    return jax.nn.gelu(gate, approximate=True) * up
+
+
+FORMS = {
+    "copy": lambda y, col, s, inv: y + jnp.asarray(1, BF16),
+    "div": lambda y, col, s, inv: _clip(y.astype(F32) / s),
+    "mul": lambda y, col, s, inv: _clip(y.astype(F32) * inv),
+    "geglu-div": lambda y, col, s, inv: _clip(_geglu(y, col, False).astype(F32) / s),
+    "geglu-mul": lambda y, col, s, inv: _clip(_geglu(y, col, False).astype(F32) * inv),
+    "geglu-f32-mul": lambda y, col, s, inv: _clip(_geglu(y, col, True).astype(F32) * inv),
+}
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--rows", type=int, default=51200, help="activation rows (default: %(default)s, π0.5's prefix "
+                                                           "at B = 64)")
+    p.add_argument("--width", type=int, default=2048, help="a GEMM input's width (default: %(default)s)")
+    p.add_argument("--hidden", type=int, default=16384, help="the MLP hidden width (default: %(default)s)")
+    p.add_argument("--iters", type=int, default=20, help="calls per timing, median of 5 (default: %(default)s)")
+    p.add_argument("--out", default=None, help="write the rows as JSON here")
+    args = p.parse_args()
+    rng = np.random.default_rng(0)
+    s = jnp.float32(0.05)
+    inv = 1 / s
+    rows = []
+    for name, fn in FORMS.items():
+        geglu = name.startswith("geglu")
+        width = 2 * args.hidden if geglu else args.width
+        y = jnp.asarray(rng.standard_normal((args.rows, width), np.float32), BF16)
+        col = jnp.asarray(rng.uniform(0.5, 1.5, width), F32)
+        exe = jax.jit(fn).lower(y, col, s, inv).compile()
+        out = exe(y, col, s, inv)
+        moved = y.nbytes + out.nbytes
+        times = []
+        for _ in range(5):
+            jax.block_until_ready(exe(y, col, s, inv))
+            t0 = time.perf_counter()
+            for _ in range(args.iters):
+                out = exe(y, col, s, inv)
+            jax.block_until_ready(out)
+            times.append((time.perf_counter() - t0) / args.iters)
+        t = float(np.median(times))
+        rows.append({"form": name, "shape": list(y.shape), "out": str(out.dtype), "ms": t * 1e3,
+                     "bytes": moved, "gb_s": moved / t / 1e9})
+        print(json.dumps(rows[-1]), flush=True)
+        del y, out
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump({"rows": rows, "device": str(jax.devices()[0])}, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
