@@ -1,8 +1,8 @@
 """The engine's SigLIP: plain jnp over `weights.vision_weights`, the same function as `pi0_jax.siglip.Siglip`.
 
 What differs from the Flax module is the grouping of matmuls and the weights' layout: q/k/v are one (D, 3 N H) GEMM
-with one bias, the attention output one (N H, D) GEMM, and every matmul goes through the engine's one entry point
-(`layers._mm`), so FP8 weights sit (out, in) as cuBLASLt's FP8 GEMM reads them. (One q/k/v GEMM measured faster
+with one bias, the attention output one (N H, D) GEMM, and every matmul goes through the one entry point
+(`ops.matmul`), so FP8 weights sit (out, in) as cuBLASLt's FP8 GEMM reads them. (One q/k/v GEMM measured faster
 than three at every batch but bf16 from ~96 images, where cutting its output in three for cuDNN costs copies:
 docs/BENCHMARKS.md.) Numerics as Flax computes them: the
 patch convolution and the position add in f32; LayerNorm statistics in f32 (Flax's fast variance, E[x²] - E[x]²,
@@ -15,8 +15,8 @@ add is done with the LayerNorm after it (`add_norm`): XLA's ops, or one Pallas k
 FP8 x FP8 GEMMs (`matmul.raw_matmul`) take an e4m3 input and give a raw product whose f32 output scale is applied by
 whoever reads it. With the kernels, that is no pass of its own: the LayerNorm kernel writes the next GEMM's e4m3
 input and scales the residual's product as it adds it, and the Pallas attention scales and biases q, k and v as it
-reads them and writes the out-projection's e4m3 input. XLA's path computes the same ops in the same order
-(`formats.quantise`, `_finish`), so the two agree as the kernels do in bf16.
+reads them and writes the out-projection's e4m3 input. XLA's path computes the same ops (`formats.quantise`,
+`_finish`); the kernels agree with it to rounding (their module docs say where they reorder).
 
 Axis legend: B images, T tokens (256 patches), D width, N heads, H head dim.
 """
