@@ -10,8 +10,11 @@ pass of the same size, so a slow form shows as a fraction of the bandwidth:
   mul      x * (1 / s), the reciprocal computed outside the fusion
   geglu-*  gate/up's epilogue: per-column scale, GELU-tanh(gate) * up in bf16, then div or mul; geglu-f32-mul:
            GELU and the product in f32, rounded to bf16 once
+  gelu-*   SigLIP's fc1 epilogue (--hidden wide): per-column scale, bias, GELU-tanh in bf16 (gelu-bf16: no
+           quantisation after it), in f32 (gelu-f32-div), or as x sigmoid(2 z) (gelu-sigmoid-div); then div
 
     python scripts/quantise_probe.py --rows 51200 --out quantise.json
+    python scripts/quantise_probe.py --rows 49152 --width 1152 --hidden 4304 --forms copy gelu-bf16 gelu-div
 """
 
 from __future__ import annotations
@@ -40,6 +43,16 @@ def _geglu(y, col, f32: bool):
     return jax.nn.gelu(gate, approximate=True) * up
 
 
+def _gelu(y, col, form: str):
+    """SigLIP's fc1 epilogue before fc2's quantisation: per-column scale, the bias (here 0.5), GELU-tanh."""
+    h = (y.astype(F32) * col).astype(BF16) + jnp.asarray(0.5, BF16)
+    if form == "f32":
+        return jax.nn.gelu(h.astype(F32), approximate=True)
+    if form == "sigmoid":   # 0.5 (1 + tanh(z)) = sigmoid(2 z)
+        return h * jax.nn.sigmoid(jnp.asarray(1.5957691, BF16) * (h + jnp.asarray(0.044715, BF16) * h * h * h))
+    return jax.nn.gelu(h, approximate=True)
+
+
 FORMS = {
     "copy": lambda y, col, s, inv: y + jnp.asarray(1, BF16),
     "div": lambda y, col, s, inv: _clip(y.astype(F32) / s),
@@ -47,6 +60,10 @@ FORMS = {
     "geglu-div": lambda y, col, s, inv: _clip(_geglu(y, col, False).astype(F32) / s),
     "geglu-mul": lambda y, col, s, inv: _clip(_geglu(y, col, False).astype(F32) * inv),
     "geglu-f32-mul": lambda y, col, s, inv: _clip(_geglu(y, col, True).astype(F32) * inv),
+    "gelu-bf16": lambda y, col, s, inv: _gelu(y, col, "bf16"),
+    "gelu-div": lambda y, col, s, inv: _clip(_gelu(y, col, "bf16").astype(F32) / s),
+    "gelu-f32-div": lambda y, col, s, inv: _clip(_gelu(y, col, "f32") / s),
+    "gelu-sigmoid-div": lambda y, col, s, inv: _clip(_gelu(y, col, "sigmoid").astype(F32) / s),
 }
 
 
@@ -56,6 +73,8 @@ def main() -> None:
                                                            "at B = 64)")
     p.add_argument("--width", type=int, default=2048, help="a GEMM input's width (default: %(default)s)")
     p.add_argument("--hidden", type=int, default=16384, help="the MLP hidden width (default: %(default)s)")
+    p.add_argument("--forms", nargs="+", default=list(FORMS), choices=list(FORMS), help="forms to time (default: "
+                                                                                       "all)")
     p.add_argument("--iters", type=int, default=20, help="calls per timing, median of 5 (default: %(default)s)")
     p.add_argument("--out", default=None, help="write the rows as JSON here")
     args = p.parse_args()
@@ -63,9 +82,9 @@ def main() -> None:
     s = jnp.float32(0.05)
     inv = 1 / s
     rows = []
-    for name, fn in FORMS.items():
-        geglu = name.startswith("geglu")
-        width = 2 * args.hidden if geglu else args.width
+    for name in args.forms:
+        fn = FORMS[name]
+        width = {"geglu": 2 * args.hidden, "gelu": args.hidden}.get(name.split("-")[0], args.width)
         y = jnp.asarray(rng.standard_normal((args.rows, width), np.float32), BF16)
         col = jnp.asarray(rng.uniform(0.5, 1.5, width), F32)
         exe = jax.jit(fn).lower(y, col, s, inv).compile()
