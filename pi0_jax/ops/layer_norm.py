@@ -26,6 +26,7 @@ import math
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.experimental import pallas as pl
 from jax.experimental.custom_partitioning import custom_partitioning
 from jax.sharding import NamedSharding
@@ -95,12 +96,13 @@ def layer_norm(x, scale, bias, *, residual=None, eps: float = 1e-6, dtype=None, 
         raise ValueError(f"layer_norm: residual {residual[0].shape} and its vectors {[v.shape for v in residual[1:]]} "
                          f"must be x's shape {x.shape} and ({d},)")
     rows = math.prod(x.shape[:-1])
-    act = jnp.ones((1,), jnp.float32) if quantise is None else jnp.reshape(quantise, (1,)).astype(jnp.float32)
+    # the unused operands are numpy constants: XLA embeds them, where a jnp.ones would be a kernel of its own
+    act = np.ones((1,), np.float32) if quantise is None else jnp.reshape(quantise, (1,)).astype(jnp.float32)
     static = (float(eps), jnp.dtype(dtype or x.dtype), quantise is not None, blocks)
     if residual is None:
         return _norm(x.reshape(rows, d), scale, bias, act, *static)[0].reshape(x.shape)
     f, f_bias, *f_scale = residual
-    f_scale = f_scale[0].astype(jnp.float32) if f_scale else jnp.ones((d,), jnp.float32)
+    f_scale = f_scale[0].astype(jnp.float32) if f_scale else np.ones((d,), np.float32)
     return tuple(o.reshape(x.shape) for o in _add_norm(x.reshape(rows, d), f.reshape(rows, d), f_bias, f_scale,
                                                          scale, bias, act, *static, len(residual) == 3))
 
