@@ -248,9 +248,10 @@ def _e4m3_close(got, want):
 
 def test_fp8_ends_in_the_vision_kernels_match_xla():
     """With FP8 GEMMs in SigLIP, the LayerNorm kernel scales the residual's raw product (its FP8 output scale) as it
-    adds it and writes the next GEMM's e4m3 input, and the attention kernel scales and biases q, k, v as it reads the
-    raw q/k/v product and writes the out-projection's e4m3 input: each equals XLA's ops in the same order
-    (`formats.quantise`, `vision._finish`). f32, So400m's widths (1152, 16 heads of 72), 2 images of 16 tokens."""
+    adds it and writes the next GEMM's e4m3 input, and the attention kernel takes the raw q/k/v product with its
+    scale and bias and writes the out-projection's e4m3 input: each equals XLA's ops (`formats.quantise`,
+    `vision._finish`) to f32 rounding, the attention with k's and v's scales moved where they cost least. f32,
+    So400m's widths (1152, 16 heads of 72), 2 images of 16 tokens."""
     import flax.linen as nn
 
     from pi0_jax.engine import vision
@@ -295,6 +296,7 @@ def test_fp8_vision_quantises_only_the_mlp_in_xla_with_the_kernels():
                                  schemes.calibrate(config, params, calib, "vision", percentile=None)["amax"])
     engine = Engine(config, qp, cache_dir=False)
     images = jax.ShapeDtypeStruct((2, 1, config.image_size, config.image_size, 3), jnp.float32)
+
     def outside_kernels(jaxpr) -> int:   # e4m3 conversions, not counting those inside kernels
         n = 0
         for eqn in jaxpr.eqns:
