@@ -96,7 +96,7 @@ def layer_norm(x, scale, bias, *, residual=None, eps: float = 1e-6, dtype=None, 
         raise ValueError(f"layer_norm: residual {residual[0].shape} and its vectors {[v.shape for v in residual[1:]]} "
                          f"must be x's shape {x.shape} and ({d},)")
     rows = math.prod(x.shape[:-1])
-    # the unused operands are numpy constants, not traced ops (XLA still makes a splat one broadcast a call)
+    # the unused operands are numpy constants, not traced ops (XLA still fills a splat once a call, a broadcast)
     act = np.ones((1,), np.float32) if quantise is None else jnp.reshape(quantise, (1,)).astype(jnp.float32)
     static = (float(eps), jnp.dtype(dtype or x.dtype), quantise is not None, blocks)
     if residual is None:
