@@ -27,10 +27,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from pi0_jax.ops.formats import quantise
+
 E4M3, F32, BF16 = jnp.float8_e4m3fn, jnp.float32, jnp.bfloat16
 
 
-def _clip(x):
+def _clip(x):   # the "mul" forms' end; the "div" forms call the project's own `formats.quantise`
     return jnp.clip(x, -448.0, 448.0).astype(E4M3)
 
 
@@ -55,15 +57,15 @@ def _gelu(y, col, form: str):
 
 FORMS = {
     "copy": lambda y, col, s, inv: y + jnp.asarray(1, BF16),
-    "div": lambda y, col, s, inv: _clip(y.astype(F32) / s),
+    "div": lambda y, col, s, inv: quantise(y, s),
     "mul": lambda y, col, s, inv: _clip(y.astype(F32) * inv),
-    "geglu-div": lambda y, col, s, inv: _clip(_geglu(y, col, False).astype(F32) / s),
+    "geglu-div": lambda y, col, s, inv: quantise(_geglu(y, col, False), s),
     "geglu-mul": lambda y, col, s, inv: _clip(_geglu(y, col, False).astype(F32) * inv),
     "geglu-f32-mul": lambda y, col, s, inv: _clip(_geglu(y, col, True).astype(F32) * inv),
     "gelu-bf16": lambda y, col, s, inv: _gelu(y, col, "bf16"),
-    "gelu-div": lambda y, col, s, inv: _clip(_gelu(y, col, "bf16").astype(F32) / s),
-    "gelu-f32-div": lambda y, col, s, inv: _clip(_gelu(y, col, "f32") / s),
-    "gelu-sigmoid-div": lambda y, col, s, inv: _clip(_gelu(y, col, "sigmoid").astype(F32) / s),
+    "gelu-div": lambda y, col, s, inv: quantise(_gelu(y, col, "bf16"), s),
+    "gelu-f32-div": lambda y, col, s, inv: quantise(_gelu(y, col, "f32"), s),
+    "gelu-sigmoid-div": lambda y, col, s, inv: quantise(_gelu(y, col, "sigmoid"), s),
 }
 
 

@@ -19,7 +19,7 @@ from pi0_jax.config import GemmaConfig
 from pi0_jax.gemma import _BIG_NEG, apply_rope
 from pi0_jax.ops import attention, expert_kernels, layout
 from pi0_jax.ops.formats import QArray
-from pi0_jax.ops.matmul import matmul
+from pi0_jax.ops.matmul import matmul, raw_matmul
 
 
 def rms_norm(x, scale=None, mod=None):
@@ -34,11 +34,22 @@ def rms_norm(x, scale=None, mod=None):
     return (normed * (1 + s) + shift).astype(dtype), gate
 
 
+def _eqn(w) -> str:
+    """The einsum of x @ w: plain weights are (in, out); FP8 ones (out, in), contracted on their last axis
+    (`weights._rearrange`)."""
+    return "...D,FD->...F" if isinstance(w, QArray) and w.contract == (-1,) else "...D,DF->...F"
+
+
 def _mm(x, w):
-    """x @ w through the one matmul entry point (a quantised weight takes its own op: FP8 GEMM on Hopper). Plain
-    weights are (in, out); FP8 ones (out, in), contracted on their last axis (`weights._rearrange`)."""
-    fp8_layout = isinstance(w, QArray) and w.contract == (-1,)
-    return matmul("...D,FD->...F" if fp8_layout else "...D,DF->...F", x, w)
+    """x @ w through the one matmul entry point (a quantised weight takes its own op: FP8 GEMM on Hopper)."""
+    return matmul(_eqn(w), x, w)
+
+
+def raw_mm(x, w, dtype):
+    """x @ w with an FP8 weight's output scale left to the reader (`ops.matmul.raw_matmul`): (y, its f32 scale
+    over the output columns, or None)."""
+    y, scale = raw_matmul(_eqn(w), x, w, dtype)
+    return y, (None if scale is None else jnp.broadcast_to(scale, y.shape[-1:]))
 
 
 def _qkv(h, w, cfg: GemmaConfig, positions):

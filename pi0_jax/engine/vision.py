@@ -65,13 +65,6 @@ def add_norm(x, f, p, dtype, norm: str, quantise=None):
     return x, (h if quantise is None else formats.quantise(h, quantise))
 
 
-def _product(h, w, dtype):
-    """h @ w through the one entry point, FP8's output scale left to the reader: (y, scale or None)."""
-    fp8_layout = isinstance(w, formats.QArray) and w.contract == (-1,)
-    y, scale = matmul.raw_matmul("...D,FD->...F" if fp8_layout else "...D,DF->...F", h, w, dtype)
-    return y, (None if scale is None else jnp.broadcast_to(scale, y.shape[-1:]))
-
-
 def _dense(x, w, b):
     return layers._mm(x, w) + b
 
@@ -85,7 +78,7 @@ def block(cfg: SiglipConfig, w, x, f, *, attention: str, norm: str = "xla"):
     dtype = x.dtype
     b, t = x.shape[:2]
     x, h = add_norm(x, f, w["ln1"], dtype, norm, matmul.input_scale(w["qkv"]))
-    qkv, scale = _product(h, w["qkv"], dtype)
+    qkv, scale = layers.raw_mm(h, w["qkv"], dtype)
     if attention == "pallas":   # reads q, k, v in place: no copies
         bias = {} if scale is None else dict(col_scale=scale, bias=w["qkv_bias"])
         qkv = qkv if scale is not None else qkv + w["qkv_bias"]
@@ -96,11 +89,11 @@ def block(cfg: SiglipConfig, w, x, f, *, attention: str, norm: str = "xla"):
         q, k, v = einops.rearrange(qkv, "B T (three N H) -> three B T N H", three=3, N=cfg.num_heads)
         y = ops_attention.fused(q, k, v) if attention == "cudnn" else nn.dot_product_attention(q, k, v, dtype=dtype)
         y = einops.rearrange(y, "B T N H -> B T (N H)")
-    out, scale = _product(y, w["out"], dtype)
+    out, scale = layers.raw_mm(y, w["out"], dtype)
     x, h = add_norm(x, (out, w["out_bias"], scale), w["ln2"], dtype, norm, matmul.input_scale(w["fc1"]))
-    y, scale = _product(h, w["fc1"], dtype)
+    y, scale = layers.raw_mm(h, w["fc1"], dtype)
     h = nn.gelu(_finish(y, w["fc1_bias"], scale), approximate=True)
-    y, scale = _product(h, w["fc2"], dtype)
+    y, scale = layers.raw_mm(h, w["fc2"], dtype)
     return x, (y, w["fc2_bias"], scale)
 
 
