@@ -22,6 +22,8 @@ for phase in "$@"; do
     stages_b1) python3 scripts/profile_engine.py --preset pi0_base --batch 1 --prompt-tokens 48 --attention xla \
                --attention vision=cudnn --attention vision=cudnn,prefix=cudnn --attention cudnn --time --iters 30 \
                --trace-stages --out "$OUT/stages_b1.json" ;;
+    gaps_b1) python3 scripts/profile_engine.py --preset pi0_base --batch 1 --prompt-tokens 48 --steps 10 --time \
+               --iters 20 --trace-stages --out "$OUT/gaps_b1.json" ;;   # each stage's device span and idle gaps
     stages_b8) python3 scripts/profile_engine.py --preset pi0_base --batch 8 --prompt-tokens 48 --attention xla \
                --attention vision=cudnn,prefix=cudnn --time --iters 20 --out "$OUT/stages_b8.json" ;;
     hlo_pi05) python3 scripts/profile_engine.py --preset pi05_base --steps 10 --out "$OUT/hlo_pi05.json" ;;

@@ -57,7 +57,8 @@ def count_ops(hlo: str) -> dict:
 def kernel_times(fn, calls: int = 5, log_dir: str | None = None) -> dict:
     """Run fn() `calls` times under jax.profiler and sum the GPU kernels of the trace by name (numeric suffixes
     dropped: fusion.12 and fusion.40 are one row). Per call: kernels launched, their summed time, the host-timed wall
-    time, and busy = summed / wall (1 - busy is the GPU idle between kernels: launch gaps)."""
+    time, busy = summed / wall (the wall holds the host's dispatch and synchronisation too), and the device's own
+    span and idle time (`idle`)."""
     jax.block_until_ready(fn())
     log_dir = log_dir or tempfile.mkdtemp()
     with jax.profiler.trace(log_dir, create_perfetto_trace=True):
@@ -73,17 +74,46 @@ def kernel_times(fn, calls: int = 5, log_dir: str | None = None) -> dict:
     # kernels sit on the device's "Stream #N" lines; other device lines (XLA Ops / Modules) repeat them as spans
     gpu_lines = {key: name for key, name in threads.items() if key[0] in gpu}
     rows = collections.defaultdict(lambda: [0, 0.0])
+    kernels = []
     for e in events:
         if e.get("ph") == "X" and gpu_lines.get((e["pid"], e.get("tid")), "").startswith("Stream"):
             name = re.sub(r"([._]\d+)+$", "", e["name"])
             rows[name][0] += 1
             rows[name][1] += float(e.get("dur", 0.0))
+            kernels.append((float(e["ts"]), float(e.get("dur", 0.0)), name))
     launched = sum(c for c, _ in rows.values()) / calls
     busy_us = sum(t for _, t in rows.values()) / calls
     top = sorted(rows.items(), key=lambda kv: -kv[1][1])
     return {"calls": calls, "wall_ms": wall * 1e3, "kernels_per_call": launched, "kernel_ms": busy_us / 1e3,
             "busy": busy_us / 1e3 / (wall * 1e3) if wall else None, "device_lines": sorted(gpu_lines.values()),
+            **idle(kernels, calls),
             "by_name": [{"name": n, "per_call": c / calls, "us_per_call": t / calls} for n, (c, t) in top[:60]]}
+
+
+def idle(kernels, calls: int, between_calls_us: float = 100.0) -> dict:
+    """The GPU's idle time inside the program, from the trace's kernels [(start us, duration us, name)]: `span_ms`
+    is the first kernel's start to the last one's end per call (the device's time, without the host's dispatch and
+    synchronisation, which `wall_ms` holds), `idle_ms` the span not covered by kernels, and `idle_before` sums each
+    gap under the name of the kernel that ends it (which launch waited). A gap over `between_calls_us` is taken as
+    the host's turn between two calls (`idle_max_us` says whether that cut went through a call)."""
+    kernels.sort()
+    span, gaps, largest = 0.0, collections.defaultdict(lambda: [0, 0.0]), 0.0
+    start, end = None, None
+    for ts, dur, name in kernels:
+        if end is not None and ts - end <= between_calls_us:
+            gap = max(0.0, ts - end)
+            gaps[name][0] += 1
+            gaps[name][1] += gap
+            largest = max(largest, gap)
+        else:
+            span += 0.0 if end is None else end - start
+            start = ts
+        end = max(end or ts, ts + dur)
+    span += 0.0 if end is None else end - start
+    total = sum(t for _, t in gaps.values())
+    top = sorted(gaps.items(), key=lambda kv: -kv[1][1])
+    return {"span_ms": span / calls / 1e3, "idle_ms": total / calls / 1e3, "idle_max_us": largest,
+            "idle_before": [{"name": n, "per_call": c / calls, "us_per_call": t / calls} for n, (c, t) in top[:25]]}
 
 
 def stage_calls(engine: Engine, batch: int, steps: int, cameras, bucket, packed, noise) -> dict:
@@ -176,8 +206,12 @@ def main() -> None:
             if args.trace_stages:
                 t = var["trace"][stage] = kernel_times(fn, 5)
                 print(f"   {stage:18s} {t['kernels_per_call']:.0f} kernels, {t['kernel_ms']:.3f} ms in kernels of "
-                      f"{t['wall_ms']:.3f} ms ({t['busy']:.0%} busy)", flush=True)
+                      f"{t['wall_ms']:.3f} ms ({t['busy']:.0%} busy); device span {t['span_ms']:.3f} ms, idle "
+                      f"{t['idle_ms']:.3f} ms inside it (largest gap {t['idle_max_us']:.1f} us)", flush=True)
                 for row in t["by_name"][:12]:
+                    print(f"      {row['us_per_call']:9.1f} us  x{row['per_call']:6.1f}  {row['name'][:80]}", flush=True)
+                print("      idle before:", flush=True)
+                for row in t["idle_before"][:8]:
                     print(f"      {row['us_per_call']:9.1f} us  x{row['per_call']:6.1f}  {row['name'][:80]}", flush=True)
         var["compile_s"] = {k[0]: round(v, 2) for k, v in engine.compile_seconds.items()}
         print("   compile s: " + json.dumps(var["compile_s"]), flush=True)
