@@ -110,7 +110,7 @@ def xla_stages(cfg, out, xs, w, pos, ck, cv, pmask, ys, hs, s, p, rnd, args):
     dt, h, nk = jnp.bfloat16, cfg.head_dim, cfg.num_kv_heads
     x3 = [x[None, :s] for x in xs]
     positions = pos[:, :s]
-    out["xla"]["norm_qkv"] = stage_ms(
+    out["xla"]["norm_qkv_rope"] = stage_ms(
         lambda x, w: layers._qkv(layers.rms_norm(x, w["pre_attn"])[0], w["qkv"], cfg, positions), x3, (w,),
         args.iters)
     q5 = [layers._qkv(x, w["qkv"], cfg, positions)[0] for x in x3]
@@ -175,7 +175,7 @@ def stages(config, args, key):
     # two steps take three pairs at depth 3, 197 KB, one program per SM). The default comes first.
     attn = ("q", "kv", "kv_splits", "attention_warps", "attention_stages")
     sweeps = {
-        "norm_qkv": [dict(qkv=G(*g)) for g in ((128, 8, 3), (128, 8, 1), (128, 8, 2), (64, 8, 1), (64, 4, 1),
+        "norm_qkv_rope": [dict(qkv=G(*g)) for g in ((128, 8, 3), (128, 8, 1), (128, 8, 2), (64, 8, 1), (64, 4, 1),
                                                     (128, 16, 1), (64, 16, 1))],
         "attention": [dict(zip(attn, a)) for a in ((64, 64, 13, 8, 3), (64, 64, 13, 8, 1), (64, 64, 7, 8, 1),
                                                    (64, 64, 7, 8, 2), (32, 64, 7, 4, 1), (16, 64, 4, 4, 1),
@@ -191,10 +191,9 @@ def stages(config, args, key):
         return [(a, wi[key]) for a, wi in zip(inputs, ws)]
 
     calls = {
-        "norm_qkv": (lambda bl: lambda x, w: ek.norm_qkv(x, scale, 0, False, w, width=d, blocks=bl),
-                     each(xs, "qkv"), ()),
-        "attention": (lambda bl: lambda q, ck, cv: ek.attention(q, ck, cv, pmask, smask, cos, sin, batch=1,
-                                                                head_dim=h, blocks=bl, **kw),
+        "norm_qkv_rope": (lambda bl: lambda x, w: ek.norm_qkv_rope(x, scale, 0, False, w, cos, sin, width=d,
+                                                                   head_dim=h, blocks=bl, **kw), each(xs, "qkv"), ()),
+        "attention": (lambda bl: lambda q, ck, cv: ek.attention(q, ck, cv, pmask, smask, batch=1, blocks=bl, **kw),
                       [(q, *kv) for q, kv in zip(qkvs, caches)], ()),
         "out_residual": (lambda bl: lambda y, w, x: ek.matmul_residual(y, w, x, gemm=bl.out, blocks=bl),
                          each(ys, "attn_out"), (xs[0],)),
@@ -220,7 +219,7 @@ def stages(config, args, key):
         default = next((t for t, v in rows if v is variants[0]), float("inf"))
         print(f"{name:14s} xla {xla_us:7.1f} us   pallas default {default * 1e3:7.1f} us   best "
               f"{rows[0][0] * 1e3:7.1f} us {rows[0][1]}", flush=True)
-    take = {"norm_qkv": ("qkv",), "attention": ("q", "kv", "kv_splits", "attention_warps", "attention_stages"),
+    take = {"norm_qkv_rope": ("qkv",), "attention": ("q", "kv", "kv_splits", "attention_warps", "attention_stages"),
             "out_residual": ("out",), "norm_geglu": ("mlp",), "down_residual": ("down",)}
     fields = {}
     for name, keys in take.items():
@@ -449,8 +448,10 @@ def gemm_probe(config):
         return jax.random.normal(next(ks), shape, jnp.float32).astype(dt) * shape[0] ** -0.5
 
     x, scale = rnd(sp, d), rnd(1, d)
+    cos, sin = layout.rope_tables(jnp.arange(sp)[None] + 800, cfg.head_dim)
+    kw = {"num_heads": cfg.num_heads, "num_kv_heads": cfg.num_kv_heads, "head_dim": cfg.head_dim}
     blocks = ek.Blocks()
-    calls = [jax.jit(lambda x, w: ek.norm_qkv(x, scale, 0, False, w, width=d)),
+    calls = [jax.jit(lambda x, w: ek.norm_qkv_rope(x, scale, 0, False, w, cos, sin, width=d, **kw)),
              jax.jit(lambda y, w: ek.matmul_residual(y, w, x, gemm=blocks.out, name="expert_attn_out")),
              jax.jit(lambda x, w: ek.norm_geglu(x, scale, 0, False, w, width=d)),
              jax.jit(lambda h, w: ek.matmul_residual(h, w, x, gemm=blocks.down, name="expert_down"))]

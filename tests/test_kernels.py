@@ -73,67 +73,58 @@ def test_big_negative_fill_is_the_models():
 
 
 @pytest.mark.parametrize("adaptive", [False, True])
-def test_norm_qkv_matches_xla(adaptive):
+def test_norm_qkv_rope_matches_xla(adaptive):
     w = _layer_weights()
     x = _rand(10, B, S, CFG.width)
+    positions = jnp.asarray([[77], [149]]) + jnp.arange(S)  # each element's valid prefix length, then the suffix
     (mods, row, _), norm_kw, _ = _mods(adaptive, w)
     h, _ = layers.rms_norm(x, **norm_kw)
-    want = layers._mm(h, w["qkv"]).reshape(B, S, -1, CFG.head_dim)   # before RoPE: the attention kernel's
+    q, k, v = layers._qkv(h, w["qkv"], CFG, positions)
     sp = layout.suffix_rows(S)
+    cos, sin = layout.rope_tables(jnp.pad(positions, ((0, 0), (0, sp - S))), CFG.head_dim)
     for splits in (1, 3):  # one K chunk; three (width 48: the sums of squares and shift products of 3 chunks)
-        out = ek.norm_qkv(layout.rows(x, sp), mods, row, adaptive, layout.expert_weights(w, CFG)["qkv"],
-                          width=CFG.width, blocks=Blocks(qkv=Gemm(128, splits)))
+        out = ek.norm_qkv_rope(layout.rows(x, sp), mods, row, adaptive, layout.expert_weights(w, CFG)["qkv"], cos,
+                               sin, width=CFG.width, num_heads=CFG.num_heads, num_kv_heads=CFG.num_kv_heads,
+                               head_dim=CFG.head_dim, blocks=Blocks(qkv=Gemm(128, splits)))
         got = _unheads(out.reshape(B, sp, -1)[:, :S], CFG.num_heads + 2 * CFG.num_kv_heads)
-        np.testing.assert_allclose(got, want, **TOL)
+        np.testing.assert_allclose(got[:, :, : CFG.num_heads], q.reshape(B, S, CFG.num_heads, -1), **TOL)
+        np.testing.assert_allclose(got[:, :, CFG.num_heads: -1], k, **TOL)
+        np.testing.assert_allclose(got[:, :, -1:], v, **TOL)
 
 
 def _attention_inputs(pi05):
-    """q, k, v before RoPE (B, S, heads, H), the rotated cache, the masks and the suffix positions."""
     n, kh, h = CFG.num_heads, CFG.num_kv_heads, CFG.head_dim
-    q = _rand(20, B, S, n, h)
+    q = _rand(20, B, S, kh, n // kh, h)
     k, v = _rand(21, B, S, kh, h), _rand(22, B, S, kh, h)
     ck, cv = _rand(23, B, P, kh, h), _rand(24, B, P, kh, h)
-    positions = jnp.asarray([[77], [149]]) + jnp.arange(S)  # each element's valid prefix length, then the suffix
-    return q, k, v, ck, cv, _prefix_mask(), _suffix_mask(pi05), positions
+    return q, k, v, ck, cv, _prefix_mask(), _suffix_mask(pi05)
 
 
-def _xla_attention(q, k, v, ck, cv, pmask, smask, positions):
-    """`layers.suffix_layer`'s attention: RoPE on q and k, q scaled in the dtype, one softmax over [cache | suffix]."""
-    q = gemma.apply_rope(q, positions) * jnp.asarray(CFG.head_dim**-0.5, q.dtype)
-    q = q.reshape(B, S, CFG.num_kv_heads, -1, CFG.head_dim)
-    k = gemma.apply_rope(k, positions)
-    return layers._attend(q, [ck, k], [cv, v], [jnp.broadcast_to(pmask[:, None], (B, S, P)), smask], jnp.float32)
-
-
-def _pallas_attention(q, k, v, ck, cv, pmask, smask, positions, splits=4):
+def _pallas_attention(q, k, v, ck, cv, pmask, smask, splits=4):
     sp, h = layout.suffix_rows(S), CFG.head_dim
     qkv = jnp.concatenate([q.reshape(B, S, -1), k.reshape(B, S, -1), v.reshape(B, S, -1)], axis=-1)
     qkv = layout.rows(layout._heads(qkv, -1, h), sp)
     ck, cv = (layout.cache_kv(c, h) for c in (ck, cv))
     smask = jnp.pad(smask, ((0, 0), (0, sp - S), (0, sp - S))).reshape(B * sp, sp).astype(jnp.int32)
-    cos, sin = layout.rope_tables(jnp.pad(positions, ((0, 0), (0, sp - S))), h)
     out = ek.attention(qkv, ck.reshape(-1, ck.shape[2] * ck.shape[3]), cv.reshape(-1, cv.shape[2] * cv.shape[3]),
-                       layout.cache_mask(pmask).astype(jnp.int32), smask, cos, sin, batch=B,
-                       num_heads=CFG.num_heads, num_kv_heads=CFG.num_kv_heads, head_dim=h,
-                       blocks=Blocks(kv=32, kv_splits=splits))
+                       layout.cache_mask(pmask).astype(jnp.int32), smask, batch=B, num_heads=CFG.num_heads,
+                       num_kv_heads=CFG.num_kv_heads, blocks=Blocks(kv=32, kv_splits=splits))
     return _unheads(out.reshape(B, sp, -1)[:, :S], CFG.num_heads).reshape(B, S, -1)
 
 
 @pytest.mark.parametrize("pi05", [False, True])
 def test_attention_matches_xla_with_masked_camera_and_padded_prompt(pi05):
-    q, k, v, ck, cv, pmask, smask, positions = _attention_inputs(pi05)
-    want = _xla_attention(q, k, v, ck, cv, pmask, smask, positions)
+    q, k, v, ck, cv, pmask, smask = _attention_inputs(pi05)
+    want = layers._attend(q, [ck, k], [cv, v], [jnp.broadcast_to(pmask[:, None], (B, S, P)), smask], jnp.float32)
     # 6 key blocks of 32: one split; 3 splits of 2 blocks (element 0's second split is all masked: its camera);
     # 4 splits of 2 blocks (the last split lies past the cache)
     for splits in (1, 3, 4):
-        np.testing.assert_allclose(_pallas_attention(q, k, v, ck, cv, pmask, smask, positions, splits), want, **TOL)
-    # the masks and the positions matter: a prefix mask without the masked camera, π0.5's suffix mask for π0, or
-    # the suffix one position later changes the result
-    wrong_prefix = _pallas_attention(q, k, v, ck, cv, pmask.at[0, 64:128].set(True), smask, positions)
+        np.testing.assert_allclose(_pallas_attention(q, k, v, ck, cv, pmask, smask, splits), want, **TOL)
+    # the masks matter: a prefix mask without the masked camera, or π0.5's suffix mask for π0, changes the result
+    wrong_prefix = _pallas_attention(q, k, v, ck, cv, pmask.at[0, 64:128].set(True), smask)
     assert not np.allclose(wrong_prefix, want, **TOL)
-    assert not np.allclose(_pallas_attention(q, k, v, ck, cv, pmask, smask, positions + 1), want, **TOL)
     if not pi05:
-        assert not np.allclose(_pallas_attention(q, k, v, ck, cv, pmask, _suffix_mask(True), positions), want, **TOL)
+        assert not np.allclose(_pallas_attention(q, k, v, ck, cv, pmask, _suffix_mask(True)), want, **TOL)
 
 
 @pytest.mark.parametrize("adaptive", [False, True])

@@ -171,8 +171,8 @@ def run_layers(layer_fn, weights, x, per_layer=(), *, unroll: bool):
 
 def suffix_layers_pallas(cfg: GemmaConfig, weights, x, positions, cache_k, cache_v, prefix_mask, suffix_mask,
                          mods=None, blocks: expert_kernels.Blocks = expert_kernels.Blocks()):
-    """All action-expert layers as Pallas kernels (`pi0_jax.ops`): per layer four split-K GEMMs and the attention
-    (with RoPE), each followed by one XLA fusion (norm, GeGLU, residuals, the split merges); the same function as
+    """All action-expert layers as Pallas kernels (`pi0_jax.ops`): per layer four split-K GEMMs and the attention,
+    each followed by one XLA fusion (norm, RoPE, GeGLU, residuals, the split merges); the same function as
     `suffix_layer` applied layer by layer.
 
     weights: the engine's per-layer dicts, laid out for the kernels here (`ops.layout.expert_weights`: reshapes that
@@ -196,10 +196,10 @@ def suffix_layers_pallas(cfg: GemmaConfig, weights, x, positions, cache_k, cache
             (ma, ra, ga), (mf, rf, gf) = (mods_attn, 3 * i, 3 * i + 2), (mods_ffw, 3 * i, 3 * i + 2)
         else:
             (ma, ra, ga), (mf, rf, gf) = (w["pre_attn"], 0, None), (w["pre_ffw"], 0, None)
-        qkv = expert_kernels.norm_qkv(rows, ma, ra, adaptive, w["qkv"], width=d, blocks=blocks)
+        qkv = expert_kernels.norm_qkv_rope(rows, ma, ra, adaptive, w["qkv"], cos, sin, width=d,
+                                           head_dim=cfg.head_dim, blocks=blocks, **heads)
         k, v = (c[i].reshape(b * c[i].shape[1], -1) for c in (cache_k, cache_v))
-        y = expert_kernels.attention(qkv, k, v, pmask, smask, cos, sin, batch=b, head_dim=cfg.head_dim,
-                                     blocks=blocks, **heads)
+        y = expert_kernels.attention(qkv, k, v, pmask, smask, batch=b, blocks=blocks, **heads)
         rows = expert_kernels.matmul_residual(y, w["attn_out"], rows, ma, ga, gemm=blocks.out, blocks=blocks,
                                               name="expert_attn_out", mosaic=blocks.mosaic_out)
         h = expert_kernels.norm_geglu(rows, mf, rf, adaptive, w["gate_up"], width=d, blocks=blocks)

@@ -6,11 +6,10 @@ over K (hundreds of short programs, f32 partials), and the cheap elementwise wor
 
   matmul_partials  [x * (1 + scale)] @ w over one K chunk, plus the chunk's sum of squares (the norm's statistics)
                    and adaRMS's shift @ w: the norm is applied after the GEMM, as a per-row 1 / rms
-  attention        the suffix queries over [cached prefix | suffix] keys: q and the suffix keys rotated (RoPE) and q
-                   scaled as they are read, an online softmax over each of several key splits in parallel
-                   (flash-decoding), merged by their log-sum-exp
+  attention        the suffix queries over [cached prefix | suffix] keys: an online softmax over each of several key
+                   splits in parallel (flash-decoding), merged by their log-sum-exp
 
-  norm_qkv         = matmul_partials, then (XLA) the split sum and 1 / rms (RoPE and q's scaling: the attention's)
+  norm_qkv_rope    = matmul_partials, then (XLA) the split sum, 1 / rms, RoPE and q's scaling
   norm_geglu       = matmul_partials, then (XLA) the split sum, 1 / rms, GELU-tanh(gate) * up
   matmul_residual  = matmul_partials, then (XLA) the split sum, adaRMS's gate and the residual
 
@@ -26,10 +25,10 @@ smallest dot). Padding is zeros and padded keys are masked, so every valid numbe
 
 Numerics as `pi0_jax.engine.layers`: f32 norm statistics, f32 RoPE, f32 logits and softmax with the same big-negative
 fill; every GEMM output is rounded to the activation dtype before its epilogue, as XLA's `x @ w` is, and each
-epilogue op rounds where the XLA op would. Four reorderings, each within bf16 rounding of the XLA path and within f32
+epilogue op rounds where the XLA op would. Three reorderings, each within bf16 rounding of the XLA path and within f32
 rounding in f32: x * (1 + scale) enters the GEMM and the row's 1 / rms multiplies its f32 result; adaRMS's shift
-enters as its own product shift @ w; the logits are the sum of the two RoPE halves' products; attention rounds each
-key split's normalised output to the dtype and merges the splits in f32.
+enters as its own product shift @ w; attention rounds each key split's normalised output to the dtype and merges the
+splits in f32.
 
 Axis legend: M rows (B * Sp), D width, F MLP hidden, N query heads, K kv heads, hp half head dim (padded), P keys,
 S splits.
@@ -200,47 +199,46 @@ def _normed_product(x, mods, mod_row, adaptive, w, *, width, gemm, blocks, name,
     return acc + sum(list(shift))[None] if adaptive else acc
 
 
-def norm_qkv(x, mods, mod_row: int, adaptive: bool, w_qkv, *, width: int, blocks: Blocks = Blocks()):
-    """x (M, D) -> qkv (M, (N + 2K) * 2hp): normed and projected, rounded to the dtype; RoPE and q's scaling are
-    the attention kernel's (`attention`).
+def norm_qkv_rope(x, mods, mod_row: int, adaptive: bool, w_qkv, cos, sin, *, width: int, num_heads: int,
+                  num_kv_heads: int, head_dim: int, blocks: Blocks = Blocks()):
+    """x (M, D) -> qkv (M, (N + 2K) * 2hp): normed, projected, q/k rotated, q scaled by head_dim^-0.5.
 
-    mods (R, D): row mod_row is the norm scale, +1 the adaRMS shift (adaptive); w_qkv (D, (N + 2K) * 2hp); width: the
-    true D (the mean's divisor).
+    mods (R, D): row mod_row is the norm scale, +1 the adaRMS shift (adaptive); w_qkv (D, (N + 2K) * 2hp);
+    cos / sin (M, hp) f32 (`layout.rope_tables`); width: the true D (the mean's divisor).
     """
+    m, dtype = x.shape[0], x.dtype
+    heads, hp = num_heads + 2 * num_kv_heads, cos.shape[1]
     acc = _normed_product(x, mods, mod_row, adaptive, w_qkv, width=width, gemm=blocks.qkv, blocks=blocks,
                           name="expert_qkv", mosaic=blocks.mosaic_qkv)
-    return acc.astype(x.dtype)
+    a = _round(acc, dtype).reshape(m, heads, 2, hp)
+    a1, a2, c, s = a[:, :, 0], a[:, :, 1], cos[:, None], sin[:, None]
+    # RoPE in f32, then the dtype, for q and k heads; q is then scaled in the dtype (q_scale is a dtype value). On a
+    # GPU the stack is a kernel of its own; a * c + swap(a) * [-s | s] (a reversed axis, no stack) became two
+    # (docs/BENCHMARKS.md, "Launch parameters inside the step")
+    rotary = (jnp.arange(heads) < num_heads + num_kv_heads)[None, :, None]
+    r1 = jnp.where(rotary, _round(a1 * c - a2 * s, dtype), a1)
+    r2 = jnp.where(rotary, _round(a2 * c + a1 * s, dtype), a2)
+    q_scale = float(np.asarray(head_dim**-0.5, dtype))
+    scale = jnp.where(jnp.arange(heads) < num_heads, q_scale, 1.0)[None, :, None, None]
+    return (jnp.stack([r1, r2], axis=2) * scale).astype(dtype).reshape(m, heads * 2 * hp)
 
 
 # -- attention over [cached prefix | suffix] ---------------------------------------------------------------------------
-def _rotate(ref, rows, col, cos, sin, hp, dtype):
-    """RoPE of one head's halves [x1 | x2] at `col` of the given rows, as `pi0_jax.gemma.apply_rope`: in f32, each
-    half rounded to the dtype (kept in f32 to compute)."""
-    x1 = ref[rows, pl.ds(col, hp)].astype(jnp.float32)
-    x2 = ref[rows, pl.ds(col + hp, hp)].astype(jnp.float32)
-    return _round(x1 * cos - x2 * sin, dtype), _round(x2 * cos + x1 * sin, dtype)
-
-
-def _attention_kernel(qkv_ref, ck_ref, cv_ref, pmask_ref, smask_ref, cos_ref, sin_ref, o_ref, lse_ref, *, m, bq,
-                      bkv, sp, pp, hp, q_scale, num_heads, num_kv_heads, splits, per_split):
+def _attention_kernel(qkv_ref, ck_ref, cv_ref, pmask_ref, smask_ref, o_ref, lse_ref, *, m, bq, bkv, sp, pp, hd,
+                      num_heads, num_kv_heads, splits, per_split):
     """Program (b, n, qi, s): query block qi of head n over prefix key blocks [s * per_split, (s + 1) * per_split)
-    (s < splits; blocks past the cache are masked), or over the suffix keys (s == splits). The query block is
-    rotated and scaled as it is read, the suffix keys rotated likewise (the cached keys are rotated already); the
-    logits are the two RoPE halves' products summed. Writes the split's normalised output (in the dtype) and its
-    log-sum-exp (f32)."""
+    (s < splits; blocks past the cache are masked), or over the suffix keys (s == splits). Writes the split's
+    normalised output (in the dtype) and its log-sum-exp (f32)."""
     b, n, qi, s = pl.program_id(0), pl.program_id(1), pl.program_id(2), pl.program_id(3)
     kh = jax.lax.div(n, num_heads // num_kv_heads) if num_kv_heads > 1 else 0  # this query head's kv head
-    hd = 2 * hp
     rows = pl.ds(b * sp + qi * bq, bq)
-    dtype = qkv_ref.dtype
-    # q's scale in the dtype after RoPE, as `layers._qkv`: q_scale is a dtype value, the product rounded
-    q1, q2 = (_round(r * q_scale, dtype).astype(dtype)
-              for r in _rotate(qkv_ref, rows, n * hd, cos_ref[rows, :], sin_ref[rows, :], hp, dtype))
+    q = qkv_ref[rows, pl.ds(n * hd, hd)]
+    dtype = q.dtype
     blocks = pp // bkv
 
-    def update(carry, k1, k2, v, valid):
+    def update(carry, k, v, valid):
         o, mx, l = carry
-        logits = jnp.where(valid, dot(q1, k1, trans_b=True) + dot(q2, k2, trans_b=True), BIG_NEG)  # f32
+        logits = jnp.where(valid, dot(q, k, trans_b=True), BIG_NEG)  # f32
         m_new = jnp.maximum(mx, jnp.max(logits, axis=1))
         corr = jnp.exp(mx - m_new)
         p = jnp.exp(logits - m_new[:, None])
@@ -261,8 +259,7 @@ def _attention_kernel(qkv_ref, ck_ref, cv_ref, pmask_ref, smask_ref, cos_ref, si
             tc = jnp.minimum(t, blocks - 1)  # a block past the cache reads the last one, all masked
             keys = pl.ds(b * pp + tc * bkv, bkv)
             valid = (pmask_ref[pl.ds(b, 1), pl.ds(tc * bkv, bkv)] != 0) & (t < blocks)
-            k1, k2 = ck_ref[keys, pl.ds(kh * hd, hp)], ck_ref[keys, pl.ds(kh * hd + hp, hp)]
-            return update(carry, k1, k2, cv_ref[keys, pl.ds(kh * hd, hd)], valid)
+            return update(carry, ck_ref[keys, pl.ds(kh * hd, hd)], cv_ref[keys, pl.ds(kh * hd, hd)], valid)
 
         write(jax.lax.fori_loop(0, per_split, block, init))
 
@@ -270,37 +267,31 @@ def _attention_kernel(qkv_ref, ck_ref, cv_ref, pmask_ref, smask_ref, cos_ref, si
     def _suffix():
         suffix = pl.ds(b * sp, sp)
         k_col, v_col = (num_heads + kh) * hd, (num_heads + num_kv_heads + kh) * hd
-        k1, k2 = (k.astype(dtype) for k in _rotate(qkv_ref, suffix, k_col, cos_ref[suffix, :], sin_ref[suffix, :],
-                                                   hp, dtype))
-        write(update(init, k1, k2, qkv_ref[suffix, pl.ds(v_col, hd)], smask_ref[rows, :] != 0))
+        write(update(init, qkv_ref[suffix, pl.ds(k_col, hd)], qkv_ref[suffix, pl.ds(v_col, hd)],
+                     smask_ref[rows, :] != 0))
 
 
-def attention(qkv, cache_k, cache_v, prefix_mask, suffix_mask, cos, sin, *, batch: int, num_heads: int,
-              num_kv_heads: int, head_dim: int, blocks: Blocks = Blocks()):
+def attention(qkv, cache_k, cache_v, prefix_mask, suffix_mask, *, batch: int, num_heads: int, num_kv_heads: int,
+              blocks: Blocks = Blocks()):
     """Softmax attention of the suffix queries over [cached prefix | suffix] keys -> (M, N * 2hp).
 
-    qkv (M, (N + 2K) * 2hp) from `norm_qkv`, before RoPE: the kernel rotates q and the suffix keys with cos / sin
-    (M, hp) f32 (`layout.rope_tables`) and scales q by head_dim^-0.5, as `layers._qkv` does; cache_k / cache_v
-    (B * P, K * 2hp), the keys rotated; prefix_mask (B, P) int32, the same for every query; suffix_mask (M, Sp)
-    int32, query row -> suffix key. The prefix keys are split over `blocks.kv_splits` programs per query block, the
-    suffix keys take one more; the splits' softmaxes are merged by their log-sum-exp. A split whose keys are all
-    masked has a log-sum-exp of about BIG_NEG and weight 0.
+    qkv (M, (N + 2K) * 2hp) from `norm_qkv_rope`; cache_k / cache_v (B * P, K * 2hp); prefix_mask (B, P) int32, the
+    same for every query; suffix_mask (M, Sp) int32, query row -> suffix key. The prefix keys are split over
+    `blocks.kv_splits` programs per query block, the suffix keys take one more; the splits' softmaxes are merged
+    by their log-sum-exp. A split whose keys are all masked has a log-sum-exp of about BIG_NEG and weight 0.
     """
     m, sp = suffix_mask.shape
-    hp = cos.shape[1]
-    hd = 2 * hp
+    hd = qkv.shape[1] // (num_heads + 2 * num_kv_heads)
     pp = prefix_mask.shape[1]
     bq, bkv = fit(blocks.q, sp), fit(blocks.kv, pp)
     splits = max(1, min(blocks.kv_splits, pp // bkv))
     per_split = -(-(pp // bkv) // splits)
-    q_scale = float(np.asarray(head_dim**-0.5, qkv.dtype))
-    kernel = functools.partial(_attention_kernel, m=m, bq=bq, bkv=bkv, sp=sp, pp=pp, hp=hp, q_scale=q_scale,
-                               num_heads=num_heads, num_kv_heads=num_kv_heads, splits=splits, per_split=per_split)
+    kernel = functools.partial(_attention_kernel, m=m, bq=bq, bkv=bkv, sp=sp, pp=pp, hd=hd, num_heads=num_heads,
+                               num_kv_heads=num_kv_heads, splits=splits, per_split=per_split)
     out = (jax.ShapeDtypeStruct(((splits + 1) * m, num_heads * hd), qkv.dtype),
            jax.ShapeDtypeStruct(((splits + 1) * m, num_heads), jnp.float32))
     o, lse = _call(kernel, (batch, num_heads, sp // bq, splits + 1), out, "expert_attention",
-                   blocks.attention_warps, blocks.attention_stages)(qkv, cache_k, cache_v, prefix_mask, suffix_mask,
-                                                                    cos, sin)
+                   blocks.attention_warps, blocks.attention_stages)(qkv, cache_k, cache_v, prefix_mask, suffix_mask)
     # merge, elementwise over the splits (one XLA fusion): sum_s exp(lse_s - max) o_s / sum_s exp(lse_s - max)
     o = list(o.reshape(splits + 1, m, num_heads, hd).astype(jnp.float32))
     lse = list(lse.reshape(splits + 1, m, num_heads, 1))
