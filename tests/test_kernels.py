@@ -217,24 +217,30 @@ def test_layer_norm_kernel_matches_xla(width):
     from pi0_jax.ops import layer_norm as ln
 
     x, y = _rand(1, 2, 12, width, scale=3.0) + 1.5, _rand(2, 2, 12, width)
-    p, y_bias = {"scale": _rand(3, width), "bias": _rand(4, width)}, _rand(5, width)
-    for f in (None, (y, y_bias)):
-        want = vision.add_norm(x, f, p, jnp.float32, "xla")
+    # one table as a block's `vectors`: a zero row, then the norm's scale and bias (rows 1, 2), then y's bias
+    table = jnp.stack([jnp.zeros(width), _rand(3, width), _rand(4, width), _rand(5, width)])
+    norm = (table, (1, 2))
+    for f in (None, (y, (table, 3))):
+        want = vision.add_norm(x, f, norm, jnp.float32, "xla")
         for blocks in (ln.Blocks(), ln.Blocks(rows=2, cols=16)):
-            got = (x, ln.layer_norm(x, p["scale"], p["bias"], blocks=blocks)) if f is None else ln.layer_norm(
-                x, p["scale"], p["bias"], residual=f, blocks=blocks)
+            got = (x, ln.layer_norm(x, table, (1, 2), blocks=blocks)) if f is None else ln.layer_norm(
+                x, table, (1, 2), residual=(y, table, 3), blocks=blocks)
             for g, w in zip(got, want):
                 np.testing.assert_allclose(g, w, **TOL)
     low = lambda a: a.astype(jnp.bfloat16)  # noqa: E731
-    want = vision.add_norm(low(x), (low(y), low(y_bias)), p, jnp.bfloat16, "xla")
-    got = vision.add_norm(low(x), (low(y), low(y_bias)), p, jnp.bfloat16, "pallas")
+    want = vision.add_norm(low(x), (low(y), (table, 3)), norm, jnp.bfloat16, "xla")
+    got = vision.add_norm(low(x), (low(y), (table, 3)), norm, jnp.bfloat16, "pallas")
     assert got[0].dtype == got[1].dtype == jnp.bfloat16
     np.testing.assert_array_equal(got[0], want[0])   # the same two bf16 roundings
     np.testing.assert_allclose(got[1].astype(jnp.float32), want[1].astype(jnp.float32), rtol=1e-2, atol=1e-2)
-    with pytest.raises(ValueError, match=r"scale \(3,\)"):
-        ln.layer_norm(x, p["scale"][:3], p["bias"])
+    # the rows matter: another row as the bias changes the result
+    assert not np.allclose(ln.layer_norm(x, table, (1, 3)), vision.add_norm(x, None, norm, jnp.float32, "xla")[1])
+    with pytest.raises(ValueError, match=r"vectors \(4, 3\)"):
+        ln.layer_norm(x, table[:, :3], (1, 2))
+    with pytest.raises(ValueError, match="rows \\(1, 4\\)"):
+        ln.layer_norm(x, table, (1, 4))
     with pytest.raises(ValueError, match="residual"):
-        ln.layer_norm(x, p["scale"], p["bias"], residual=(y[:1], y_bias))
+        ln.layer_norm(x, table, (1, 2), residual=(y[:1], table, 3))
 
 
 def _e4m3_close(got, want):
@@ -259,16 +265,17 @@ def test_fp8_ends_in_the_vision_kernels_match_xla():
 
     width, heads, hd = 1152, 16, 72
     x, y = _rand(1, 2, 16, width, scale=3.0) + 1.5, _rand(2, 2, 16, width, scale=20.0)
-    p, y_bias, y_scale = {"scale": _rand(3, width), "bias": _rand(4, width)}, _rand(5, width), _rand(6, width) * 0.1
+    table, y_scale = jnp.stack([_rand(3, width), _rand(4, width), _rand(5, width)]), _rand(6, width) * 0.1
+    norm = (table, (0, 1))   # y's bias at row 2
     act = jnp.float32(4.0 / 448)   # |LN| up to ~4 fills e4m3's range; larger values saturate
-    for f in (None, (y, y_bias, y_scale)):
-        want = vision.add_norm(x, f, p, jnp.float32, "xla", quantise=act)
-        got = vision.add_norm(x, f, p, jnp.float32, "pallas", quantise=act)
+    for f in (None, (y, (table, 2), y_scale)):
+        want = vision.add_norm(x, f, norm, jnp.float32, "xla", quantise=act)
+        got = vision.add_norm(x, f, norm, jnp.float32, "pallas", quantise=act)
         np.testing.assert_allclose(got[0], want[0], **TOL)
         _e4m3_close(got[1], want[1])
-    assert float(jnp.max(jnp.abs(want[0] - vision.add_norm(x, f[:2], p, jnp.float32, "xla")[0]))) > 1e-2  # scaled
+    assert float(jnp.max(jnp.abs(want[0] - vision.add_norm(x, f[:2], norm, jnp.float32, "xla")[0]))) > 1e-2
     with pytest.raises(ValueError, match="residual"):
-        ln.layer_norm(x, p["scale"], p["bias"], residual=(y, y_bias, y_scale[:3]))
+        ln.layer_norm(x, table, (0, 1), residual=(y, table, 2, y_scale[:3]))
 
     qkv = _rand(7, 2 * 16, 3 * heads * hd, scale=8.0)
     q_scale, q_bias = jnp.abs(_rand(8, 3 * heads * hd)) * 0.1 + 0.05, _rand(9, 3 * heads * hd)

@@ -30,17 +30,20 @@ import jax.numpy as jnp
 
 from pi0_jax.config import SiglipConfig
 from pi0_jax.engine import layers
+from pi0_jax.engine.weights import FC2_BIAS, LN1_BIAS, LN1_SCALE, LN2_BIAS, LN2_SCALE, OUT_BIAS
 from pi0_jax.ops import attention as ops_attention
 from pi0_jax.ops import formats, matmul
 from pi0_jax.ops import layer_norm as ops_layer_norm
 from pi0_jax.ops import vision_attention
 
 
-def layer_norm(x, p, dtype):
+def layer_norm(x, vectors, rows, dtype):
+    """LayerNorm with scale vectors[rows[0]] and bias vectors[rows[1]] (a `weights.vision_weights` table)."""
     xf = x.astype(jnp.float32)
     mean = jnp.mean(xf, axis=-1, keepdims=True)
     var = jnp.maximum(jnp.mean(jnp.square(xf), axis=-1, keepdims=True) - jnp.square(mean), 0.0)
-    return ((xf - mean) * (jax.lax.rsqrt(var + 1e-6) * p["scale"]) + p["bias"]).astype(dtype)
+    scale, bias = vectors[rows[0]], vectors[rows[1]]
+    return ((xf - mean) * (jax.lax.rsqrt(var + 1e-6) * scale) + bias).astype(dtype)
 
 
 def _finish(y, b, scale=None):
@@ -49,20 +52,31 @@ def _finish(y, b, scale=None):
     return y + b if scale is None else vision_attention.scale_bias(y, scale, b)
 
 
-def add_norm(x, f, p, dtype, norm: str, quantise=None):
-    """(x', LayerNorm(x')), x' = x + f's Dense output for f = (y, b[, scale]), a raw product, its bias and FP8 output
-    scale not yet applied (`_finish`; x' = x for f None): the residual add and the norm after it, one kernel with
-    norm="pallas" (`ops.layer_norm`) where XLA runs two or three. quantise: the next GEMM's `matmul.input_scale`;
-    the norm then comes as that GEMM's e4m3 input (in the kernel: no pass of its own)."""
+def add_norm(x, f, norm_vectors, dtype, norm: str, quantise=None):
+    """(x', LayerNorm(x')), x' = x + f's Dense output for f = (y, (table, row)[, scale]), a raw product, where its
+    bias sits and its FP8 output scale, not yet applied (`_finish`; x' = x for f None): the residual add and the norm
+    after it, one kernel with norm="pallas" (`ops.layer_norm`) where XLA runs two or three. norm_vectors: (table,
+    (scale row, bias row)). The kernel reads the tables' rows in place. quantise: the next GEMM's
+    `matmul.input_scale`; the norm then comes as that GEMM's e4m3 input (in the kernel: no pass of its own)."""
+    table, rows = norm_vectors
     if norm == "pallas":
         if f is None:
-            return x, ops_layer_norm.layer_norm(x, p["scale"], p["bias"], eps=1e-6, dtype=dtype, quantise=quantise)
-        f = tuple(v for v in f if v is not None)
-        return ops_layer_norm.layer_norm(x, p["scale"], p["bias"], residual=f, eps=1e-6, dtype=dtype,
+            return x, ops_layer_norm.layer_norm(x, table, rows, eps=1e-6, dtype=dtype, quantise=quantise)
+        y, (f_table, f_row), *scale = f
+        residual = (y, f_table, f_row) + tuple(v for v in scale if v is not None)
+        return ops_layer_norm.layer_norm(x, table, rows, residual=residual, eps=1e-6, dtype=dtype,
                                          quantise=quantise)
-    x = x if f is None else x + _finish(*f)
-    h = layer_norm(x, p, dtype)
+    if f is not None:
+        y, (f_table, f_row), *scale = f
+        x = x + _finish(y, f_table[f_row].astype(x.dtype), *scale)
+    h = layer_norm(x, table, rows, dtype)
     return x, (h if quantise is None else formats.quantise(h, quantise))
+
+
+def _fc2(f):
+    """A block's MLP output as `add_norm` takes it: (raw product, its block's `vectors`, FP8 scale) -> the bias at
+    FC2_BIAS (None stays None)."""
+    return None if f is None else (f[0], (f[1], FC2_BIAS), f[2])
 
 
 def _dense(x, w, b):
@@ -71,13 +85,15 @@ def _dense(x, w, b):
 
 def block(cfg: SiglipConfig, w, x, f, *, attention: str, norm: str = "xla"):
     """One pre-LN encoder block. x (B, T, D) the residual stream in the activation dtype, f the previous block's
-    MLP output (raw product, bias, FP8 output scale or None) not yet added to it (None before the first block) ->
+    MLP output (raw product, its block's `vectors` table with the bias, FP8 output scale or None) not yet added to
+    it (None before the first block) ->
     (x, f) likewise: each residual add runs with the norm after it. With FP8 weights the activations' quantisation
     happens inside the kernels where there are kernels (the norms' and the Pallas attention's outputs, the
     attention's q/k/v scaling as it reads them)."""
     dtype = x.dtype
     b, t = x.shape[:2]
-    x, h = add_norm(x, f, w["ln1"], dtype, norm, matmul.input_scale(w["qkv"]))
+    vectors = w["vectors"]
+    x, h = add_norm(x, _fc2(f), (vectors, (LN1_SCALE, LN1_BIAS)), dtype, norm, matmul.input_scale(w["qkv"]))
     qkv, scale = layers.raw_mm(h, w["qkv"], dtype)
     if attention == "pallas":   # reads q, k, v in place: no copies
         bias = {} if scale is None else dict(col_scale=scale, bias=w["qkv_bias"])
@@ -90,11 +106,12 @@ def block(cfg: SiglipConfig, w, x, f, *, attention: str, norm: str = "xla"):
         y = ops_attention.fused(q, k, v) if attention == "cudnn" else nn.dot_product_attention(q, k, v, dtype=dtype)
         y = einops.rearrange(y, "B T N H -> B T (N H)")
     out, scale = layers.raw_mm(y, w["out"], dtype)
-    x, h = add_norm(x, (out, w["out_bias"], scale), w["ln2"], dtype, norm, matmul.input_scale(w["fc1"]))
+    x, h = add_norm(x, (out, (vectors, OUT_BIAS), scale), (vectors, (LN2_SCALE, LN2_BIAS)), dtype, norm,
+                    matmul.input_scale(w["fc1"]))
     y, scale = layers.raw_mm(h, w["fc1"], dtype)
     h = nn.gelu(_finish(y, w["fc1_bias"], scale), approximate=True)
     y, scale = layers.raw_mm(h, w["fc2"], dtype)
-    return x, (y, w["fc2_bias"], scale)
+    return x, (y, vectors, scale)
 
 
 def encode(cfg: SiglipConfig, w: dict, images, *, dtype, unroll: bool, attention: str = "xla", norm: str = "xla"):
@@ -113,8 +130,9 @@ def encode(cfg: SiglipConfig, w: dict, images, *, dtype, unroll: bool, attention
         blocks = blocks[1:]
     else:        # lax.scan's carry keeps one structure: a zero MLP output (x + 0 is x)
         fp8 = matmul.input_scale(blocks["fc2"]) is not None
-        f = (jnp.zeros_like(x), jnp.zeros(x.shape[-1:], dtype), jnp.ones(x.shape[-1:], jnp.float32) if fp8 else None)
+        f = (jnp.zeros_like(x), jnp.zeros((FC2_BIAS + 1, x.shape[-1]), jnp.float32),
+             jnp.ones(x.shape[-1:], jnp.float32) if fp8 else None)
     (x, f), _ = layers.run_layers(lambda wi, c: (block(cfg, wi, *c, attention=attention, norm=norm),), blocks,
                                   (x, f), unroll=unroll)
-    _, x = add_norm(x, f, w["norm"], dtype, norm)
+    _, x = add_norm(x, _fc2(f), (w["norm"], (0, 1)), dtype, norm)
     return _dense(x, w["head"]["kernel"], w["head"]["bias"])

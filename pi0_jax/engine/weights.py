@@ -81,26 +81,41 @@ def _expert_weights(attn: dict, mlp: dict, suffix: str, dtype) -> dict:
     }
 
 
+# The rows of a SigLIP block's `vectors` (`vision_weights`): its LayerNorms' scales and biases, and the biases
+# of the two Dense outputs that are added to the residual stream (each inside the next LayerNorm); the encoder's
+# final norm has the first two rows only.
+LN1_SCALE, LN1_BIAS, LN2_SCALE, LN2_BIAS, OUT_BIAS, FC2_BIAS = range(6)
+
+
+def _vectors(rows) -> jax.Array:
+    """(..., D) vectors -> one (..., R, D) f32 table: the norms' parameters as they are, the biases after their cast
+    to the activation dtype (exact in f32, cast back where they are added)."""
+    return jnp.stack([r.astype(jnp.float32) for r in rows], axis=-2)
+
+
 def vision_weights(img: dict, dtype) -> dict:
     """openpi's SigLIP tree (blocks stacked) -> `engine.vision`'s: q/k/v fused into one (D, 3 N H) GEMM with one
-    bias, the attention output as (N H, D); the patch embedding and position table as they are (an f32 island)."""
+    bias, the attention output as (N H, D); each block's LayerNorm parameters and residual biases as one table
+    (`vectors`, rows LN1_SCALE ... FC2_BIAS: the LayerNorm kernel reads its rows in place); the patch embedding and
+    position table as they are (an f32 island)."""
     blk = img["Transformer"]["encoderblock"]
     mha, mlp = blk["MultiHeadDotProductAttention_0"], blk["MlpBlock_0"]
+    ln1, ln2 = blk["LayerNorm_0"], blk["LayerNorm_1"]
     blocks = {
-        "ln1": blk["LayerNorm_0"], "ln2": blk["LayerNorm_1"],
+        "vectors": _vectors([ln1["scale"], ln1["bias"], ln2["scale"], ln2["bias"],
+                             mha["out"]["bias"].astype(dtype), mlp["Dense_1"]["bias"].astype(dtype)]),
         "qkv": _fused([(mha[n]["kernel"], "L D N H -> L D (N H)") for n in ("query", "key", "value")], dtype),
         "qkv_bias": jnp.concatenate([einops.rearrange(mha[n]["bias"], "L N H -> L (N H)")
                                      for n in ("query", "key", "value")], axis=-1).astype(dtype),
         "out": _rearrange(mha["out"]["kernel"], "L N H D -> L (N H) D", dtype),
-        "out_bias": mha["out"]["bias"].astype(dtype),
         "fc1": _rearrange(mlp["Dense_0"]["kernel"], "L D F -> L D F", dtype),
         "fc1_bias": mlp["Dense_0"]["bias"].astype(dtype),
         "fc2": _rearrange(mlp["Dense_1"]["kernel"], "L F D -> L F D", dtype),
-        "fc2_bias": mlp["Dense_1"]["bias"].astype(dtype),
     }
     head = {"kernel": _rearrange(img["head"]["kernel"], "D E -> D E", dtype), "bias": img["head"]["bias"].astype(dtype)}
+    norm = img["Transformer"]["encoder_norm"]
     return {"embedding": img["embedding"], "pos": img["pos_embedding"], "blocks": blocks,
-            "norm": img["Transformer"]["encoder_norm"], "head": head}
+            "norm": _vectors([norm["scale"], norm["bias"]]), "head": head}
 
 
 def prepare(config: Pi0Config, params: dict) -> dict:
@@ -188,8 +203,9 @@ def unstack(tree: dict, depth: int) -> list[dict]:
 # PACK_SKIP. A call pays for every argument buffer on the host before its first kernel (about 1.7 us each on an
 # H200's host: 0.94 ms for π0's 559), so SigLIP's and the VLM's biases and norm scales go as one buffer per dtype.
 # The rest stays apart, where a slice of a packed buffer would be a copy: the action expert's and the action
-# projections' vectors are loop-invariant operands of the denoise loop and of its Pallas kernels, and SigLIP's q/k/v
-# bias is the epilogue of a Triton GEMM (docs/BENCHMARKS.md, "The host's share of a call").
+# projections' vectors are loop-invariant operands of the denoise loop and of its Pallas kernels, SigLIP's q/k/v
+# bias is the epilogue of a Triton GEMM, and its blocks' `vectors` tables are the LayerNorm kernel's operands
+# (docs/BENCHMARKS.md, "The host's share of a call").
 PACK_KEYS = ("img", "vlm")
 PACK_SKIP = re.compile(r"qkv_bias")
 
