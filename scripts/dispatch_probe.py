@@ -3,15 +3,14 @@
 At B = 1 the fused program's kernels span about 15.3 ms on an H200 and the call took 16.7 ms (median, host-timed
 with `block_until_ready`). This probe times, round-robin in one process on the engine's own weights:
 
-  packed       the fused program as `Engine.sample_actions` calls it (`weights.pack`: 331 buffers for π0)
-  dict         the same program over the unpacked weights (`Packed.tree`: 559 buffers for π0)
+  infer        the fused program as `Engine.sample_actions` calls it (the engine weights: 423 buffers for π0)
   null         a program of one tiny op that takes only the noise
-  null_tree    the same op, with the whole (unpacked) weights tree passed and pruned at compile time (jit's default)
+  null_tree    the same op, with the whole weights tree passed and pruned at compile time (jit's default)
   null_kept    the same op, with the whole weights tree passed and kept as the program's arguments
 
-It counts the kernels of both fused programs, checks that their actions are equal, and writes a profiler trace of
-a few calls, summing the host's trace events by name (what the host does per call, nested events counted in each)
-beside the GPU's span (`profile_engine.idle`). null_kept against null is what the tree's buffers cost per call.
+It counts the fused program's kernels and writes a profiler trace of a few calls, summing the host's trace events by
+name (what the host does per call, nested events counted in each) beside the GPU's span (`profile_engine.idle`).
+null_kept against null is what the tree's buffers cost per call.
 
     python scripts/dispatch_probe.py --preset pi0_base --iters 50 --out dispatch.json
 """
@@ -20,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import collections
-import functools
 import glob
 import gzip
 import json
@@ -35,8 +33,7 @@ import numpy as np
 
 from pi0_jax import benchmark
 from pi0_jax.config import get_config
-from pi0_jax.engine import Engine, programs
-from pi0_jax.ops import matmul
+from pi0_jax.engine import Engine
 from profile_engine import count_ops, idle   # scripts/ is on the path when this runs as a script
 
 
@@ -78,7 +75,7 @@ def main() -> None:
     p.add_argument("--steps", type=int, default=10)
     p.add_argument("--prompt-tokens", type=int, default=48)
     p.add_argument("--iters", type=int, default=50, help="timed calls of each program (default: %(default)s)")
-    p.add_argument("--dump-hlo", type=Path, default=None, help="write both fused programs' optimized HLO here")
+    p.add_argument("--dump-hlo", type=Path, default=None, help="write the fused program's optimized HLO here")
     p.add_argument("--out", type=Path, default=None, help="JSON of the times, kernel counts and the host's events")
     args = p.parse_args()
 
@@ -87,33 +84,24 @@ def main() -> None:
     obs, noise = benchmark.make_inputs(config, args.batch, 3, args.prompt_tokens, 0)
     cameras, bucket = engine.plan(obs)
     inputs = engine.pack(obs, cameras, bucket)
-    packed, sched = engine.weights, engine.schedule(args.steps)
-    tree = packed.tree
-    exes = {"packed": engine.executable("infer", args.batch, args.steps, cameras, bucket)}
-    fn = functools.partial(programs.infer, config, num_steps=args.steps, unroll=True, unroll_steps=False,
-                           attention=engine.attention, kernels=engine.kernels)
-    exes["dict"] = jax.jit(fn, donate_argnums=(7,)).lower(tree, sched, *inputs, noise).compile(
-        matmul.compiler_options(packed, engine.gemm))
+    w, sched = engine.weights, engine.schedule(args.steps)
+    infer = engine.executable("infer", args.batch, args.steps, cameras, bucket)
 
     def tiny(w, x):
         return x * 2.0
 
     null = jax.jit(lambda x: x * 2.0).lower(noise).compile()
-    pruned = jax.jit(tiny).lower(tree, noise).compile()
-    kept = jax.jit(tiny, keep_unused=True).lower(tree, noise).compile()
-    calls = {"packed": lambda: exes["packed"](packed, sched, *inputs, jnp.copy(noise)),
-             "dict": lambda: exes["dict"](tree, sched, *inputs, jnp.copy(noise)),
-             "null": lambda: null(noise), "null_tree": lambda: pruned(tree, noise),
-             "null_kept": lambda: kept(tree, noise), "copy_only": lambda: jnp.copy(noise)}
-    counts = {}
-    for name, exe in exes.items():
-        counts[name] = {comp: c for comp, c in count_ops(exe.as_text()).items()
-                        if comp.startswith("ENTRY") or c["fusion"] + c["custom-call"] > 20}
-        print(name, json.dumps(counts[name]), flush=True)
-        if args.dump_hlo:
-            args.dump_hlo.mkdir(parents=True, exist_ok=True)
-            (args.dump_hlo / f"infer_{name}.hlo.txt").write_text(exe.as_text())
-    diff = float(np.max(np.abs(np.asarray(calls["packed"](), np.float64) - np.asarray(calls["dict"](), np.float64))))
+    pruned = jax.jit(tiny).lower(w, noise).compile()
+    kept = jax.jit(tiny, keep_unused=True).lower(w, noise).compile()
+    calls = {"infer": lambda: infer(w, sched, *inputs, jnp.copy(noise)),
+             "null": lambda: null(noise), "null_tree": lambda: pruned(w, noise), "null_kept": lambda: kept(w, noise),
+             "copy_only": lambda: jnp.copy(noise)}
+    counts = {comp: c for comp, c in count_ops(infer.as_text()).items()
+              if comp.startswith("ENTRY") or c["fusion"] + c["custom-call"] > 20}
+    print("infer", json.dumps(counts), flush=True)
+    if args.dump_hlo:
+        args.dump_hlo.mkdir(parents=True, exist_ok=True)
+        (args.dump_hlo / "infer.hlo.txt").write_text(infer.as_text())
     times = {k: [] for k in calls}
     for i in range(3 + args.iters):
         for name, fn in (calls.items() if i % 2 else reversed(calls.items())):
@@ -122,13 +110,11 @@ def main() -> None:
             if i >= 3:
                 times[name].append((time.perf_counter() - start) * 1e6)
     report = {"preset": args.preset, "batch": args.batch, "steps": args.steps, "env": benchmark.environment(),
-              "buffers": {"packed": len(jax.tree.leaves(packed)), "dict": len(jax.tree.leaves(tree))},
-              "hlo_counts": counts, "max_abs_packed_vs_dict": diff,
+              "buffers": len(jax.tree.leaves(w)), "hlo_counts": counts,
               "median_us": {k: float(np.median(v)) for k, v in times.items()},
               "p10_p90_us": {k: [float(np.percentile(v, q)) for q in (10, 90)] for k, v in times.items()}}
-    print(json.dumps({k: report[k] for k in ("buffers", "max_abs_packed_vs_dict", "median_us")}, indent=1),
-          flush=True)
-    for name in ("packed", "dict", "null_kept"):
+    print(json.dumps({k: report[k] for k in ("buffers", "median_us")}, indent=1), flush=True)
+    for name in ("infer", "null_kept"):
         report[f"trace_{name}"] = t = host_events(calls[name], 5)
         print(f"{name}: the GPU's span {t['span_ms']:.3f} ms per call ({t['idle_ms']:.3f} idle); host events:",
               flush=True)

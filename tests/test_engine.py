@@ -14,8 +14,7 @@ import pytest
 
 from pi0_jax import pi0
 from pi0_jax.config import IMAGE_KEYS, get_config
-from pi0_jax.engine import Engine, engine_weights, programs, prompt_bucket
-from pi0_jax.engine import weights as weights_lib
+from pi0_jax.engine import Engine, prompt_bucket
 from test_model import make_obs, randomize
 
 sample_ref = jax.jit(pi0.sample_actions, static_argnums=(0, 4))
@@ -208,29 +207,6 @@ def test_attention_and_kernel_choices():
     assert programs.expert_path("pallas", 8, layers, platform="cpu") == "pallas"
     with pytest.raises(ValueError, match="kernels must be"):
         programs.expert_path("triton", 1, layers)
-
-
-def test_packed_weights_read_as_the_dict_and_travel_as_fewer_buffers(model):
-    """`weights.pack`: SigLIP's and the VLM's 1-D weights (not q/k/v's bias) travel in one buffer per dtype; the
-    packed weights read as the dict they came from, and a program over them computes the same numbers exactly."""
-    config, params = model
-    packed = engine_weights(config, params)
-    tree = packed.tree
-    assert isinstance(packed, weights_lib.Packed) and set(packed) == set(tree)
-    paths = [jax.tree_util.keystr(p) for p, x in jax.tree_util.tree_leaves_with_path(tree)
-             if x.ndim == 1 and p[0].key in weights_lib.PACK_KEYS and "qkv_bias" not in jax.tree_util.keystr(p)]
-    assert len(paths) == config.siglip.depth + 2 + 2 * config.paligemma.depth   # fc1's bias; the embedding's and
-    # the head's biases; the VLM's two norms (SigLIP's norms and residual biases are its blocks' `vectors` tables)
-    assert len(jax.tree.leaves(packed)) == len(jax.tree.leaves(tree)) - len(paths) + len(packed.tables)
-    again = weights_lib.pack(tree)   # unpacking and packing again gives the same buffers
-    for a, b in zip(jax.tree.leaves(again), jax.tree.leaves(packed), strict=True):
-        np.testing.assert_array_equal(a, b)
-    obs = make_obs(config)
-    engine = Engine(config, params, cache_dir=False)
-    cameras, bucket = engine.plan(obs)
-    images = engine.pack(obs, cameras, bucket)[0]
-    encode = jax.jit(lambda w, x: programs.encode_images(config, w, x, unroll=True))
-    np.testing.assert_array_equal(encode(packed, images), encode(tree, images))
 
 
 def test_no_recompilation_when_only_values_change(model):

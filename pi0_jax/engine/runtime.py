@@ -48,11 +48,10 @@ def prompt_bucket(valid_len: int, max_len: int) -> int:
     return max_len
 
 
-def engine_weights(config: Pi0Config, params: dict, *, unroll: bool = True,
-                   kernels: str = "auto") -> weights_lib.Packed:
-    """The programs' weights (`weights.prepare`, on device, `weights.pack`ed: fewer buffers per call); unroll:
-    per-layer buffers for unrolled layers. kernels: only checked here ("pallas" needs unrolled, unquantised expert
-    layers; their layout is made inside the programs)."""
+def engine_weights(config: Pi0Config, params: dict, *, unroll: bool = True, kernels: str = "auto") -> dict:
+    """The programs' weights (`weights.prepare`, on device); unroll: per-layer buffers for unrolled layers.
+    kernels: only checked here ("pallas" needs unrolled, unquantised expert layers; their layout is made inside
+    the programs)."""
     def build(params):   # one program: per-layer slices taken eagerly would each compile and dispatch apart
         w = weights_lib.prepare(config, params)
         if unroll:
@@ -62,7 +61,7 @@ def engine_weights(config: Pi0Config, params: dict, *, unroll: bool = True,
             w["img"]["blocks"] = weights_lib.unstack(w["img"]["blocks"], config.siglip.depth)
         return w
 
-    w = weights_lib.pack(jax.jit(build)(params))
+    w = jax.jit(build)(params)
     if kernels == "pallas":
         if not unroll:
             raise ValueError("kernels='pallas' needs unroll=True")

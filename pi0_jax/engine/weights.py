@@ -14,8 +14,6 @@ Axis legend: L layers, D width, N query heads, K kv heads, H head dim, F MLP hid
 
 from __future__ import annotations
 
-import collections.abc
-import functools
 import re
 
 import einops
@@ -96,8 +94,9 @@ def _vectors(rows) -> jax.Array:
 def vision_weights(img: dict, dtype) -> dict:
     """openpi's SigLIP tree (blocks stacked) -> `engine.vision`'s: q/k/v fused into one (D, 3 N H) GEMM with one
     bias, the attention output as (N H, D); each block's LayerNorm parameters and residual biases as one table
-    (`vectors`, rows LN1_SCALE ... FC2_BIAS: the LayerNorm kernel reads its rows in place); the patch embedding and
-    position table as they are (an f32 island)."""
+    (`vectors`, rows LN1_SCALE ... FC2_BIAS), which the LayerNorm kernel reads by row in place, and which a call takes
+    as one buffer where it took six (the host pays about 1.7 us per buffer per call: docs/BENCHMARKS.md, "The host's
+    share of a call"); the patch embedding and position table as they are (an f32 island)."""
     blk = img["Transformer"]["encoderblock"]
     mha, mlp = blk["MultiHeadDotProductAttention_0"], blk["MlpBlock_0"]
     ln1, ln2 = blk["LayerNorm_0"], blk["LayerNorm_1"]
@@ -198,69 +197,3 @@ def unstack(tree: dict, depth: int) -> list[dict]:
     """Stacked (L, ...) leaves -> one dict per layer with separate buffers (for unrolled layers)."""
     return [jax.tree.map(lambda x, i=i: x[i], tree) for i in range(depth)]
 
-
-# The 1-D weights that travel packed (`pack`): under these top-level keys, except those whose key path matches
-# PACK_SKIP. A call pays for every argument buffer on the host before its first kernel (about 1.7 us each on an
-# H200's host: 0.94 ms for π0's 559), so SigLIP's and the VLM's biases and norm scales go as one buffer per dtype.
-# The rest stays apart, where a slice of a packed buffer would be a copy: the action expert's and the action
-# projections' vectors are loop-invariant operands of the denoise loop and of its Pallas kernels, SigLIP's q/k/v
-# bias is the epilogue of a Triton GEMM, and its blocks' `vectors` tables are the LayerNorm kernel's operands
-# (docs/BENCHMARKS.md, "The host's share of a call").
-PACK_KEYS = ("img", "vlm")
-PACK_SKIP = re.compile(r"qkv_bias")
-
-
-@jax.tree_util.register_pytree_node_class
-class Packed(collections.abc.Mapping):
-    """Engine weights (a dict) with some of their 1-D weights in one buffer per dtype (`pack`); reads as the dict.
-
-    Its pytree children are the buffers that travel: the arrays left apart, in the dict's leaf order, and the
-    tables. Indexing unpacks once per object (`tree`): inside a traced program the packed weights are static slices
-    of a table, which XLA reads in place in the fusions that consume them."""
-
-    def __init__(self, arrays, tables, layout):
-        self.arrays, self.tables, self.layout = tuple(arrays), tuple(tables), layout
-
-    def tree_flatten(self):
-        return (self.arrays, self.tables), self.layout
-
-    @classmethod
-    def tree_unflatten(cls, layout, children):
-        return cls(*children, layout)
-
-    @functools.cached_property
-    def tree(self) -> dict:
-        treedef, where = self.layout
-        arrays = iter(self.arrays)
-        leaves = [next(arrays) if w is None else self.tables[w[0]][w[1]:w[1] + w[2]] for w in where]
-        return jax.tree.unflatten(treedef, leaves)
-
-    def __getitem__(self, key):
-        return self.tree[key]
-
-    def __iter__(self):
-        return iter(self.tree)
-
-    def __len__(self):
-        return len(self.tree)
-
-
-def pack(w: dict) -> Packed:
-    """w's 1-D plain weights under PACK_KEYS (not matching PACK_SKIP, not inside a quantised weight) concatenated
-    into one buffer per dtype; the same numbers."""
-    flat, treedef = jax.tree_util.tree_flatten_with_path(w)
-    where, arrays, tables = [], [], {}
-    for path, x in flat:
-        name = jax.tree_util.keystr(path)
-        packed = (x.ndim == 1 and getattr(path[0], "key", None) in PACK_KEYS and not PACK_SKIP.search(name)
-                  and all(isinstance(k, (jax.tree_util.DictKey, jax.tree_util.SequenceKey)) for k in path))
-        if packed:
-            parts = tables.setdefault(jnp.dtype(x.dtype).name, [])
-            where.append((jnp.dtype(x.dtype).name, sum(p.shape[0] for p in parts), x.shape[0]))
-            parts.append(x)
-        else:
-            where.append(None)
-            arrays.append(x)
-    names = sorted(tables)
-    where = tuple(None if w is None else (names.index(w[0]), *w[1:]) for w in where)
-    return Packed(arrays, [jnp.concatenate(tables[n]) for n in names], (treedef, where))
