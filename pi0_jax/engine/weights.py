@@ -196,4 +196,3 @@ def schedule_params(config: Pi0Config, params: dict) -> dict:
 def unstack(tree: dict, depth: int) -> list[dict]:
     """Stacked (L, ...) leaves -> one dict per layer with separate buffers (for unrolled layers)."""
     return [jax.tree.map(lambda x, i=i: x[i], tree) for i in range(depth)]
-
