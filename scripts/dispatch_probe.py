@@ -19,11 +19,8 @@ from __future__ import annotations
 
 import argparse
 import collections
-import glob
-import gzip
 import json
 import re
-import tempfile
 import time
 from pathlib import Path
 
@@ -34,21 +31,12 @@ import numpy as np
 from pi0_jax import benchmark
 from pi0_jax.config import get_config
 from pi0_jax.engine import Engine
-from profile_engine import count_ops, idle   # scripts/ is on the path when this runs as a script
+from profile_engine import count_ops, idle, traced   # scripts/ is on the path when this runs as a script
 
 
 def host_events(fn, calls: int) -> dict:
     """Trace `calls` calls of fn; the host's events summed by name per call, and the GPU kernels' span per call."""
-    jax.block_until_ready(fn())
-    log_dir = tempfile.mkdtemp()
-    with jax.profiler.trace(log_dir, create_perfetto_trace=True):
-        for _ in range(calls):
-            jax.block_until_ready(fn())
-    events = json.load(gzip.open(glob.glob(f"{log_dir}/**/perfetto_trace.json.gz", recursive=True)[0]))
-    events = events["traceEvents"] if isinstance(events, dict) else events
-    procs = {e["pid"]: e["args"]["name"] for e in events if e.get("name") == "process_name"}
-    threads = {(e["pid"], e["tid"]): e["args"]["name"] for e in events if e.get("name") == "thread_name"}
-    gpu = {pid for pid, name in procs.items() if "GPU" in name.upper()}
+    events, threads, gpu, _ = traced(fn, calls)
     rows = collections.defaultdict(lambda: [0, 0.0])
     kernels = []
     for e in events:

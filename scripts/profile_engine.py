@@ -54,11 +54,9 @@ def count_ops(hlo: str) -> dict:
     return {k: v for k, v in counts.items() if sum(v.values())}
 
 
-def kernel_times(fn, calls: int = 5, log_dir: str | None = None) -> dict:
-    """Run fn() `calls` times under jax.profiler and sum the GPU kernels of the trace by name (numeric suffixes
-    dropped: fusion.12 and fusion.40 are one row). Per call: kernels launched, their summed time, the host-timed wall
-    time, busy = summed / wall (the wall holds the host's dispatch and synchronisation too), and the device's own
-    span and idle time (`idle`)."""
+def traced(fn, calls: int, log_dir: str | None = None) -> tuple:
+    """Run fn() `calls` times under jax.profiler (after one untraced call) -> (the perfetto trace's events, thread
+    names by (pid, tid), the GPU processes' pids, the host-timed wall per call in s)."""
     jax.block_until_ready(fn())
     log_dir = log_dir or tempfile.mkdtemp()
     with jax.profiler.trace(log_dir, create_perfetto_trace=True):
@@ -70,7 +68,15 @@ def kernel_times(fn, calls: int = 5, log_dir: str | None = None) -> dict:
     events = events["traceEvents"] if isinstance(events, dict) else events
     procs = {e["pid"]: e["args"]["name"] for e in events if e.get("name") == "process_name"}
     threads = {(e["pid"], e["tid"]): e["args"]["name"] for e in events if e.get("name") == "thread_name"}
-    gpu = {pid for pid, name in procs.items() if "GPU" in name.upper()}
+    return events, threads, {pid for pid, name in procs.items() if "GPU" in name.upper()}, wall
+
+
+def kernel_times(fn, calls: int = 5, log_dir: str | None = None) -> dict:
+    """Run fn() `calls` times under jax.profiler and sum the GPU kernels of the trace by name (numeric suffixes
+    dropped: fusion.12 and fusion.40 are one row). Per call: kernels launched, their summed time, the host-timed wall
+    time, busy = summed / wall (the wall holds the host's dispatch and synchronisation too), and the device's own
+    span and idle time (`idle`)."""
+    events, threads, gpu, wall = traced(fn, calls, log_dir)
     # kernels sit on the device's "Stream #N" lines; other device lines (XLA Ops / Modules) repeat them as spans
     gpu_lines = {key: name for key, name in threads.items() if key[0] in gpu}
     rows = collections.defaultdict(lambda: [0, 0.0])
