@@ -243,6 +243,30 @@ def test_layer_norm_kernel_matches_xla(width):
         ln.layer_norm(x, table, (1, 2), residual=(y[:1], table, 3))
 
 
+def test_layer_norm_kernel_reads_the_block_tables_in_place():
+    """In the engine's tower every LayerNorm kernel takes its vectors as a block's whole `vectors` table (the
+    encoder's final `norm` table), rows chosen statically: no slice of a weight is made before the kernel, which on a
+    GPU would be a copy kernel of its own (docs/BENCHMARKS.md, "The host's share of a call")."""
+    import functools
+
+    from pi0_jax import benchmark
+    from pi0_jax.engine import programs
+
+    config = get_config("dummy", dtype="float32")
+    engine = Engine(config, benchmark.random_params(config, 0), cache_dir=False)
+    images = jax.ShapeDtypeStruct((2, 1, config.image_size, config.image_size, 3), jnp.float32)
+    fn = functools.partial(programs.encode_images, config, unroll=True,
+                           attention=programs.Attention(vision="pallas"), kernels="pallas")
+    jaxpr = jax.make_jaxpr(fn)(engine.weights, images).jaxpr
+    norms = [e for e in jaxpr.eqns
+             if e.primitive.name == "custom_partitioning" and "name=layer_norm" in str(e.params["call"])]
+    assert len(norms) == 2 * config.siglip.depth + 1
+    tables = {id(v) for v in jaxpr.invars if v.aval.ndim == 2 and v.aval.shape[1] == config.siglip.width}
+    for eqn in norms:   # (x, vectors, act) or (x, f, f_vectors, f_scale, vectors, act)
+        operands = [eqn.invars[1]] if len(eqn.invars) == 3 else [eqn.invars[2], eqn.invars[4]]
+        assert all(id(v) in tables for v in operands)
+
+
 def _e4m3_close(got, want):
     """e4m3 tensors from two paths whose inputs agree to f32 rounding: equal but for rare ties broken apart, each
     one e4m3 step (2^-3 relative) at most."""
