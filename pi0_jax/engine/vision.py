@@ -59,15 +59,15 @@ def add_norm(x, f, norm_vectors, dtype, norm: str, quantise=None):
     (scale row, bias row)). The kernel reads the tables' rows in place. quantise: the next GEMM's
     `matmul.input_scale`; the norm then comes as that GEMM's e4m3 input (in the kernel: no pass of its own)."""
     table, rows = norm_vectors
+    if f is not None:
+        y, (f_table, f_row), *scale = f
+        scale = [v for v in scale if v is not None]
     if norm == "pallas":
         if f is None:
             return x, ops_layer_norm.layer_norm(x, table, rows, eps=1e-6, dtype=dtype, quantise=quantise)
-        y, (f_table, f_row), *scale = f
-        residual = (y, f_table, f_row) + tuple(v for v in scale if v is not None)
-        return ops_layer_norm.layer_norm(x, table, rows, residual=residual, eps=1e-6, dtype=dtype,
+        return ops_layer_norm.layer_norm(x, table, rows, residual=(y, f_table, f_row, *scale), eps=1e-6, dtype=dtype,
                                          quantise=quantise)
     if f is not None:
-        y, (f_table, f_row), *scale = f
         x = x + _finish(y, f_table[f_row].astype(x.dtype), *scale)
     h = layer_norm(x, table, rows, dtype)
     return x, (h if quantise is None else formats.quantise(h, quantise))
