@@ -24,6 +24,8 @@ for phase in "$@"; do
                --trace-stages --out "$OUT/stages_b1.json" ;;
     gaps_b1) python3 scripts/profile_engine.py --preset pi0_base --batch 1 --prompt-tokens 48 --steps 10 --time \
                --iters 20 --trace-stages --out "$OUT/gaps_b1.json" ;;   # each stage's device span and idle gaps
+    chain_b1) for m in pi0 pi05; do   # fused program against the stage programs chained (own weights, cuBLAS vision)
+               python3 scripts/chain_probe.py --preset ${m}_base --iters 40 --out "$OUT/chain_${m}_b1.json"; done ;;
     stages_b8) python3 scripts/profile_engine.py --preset pi0_base --batch 8 --prompt-tokens 48 --attention xla \
                --attention vision=cudnn,prefix=cudnn --time --iters 20 --out "$OUT/stages_b8.json" ;;
     hlo_pi05) python3 scripts/profile_engine.py --preset pi05_base --steps 10 --out "$OUT/hlo_pi05.json" ;;

@@ -1,0 +1,147 @@
+"""One fused program against the three stage programs chained without a host round trip between them.
+
+At B = 1 a call pays the host for every weight buffer it takes before its first kernel runs (`dispatch_probe.py`),
+and the fused program takes all of them. Chained, each stage program takes only its own weights, the host
+dispatches the next program while the GPU runs the one before, and each program may have its own compile options
+(cuBLAS for the vision tower, where it measured 20 % less kernel time at B = 1). Variants, timed round-robin in one
+process on the same weights and inputs, each call blocked on its actions:
+
+  fused            the engine's fused program (`Engine.sample_actions`), the whole weights tree
+  chain_tree       vision -> prefix -> denoise as the engine's stage programs, each taking the whole tree
+  chain_sub        the same three programs, each taking only its weights
+  chain_sub_cublas chain_sub with the vision program's GEMMs on cuBLAS
+  two_sub_cublas   vision (cuBLAS, its weights) -> prefix and denoise as one program (their weights)
+
+It also times the vision program alone (synchronised, as the benchmark's stage row) on its weights, with XLA's
+GEMMs and with cuBLAS, and traces each chained variant for the device's span and idle time (`profile_engine.idle`).
+
+    python scripts/chain_probe.py --preset pi0_base --iters 40 --out chain.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from pi0_jax import benchmark
+from pi0_jax.config import get_config
+from pi0_jax.engine import Engine, programs
+from profile_engine import kernel_times   # scripts/ is on the path when this runs as a script
+
+CUBLAS = {"xla_gpu_enable_triton_gemm": False}
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--preset", default="pi0_base", help="model preset, random weights (default: %(default)s)")
+    p.add_argument("--batch", type=int, default=1)
+    p.add_argument("--steps", type=int, default=10)
+    p.add_argument("--prompt-tokens", type=int, default=48)
+    p.add_argument("--iters", type=int, default=40, help="timed calls of each variant (default: %(default)s)")
+    p.add_argument("--out", type=Path, default=None, help="JSON of the times and traces")
+    args = p.parse_args()
+
+    config = get_config(args.preset)
+    engine = Engine(config, benchmark.random_params(config, 0), cache_dir=False)
+    obs, noise = benchmark.make_inputs(config, args.batch, 3, args.prompt_tokens, 0)
+    cameras, bucket = engine.plan(obs)
+    images, image_masks, tokens, token_mask, state = engine.pack(obs, cameras, bucket)
+    w, sched, b, n = engine.weights, engine.schedule(args.steps), args.batch, args.steps
+    exe = {s: engine.executable(s, b, n, cameras, bucket)
+           for s in ("encode_images", "fill_prefix_cache", "denoise", "infer")}
+    kw = {"unroll": engine.unroll, "attention": engine.attention, "kernels": engine.kernels}
+    den_kw = {**kw, "num_steps": n, "unroll_steps": False}
+    # the prefix program reads only the expert's structure (which cache layout its kernels take): a list of Nones
+    expert_shape = [None] * len(w["expert"])
+    w_img = {"img": w["img"]}
+    w_pre = {"embedding": w["embedding"], "vlm": w["vlm"]}
+    w_den = {k: w[k] for k in ("expert", "top", "final_norm_1") if k in w}
+
+    def enc_fn(wi, images):
+        return programs.encode_images(config, wi, images, **kw)
+
+    def pre_fn(wp, it, im, t, tm):
+        return programs.fill_prefix_cache(config, {**wp, "expert": expert_shape}, it, im, t, tm, **kw)
+
+    def den_fn(wd, sc, cache, st, nz):
+        return programs.denoise(config, wd, sc, cache, st, nz, **den_kw)
+
+    def tail_fn(wp, wd, sc, it, im, t, tm, st, nz):
+        cache = programs.fill_prefix_cache(config, {**wp, "expert": wd["expert"]}, it, im, t, tm, **kw)
+        return programs.denoise(config, wd, sc, cache, st, nz, **den_kw)
+
+    def compile_(fn, args_, options=None, donate=()):
+        return jax.jit(fn, donate_argnums=donate).lower(*args_).compile(options)
+
+    enc_x = compile_(enc_fn, (w_img, images))
+    enc_c = compile_(enc_fn, (w_img, images), CUBLAS)
+    it = enc_x(w_img, images)
+    pre = compile_(pre_fn, (w_pre, it, image_masks, tokens, token_mask))
+    cache = pre(w_pre, it, image_masks, tokens, token_mask)
+    den = compile_(den_fn, (w_den, sched, cache, state, noise), donate=(4,))
+    tail = compile_(tail_fn, (w_pre, w_den, sched, it, image_masks, tokens, token_mask, state, noise), donate=(8,))
+
+    def chain_tree():
+        i = exe["encode_images"](w, images)
+        c = exe["fill_prefix_cache"](w, i, image_masks, tokens, token_mask)
+        return exe["denoise"](w, sched, c, state, jnp.copy(noise))
+
+    def chain_sub(enc):
+        i = enc(w_img, images)
+        c = pre(w_pre, i, image_masks, tokens, token_mask)
+        return den(w_den, sched, c, state, jnp.copy(noise))
+
+    calls = {
+        "fused": lambda: exe["infer"](w, sched, images, image_masks, tokens, token_mask, state, jnp.copy(noise)),
+        "chain_tree": chain_tree,
+        "chain_sub": functools.partial(chain_sub, enc_x),
+        "chain_sub_cublas": functools.partial(chain_sub, enc_c),
+        "two_sub_cublas": lambda: tail(w_pre, w_den, sched, enc_c(w_img, images), image_masks, tokens, token_mask,
+                                       state, jnp.copy(noise)),
+        "vision_sub": lambda: enc_x(w_img, images),
+        "vision_sub_cublas": lambda: enc_c(w_img, images),
+        "vision_tree": lambda: exe["encode_images"](w, images),
+    }
+    ref = np.asarray(calls["fused"](), np.float64)
+    rel = {}
+    for name, fn in calls.items():
+        if not name.startswith("vision"):
+            out = np.asarray(fn(), np.float64)
+            rel[name] = float(np.linalg.norm(out - ref) / np.linalg.norm(ref))
+    buffers = {"tree": len(jax.tree.leaves(w)), "vision": len(jax.tree.leaves(w_img)),
+               "prefix": len(jax.tree.leaves(w_pre)), "denoise": len(jax.tree.leaves(w_den))}
+    print("buffers", json.dumps(buffers), "rel L2 vs fused", json.dumps(rel), flush=True)
+    times = {k: [] for k in calls}
+    for i in range(3 + args.iters):
+        for name, fn in (calls.items() if i % 2 else reversed(calls.items())):
+            start = time.perf_counter()
+            jax.block_until_ready(fn())
+            if i >= 3:
+                times[name].append((time.perf_counter() - start) * 1e3)
+    report = {"preset": args.preset, "batch": b, "steps": n, "prompt_tokens": args.prompt_tokens,
+              "env": benchmark.environment(), "buffers": buffers, "rel_l2_vs_fused": rel,
+              "median_ms": {k: float(np.median(v)) for k, v in times.items()},
+              "p10_p90_ms": {k: [float(np.percentile(v, q)) for q in (10, 90)] for k, v in times.items()},
+              "trace": {}}
+    print(json.dumps({k: round(v, 3) for k, v in report["median_ms"].items()}, indent=1), flush=True)
+    for name, fn in calls.items():
+        t = kernel_times(fn, 5)
+        report["trace"][name] = {k: t[k] for k in ("kernels_per_call", "kernel_ms", "wall_ms", "span_ms", "idle_ms",
+                                                   "idle_max_us")}
+        print(f"{name:18s} {t['kernels_per_call']:.0f} kernels, {t['kernel_ms']:.3f} ms in kernels; span "
+              f"{t['span_ms']:.3f} ms, idle {t['idle_ms']:.3f} (largest gap {t['idle_max_us']:.1f} us); traced wall "
+              f"{t['wall_ms']:.3f} ms", flush=True)
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(report, indent=2))
+
+
+if __name__ == "__main__":
+    main()
