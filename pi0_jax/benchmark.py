@@ -2,8 +2,10 @@
 
 Fixed random inputs (several sets, rotated so caches do not flatter), warm-up, `block_until_ready` before the clock
 is read, median and p90 over the timed iterations. Stages are timed as separate programs (vision, prefix KV fill,
-denoise); `total` is the fused program, timed on its own. Cold compile (empty persistent cache) and warm start (a
-second process reading the cache) are measured for the fused B=1 program. Peers (LeRobot's PyTorch policy) come
+denoise), each synchronised; `total` is the whole call as `Engine.sample_actions` runs it (the vision program, then
+the prefix and denoise program, with no host round trip between them), and `--one-program` adds the call as one
+fused program. Cold compile (empty persistent cache) and warm start (a second process reading the cache) are
+measured for the call's programs. Peers (LeRobot's PyTorch policy) come
 from the `peers` package, which may import torch; this module does not.
 
     pi0-jax benchmark --preset pi0_base --steps 1,2,3,5,10 --batch 1,8,64 --out bench.json
@@ -58,7 +60,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--prompt-tokens", type=int, default=20,
                    help="valid prompt tokens; the rest of max_token_len is padding (default: %(default)s)")
     p.add_argument("--fused-steps", type=_ints, default=None,
-                   help="steps at which the fused program is also timed (default: all of --steps)")
+                   help="steps at which the whole call (Engine.sample_actions: the vision program, then the prefix "
+                        "and denoise program, no host round trip between them) is also timed, beside the stage "
+                        "programs each timed alone (default: all of --steps)")
+    p.add_argument("--one-program", action="store_true",
+                   help="at those steps also time the call as one fused program (the pipeline as the simulator "
+                        "embeds it), for comparison")
     p.add_argument("--quant", default=None, choices=sorted(SCHEMES),
                    help="FP8 scheme applied to the random weights (calibrated on synthetic observations); a "
                         "quantised --checkpoint is used as stored. prefix-vision: FP8 x FP8 GEMMs in the prefix "
@@ -78,11 +85,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "batch 1 and 2 on a GPU, XLA otherwise; each row records the path it ran (the JSON's "
                         "env.expert_blocks the kernels' launches). SigLIP's LayerNorm likewise, auto: the kernel on "
                         "a GPU from 24 images a call (default: %(default)s)")
-    p.add_argument("--gemm", choices=GEMMS, default="xla",
+    p.add_argument("--gemm", choices=GEMMS, default="auto",
                    help="the library of XLA's GEMMs on a GPU: xla (XLA's autotuned choice of Triton or cuBLAS per "
-                        "GEMM) or cublas (XLA's Triton GEMMs off, so bias, GELU and residual adds become cuBLASLt "
-                        "epilogues; faster in the vision tower from batch 8, not overall); programs with FP8 weights "
-                        "always get cublas; the reference always runs XLA's defaults (default: %(default)s)")
+                        "GEMM), cublas (XLA's Triton GEMMs off, so bias, GELU and residual adds become cuBLASLt "
+                        "epilogues; faster in the vision tower, slower in the prefix and denoise), or auto (cublas in "
+                        "the vision program, xla in the others); programs with FP8 weights always get cublas; the "
+                        "reference always runs XLA's defaults (default: %(default)s)")
     p.add_argument("--reference", action="store_true",
                    help="also time the reference model (pi0_jax.pi0.sample_actions: openpi's structure, layers "
                         "scanned, one jit) at each batch for the largest step count")
@@ -100,7 +108,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "stages (LeRobot's embed_prefix, the prefix pass of its language model and denoise_step, "
                         "each its own graph, with the loop over steps left in Python) (default: %(default)s)")
     p.add_argument("--warm-start", action="store_true",
-                   help="measure the warm start: a second process loads the fused B=1 program from the cache")
+                   help="measure the warm start: a second process loads the B=1 call's programs from the cache")
     p.add_argument("--cache-dir", type=Path, default=None,
                    help="persistent compilation cache (default: a fresh temp dir, so the cold compile is cold)")
     p.add_argument("--out", type=Path, default=Path("benchmark.json"), help="JSON results (default: %(default)s)")
@@ -188,11 +196,14 @@ def bench_engine(engine: Engine, args, batch: int) -> list[dict]:
                "gemm": engine.gemm, "vision": t_vis, "prefix": t_pre, "denoise": t_den,
                "denoise_per_step_ms": t_den["median_ms"] / steps}
         if args.fused_steps is None or steps in args.fused_steps:
-            fused = engine.executable("infer", batch, steps, cameras, bucket)
-            row["total"] = time_calls(lambda p, n: fused(w, sched, *p, jnp.copy(n)),
+            row["total"] = time_calls(lambda p, n: engine.sample_packed(p, jnp.copy(n), steps, cameras, bucket),
                                       [(p, n) for p, (_, n) in zip(packed, sets)], args.iters, args.warmup)
-            key = ("infer", batch, steps, cameras, bucket)
-            row["compile_s"] = engine.compile_seconds.get(key)
+            row["compile_s"] = sum(engine.compile_seconds.get(engine.key(s, batch, steps, cameras, bucket), 0.0)
+                                   for s in ("encode_images", "prefix_denoise"))
+            if getattr(args, "one_program", False):
+                fused = engine.executable("infer", batch, steps, cameras, bucket)
+                row["one_program"] = time_calls(lambda p, n: fused(w, sched, *p, jnp.copy(n)),
+                                                [(p, n) for p, (_, n) in zip(packed, sets)], args.iters, args.warmup)
         total = row.get("total", {}).get("median_ms") or (t_vis["median_ms"] + t_pre["median_ms"] + t_den["median_ms"])
         row["total_ms"], row["hz"], row["samples_per_s"] = total, 1e3 / total, 1e3 * batch / total
         rows.append(row)
@@ -230,7 +241,7 @@ engine = Engine(cfg, params, unroll=sys.argv[4] == "1", kernels=sys.argv[8], att
                 gemm=sys.argv[10], cache_dir=sys.argv[3])
 obs, noise = benchmark.make_inputs(cfg, 1, int(sys.argv[5]), int(sys.argv[6]), 0)
 start = time.perf_counter()
-engine.executable("infer", 1, int(sys.argv[7]), *engine.plan(obs))
+engine.call_programs(1, int(sys.argv[7]), *engine.plan(obs))
 print(json.dumps({"warm_compile_s": time.perf_counter() - start, "process_s": time.perf_counter() - t0}))
 """
 
@@ -333,9 +344,9 @@ def run(args: argparse.Namespace) -> dict:
                 results["peers"].append(ref)
                 print(f"reference B={batch}: {ref['total']['median_ms']:.2f} ms ({ref['ratio']:.2f}x); engine vs "
                       f"reference: {ref['engine_vs_reference']}", flush=True)
-        cold = {k: v for k, v in engine.compile_seconds.items() if k[0] == "infer"}
-        results["compile"][dtype] = {"cold_compile_s_fused": {f"B{k[1]}_S{k[2]}": round(v, 2) for k, v in cold.items()},
-                                     "peak_device_bytes": _peak_bytes()}
+        cold = {f"B{r['batch']}_S{r['steps']}": round(r["compile_s"], 2) for r in results["rows"]
+                if r["dtype"] == dtype and "compile_s" in r}
+        results["compile"][dtype] = {"cold_compile_s_call": cold, "peak_device_bytes": _peak_bytes()}
         if args.warm_start:
             results["compile"][dtype]["warm_start"] = measure_warm_start(config, args, cache_dir, max(args.steps))
         if args.compare == "lerobot":

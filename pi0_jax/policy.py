@@ -5,10 +5,11 @@ One pipeline serves every caller (`Policy.infer` / `infer_batch`, the policy ser
 
   host    `pi0_jax.observation.validate`: keys, cameras, dtypes, shapes and finiteness checked, the prompt tokenised
           (cached per prompt string; π0.5 with the state in the prompt tokenises per call);
-  device  `PolicyCore.program`, one compiled program per shape bucket (batch, camera shapes, prompt bucket):
-          uint8 -> [-1, 1] and resize-with-pad to the model's size, state normalised and zero-padded, the engine's
-          vision -> prefix cache -> denoise (masked cameras not encoded, the prompt cut to its bucket), actions
-          sliced to the dataset's dims and un-normalised.
+  device  `PolicyCore.program`, compiled per shape bucket (batch, camera shapes, prompt bucket): uint8 -> [-1, 1]
+          and resize-with-pad to the model's size, state normalised and zero-padded, the engine's vision -> prefix
+          cache -> denoise (masked cameras not encoded, the prompt cut to its bucket), actions sliced to the
+          dataset's dims and un-normalised. `Policy` runs it as two programs, `PolicyCore.encode` (the vision
+          tower) then `PolicyCore.act`, as `Engine.sample_actions` does; the simulator embeds `program` whole.
 
 Normalisation runs on device as x * scale + offset (`Normalizer.affine`): every mode is affine per dimension, and
 the scale/offset come from the exact float64 formulas (openpi un-normalises all 32 dims and then slices; per-dim
@@ -40,6 +41,7 @@ from pi0_jax.config import IMAGE_KEYS, Pi0Config
 from pi0_jax.engine import engine_weights, enable_compilation_cache, prompt_bucket
 from pi0_jax.engine import programs
 from pi0_jax.engine import weights as weights_lib
+from pi0_jax.engine.runtime import STAGE_WEIGHTS
 from pi0_jax.observation import DEFAULT_OPTIONAL_CAMERAS, ObservationError, Prepared, Validator
 from pi0_jax.ops import matmul
 from pi0_jax.preprocess import resize_with_pad
@@ -70,7 +72,7 @@ class PolicyCore:
     def __init__(self, config: Pi0Config, params: dict | None, tokenizer: PaligemmaTokenizer,
                  normalizer: _norm.Normalizer, *, num_steps: int = 10, action_dims: int | None = None,
                  sampler: str = "engine", unroll: bool = True, kernels: str = "auto", attention: str = "auto",
-                 gemm: str = "xla"):
+                 gemm: str = "auto"):
         if tokenizer.max_len != config.max_token_len:
             raise ValueError(f"tokenizer max_len {tokenizer.max_len} != config.max_token_len {config.max_token_len}")
         if sampler not in SAMPLERS:
@@ -155,11 +157,17 @@ class PolicyCore:
     # -- device side ----------------------------------------------------------------------------------------------
     def preprocess(self, norm, images: Sequence[jax.Array], state: jax.Array) -> tuple[list[jax.Array], jax.Array]:
         """The input transforms on device: images -> (B, size, size, 3) f32 in [-1, 1]; raw state -> normalised."""
-        size, pixels = self.config.image_size, []
-        for x in images:
-            x = x.astype(jnp.float32) / 255.0 * 2.0 - 1.0 if x.dtype == jnp.uint8 else x.astype(jnp.float32)
-            pixels.append(resize_with_pad(x, size, size))
-        return pixels, state.astype(jnp.float32) * norm["state_scale"] + norm["state_offset"]
+        return [self.pixels(x) for x in images], self.normalize_state(norm, state)
+
+    def pixels(self, x: jax.Array) -> jax.Array:
+        """One camera's frames (B, h, w, 3), uint8 or f32 in [-1, 1] -> (B, size, size, 3) f32 in [-1, 1]."""
+        size = self.config.image_size
+        x = x.astype(jnp.float32) / 255.0 * 2.0 - 1.0 if x.dtype == jnp.uint8 else x.astype(jnp.float32)
+        return resize_with_pad(x, size, size)
+
+    @staticmethod
+    def normalize_state(norm, state: jax.Array) -> jax.Array:
+        return state.astype(jnp.float32) * norm["state_scale"] + norm["state_offset"]
 
     def program(self, model, norm, images: Sequence[jax.Array], cameras: Sequence[str], image_masks, tokens,
                 token_mask, state, noise, *, num_steps=None) -> jax.Array:
@@ -172,23 +180,49 @@ class PolicyCore:
         Returns (B, H, action_dims) f32 actions, un-normalised.
         """
         cfg, size = self.config, self.config.image_size
+        if self.sampler == "engine":
+            return self.act(model, norm, self.encode(model, images), image_masks, tokens, token_mask, state, noise,
+                            num_steps=num_steps)
         num_steps = self.num_steps if num_steps is None else num_steps
         pixels, state = self.preprocess(norm, images, state)
-        noise = noise.astype(jnp.float32)
-        if self.sampler == "engine":
-            actions = programs.infer(cfg, model["weights"], self._schedule(model, num_steps), jnp.stack(pixels),
-                                     image_masks, tokens, token_mask, state, noise, num_steps=num_steps,
-                                     unroll=self.unroll, unroll_steps=False, kernels=self.kernels,
-                                     attention=self.attention)
-        else:
-            b = noise.shape[0]
-            black = jnp.full((b, size, size, 3), -1.0, jnp.float32)
-            by_slot = dict(zip(cameras, pixels))
-            masks = dict(zip(cameras, image_masks))
-            obs = pi0.Observation(images={k: by_slot.get(k, black) for k in self.slots},
-                                  image_masks={k: masks.get(k, jnp.zeros((b,), bool)) for k in self.slots},
-                                  state=state, tokenized_prompt=tokens, tokenized_prompt_mask=token_mask)
-            actions = pi0.sample_actions(cfg, model["params"], obs, noise, num_steps=num_steps)
+        b = noise.shape[0]
+        black = jnp.full((b, size, size, 3), -1.0, jnp.float32)
+        by_slot = dict(zip(cameras, pixels))
+        masks = dict(zip(cameras, image_masks))
+        obs = pi0.Observation(images={k: by_slot.get(k, black) for k in self.slots},
+                              image_masks={k: masks.get(k, jnp.zeros((b,), bool)) for k in self.slots},
+                              state=state, tokenized_prompt=tokens, tokenized_prompt_mask=token_mask)
+        return self._actions(norm, pi0.sample_actions(cfg, model["params"], obs, noise.astype(jnp.float32),
+                                                      num_steps=num_steps))
+
+    # The engine's pipeline in two parts, which `Policy` compiles as two programs (engine.runtime's module doc)
+    @staticmethod
+    def split_model(model: dict) -> tuple[dict, dict]:
+        """The engine sampler's model as (what `encode` reads: the vision tower's weights, what `act` reads)."""
+        keys = STAGE_WEIGHTS["encode_images"]
+        w = model["weights"]
+        return ({"weights": {k: w[k] for k in keys}},
+                {**model, "weights": {k: v for k, v in w.items() if k not in keys}})
+
+    def encode(self, model, images: Sequence[jax.Array]) -> jax.Array:
+        """The engine sampler's vision half of `program`: images (one (B, h, w, 3) array per active camera) ->
+        image tokens (B, C * 256, VLM width)."""
+        pixels = [self.pixels(x) for x in images]
+        return programs.encode_images(self.config, model["weights"], jnp.stack(pixels), unroll=self.unroll,
+                                      kernels=self.kernels, attention=self.attention)
+
+    def act(self, model, norm, image_tokens, image_masks, tokens, token_mask, state, noise, *,
+            num_steps=None) -> jax.Array:
+        """The engine sampler's other half of `program`: `encode`'s tokens -> un-normalised actions."""
+        num_steps = self.num_steps if num_steps is None else num_steps
+        actions = programs.prefix_denoise(self.config, model["weights"], self._schedule(model, num_steps),
+                                          image_tokens, image_masks, tokens, token_mask,
+                                          self.normalize_state(norm, state), noise.astype(jnp.float32),
+                                          num_steps=num_steps, unroll=self.unroll, unroll_steps=False,
+                                          kernels=self.kernels, attention=self.attention)
+        return self._actions(norm, actions)
+
+    def _actions(self, norm, actions: jax.Array) -> jax.Array:
         actions = actions[..., : self.action_dims].astype(jnp.float32)
         return actions * norm["action_scale"] + norm["action_offset"]
 
@@ -218,7 +252,7 @@ class Policy:
         self.batch_buckets = batch_buckets(int(max_batch))
         self._norm = jax.device_put(self.core.norm)
         self._noise_rng = np.random.default_rng(seed)
-        self._executables: dict[tuple, jax.stages.Compiled] = {}
+        self._executables: dict[tuple, Any] = {}
         self.compile_seconds: dict[tuple, float] = {}
         self._lock = threading.Lock()         # compiles
         self._noise_lock = threading.Lock()   # the noise stream, so validation never waits for a compile
@@ -320,28 +354,47 @@ class Policy:
                 np.ones((len(cameras), batch), bool),
                 np.stack([p.tokens[:prompt_len] for p in rows]), np.stack([p.token_mask[:prompt_len] for p in rows]),
                 np.stack([p.state for p in rows]), np.stack([p.noise for p in rows]))
-        exe = self.executable(host, cameras)
+        call = self.executable(host, cameras)
         start = time.perf_counter()
         # numpy in, so the call's own dispatch copies it to the device: jax.device_put first took 0.5 ms more
-        actions = np.asarray(exe(self.core.model, self._norm, *host))
+        actions = np.asarray(call(self._norm, *host))
         return actions[:n], (time.perf_counter() - start) * 1000.0
 
-    def executable(self, host_args: tuple, cameras: tuple[str, ...]) -> jax.stages.Compiled:
-        """The compiled program for these input shapes (compiled ahead of time on first use, then kept)."""
+    def executable(self, host_args: tuple, cameras: tuple[str, ...]):
+        """The compiled call for these input shapes (compiled ahead of time on first use, then kept):
+        (norm, *host_args) -> actions. With the engine sampler it is two programs, `PolicyCore.encode` on the vision
+        tower's weights and `PolicyCore.act` on the rest, the second dispatched while the GPU runs the first, as
+        `Engine.sample_actions`; the reference sampler is one program."""
         spec = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), host_args)
         key = (cameras, tuple((x.shape, x.dtype.str) for x in jax.tree.leaves(host_args)))
         with self._lock:
             if key not in self._executables:
                 start = time.perf_counter()
-                core = self.core
-
-                def fn(model, norm, images, image_masks, tokens, token_mask, state, noise):
-                    return core.program(model, norm, images, cameras, image_masks, tokens, token_mask, state, noise)
-
-                lowered = jax.jit(fn).lower(core.model, self._norm, *spec)
-                self._executables[key] = lowered.compile(matmul.compiler_options(core.model, core.gemm))
+                self._executables[key] = self._compile(spec, cameras)
                 self.compile_seconds[key] = time.perf_counter() - start
             return self._executables[key]
+
+    def _compile(self, spec: tuple, cameras: tuple[str, ...]):
+        core = self.core
+        if core.sampler != "engine":
+            def fn(model, norm, images, image_masks, tokens, token_mask, state, noise):
+                return core.program(model, norm, images, cameras, image_masks, tokens, token_mask, state, noise)
+
+            exe = jax.jit(fn).lower(core.model, self._norm, *spec).compile(
+                matmul.compiler_options(core.model, core.gemm))
+            return functools.partial(exe, core.model)
+        vision, rest = core.split_model(core.model)
+        images = spec[0]
+        encode = jax.jit(core.encode).lower(vision, images).compile(
+            matmul.compiler_options(vision, core.gemm, vision_tower=True))
+        tokens = jax.eval_shape(core.encode, vision, images)
+        act = jax.jit(core.act).lower(rest, self._norm, tokens, *spec[1:]).compile(
+            matmul.compiler_options(rest, core.gemm))
+
+        def call(norm, images, *args):
+            return act(rest, norm, encode(vision, images), *args)
+
+        return call
 
     @property
     def num_compiled(self) -> int:

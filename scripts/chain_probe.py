@@ -11,6 +11,7 @@ process on the same weights and inputs, each call blocked on its actions:
   chain_sub        the same three programs, each taking only its weights
   chain_sub_cublas chain_sub with the vision program's GEMMs on cuBLAS
   two_sub_cublas   vision (cuBLAS, its weights) -> prefix and denoise as one program (their weights)
+  call             `Engine.sample_packed`, the engine's call since this probe: two_sub_cublas through the engine
 
 It also times the vision program alone (synchronised, as the benchmark's stage row) on its weights, with XLA's
 GEMMs and with cuBLAS, and traces each chained variant for the device's span and idle time (`profile_engine.idle`).
@@ -54,8 +55,7 @@ def main() -> None:
     cameras, bucket = engine.plan(obs)
     images, image_masks, tokens, token_mask, state = engine.pack(obs, cameras, bucket)
     w, sched, b, n = engine.weights, engine.schedule(args.steps), args.batch, args.steps
-    exe = {s: engine.executable(s, b, n, cameras, bucket)
-           for s in ("encode_images", "fill_prefix_cache", "denoise", "infer")}
+    fused = engine.executable("infer", b, n, cameras, bucket)   # its Program hands it every engine weight
     kw = {"unroll": engine.unroll, "attention": engine.attention, "kernels": engine.kernels}
     den_kw = {**kw, "num_steps": n, "unroll_steps": False}
     # the prefix program reads only the expert's structure (which cache layout its kernels take): a list of Nones
@@ -80,6 +80,12 @@ def main() -> None:
     def compile_(fn, args_, options=None, donate=()):
         return jax.jit(fn, donate_argnums=donate).lower(*args_).compile(options)
 
+    enc_t = compile_(lambda w, images: programs.encode_images(config, w, images, **kw), (w, images))
+    pre_t = compile_(lambda w, *a: programs.fill_prefix_cache(config, w, *a, **kw),
+                     (w, enc_t(w, images), image_masks, tokens, token_mask))
+    den_t = compile_(lambda w, *a: programs.denoise(config, w, *a, **den_kw),
+                     (w, sched, pre_t(w, enc_t(w, images), image_masks, tokens, token_mask), state, noise),
+                     donate=(4,))
     enc_x = compile_(enc_fn, (w_img, images))
     enc_c = compile_(enc_fn, (w_img, images), CUBLAS)
     it = enc_x(w_img, images)
@@ -89,9 +95,9 @@ def main() -> None:
     tail = compile_(tail_fn, (w_pre, w_den, sched, it, image_masks, tokens, token_mask, state, noise), donate=(8,))
 
     def chain_tree():
-        i = exe["encode_images"](w, images)
-        c = exe["fill_prefix_cache"](w, i, image_masks, tokens, token_mask)
-        return exe["denoise"](w, sched, c, state, jnp.copy(noise))
+        i = enc_t(w, images)
+        c = pre_t(w, i, image_masks, tokens, token_mask)
+        return den_t(w, sched, c, state, jnp.copy(noise))
 
     def chain_sub(enc):
         i = enc(w_img, images)
@@ -99,15 +105,17 @@ def main() -> None:
         return den(w_den, sched, c, state, jnp.copy(noise))
 
     calls = {
-        "fused": lambda: exe["infer"](w, sched, images, image_masks, tokens, token_mask, state, jnp.copy(noise)),
+        "fused": lambda: fused(w, sched, images, image_masks, tokens, token_mask, state, jnp.copy(noise)),
         "chain_tree": chain_tree,
         "chain_sub": functools.partial(chain_sub, enc_x),
         "chain_sub_cublas": functools.partial(chain_sub, enc_c),
         "two_sub_cublas": lambda: tail(w_pre, w_den, sched, enc_c(w_img, images), image_masks, tokens, token_mask,
                                        state, jnp.copy(noise)),
+        "call": lambda: engine.sample_packed((images, image_masks, tokens, token_mask, state), jnp.copy(noise), n,
+                                             cameras, bucket),
         "vision_sub": lambda: enc_x(w_img, images),
         "vision_sub_cublas": lambda: enc_c(w_img, images),
-        "vision_tree": lambda: exe["encode_images"](w, images),
+        "vision_tree": lambda: enc_t(w, images),
     }
     ref = np.asarray(calls["fused"](), np.float64)
     rel = {}

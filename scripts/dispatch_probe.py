@@ -3,7 +3,7 @@
 At B = 1 the fused program's kernels span about 15.3 ms on an H200 and the call took 16.7 ms (median, host-timed
 with `block_until_ready`). This probe times, round-robin in one process on the engine's own weights:
 
-  infer        the fused program as `Engine.sample_actions` calls it (the engine weights: 423 buffers for π0)
+  infer        the fused program (`Engine.executable("infer")`: every engine weight, 423 buffers for π0)
   null         a program of one tiny op that takes only the noise
   null_tree    the same op, with the whole weights tree passed and pruned at compile time (jit's default)
   null_kept    the same op, with the whole weights tree passed and kept as the program's arguments

@@ -26,6 +26,17 @@ for phase in "$@"; do
                --iters 20 --trace-stages --out "$OUT/gaps_b1.json" ;;   # each stage's device span and idle gaps
     chain_b1) for m in pi0 pi05; do   # fused program against the stage programs chained (own weights, cuBLAS vision)
                python3 scripts/chain_probe.py --preset ${m}_base --iters 40 --out "$OUT/chain_${m}_b1.json"; done ;;
+    call_pi0|call_pi05) m=${phase#call_}; python3 -m pi0_jax.cli benchmark --preset ${m}_base --steps 1,10 \
+               --batch ${BATCH:-1,8} --fused-steps 1,10 --one-program --reference --iters 30 --prompt-tokens 48 \
+               --out "$OUT/call_${m}.json" > "$OUT/call_${m}.log" 2>&1; grep -E "^\||reference" "$OUT/call_${m}.log"
+               python3 - "$OUT/call_${m}.json" <<'PY'   # the call against the one fused program, same process
+import json, sys
+for r in json.load(open(sys.argv[1]))["rows"]:
+    if "one_program" in r:
+        print(f"B={r['batch']} S={r['steps']}: call {r['total']['median_ms']:.2f} ms, one program "
+              f"{r['one_program']['median_ms']:.2f} ms")
+PY
+               ;;
     stages_b8) python3 scripts/profile_engine.py --preset pi0_base --batch 8 --prompt-tokens 48 --attention xla \
                --attention vision=cudnn,prefix=cudnn --time --iters 20 --out "$OUT/stages_b8.json" ;;
     hlo_pi05) python3 scripts/profile_engine.py --preset pi05_base --steps 10 --out "$OUT/hlo_pi05.json" ;;

@@ -47,7 +47,7 @@ def main() -> None:
         first = None
         for name in args.variant or list(VARIANTS):
             options = VARIANTS[name]
-            runtime.matmul.compiler_options = lambda tree, gemm="xla", platform=None, o=options: dict(o) or None
+            runtime.matmul.compiler_options = lambda tree, gemm="xla", platform=None, o=options, **kw: dict(o) or None
             engine = Engine(config, params, cache_dir=False)
             cameras, bucket = engine.plan(obs)
             calls = profile_engine.stage_calls(engine, batch, 10, cameras, bucket, engine.pack(obs, cameras, bucket),

@@ -1,7 +1,7 @@
-"""What a caller pays on top of the engine: `Policy.infer` from host numpy against the engine's fused program alone
+"""What a caller pays on top of the engine: `Policy.infer` from host numpy against the engine's call alone
 (device-resident inputs), in the same process, on the same weights' shapes and inputs.
 
-Engine alone: `Engine.executable("infer", ...)` on already packed, device-resident inputs (the benchmark's `total`).
+Engine alone: `Engine.sample_packed` on already packed, device-resident inputs (the benchmark's `total`).
 Policy.infer: one observation dict of uint8 HWC frames, a float state and a prompt string -> un-normalised actions
 as numpy (validation, cached tokenisation, one host-to-device transfer, the compiled pipeline, the device-to-host
 copy). infer_batch: B observations through one batched call.
@@ -96,11 +96,13 @@ def main() -> int:
     ref_obs = policy.make_observation(obs[0])
     cams, bucket = engine.plan(ref_obs)
     packed = engine.pack(ref_obs, cams, bucket)
-    exe = engine.executable("infer", 1, args.steps, cams, bucket)
-    sched = engine.schedule(args.steps)
     noise = jnp.asarray(prepared.noise[None])
-    engine_t = timed(lambda: exe(engine.weights, sched, *packed, jnp.copy(noise)), args.iters, args.warmup)
-    engine_actions = np.asarray(exe(engine.weights, sched, *packed, jnp.copy(noise)))[0]
+
+    def call():
+        return engine.sample_packed(packed, jnp.copy(noise), args.steps, cams, bucket)
+
+    engine_t = timed(call, args.iters, args.warmup)
+    engine_actions = np.asarray(call())[0]
 
     i = iter(range(10**9))
     policy_t = timed(lambda: policy.infer(obs[next(i) % len(obs)])["actions"], args.iters, args.warmup)

@@ -123,7 +123,8 @@ def idle(kernels, calls: int, between_calls_us: float = 100.0) -> dict:
 
 
 def stage_calls(engine: Engine, batch: int, steps: int, cameras, bucket, packed, noise) -> dict:
-    """Each stage program as a no-argument call on fixed inputs (the denoise gets a fresh copy of the noise)."""
+    """Each stage program as a no-argument call on fixed inputs (the denoise gets a fresh copy of the noise), the
+    fused program ("infer") and the engine's call ("call": `Engine.sample_packed`, two programs)."""
     w, sched = engine.weights, engine.schedule(steps)
     enc, pre, den, fused = (engine.executable(s, batch, steps, cameras, bucket)
                             for s in ("encode_images", "fill_prefix_cache", "denoise", "infer"))
@@ -132,7 +133,8 @@ def stage_calls(engine: Engine, batch: int, steps: int, cameras, bucket, packed,
     return {"encode_images": lambda: enc(w, packed[0]),
             "fill_prefix_cache": lambda: pre(w, tokens, *packed[1:4]),
             "denoise": lambda: den(w, sched, cache, packed[4], jnp.copy(noise)),
-            "infer": lambda: fused(w, sched, *packed, jnp.copy(noise))}
+            "infer": lambda: fused(w, sched, *packed, jnp.copy(noise)),
+            "call": lambda: engine.sample_packed(packed, jnp.copy(noise), steps, cameras, bucket)}
 
 
 def main() -> None:
@@ -152,7 +154,7 @@ def main() -> None:
                    help="each stage's attention (Engine's `attention`); repeat it to compare several engines on the "
                         "same weights and inputs in one process (default: auto)")
     p.add_argument("--gemm", choices=matmul.GEMMS, action="append", default=None,
-                   help="the library of XLA's GEMMs on a GPU (Engine's `gemm`); repeat it to compare (default: xla)")
+                   help="the library of XLA's GEMMs on a GPU (Engine's `gemm`); repeat it to compare (default: auto)")
     p.add_argument("--vision-norm", choices=("auto", "xla", "pallas"), action="append", default=None,
                    help="SigLIP's LayerNorm (`programs.vision_norm`; auto: as the kernels choose); repeat it to "
                         "compare (default: auto)")
@@ -183,7 +185,7 @@ def main() -> None:
     outputs, timed = {}, []
     vision_norm = programs.vision_norm
     for attention, kernels, gemm, norm in itertools.product(args.attention or ["auto"], args.kernels or ["auto"],
-                                                            args.gemm or ["xla"], args.vision_norm or ["auto"]):
+                                                            args.gemm or ["auto"], args.vision_norm or ["auto"]):
         # the programs are traced below, inside this variant: its LayerNorm choice holds for all of them
         programs.vision_norm = vision_norm if norm == "auto" else (lambda kernels, images, platform=None, n=norm: n)
         engine = Engine(config, params, unroll=not args.no_unroll, unroll_steps=args.unroll_steps,
@@ -195,7 +197,7 @@ def main() -> None:
                "counts": {}, "median_ms": {}, "trace": {}}
         print(f"== attention {var['attention']}, kernels {var['kernels']}, gemm {gemm}, vision norm "
               f"{var['vision_norm']}", flush=True)
-        for stage in ("encode_images", "fill_prefix_cache", "denoise", "infer"):
+        for stage in ("encode_images", "fill_prefix_cache", "denoise", "prefix_denoise", "infer"):
             exe = engine.executable(stage, args.batch, args.steps, cameras, bucket)
             counts = var["counts"][stage] = count_ops(exe.as_text())
             if args.dump_hlo:

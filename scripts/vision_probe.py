@@ -86,7 +86,7 @@ def main() -> None:
     p.add_argument("--norm-blocks", action="append", default=[], metavar="ROWS,COLS,WARPS",
                    help="one more engine/pallas variant with the Pallas LayerNorm and these `ops.layer_norm.Blocks` "
                         "(the first --attention's); repeatable")
-    p.add_argument("--gemm", action="append", choices=matmul.GEMMS, default=None,
+    p.add_argument("--gemm", action="append", choices=("xla", "cublas"), default=None,
                    help="the library of XLA's GEMMs (`ops.matmul.compiler_options`); repeat it to compare; "
                         "\"+cublas\" in a variant's name (default: xla)")
     p.add_argument("--batch", default="1,8,64", help="images per call = batch x cameras (default: %(default)s)")

@@ -20,5 +20,5 @@ def test_benchmark_dummy_writes_every_stage(tmp_path):
     assert results["peers"][0]["impl"].startswith("reference")
     assert results["peers"][0]["engine_vs_reference"]["rel_l2"] < 1e-2  # bf16, different matmul grouping
     assert results["env"]["device"] and results["env"]["kernels"] == results["env"]["attention"] == "auto"
-    assert results["compile"]["bfloat16"]["cold_compile_s_fused"]
+    assert results["compile"]["bfloat16"]["cold_compile_s_call"]
     assert out.with_suffix(".png").stat().st_size > 1000

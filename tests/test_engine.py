@@ -221,8 +221,35 @@ def test_no_recompilation_when_only_values_change(model):
         jax.block_until_ready(engine.sample_actions(obs, noise, 2))
         if seed == 0:
             first = len(compiles)
-    assert engine.num_compiled == 1
+    assert engine.num_compiled == 2   # a call is two programs: the vision tower, then the prefix and denoise
     assert len(compiles) == first, "new input values triggered a recompilation"
+
+
+def test_each_program_takes_only_its_own_weights_and_the_call_equals_the_fused_program(model):
+    """Every buffer a call takes costs the host before the first kernel runs: each stage program is compiled on its
+    own weights (`STAGE_WEIGHTS`), and the call (vision, then prefix and denoise) equals the fused program."""
+    from pi0_jax.engine import programs
+    from pi0_jax.engine.runtime import STAGE_WEIGHTS
+
+    config, params = model
+    obs = make_obs(config)
+    noise = jax.random.normal(jax.random.key(3), (2, config.action_horizon, config.action_dim))
+    engine = Engine(config, params, cache_dir=False)
+    cameras, bucket = engine.plan(obs)
+    leaves = {k: len(jax.tree.leaves(v)) for k, v in engine.weights.items()}
+    for stage, keys in STAGE_WEIGHTS.items():
+        prog = engine.executable(stage, 2, 2, cameras, bucket)
+        assert prog.keys == tuple(k for k in keys if k in engine.weights)
+        # the compiled program's inputs: its weights' leaves, then the stage's other arguments
+        weights_in = len(jax.tree.leaves(prog.compiled.args_info[0][0]))
+        assert weights_in == sum(leaves[k] for k in prog.keys)
+        assert weights_in < sum(leaves.values()) or stage == "infer"
+    assert "img" not in engine.executable("prefix_denoise", 2, 2, cameras, bucket).keys
+    fused = engine.executable("infer", 2, 2, cameras, bucket)(
+        engine.weights, engine.schedule(2), *engine.pack(obs, cameras, bucket), jnp.array(noise))
+    np.testing.assert_array_equal(engine.sample_actions(obs, jnp.array(noise), 2), fused)
+    with pytest.raises(ValueError, match="chooses the expert's path by its weights"):
+        programs.expert_path("auto", 1, None)
 
 
 def test_prompt_buckets():
@@ -243,7 +270,7 @@ _CHILD = textwrap.dedent("""
     params = jax.tree.map(lambda s: jax.numpy.zeros(s.shape, s.dtype), pi0.param_shapes(config))  # compile only
     engine = Engine(config, params, cache_dir=sys.argv[1])
     obs = make_obs(config)
-    engine.executable("infer", 2, 2, *engine.plan(obs))
+    engine.call_programs(2, 2, *engine.plan(obs))
     print(json.dumps({"hits": hits.count("/jax/compilation_cache/cache_hits"),
                       "misses": hits.count("/jax/compilation_cache/cache_misses")}))
 """)

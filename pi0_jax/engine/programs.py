@@ -59,6 +59,9 @@ def expert_path(kernels: str, batch: int, expert_weights, platform: str | None =
     else XLA (on a CPU the kernels run interpreted)."""
     if check_kernels(kernels) != "auto":
         return kernels
+    if expert_weights is None:
+        raise ValueError("kernels='auto' chooses the expert's path by its weights; without them pass 'xla' or "
+                         "'pallas' (e.g. `Engine.kernels_for(batch)`)")
     platform = platform or jax.default_backend()
     unrolled = isinstance(expert_weights, (list, tuple))
     gpu_batch = platform == "gpu" and batch <= PALLAS_MAX_BATCH
@@ -185,7 +188,7 @@ def fill_prefix_cache(config: Pi0Config, weights: dict, image_tokens, image_mask
     attn_mask = mask[:, None, :] & mask[:, :, None]
     layer = functools.partial(_prefix_layer, config, positions=positions, mask=attn_mask, kv_len=kv_len)
     _, (k, v) = layers.run_layers(layer, weights["vlm"], x, unroll=unroll)
-    if expert_path(kernels, x.shape[0], weights["expert"]) == "pallas":  # once per call: no denoise step pads
+    if expert_path(kernels, x.shape[0], weights.get("expert")) == "pallas":  # once per call: no step pads
         head_dim = config.paligemma.head_dim
         k, v = (tuple(layout.cache_kv(a, head_dim) for a in c) for c in (k, v))
         mask = layout.cache_mask(mask)
@@ -342,15 +345,25 @@ def denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixCache, s
     return jax.lax.fori_loop(0, num_steps, step, (x, kv), unroll=unroll_steps)[0]
 
 
-def infer(config: Pi0Config, weights: dict, sched: dict, images, image_masks, tokens, token_mask, state, noise, *,
-          num_steps: int, unroll: bool, unroll_steps: bool, attention: Attention = Attention(),
-          kernels: str = "xla") -> jax.Array:
-    """The fused program: vision -> prefix cache -> denoise, one XLA executable, no host round trip."""
-    image_tokens = encode_images(config, weights, images, unroll=unroll, attention=attention, kernels=kernels)
+def prefix_denoise(config: Pi0Config, weights: dict, sched: dict, image_tokens, image_masks, tokens, token_mask,
+                   state, noise, *, num_steps: int, unroll: bool, unroll_steps: bool,
+                   attention: Attention = Attention(), kernels: str = "xla") -> jax.Array:
+    """The prefix cache from `encode_images`' tokens, then the denoise loop: a call's second program."""
     cache = fill_prefix_cache(config, weights, image_tokens, image_masks, tokens, token_mask, unroll=unroll,
                               kernels=kernels, attention=attention)
     return denoise(config, weights, sched, cache, state, noise, num_steps=num_steps, unroll=unroll,
                    unroll_steps=unroll_steps, attention=attention, kernels=kernels)
+
+
+def infer(config: Pi0Config, weights: dict, sched: dict, images, image_masks, tokens, token_mask, state, noise, *,
+          num_steps: int, unroll: bool, unroll_steps: bool, attention: Attention = Attention(),
+          kernels: str = "xla") -> jax.Array:
+    """The fused program: vision -> prefix cache -> denoise, one XLA executable (the pipeline inside a larger
+    program, as the simulator's rollout; the engine's own call runs `encode_images` and `prefix_denoise`)."""
+    image_tokens = encode_images(config, weights, images, unroll=unroll, attention=attention, kernels=kernels)
+    return prefix_denoise(config, weights, sched, image_tokens, image_masks, tokens, token_mask, state, noise,
+                          num_steps=num_steps, unroll=unroll, unroll_steps=unroll_steps, attention=attention,
+                          kernels=kernels)
 
 
 def guided_denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixCache, state, noise, target,

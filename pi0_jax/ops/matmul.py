@@ -5,15 +5,17 @@
 input while `recording()` is active, for calibration) runs the plain op. SigLIP's Flax Dense layers keep their own
 op for plain kernels and come here through `dense_interceptor` only for quantised or tapped ones.
 
-`compiler_options(tree, gemm)`: which library runs the GEMMs of a program compiled on a GPU. "xla" (the default)
+`compiler_options(tree, gemm, vision_tower=...)`: which library runs the GEMMs of a program compiled on a GPU. "xla"
 is XLA's own choice: its autotuner picks a Triton GEMM or cuBLAS per dot, and a dot it gives to Triton keeps its
 bias, GELU and residual as separate fusions. "cublas" turns XLA's Triton GEMMs off, so every dot is a cuBLAS call
 that takes its bias, GELU-tanh and residual add as epilogues (SigLIP's Dense layers: 386 -> 305 kernels at B = 1).
-That is 5-10 % faster in the vision tower from B = 8, but slower in the denoise step and no faster for the whole
-call (docs/BENCHMARKS.md, "cuBLAS for every GEMM"), so it is the engine's option, not its default; the simulator's
-rollout (`pi0-jax eval`) defaults to it, 5 % faster there ("cuBLAS in the simulator").
-Programs with FP8 weights always get cuBLAS: XLA's autotuner compiles Triton FP8 GEMMs for minutes, then picks
-cuBLASLt anyway.
+That is faster in the vision tower at every batch (its kernels 2.32 -> 1.98 ms at B = 1, 5-10 % from B = 8) but
+slower in the denoise step and the prefix (docs/BENCHMARKS.md, "cuBLAS for every GEMM", "The call as two
+programs"), and one option holds for a whole program. "auto" (the default) is therefore cuBLAS for a program that
+runs only the vision tower (`vision_tower=True`: the engine's call runs it as a program of its own) and XLA's choice
+for any other; the simulator's rollout (`pi0-jax eval`), one program, defaults to "cublas", 5 % faster there
+("cuBLAS in the simulator"). Programs with FP8 weights always get cuBLAS: XLA's autotuner compiles Triton FP8
+GEMMs for minutes, then picks cuBLASLt anyway.
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ import jax.numpy as jnp
 from pi0_jax.ops import formats
 from pi0_jax.ops.formats import QArray, has_fp8, qmatmul
 
-GEMMS = ("xla", "cublas")
+GEMMS = ("auto", "xla", "cublas")
 _RECORDER: dict | None = None
 
 
@@ -40,12 +42,17 @@ def check_gemm(gemm: str) -> str:
     return gemm
 
 
-def compiler_options(tree, gemm: str = "xla", platform: str | None = None) -> dict | None:
+def compiler_options(tree, gemm: str = "auto", platform: str | None = None, *,
+                     vision_tower: bool = False) -> dict | None:
     """XLA options for compiling a program over the weights `tree` (module doc): None (XLA's defaults) off a GPU
-    and for gemm="xla" without FP8 weights; otherwise no Triton GEMMs."""
+    and for XLA's choice without FP8 weights; otherwise no Triton GEMMs. vision_tower: the program runs SigLIP
+    alone (gemm="auto" is cuBLAS there)."""
     if (platform or jax.default_backend()) != "gpu":
         return None
-    if check_gemm(gemm) == "xla" and not has_fp8(tree):
+    gemm = check_gemm(gemm)
+    if gemm == "auto":
+        gemm = "cublas" if vision_tower else "xla"
+    if gemm == "xla" and not has_fp8(tree):
         return None
     return {"xla_gpu_enable_triton_gemm": False}
 
