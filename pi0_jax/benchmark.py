@@ -212,7 +212,7 @@ def bench_engine(engine: Engine, args, batch: int) -> list[dict]:
 
 
 def bench_reference(engine: Engine, params: dict, args, batch: int, steps: int) -> dict:
-    """Time the reference model, and check the engine's fused output against it on the same inputs."""
+    """Time the reference model, and check the engine's call (`sample_actions`) against it on the same inputs."""
     config = engine.config
     sets = [make_inputs(config, batch, args.cameras, args.prompt_tokens, args.seed + i) for i in range(args.input_sets)]
     fn = jax.jit(functools.partial(pi0.sample_actions, config, num_steps=steps))

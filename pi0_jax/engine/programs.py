@@ -1,4 +1,5 @@
-"""The three inference stages and the fused program, as pure functions of (engine weights, inputs).
+"""The three inference stages, the last two as one (`prefix_denoise`), and the fused program, as pure functions of
+(engine weights, inputs).
 
 Static per compiled program: the config, batch size, the active cameras (a camera masked for every element is not
 encoded at all), the prompt bucket length, num_steps, whether layers are unrolled, each stage's attention
