@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import functools
 import json
-import time
 from pathlib import Path
 
 import jax
@@ -32,28 +31,20 @@ import jax.numpy as jnp
 import numpy as np
 
 from pi0_jax import benchmark
-from pi0_jax.config import get_config
-from pi0_jax.engine import Engine, programs
-from profile_engine import kernel_times   # scripts/ is on the path when this runs as a script
+from pi0_jax.engine import programs
+from profile_engine import kernel_times, probe_arguments, probe_engine, round_robin   # scripts/ is on the path
 
 CUBLAS = {"xla_gpu_enable_triton_gemm": False}
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--preset", default="pi0_base", help="model preset, random weights (default: %(default)s)")
-    p.add_argument("--batch", type=int, default=1)
-    p.add_argument("--steps", type=int, default=10)
-    p.add_argument("--prompt-tokens", type=int, default=48)
-    p.add_argument("--iters", type=int, default=40, help="timed calls of each variant (default: %(default)s)")
+    probe_arguments(p, iters=40)
     p.add_argument("--out", type=Path, default=None, help="JSON of the times and traces")
     args = p.parse_args()
 
-    config = get_config(args.preset)
-    engine = Engine(config, benchmark.random_params(config, 0), cache_dir=False)
-    obs, noise = benchmark.make_inputs(config, args.batch, 3, args.prompt_tokens, 0)
-    cameras, bucket = engine.plan(obs)
-    images, image_masks, tokens, token_mask, state = engine.pack(obs, cameras, bucket)
+    config, engine, noise, cameras, bucket, packed = probe_engine(args)
+    images, image_masks, tokens, token_mask, state = packed
     w, sched, b, n = engine.weights, engine.schedule(args.steps), args.batch, args.steps
     fused = engine.executable("infer", b, n, cameras, bucket)   # its Program hands it every engine weight
     kw = {"unroll": engine.unroll, "attention": engine.attention, "kernels": engine.kernels}
@@ -126,13 +117,7 @@ def main() -> None:
     buffers = {"tree": len(jax.tree.leaves(w)), "vision": len(jax.tree.leaves(w_img)),
                "prefix": len(jax.tree.leaves(w_pre)), "denoise": len(jax.tree.leaves(w_den))}
     print("buffers", json.dumps(buffers), "rel L2 vs fused", json.dumps(rel), flush=True)
-    times = {k: [] for k in calls}
-    for i in range(3 + args.iters):
-        for name, fn in (calls.items() if i % 2 else reversed(calls.items())):
-            start = time.perf_counter()
-            jax.block_until_ready(fn())
-            if i >= 3:
-                times[name].append((time.perf_counter() - start) * 1e3)
+    times = round_robin(calls, args.iters)
     report = {"preset": args.preset, "batch": b, "steps": n, "prompt_tokens": args.prompt_tokens,
               "env": benchmark.environment(), "buffers": buffers, "rel_l2_vs_fused": rel,
               "median_ms": {k: float(np.median(v)) for k, v in times.items()},

@@ -21,7 +21,6 @@ import argparse
 import collections
 import json
 import re
-import time
 from pathlib import Path
 
 import jax
@@ -29,9 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from pi0_jax import benchmark
-from pi0_jax.config import get_config
-from pi0_jax.engine import Engine
-from profile_engine import count_ops, idle, traced   # scripts/ is on the path when this runs as a script
+from profile_engine import count_ops, idle, probe_arguments, probe_engine, round_robin, traced   # scripts/ on path
 
 
 def host_events(fn, calls: int) -> dict:
@@ -58,20 +55,12 @@ def host_events(fn, calls: int) -> dict:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--preset", default="pi0_base", help="model preset, random weights (default: %(default)s)")
-    p.add_argument("--batch", type=int, default=1)
-    p.add_argument("--steps", type=int, default=10)
-    p.add_argument("--prompt-tokens", type=int, default=48)
-    p.add_argument("--iters", type=int, default=50, help="timed calls of each program (default: %(default)s)")
+    probe_arguments(p, iters=50)
     p.add_argument("--dump-hlo", type=Path, default=None, help="write the fused program's optimized HLO here")
     p.add_argument("--out", type=Path, default=None, help="JSON of the times, kernel counts and the host's events")
     args = p.parse_args()
 
-    config = get_config(args.preset)
-    engine = Engine(config, benchmark.random_params(config, 0), cache_dir=False)
-    obs, noise = benchmark.make_inputs(config, args.batch, 3, args.prompt_tokens, 0)
-    cameras, bucket = engine.plan(obs)
-    inputs = engine.pack(obs, cameras, bucket)
+    _, engine, noise, cameras, bucket, inputs = probe_engine(args)
     w, sched = engine.weights, engine.schedule(args.steps)
     infer = engine.executable("infer", args.batch, args.steps, cameras, bucket)
 
@@ -90,13 +79,7 @@ def main() -> None:
     if args.dump_hlo:
         args.dump_hlo.mkdir(parents=True, exist_ok=True)
         (args.dump_hlo / "infer.hlo.txt").write_text(infer.as_text())
-    times = {k: [] for k in calls}
-    for i in range(3 + args.iters):
-        for name, fn in (calls.items() if i % 2 else reversed(calls.items())):
-            start = time.perf_counter()
-            jax.block_until_ready(fn())
-            if i >= 3:
-                times[name].append((time.perf_counter() - start) * 1e6)
+    times = {k: [t * 1e3 for t in v] for k, v in round_robin(calls, args.iters).items()}   # µs
     report = {"preset": args.preset, "batch": args.batch, "steps": args.steps, "env": benchmark.environment(),
               "buffers": len(jax.tree.leaves(w)), "hlo_counts": counts,
               "median_us": {k: float(np.median(v)) for k, v in times.items()},

@@ -122,6 +122,37 @@ def idle(kernels, calls: int, between_calls_us: float = 100.0) -> dict:
             "idle_before": [{"name": n, "per_call": c / calls, "us_per_call": t / calls} for n, (c, t) in top[:25]]}
 
 
+def probe_arguments(p: argparse.ArgumentParser, iters: int) -> None:
+    """The probes' common flags (`dispatch_probe.py`, `chain_probe.py`): one model, random weights, 3 cameras."""
+    p.add_argument("--preset", default="pi0_base", help="model preset, random weights (default: %(default)s)")
+    p.add_argument("--batch", type=int, default=1)
+    p.add_argument("--steps", type=int, default=10)
+    p.add_argument("--prompt-tokens", type=int, default=48)
+    p.add_argument("--iters", type=int, default=iters, help="timed calls of each variant (default: %(default)s)")
+
+
+def probe_engine(args) -> tuple:
+    """(config, engine, noise, cameras, prompt bucket, packed inputs) for the probes' flags."""
+    config = get_config(args.preset)
+    engine = Engine(config, benchmark.random_params(config, 0), cache_dir=False)
+    obs, noise = benchmark.make_inputs(config, args.batch, 3, args.prompt_tokens, 0)
+    cameras, bucket = engine.plan(obs)
+    return config, engine, noise, cameras, bucket, engine.pack(obs, cameras, bucket)
+
+
+def round_robin(calls: dict, iters: int, warmup: int = 3) -> dict:
+    """ms of each no-argument call, blocked on its output: one call of each per round, the order reversed every
+    other round (a program timed right after another runs 1-3 % slower, docs/BENCHMARKS.md)."""
+    times = {k: [] for k in calls}
+    for i in range(warmup + iters):
+        for name, fn in (calls.items() if i % 2 else reversed(calls.items())):
+            start = time.perf_counter()
+            jax.block_until_ready(fn())
+            if i >= warmup:
+                times[name].append((time.perf_counter() - start) * 1e3)
+    return times
+
+
 def stage_calls(engine: Engine, batch: int, steps: int, cameras, bucket, packed, noise) -> dict:
     """Each stage program as a no-argument call on fixed inputs (the denoise gets a fresh copy of the noise), the
     fused program ("infer") and the engine's call ("call": `Engine.sample_packed`, two programs)."""

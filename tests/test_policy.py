@@ -105,6 +105,24 @@ def test_engine_equals_reference_sampler_f32(pi0_ckpt, pi0_policy):
     assert pi0_policy.metadata["sampler"] == "engine" and ref.metadata["sampler"] == "reference"
 
 
+def test_two_programs_equal_the_pipeline_as_one(pi0_ckpt, pi0_policy):
+    """Policy runs `PolicyCore.encode` and `PolicyCore.act` as two programs, each on its own part of the weights;
+    the simulator embeds `PolicyCore.program` whole. Both give the same actions."""
+    from pi0_jax.engine import prompt_bucket
+
+    _, config, _ = pi0_ckpt
+    noise = RNG.normal(size=(config.action_horizon, config.action_dim)).astype(np.float32)
+    got = pi0_policy.infer(libero_obs(), noise=noise)["actions"]
+    core, p = pi0_policy.core, pi0_policy.prepare(libero_obs(), noise)
+    vision, rest = core.split_model(core.model)
+    assert set(vision["weights"]) == {"img"} and "img" not in rest["weights"] and "sched" in rest
+    n = prompt_bucket(p.valid_tokens, config.max_token_len)
+    one = jax.jit(lambda m, nm, im, *a: core.program(m, nm, im, p.cameras, *a))(
+        core.model, core.norm, tuple(p.images[c][None] for c in p.cameras), np.ones((len(p.cameras), 1), bool),
+        p.tokens[None, :n], p.token_mask[None, :n], p.state[None], p.noise[None])
+    np.testing.assert_allclose(got, np.asarray(one)[0], rtol=1e-6, atol=1e-6)
+
+
 def test_engine_equals_reference_sampler_bf16(pi0_ckpt):
     _, config, _ = pi0_ckpt
     eng = Policy.from_checkpoint(pi0_ckpt[0], dtype="bfloat16", cache_dir=False)
