@@ -193,7 +193,9 @@ def bench_engine(engine: Engine, args, batch: int) -> list[dict]:
         row = {"dtype": cfg.dtype, "batch": batch, "steps": steps, "cameras": len(cameras), "prompt_bucket": bucket,
                "attention": str(engine.attention.at_batch(batch, suffix_mask=not cfg.pi05)),
                "kernels": engine.kernels_for(batch), "vision_norm": vision_norm(engine.kernels, batch * len(cameras)),
-               "gemm": engine.gemm, "vision": t_vis, "prefix": t_pre, "denoise": t_den,
+               "gemm": engine.gemm, "gemm_library": {s: engine.gemm_library(s) for s in ("encode_images",
+                                                                                          "prefix_denoise")},
+               "vision": t_vis, "prefix": t_pre, "denoise": t_den,
                "denoise_per_step_ms": t_den["median_ms"] / steps}
         if args.fused_steps is None or steps in args.fused_steps:
             row["total"] = time_calls(lambda p, n: engine.sample_packed(p, jnp.copy(n), steps, cameras, bucket),

@@ -17,6 +17,7 @@ def test_benchmark_dummy_writes_every_stage(tmp_path):
             assert row[stage]["median_ms"] > 0 and row[stage]["p90_ms"] >= row[stage]["median_ms"]
         assert row["prompt_bucket"] == 32 and row["cameras"] == 3
         assert row["kernels"] == "xla" and row["attention"] == "vision=xla,prefix=xla,denoise=xla"  # auto, CPU
+        assert row["gemm"] == "auto" and set(row["gemm_library"].values()) == {"xla"}
     assert results["peers"][0]["impl"].startswith("reference")
     assert results["peers"][0]["engine_vs_reference"]["rel_l2"] < 1e-2  # bf16, different matmul grouping
     assert results["env"]["device"] and results["env"]["kernels"] == results["env"]["attention"] == "auto"

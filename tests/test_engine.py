@@ -1,6 +1,7 @@
 """The compiled engine computes what the reference model computes, compiles once per static shape, and reuses the
 persistent compilation cache across processes."""
 
+import functools
 import json
 import subprocess
 import sys
@@ -207,6 +208,24 @@ def test_attention_and_kernel_choices():
     assert programs.expert_path("pallas", 8, layers, platform="cpu") == "pallas"
     with pytest.raises(ValueError, match="kernels must be"):
         programs.expert_path("triton", 1, layers)
+
+
+def test_gemm_library_per_program():
+    """gemm="auto": cuBLAS for the program that runs the vision tower alone, XLA's choice for the others; FP8
+    weights always cuBLAS; off a GPU always XLA's ops."""
+    from pi0_jax.ops import formats, matmul
+
+    plain, fp8 = {"w": jnp.ones((4, 4))}, {"w": formats.quantize_fp8(jnp.ones((4, 4)))}
+    lib = functools.partial(matmul.library, platform="gpu")
+    assert lib(plain, "auto", vision_tower=True) == "cublas" and lib(plain, "auto") == "xla"
+    assert lib(plain, "xla", vision_tower=True) == "xla" and lib(plain, "cublas") == "cublas"
+    assert lib(fp8, "auto") == lib(fp8, "xla") == "cublas"
+    assert matmul.library(plain, "cublas", platform="cpu") == "xla"
+    assert matmul.compiler_options(plain, "auto", platform="gpu", vision_tower=True) == {
+        "xla_gpu_enable_triton_gemm": False}
+    assert matmul.compiler_options(plain, "auto", platform="gpu") is None
+    with pytest.raises(ValueError, match="gemm must be"):
+        matmul.library(plain, "triton", platform="gpu")
 
 
 def test_no_recompilation_when_only_values_change(model):

@@ -157,11 +157,19 @@ class Engine:
             w = self._shapes(stage)
             fn, args, donate = self._stage(stage, w, batch, num_steps, cameras, prompt_len)
             lowered = jax.jit(fn, donate_argnums=donate).lower(*args)
-            options = matmul.compiler_options({k: self.weights[k] for k in w}, self.gemm,
+            options = matmul.compiler_options(self.stage_weights(stage), self.gemm,
                                               vision_tower=stage == "encode_images")
-            self._executables[key] = Program(lowered.compile(options), tuple(w))
+            self._executables[key] = Program(lowered.compile(options), tuple(self.stage_weights(stage)))
             self.compile_seconds[key] = time.perf_counter() - start
         return self._executables[key]
+
+    def stage_weights(self, stage: str) -> dict:
+        """The engine weights a stage's program takes (`STAGE_WEIGHTS`)."""
+        return {k: self.weights[k] for k in STAGE_WEIGHTS[stage] if k in self.weights}
+
+    def gemm_library(self, stage: str) -> str:
+        """The GEMM library of a stage's program on this device: "xla" (XLA's choice) or "cublas"."""
+        return matmul.library(self.stage_weights(stage), self.gemm, vision_tower=stage == "encode_images")
 
     @staticmethod
     def key(stage: str, batch: int, num_steps: int, cameras: Sequence[str], prompt_len: int) -> tuple:
@@ -212,8 +220,7 @@ class Engine:
 
     def _shapes(self, stage: str) -> dict:
         """The shapes of a stage's weights."""
-        return {k: jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), self.weights[k])
-                for k in STAGE_WEIGHTS[stage] if k in self.weights}
+        return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), self.stage_weights(stage))
 
     # -- inputs -----------------------------------------------------------------------------------------------------
     def plan(self, obs: pi0.Observation) -> tuple[tuple[str, ...], int]:

@@ -42,17 +42,21 @@ def check_gemm(gemm: str) -> str:
     return gemm
 
 
-def compiler_options(tree, gemm: str = "auto", platform: str | None = None, *,
-                     vision_tower: bool = False) -> dict | None:
-    """XLA options for compiling a program over the weights `tree` (module doc): None (XLA's defaults) off a GPU
-    and for XLA's choice without FP8 weights; otherwise no Triton GEMMs. vision_tower: the program runs SigLIP
-    alone (gemm="auto" is cuBLAS there)."""
+def library(tree, gemm: str = "auto", platform: str | None = None, *, vision_tower: bool = False) -> str:
+    """Which GEMM library a program over the weights `tree` gets (module doc): "xla" (XLA's choice; always off a
+    GPU) or "cublas". vision_tower: the program runs SigLIP alone (gemm="auto" is cuBLAS there)."""
     if (platform or jax.default_backend()) != "gpu":
-        return None
+        return "xla"
     gemm = check_gemm(gemm)
     if gemm == "auto":
         gemm = "cublas" if vision_tower else "xla"
-    if gemm == "xla" and not has_fp8(tree):
+    return "cublas" if gemm == "cublas" or has_fp8(tree) else "xla"
+
+
+def compiler_options(tree, gemm: str = "auto", platform: str | None = None, *,
+                     vision_tower: bool = False) -> dict | None:
+    """XLA options for `library`'s choice: None (XLA's defaults) or no Triton GEMMs."""
+    if library(tree, gemm, platform, vision_tower=vision_tower) == "xla":
         return None
     return {"xla_gpu_enable_triton_gemm": False}
 
