@@ -21,10 +21,8 @@ GEMMs and with cuBLAS, and traces each chained variant for the device's span and
 
 from __future__ import annotations
 
-import argparse
 import functools
 import json
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -32,16 +30,14 @@ import numpy as np
 
 from pi0_jax import benchmark
 from pi0_jax.engine import programs
-from profile_engine import kernel_times, probe_arguments, probe_engine, round_robin   # scripts/ is on the path
+# scripts/ is on the path when this runs as a script
+from profile_engine import kernel_times, probe_arguments, probe_engine, round_robin, write_json
 
 CUBLAS = {"xla_gpu_enable_triton_gemm": False}
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    probe_arguments(p, iters=40)
-    p.add_argument("--out", type=Path, default=None, help="JSON of the times and traces")
-    args = p.parse_args()
+    args = probe_arguments(__doc__, iters=40, out="the times and traces").parse_args()
 
     config, engine, noise, cameras, bucket, packed = probe_engine(args)
     images, image_masks, tokens, token_mask, state = packed
@@ -131,9 +127,7 @@ def main() -> None:
         print(f"{name:18s} {t['kernels_per_call']:.0f} kernels, {t['kernel_ms']:.3f} ms in kernels; span "
               f"{t['span_ms']:.3f} ms, idle {t['idle_ms']:.3f} (largest gap {t['idle_max_us']:.1f} us); traced wall "
               f"{t['wall_ms']:.3f} ms", flush=True)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(report, indent=2))
+    write_json(args.out, report)
 
 
 if __name__ == "__main__":

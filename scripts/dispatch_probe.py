@@ -17,7 +17,6 @@ null_kept against null is what the tree's buffers cost per call.
 
 from __future__ import annotations
 
-import argparse
 import collections
 import json
 import re
@@ -28,7 +27,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from pi0_jax import benchmark
-from profile_engine import count_ops, idle, probe_arguments, probe_engine, round_robin, traced   # scripts/ on path
+# scripts/ is on the path when this runs as a script
+from profile_engine import count_ops, idle, probe_arguments, probe_engine, round_robin, traced, write_json
 
 
 def host_events(fn, calls: int) -> dict:
@@ -53,11 +53,16 @@ def host_events(fn, calls: int) -> dict:
             "host": [{"name": n, "per_call": c / calls, "us_per_call": t / calls} for n, (c, t) in top]}
 
 
+def print_host(title: str, t: dict, n: int) -> None:
+    """`host_events`' n largest rows under a title."""
+    print(title, flush=True)
+    for row in t["host"][:n]:
+        print(f"   {row['us_per_call']:9.1f} us  x{row['per_call']:7.1f}  {row['name']}", flush=True)
+
+
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    probe_arguments(p, iters=50)
+    p = probe_arguments(__doc__, iters=50, out="the times, kernel counts and the host's events")
     p.add_argument("--dump-hlo", type=Path, default=None, help="write the fused program's optimized HLO here")
-    p.add_argument("--out", type=Path, default=None, help="JSON of the times, kernel counts and the host's events")
     args = p.parse_args()
 
     _, engine, noise, cameras, bucket, inputs = probe_engine(args)
@@ -87,13 +92,9 @@ def main() -> None:
     print(json.dumps({k: report[k] for k in ("buffers", "median_us")}, indent=1), flush=True)
     for name in ("infer", "null_kept"):
         report[f"trace_{name}"] = t = host_events(calls[name], 5)
-        print(f"{name}: the GPU's span {t['span_ms']:.3f} ms per call ({t['idle_ms']:.3f} idle); host events:",
-              flush=True)
-        for row in t["host"][:16]:
-            print(f"   {row['us_per_call']:9.1f} us  x{row['per_call']:7.1f}  {row['name']}", flush=True)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(report, indent=2))
+        print_host(f"{name}: the GPU's span {t['span_ms']:.3f} ms per call ({t['idle_ms']:.3f} idle); host events:",
+                   t, 16)
+    write_json(args.out, report)
 
 
 if __name__ == "__main__":

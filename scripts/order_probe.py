@@ -18,25 +18,20 @@ what the host does differently shows.
 
 from __future__ import annotations
 
-import argparse
 import json
 import time
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dispatch_probe import host_events   # scripts/ is on the path when this runs as a script
+from dispatch_probe import host_events, print_host   # scripts/ is on the path when this runs as a script
 from pi0_jax import benchmark
-from profile_engine import probe_arguments, probe_engine
+from profile_engine import probe_arguments, probe_engine, write_json
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    probe_arguments(p, iters=30)
-    p.add_argument("--out", type=Path, default=None, help="JSON of the times and host events")
-    args = p.parse_args()
+    args = probe_arguments(__doc__, iters=30, out="the times and host events").parse_args()
 
     _, engine, noise, cameras, bucket, packed = probe_engine(args)
     w, b, n = engine.weights, args.batch, args.steps
@@ -70,12 +65,8 @@ def main() -> None:
     print(json.dumps({k: round(v, 3) for k, v in report["median_ms"].items()}, indent=1), flush=True)
     for name in ("vision after vision", "vision after prefix"):
         t = report["host"][name] = host_events(runs[name], 5)   # the predecessor's events are in it too
-        print(f"{name}: host events per pair of calls", flush=True)
-        for row in t["host"][:14]:
-            print(f"   {row['us_per_call']:9.1f} us  x{row['per_call']:7.1f}  {row['name']}", flush=True)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(report, indent=2))
+        print_host(f"{name}: host events per pair of calls", t, 14)
+    write_json(args.out, report)
 
 
 if __name__ == "__main__":

@@ -122,13 +122,23 @@ def idle(kernels, calls: int, between_calls_us: float = 100.0) -> dict:
             "idle_before": [{"name": n, "per_call": c / calls, "us_per_call": t / calls} for n, (c, t) in top[:25]]}
 
 
-def probe_arguments(p: argparse.ArgumentParser, iters: int) -> None:
-    """The probes' common flags (`dispatch_probe.py`, `chain_probe.py`): one model, random weights, 3 cameras."""
+def probe_arguments(doc: str, iters: int, out: str) -> argparse.ArgumentParser:
+    """The probes' parser (`dispatch_probe.py`, `chain_probe.py`, `order_probe.py`): one model, random weights,
+    3 cameras; out: what --out's JSON holds."""
+    p = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--preset", default="pi0_base", help="model preset, random weights (default: %(default)s)")
     p.add_argument("--batch", type=int, default=1)
     p.add_argument("--steps", type=int, default=10)
     p.add_argument("--prompt-tokens", type=int, default=48)
     p.add_argument("--iters", type=int, default=iters, help="timed calls of each variant (default: %(default)s)")
+    p.add_argument("--out", type=Path, default=None, help=f"JSON of {out}")
+    return p
+
+
+def write_json(path: Path | None, report: dict) -> None:
+    if path:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(report, indent=2))
 
 
 def probe_engine(args) -> tuple:
@@ -283,9 +293,7 @@ def main() -> None:
     first = next(iter(outputs.values()))
     report["rel_l2_vs_first"] = {k: float(np.linalg.norm(v - first) / np.linalg.norm(first)) for k, v in outputs.items()}
     print("actions, relative L2 against the first variant:", json.dumps(report["rel_l2_vs_first"]), flush=True)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(report, indent=2))
+    write_json(args.out, report)
 
 
 if __name__ == "__main__":
