@@ -210,6 +210,8 @@ def bench_engine(engine: Engine, args, batch: int) -> list[dict]:
         row["total_ms"], row["hz"], row["samples_per_s"] = total, 1e3 / total, 1e3 * batch / total
         rows.append(row)
         print(_row_line(row), flush=True)
+        if "one_program" in row:
+            print(_one_program_line(row), flush=True)
     return rows
 
 
@@ -262,6 +264,11 @@ def _row_line(r: dict) -> str:
             f"{r['denoise_per_step_ms']:.3f} | {r['samples_per_s']:.1f} |")
 
 
+def _one_program_line(r: dict) -> str:
+    return (f"  B={r['batch']}, {r['steps']} steps as one fused program: {r['one_program']['median_ms']:.2f} ms "
+            f"(the call: {r['total']['median_ms']:.2f} ms)")
+
+
 TABLE_HEADER = ("| dtype | batch | steps | total ms | Hz | vision ms | prefix KV ms | denoise ms | ms/step | samples/s |\n"
                 "|---|---|---|---|---|---|---|---|---|---|")
 
@@ -271,6 +278,7 @@ def markdown(results: dict) -> str:
              f"attention {results['env'].get('attention', 'xla')} · "
              f"{results['env']['date']} · commit {results['env']['commit']}", "", TABLE_HEADER]
     lines += [_row_line(r) for r in results["rows"]]
+    lines += [_one_program_line(r) for r in results["rows"] if "one_program" in r]
     for peer in results.get("peers", []):
         lines.append(f"\n{peer['impl']} ({peer['dtype']}, B={peer['batch']}, {peer['steps']} steps): "
                      f"{peer['total']['median_ms']:.2f} ms median; pi0-jax is {peer.get('ratio', float('nan')):.2f}x "

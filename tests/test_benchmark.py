@@ -8,12 +8,15 @@ from pi0_jax import cli
 def test_benchmark_dummy_writes_every_stage(tmp_path):
     out = tmp_path / "bench.json"
     args = ["benchmark", "--preset", "dummy", "--steps", "1,2", "--batch", "1", "--iters", "2", "--warmup", "1",
-            "--input-sets", "2", "--reference", "--out", str(out), "--cache-dir", str(tmp_path / "xla")]
+            "--input-sets", "2", "--reference", "--fused-steps", "2", "--one-program", "--out", str(out),
+            "--cache-dir", str(tmp_path / "xla")]
     assert cli.main(args) == 0
     results = json.loads(out.read_text())
     assert [(r["batch"], r["steps"]) for r in results["rows"]] == [(1, 1), (1, 2)]
     for row in results["rows"]:
-        for stage in ("vision", "prefix", "denoise", "total"):
+        timed = ("vision", "prefix", "denoise") + (("total", "one_program") if row["steps"] == 2 else ())
+        assert ("total" in row) == ("one_program" in row) == (row["steps"] == 2)   # --fused-steps 2 --one-program
+        for stage in timed:
             assert row[stage]["median_ms"] > 0 and row[stage]["p90_ms"] >= row[stage]["median_ms"]
         assert row["prompt_bucket"] == 32 and row["cameras"] == 3
         assert row["kernels"] == "xla" and row["attention"] == "vision=xla,prefix=xla,denoise=xla"  # auto, CPU
@@ -21,5 +24,5 @@ def test_benchmark_dummy_writes_every_stage(tmp_path):
     assert results["peers"][0]["impl"].startswith("reference")
     assert results["peers"][0]["engine_vs_reference"]["rel_l2"] < 1e-2  # bf16, different matmul grouping
     assert results["env"]["device"] and results["env"]["kernels"] == results["env"]["attention"] == "auto"
-    assert results["compile"]["bfloat16"]["cold_compile_s_call"]
+    assert list(results["compile"]["bfloat16"]["cold_compile_s_call"]) == ["B1_S2"]
     assert out.with_suffix(".png").stat().st_size > 1000
