@@ -278,7 +278,8 @@ def markdown(results: dict) -> str:
              f"attention {results['env'].get('attention', 'xla')} · "
              f"{results['env']['date']} · commit {results['env']['commit']}", "", TABLE_HEADER]
     lines += [_row_line(r) for r in results["rows"]]
-    lines += [_one_program_line(r) for r in results["rows"] if "one_program" in r]
+    one = [_one_program_line(r) for r in results["rows"] if "one_program" in r]
+    lines += [""] + one if one else []   # below the table, not a row of it
     for peer in results.get("peers", []):
         lines.append(f"\n{peer['impl']} ({peer['dtype']}, B={peer['batch']}, {peer['steps']} steps): "
                      f"{peer['total']['median_ms']:.2f} ms median; pi0-jax is {peer.get('ratio', float('nan')):.2f}x "
