@@ -179,10 +179,10 @@ class PolicyCore:
         num_steps: None (the core's); another int or a traced int32 <= `max_dynamic_steps` needs `dynamic_model()`.
         Returns (B, H, action_dims) f32 actions, un-normalised.
         """
-        cfg, size = self.config, self.config.image_size
         if self.sampler == "engine":
             return self.act(model, norm, self.encode(model, images), image_masks, tokens, token_mask, state, noise,
                             num_steps=num_steps)
+        cfg, size = self.config, self.config.image_size
         num_steps = self.num_steps if num_steps is None else num_steps
         pixels, state = self.preprocess(norm, images, state)
         b = noise.shape[0]

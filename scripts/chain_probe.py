@@ -45,8 +45,6 @@ def main() -> None:
     fused = engine.executable("infer", b, n, cameras, bucket)   # its Program hands it every engine weight
     kw = {"unroll": engine.unroll, "attention": engine.attention, "kernels": engine.kernels}
     den_kw = {**kw, "num_steps": n, "unroll_steps": False}
-    # the prefix program reads only the expert's structure (which cache layout its kernels take): a list of Nones
-    expert_shape = [None] * len(w["expert"])
     w_img = {"img": w["img"]}
     w_pre = {"embedding": w["embedding"], "vlm": w["vlm"]}
     w_den = {k: w[k] for k in ("expert", "top", "final_norm_1") if k in w}
@@ -54,15 +52,14 @@ def main() -> None:
     def enc_fn(wi, images):
         return programs.encode_images(config, wi, images, **kw)
 
-    def pre_fn(wp, it, im, t, tm):
-        return programs.fill_prefix_cache(config, {**wp, "expert": expert_shape}, it, im, t, tm, **kw)
+    def pre_fn(wp, it, im, t, tm):   # without the expert's weights: given the cache layout its kernels take
+        return programs.fill_prefix_cache(config, wp, it, im, t, tm, **{**kw, "kernels": engine.kernels_for(b)})
 
     def den_fn(wd, sc, cache, st, nz):
         return programs.denoise(config, wd, sc, cache, st, nz, **den_kw)
 
     def tail_fn(wp, wd, sc, it, im, t, tm, st, nz):
-        cache = programs.fill_prefix_cache(config, {**wp, "expert": wd["expert"]}, it, im, t, tm, **kw)
-        return programs.denoise(config, wd, sc, cache, st, nz, **den_kw)
+        return programs.prefix_denoise(config, {**wp, **wd}, sc, it, im, t, tm, st, nz, **den_kw)
 
     def compile_(fn, args_, options=None, donate=()):
         return jax.jit(fn, donate_argnums=donate).lower(*args_).compile(options)

@@ -55,6 +55,10 @@ class Program:
         return self.compiled.as_text()
 
 
+def _shapes(tree):
+    return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), tree)
+
+
 def default_cache_dir() -> Path:
     return Path(os.environ.get("PI0_JAX_CACHE_DIR", Path.home() / ".cache" / "pi0_jax" / "xla"))
 
@@ -154,12 +158,11 @@ class Engine:
         key = self.key(stage, batch, num_steps, cameras, prompt_len)
         if key not in self._executables:
             start = time.perf_counter()
-            w = self._shapes(stage)
-            fn, args, donate = self._stage(stage, w, batch, num_steps, cameras, prompt_len)
+            weights = self.stage_weights(stage)
+            fn, args, donate = self._stage(stage, _shapes(weights), batch, num_steps, cameras, prompt_len)
             lowered = jax.jit(fn, donate_argnums=donate).lower(*args)
-            options = matmul.compiler_options(self.stage_weights(stage), self.gemm,
-                                              vision_tower=stage == "encode_images")
-            self._executables[key] = Program(lowered.compile(options), tuple(self.stage_weights(stage)))
+            options = matmul.compiler_options(weights, self.gemm, vision_tower=stage == "encode_images")
+            self._executables[key] = Program(lowered.compile(options), tuple(weights))
             self.compile_seconds[key] = time.perf_counter() - start
         return self._executables[key]
 
@@ -208,8 +211,8 @@ class Engine:
         if stage == "fill_prefix_cache":
             return fill, (w, image_tokens, image_masks, tokens, token_mask), ()
         if stage == "denoise":
-            cache = jax.eval_shape(fill, self._shapes("fill_prefix_cache"), image_tokens, image_masks, tokens,
-                                   token_mask)
+            cache = jax.eval_shape(fill, _shapes(self.stage_weights("fill_prefix_cache")), image_tokens, image_masks,
+                                   tokens, token_mask)
             fn = functools.partial(programs.denoise, cfg, **denoise_kw)
             return fn, (w, sched, cache, state, noise), (4,)
         if stage == "prefix_denoise":
@@ -218,9 +221,6 @@ class Engine:
         fn = functools.partial(programs.infer, cfg, **denoise_kw)
         return fn, (w, sched, images, image_masks, tokens, token_mask, state, noise), (7,)
 
-    def _shapes(self, stage: str) -> dict:
-        """The shapes of a stage's weights."""
-        return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), self.stage_weights(stage))
 
     # -- inputs -----------------------------------------------------------------------------------------------------
     def plan(self, obs: pi0.Observation) -> tuple[tuple[str, ...], int]:
