@@ -1,8 +1,10 @@
-"""XLA's GEMM library and command-buffer (CUDA graph) options per compiled program, in one process on one set of
-weights: each variant is an Engine whose programs compile with extra XLA options; stage medians, kernels per call
-and GPU busy fraction from a trace, and the fused program's actions against the first variant.
+"""XLA options per compiled program, in one process on one set of weights: each variant is an Engine whose programs
+compile with extra XLA options on top of the engine's own (`matmul.compiler_options`: cuBLAS in the vision program
+under gemm="auto"), or, for "conv", with SigLIP's patch embedding as cuDNN's convolution (the engine's form until
+2026-11-26) instead of the f32 GEMM. Stage medians (round-robin over the variants), kernels per call, device span and
+idle time from a trace, and the fused program's actions against the first variant.
 
-    python scripts/graph_probe.py --preset pi0_base --batch 1 --out graph_probe.json
+    python scripts/graph_probe.py --preset pi0_base --batch 1 --variant default --variant conv --out graph_probe.json
 """
 
 from __future__ import annotations
@@ -12,6 +14,8 @@ import json
 import sys
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -19,15 +23,37 @@ import profile_engine  # noqa: E402
 
 from pi0_jax import benchmark  # noqa: E402
 from pi0_jax.config import get_config  # noqa: E402
-from pi0_jax.engine import Engine, runtime  # noqa: E402
+from pi0_jax.engine import Engine, runtime, vision  # noqa: E402
 
 GRAPHS = {"xla_gpu_graph_min_graph_size": 1}
+COMMANDS = "FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN"
 VARIANTS = {
     "default": {},
+    "conv": {},   # the patch embedding as cuDNN's convolution (below)
     "cublas": {"xla_gpu_enable_triton_gemm": False},
     "graphs1": GRAPHS,
-    "cublas+graphs1": {"xla_gpu_enable_triton_gemm": False, **GRAPHS},
+    "cudnn-graphs": {"xla_gpu_enable_command_buffer": COMMANDS},
+    "cudnn-graphs1": {"xla_gpu_enable_command_buffer": COMMANDS, **GRAPHS},
 }
+
+
+def conv_patch_embed(images, kernel, bias, p: int):
+    """The patch embedding as the f32 convolution it replaced (cuDNN's on a GPU)."""
+    x = jax.lax.conv_general_dilated(jnp.asarray(images, jnp.float32), kernel.astype(jnp.float32), (p, p), "VALID",
+                                     dimension_numbers=("NHWC", "HWIO", "NHWC"))
+    return x.reshape(x.shape[0], -1, x.shape[-1]) + bias.astype(jnp.float32)
+
+
+LOOPED = ("encode_images", "call")
+
+
+def looping(fn, n: int):
+    """n calls of fn in a row, each blocked on its output (the last one's output returned)."""
+    def run():
+        for _ in range(n):
+            out = jax.block_until_ready(fn())
+        return out
+    return run
 
 
 def main() -> None:
@@ -35,39 +61,59 @@ def main() -> None:
     p.add_argument("--preset", default="pi0_base")
     p.add_argument("--batch", type=int, action="append", default=None, help="repeatable (default: 1)")
     p.add_argument("--prompt-tokens", type=int, default=48)
-    p.add_argument("--iters", type=int, default=30)
-    p.add_argument("--variant", action="append", choices=list(VARIANTS), default=None)
+    p.add_argument("--iters", type=int, default=30, help="timed rounds (one call of every variant's stage each)")
+    p.add_argument("--loop", type=int, default=0,
+                   help="also time each variant's vision program and call (the engine's two programs) in blocks of this "
+                        "many calls in a row, as a robot's loop runs them, the blocks alternating for --iters rounds")
+    p.add_argument("--variant", action="append", choices=list(VARIANTS), default=None,
+                   help="repeatable, in this order (default: all)")
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args()
     config = get_config(args.preset, dtype="bfloat16")
     params = benchmark.random_params(config, 0)
     report = {"preset": args.preset, "env": benchmark.environment(), "rows": []}
+    own_options, own_embed = runtime.matmul.compiler_options, vision.patch_embed
     for batch in args.batch or [1]:
         obs, noise = benchmark.make_inputs(config, batch, 3, args.prompt_tokens, 0)
-        first = None
+        rows, timed, first = [], {}, None
         for name in args.variant or list(VARIANTS):
-            options = VARIANTS[name]
-            runtime.matmul.compiler_options = lambda tree, gemm="xla", platform=None, o=options, **kw: dict(o) or None
+            extra = VARIANTS[name]
+            runtime.matmul.compiler_options = (lambda *a, o=extra, **kw: {**(own_options(*a, **kw) or {}), **o}
+                                               or None)
+            vision.patch_embed = conv_patch_embed if name == "conv" else own_embed
             engine = Engine(config, params, cache_dir=False)
             cameras, bucket = engine.plan(obs)
             calls = profile_engine.stage_calls(engine, batch, 10, cameras, bucket, engine.pack(obs, cameras, bucket),
                                                noise)
-            row = {"variant": name, "options": options, "batch": batch, "median_ms": {}, "kernels_per_call": {},
-                   "busy": {}, "compile_s": {k[0]: round(v, 2) for k, v in engine.compile_seconds.items()}}
-            for stage, fn in calls.items():
-                row["median_ms"][stage] = benchmark.time_calls(fn, [()], args.iters, 3)["median_ms"]
-                if batch <= 8:
+            for fn in calls.values():   # compile every program while this variant's options are set
+                jax.block_until_ready(fn())
+            row = {"variant": name, "options": extra, "batch": batch, "kernels_per_call": {}, "span_ms": {},
+                   "idle_ms": {}, "compile_s": {k[0]: round(v, 2) for k, v in engine.compile_seconds.items()}}
+            if batch <= 8:
+                for stage, fn in calls.items():
                     t = profile_engine.kernel_times(fn, 3)
-                    row["kernels_per_call"][stage], row["busy"][stage] = t["kernels_per_call"], t["busy"]
+                    row["kernels_per_call"][stage] = t["kernels_per_call"]
+                    row["span_ms"][stage], row["idle_ms"][stage] = t["span_ms"], t["idle_ms"]
             out = np.asarray(calls["infer"](), np.float64)
             first = out if first is None else first
             row["rel_l2_vs_first"] = float(np.linalg.norm(out - first) / np.linalg.norm(first))
-            print(json.dumps({k: row[k] for k in ("variant", "batch", "median_ms", "kernels_per_call", "busy",
-                                                  "compile_s", "rel_l2_vs_first")}), flush=True)
-            report["rows"].append(row)
-            del engine, calls
-    if args.out:
-        args.out.write_text(json.dumps(report, indent=1))
+            rows.append(row)
+            timed.update({(name, stage): fn for stage, fn in calls.items()})
+        runtime.matmul.compiler_options, vision.patch_embed = own_options, own_embed
+        times = profile_engine.round_robin(timed, args.iters)
+        if args.loop:
+            looped = profile_engine.round_robin({(row["variant"], stage): looping(timed[row["variant"], stage], args.loop)
+                                                 for row in rows for stage in LOOPED}, args.iters)
+        for row in rows:
+            row["median_ms"] = {stage: float(np.median(t)) for (name, stage), t in times.items()
+                                if name == row["variant"]}
+            if args.loop:
+                row["in_a_loop_ms"] = {stage: float(np.median(looped[row["variant"], stage])) / args.loop
+                                       for stage in LOOPED}
+            print(json.dumps({k: row[k] for k in ("variant", "batch", "median_ms", "in_a_loop_ms", "kernels_per_call",
+                                                  "span_ms", "idle_ms", "rel_l2_vs_first") if k in row}), flush=True)
+        report["rows"] += rows
+    profile_engine.write_json(args.out, report)
 
 
 if __name__ == "__main__":

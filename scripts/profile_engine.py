@@ -71,11 +71,12 @@ def traced(fn, calls: int, log_dir: str | None = None) -> tuple:
     return events, threads, {pid for pid, name in procs.items() if "GPU" in name.upper()}, wall
 
 
-def kernel_times(fn, calls: int = 5, log_dir: str | None = None) -> dict:
+def kernel_times(fn, calls: int = 5, log_dir: str | None = None, sequence: bool = False) -> dict:
     """Run fn() `calls` times under jax.profiler and sum the GPU kernels of the trace by name (numeric suffixes
     dropped: fusion.12 and fusion.40 are one row). Per call: kernels launched, their summed time, the host-timed wall
     time, busy = summed / wall (the wall holds the host's dispatch and synchronisation too), and the device's own
-    span and idle time (`idle`)."""
+    span and idle time (`idle`). sequence: also the first traced call's kernels in launch order, each with its
+    full name (the optimized HLO's instruction name for XLA's fusions) and duration in us."""
     events, threads, gpu, wall = traced(fn, calls, log_dir)
     # kernels sit on the device's "Stream #N" lines; other device lines (XLA Ops / Modules) repeat them as spans
     gpu_lines = {key: name for key, name in threads.items() if key[0] in gpu}
@@ -88,12 +89,19 @@ def kernel_times(fn, calls: int = 5, log_dir: str | None = None) -> dict:
             rows[name][1] += float(e.get("dur", 0.0))
             kernels.append((float(e["ts"]), float(e.get("dur", 0.0)), name))
     launched = sum(c for c, _ in rows.values()) / calls
+    first = []
+    if sequence:
+        for e in sorted((e for e in events if e.get("ph") == "X"
+                         and gpu_lines.get((e["pid"], e.get("tid")), "").startswith("Stream")), key=lambda e: e["ts"]):
+            first.append((e["name"], round(float(e.get("dur", 0.0)), 3)))
+        first = first[:round(launched)]
     busy_us = sum(t for _, t in rows.values()) / calls
     top = sorted(rows.items(), key=lambda kv: -kv[1][1])
     return {"calls": calls, "wall_ms": wall * 1e3, "kernels_per_call": launched, "kernel_ms": busy_us / 1e3,
             "busy": busy_us / 1e3 / (wall * 1e3) if wall else None, "device_lines": sorted(gpu_lines.values()),
             **idle(kernels, calls),
-            "by_name": [{"name": n, "per_call": c / calls, "us_per_call": t / calls} for n, (c, t) in top[:60]]}
+            "by_name": [{"name": n, "per_call": c / calls, "us_per_call": t / calls} for n, (c, t) in top[:60]],
+            **({"sequence": first} if sequence else {})}
 
 
 def idle(kernels, calls: int, between_calls_us: float = 100.0) -> dict:
@@ -205,6 +213,9 @@ def main() -> None:
     p.add_argument("--iters", type=int, default=30, help="timed calls per program with --time")
     p.add_argument("--trace-stages", action="store_true",
                    help="sum each stage program's GPU kernels from a profiler trace (`kernel_times`)")
+    p.add_argument("--kernel-sequence", action="store_true",
+                   help="with --trace-stages: also each program's kernels of one call in launch order, by full name "
+                        "(to read against --dump-hlo's fusions)")
     p.add_argument("--trace", type=Path, default=None, help="write a jax.profiler trace of 3 fused calls here")
     p.add_argument("--out", type=Path, default=None, help="JSON of the counts, times and traces")
     p.add_argument("--dump-hlo", type=Path, default=None, help="write each stage program's optimized HLO here")
@@ -253,7 +264,7 @@ def main() -> None:
         timed.append((var, calls))
         for stage, fn in calls.items():
             if args.trace_stages:
-                t = var["trace"][stage] = kernel_times(fn, 5)
+                t = var["trace"][stage] = kernel_times(fn, 5, sequence=args.kernel_sequence)
                 print(f"   {stage:18s} {t['kernels_per_call']:.0f} kernels, {t['kernel_ms']:.3f} ms in kernels of "
                       f"{t['wall_ms']:.3f} ms ({t['busy']:.0%} busy); device span {t['span_ms']:.3f} ms, idle "
                       f"{t['idle_ms']:.3f} ms inside it (largest gap {t['idle_max_us']:.1f} us)", flush=True)

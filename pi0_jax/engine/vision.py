@@ -114,15 +114,24 @@ def block(cfg: SiglipConfig, w, x, f, *, attention: str, norm: str = "xla"):
     return x, (y, vectors, scale)
 
 
+def patch_embed(images, kernel, bias, p: int):
+    """SigLIP's patch convolution (stride = kernel size p, VALID) in f32 as one GEMM: (B, S, S, 3) -> (B, T, D),
+    row-major (token = row * (S / p) + col). The patches do not overlap, so the convolution is a reshape and one f32
+    dot over (p, p, 3), the kernel's HWIO order; a GPU runs it as a GEMM inside the program's command buffer, where
+    cuDNN's convolution ran apart from it with two layout conversions (docs/BENCHMARKS.md)."""
+    b, s, _, c = images.shape
+    g = s // p
+    x = jnp.asarray(images, jnp.float32)[:, :g * p, :g * p].reshape(b, g, p, g, p, c)   # VALID: drop a remainder
+    x = einops.rearrange(x, "B gh ph gw pw C -> B (gh gw) (ph pw C)")
+    x = x @ kernel.astype(jnp.float32).reshape(p * p * c, -1)
+    return x + bias.astype(jnp.float32)
+
+
 def encode(cfg: SiglipConfig, w: dict, images, *, dtype, unroll: bool, attention: str = "xla", norm: str = "xla"):
     """images (B, S, S, 3) in [-1, 1] -> tokens (B, 256, out_dim) in dtype (image tokens are not scaled by
     sqrt(width), spec §3.8). w["blocks"]: a list of per-block dicts (unroll) or one stacked dict (lax.scan).
     norm: "xla" or "pallas" (`add_norm`)."""
-    p = cfg.patch_size
-    x = jax.lax.conv_general_dilated(jnp.asarray(images, jnp.float32), w["embedding"]["kernel"].astype(jnp.float32),
-                                     (p, p), "VALID", dimension_numbers=("NHWC", "HWIO", "NHWC"))
-    x = x + w["embedding"]["bias"].astype(jnp.float32)
-    x = x.reshape(x.shape[0], -1, x.shape[-1])  # row-major: token = row * (S / 14) + col
+    x = patch_embed(images, w["embedding"]["kernel"], w["embedding"]["bias"], cfg.patch_size)
     x = (x + w["pos"].astype(jnp.float32)).astype(dtype)
     blocks = w["blocks"]
     if unroll:   # the first block has no MLP output to add
