@@ -187,8 +187,7 @@ def bench_engine(engine: Engine, args, batch: int) -> list[dict]:
     for steps in args.steps:
         sched = engine.schedule(steps)
         den = engine.executable("denoise", batch, steps, cameras, bucket)
-        # denoise donates its noise argument: hand it a fresh copy each call
-        t_den = time_calls(lambda c, p, n: den(w, sched, c, p[4], jnp.copy(n)),
+        t_den = time_calls(lambda c, p, n: den(w, sched, c, p[4], n),
                            [(c, p, n) for c, p, (_, n) in zip(caches, packed, sets)], args.iters, args.warmup)
         row = {"dtype": cfg.dtype, "batch": batch, "steps": steps, "cameras": len(cameras), "prompt_bucket": bucket,
                "attention": str(engine.attention.at_batch(batch, suffix_mask=not cfg.pi05)),
@@ -198,13 +197,13 @@ def bench_engine(engine: Engine, args, batch: int) -> list[dict]:
                "vision": t_vis, "prefix": t_pre, "denoise": t_den,
                "denoise_per_step_ms": t_den["median_ms"] / steps}
         if args.fused_steps is None or steps in args.fused_steps:
-            row["total"] = time_calls(lambda p, n: engine.sample_packed(p, jnp.copy(n), steps, cameras, bucket),
+            row["total"] = time_calls(lambda p, n: engine.sample_packed(p, n, steps, cameras, bucket),
                                       [(p, n) for p, (_, n) in zip(packed, sets)], args.iters, args.warmup)
             row["compile_s"] = sum(engine.compile_seconds.get(engine.key(s, batch, steps, cameras, bucket), 0.0)
                                    for s in ("encode_images", "prefix_denoise"))
             if args.one_program:
                 fused = engine.executable("infer", batch, steps, cameras, bucket)
-                row["one_program"] = time_calls(lambda p, n: fused(w, sched, *p, jnp.copy(n)),
+                row["one_program"] = time_calls(lambda p, n: fused(w, sched, *p, n),
                                                 [(p, n) for p, (_, n) in zip(packed, sets)], args.iters, args.warmup)
         total = row.get("total", {}).get("median_ms") or (t_vis["median_ms"] + t_pre["median_ms"] + t_den["median_ms"])
         row["total_ms"], row["hz"], row["samples_per_s"] = total, 1e3 / total, 1e3 * batch / total
@@ -225,7 +224,7 @@ def bench_reference(engine: Engine, params: dict, args, batch: int, steps: int) 
     compile_s = time.perf_counter() - start
     t = time_calls(lambda o, n: fn(params, o, n), sets, args.iters, args.warmup)
     ref = np.asarray(fn(params, *sets[0]), np.float64)
-    got = np.asarray(engine.sample_actions(sets[0][0], jnp.copy(sets[0][1]), steps), np.float64)
+    got = np.asarray(engine.sample_actions(sets[0][0], sets[0][1], steps), np.float64)
     return {"impl": "reference (pi0_jax.pi0, openpi structure)", "dtype": config.dtype, "batch": batch,
             "steps": steps, "total": t, "compile_s": compile_s,
             "engine_vs_reference": {"rel_l2": float(np.linalg.norm(got - ref) / np.linalg.norm(ref)),

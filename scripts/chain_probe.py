@@ -25,7 +25,6 @@ import functools
 import json
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from pi0_jax import benchmark
@@ -61,41 +60,40 @@ def main() -> None:
     def tail_fn(wp, wd, sc, it, im, t, tm, st, nz):
         return programs.prefix_denoise(config, {**wp, **wd}, sc, it, im, t, tm, st, nz, **den_kw)
 
-    def compile_(fn, args_, options=None, donate=()):
-        return jax.jit(fn, donate_argnums=donate).lower(*args_).compile(options)
+    def compile_(fn, args_, options=None):
+        return jax.jit(fn).lower(*args_).compile(options)
 
     enc_t = compile_(lambda w, images: programs.encode_images(config, w, images, **kw), (w, images))
     pre_t = compile_(lambda w, *a: programs.fill_prefix_cache(config, w, *a, **kw),
                      (w, enc_t(w, images), image_masks, tokens, token_mask))
     den_t = compile_(lambda w, *a: programs.denoise(config, w, *a, **den_kw),
-                     (w, sched, pre_t(w, enc_t(w, images), image_masks, tokens, token_mask), state, noise),
-                     donate=(4,))
+                     (w, sched, pre_t(w, enc_t(w, images), image_masks, tokens, token_mask), state, noise))
     enc_x = compile_(enc_fn, (w_img, images))
     enc_c = compile_(enc_fn, (w_img, images), CUBLAS)
     it = enc_x(w_img, images)
     pre = compile_(pre_fn, (w_pre, it, image_masks, tokens, token_mask))
     cache = pre(w_pre, it, image_masks, tokens, token_mask)
-    den = compile_(den_fn, (w_den, sched, cache, state, noise), donate=(4,))
-    tail = compile_(tail_fn, (w_pre, w_den, sched, it, image_masks, tokens, token_mask, state, noise), donate=(8,))
+    den = compile_(den_fn, (w_den, sched, cache, state, noise))
+    tail = compile_(tail_fn, (w_pre, w_den, sched, it, image_masks, tokens, token_mask, state, noise))
 
     def chain_tree():
         i = enc_t(w, images)
         c = pre_t(w, i, image_masks, tokens, token_mask)
-        return den_t(w, sched, c, state, jnp.copy(noise))
+        return den_t(w, sched, c, state, noise)
 
     def chain_sub(enc):
         i = enc(w_img, images)
         c = pre(w_pre, i, image_masks, tokens, token_mask)
-        return den(w_den, sched, c, state, jnp.copy(noise))
+        return den(w_den, sched, c, state, noise)
 
     calls = {
-        "fused": lambda: fused(w, sched, images, image_masks, tokens, token_mask, state, jnp.copy(noise)),
+        "fused": lambda: fused(w, sched, images, image_masks, tokens, token_mask, state, noise),
         "chain_tree": chain_tree,
         "chain_sub": functools.partial(chain_sub, enc_x),
         "chain_sub_cublas": functools.partial(chain_sub, enc_c),
         "two_sub_cublas": lambda: tail(w_pre, w_den, sched, enc_c(w_img, images), image_masks, tokens, token_mask,
-                                       state, jnp.copy(noise)),
-        "call": lambda: engine.sample_packed((images, image_masks, tokens, token_mask, state), jnp.copy(noise), n,
+                                       state, noise),
+        "call": lambda: engine.sample_packed((images, image_masks, tokens, token_mask, state), noise, n,
                                              cameras, bucket),
         "vision_sub": lambda: enc_x(w_img, images),
         "vision_sub_cublas": lambda: enc_c(w_img, images),

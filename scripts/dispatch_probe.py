@@ -53,6 +53,38 @@ def host_events(fn, calls: int) -> dict:
             "host": [{"name": n, "per_call": c / calls, "us_per_call": t / calls} for n, (c, t) in top]}
 
 
+def timeline(fn, calls: int, n: int = 15) -> dict:
+    """Each of `calls` traced calls of fn (blocked on its output) against the GPU's kernels: `pre_us` from the call's
+    start to its first kernel, `span_us` the kernels' span, `post_us` from the last kernel's end to the call's return
+    (medians), and the host's events inside the pre window summed by name (the n largest, per call)."""
+    def annotated():
+        with jax.profiler.TraceAnnotation("probe_call"):
+            return jax.block_until_ready(fn())
+    events, threads, gpu, _ = traced(annotated, calls)
+    spans = sorted((float(e["ts"]), float(e["ts"]) + float(e.get("dur", 0.0))) for e in events
+                   if e.get("ph") == "X" and e.get("name") == "probe_call")
+    kernels = sorted((float(e["ts"]), float(e["ts"]) + float(e.get("dur", 0.0))) for e in events
+                     if e.get("ph") == "X" and e["pid"] in gpu
+                     and threads.get((e["pid"], e.get("tid")), "").startswith("Stream"))
+    pre, span, post, rows = [], [], [], collections.defaultdict(float)
+    for start, end in spans:
+        inside = [k for k in kernels if start <= k[0] and k[1] <= end]
+        if not inside:
+            continue
+        first, last = inside[0][0], max(k[1] for k in inside)
+        pre.append(first - start)
+        span.append(last - first)
+        post.append(end - last)
+        for e in events:
+            if (e.get("ph") == "X" and e["pid"] not in gpu and e.get("name") != "probe_call"
+                    and start <= float(e["ts"]) < first):
+                rows[re.sub(r"([._]\d+)+$", "", e["name"])[:100]] += min(float(e.get("dur", 0.0)), first - float(e["ts"]))
+    top = sorted(rows.items(), key=lambda kv: -kv[1])[:n]
+    med = lambda v: float(np.median(v)) if v else float("nan")   # noqa: E731  (no kernels: not a GPU)
+    return {"calls": len(pre), "pre_us": med(pre), "span_us": med(span), "post_us": med(post),
+            "host_before_first_kernel": [{"name": k, "us_per_call": v / max(len(pre), 1)} for k, v in top]}
+
+
 def print_host(title: str, t: dict, n: int) -> None:
     """`host_events`' n largest rows under a title."""
     print(title, flush=True)
@@ -63,6 +95,9 @@ def print_host(title: str, t: dict, n: int) -> None:
 def main() -> None:
     p = probe_arguments(__doc__, iters=50, out="the times, kernel counts and the host's events")
     p.add_argument("--dump-hlo", type=Path, default=None, help="write the fused program's optimized HLO here")
+    p.add_argument("--timeline", action="store_true",
+                   help="also each call's time to its first kernel and after its last one, from a trace (`timeline`), "
+                        "for the programs above and the engine's call (two programs)")
     args = p.parse_args()
 
     _, engine, noise, cameras, bucket, inputs = probe_engine(args)
@@ -75,7 +110,7 @@ def main() -> None:
     null = jax.jit(lambda x: x * 2.0).lower(noise).compile()
     pruned = jax.jit(tiny).lower(w, noise).compile()
     kept = jax.jit(tiny, keep_unused=True).lower(w, noise).compile()
-    calls = {"infer": lambda: infer(w, sched, *inputs, jnp.copy(noise)),
+    calls = {"infer": lambda: infer(w, sched, *inputs, noise),
              "null": lambda: null(noise), "null_tree": lambda: pruned(w, noise), "null_kept": lambda: kept(w, noise),
              "copy_only": lambda: jnp.copy(noise)}
     counts = {comp: c for comp, c in count_ops(infer.as_text()).items()
@@ -94,6 +129,15 @@ def main() -> None:
         report[f"trace_{name}"] = t = host_events(calls[name], 5)
         print_host(f"{name}: the GPU's span {t['span_ms']:.3f} ms per call ({t['idle_ms']:.3f} idle); host events:",
                    t, 16)
+    if args.timeline:
+        report["timeline"] = {}
+        for name, fn in {**calls, "call": lambda: engine.sample_packed(inputs, noise, args.steps, cameras,
+                                                                       bucket)}.items():
+            t = report["timeline"][name] = timeline(fn, 8)
+            print(f"{name}: {t['pre_us']:.1f} us to the first kernel, span {t['span_us']:.1f}, {t['post_us']:.1f} "
+                  "after the last; the host before the first kernel:", flush=True)
+            for row in t["host_before_first_kernel"][:10]:
+                print(f"   {row['us_per_call']:9.1f} us  {row['name']}", flush=True)
     write_json(args.out, report)
 
 

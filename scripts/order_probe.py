@@ -22,7 +22,6 @@ import json
 import time
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from dispatch_probe import host_events, print_host   # scripts/ is on the path when this runs as a script
@@ -40,7 +39,7 @@ def main() -> None:
     tokens = enc(w, packed[0])
     programs = {"vision": lambda: enc(w, packed[0]),
                 "prefix": lambda: pre(w, tokens, *packed[1:4]),
-                "call": lambda: engine.sample_packed(packed, jnp.copy(noise), n, cameras, bucket)}
+                "call": lambda: engine.sample_packed(packed, noise, n, cameras, bucket)}
     patterns = [("vision", "vision"), ("vision", "prefix"), ("vision", "call"), ("call", "call"), ("call", "prefix")]
 
     def after(timed: str, before: str):

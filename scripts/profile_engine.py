@@ -28,7 +28,6 @@ import time
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from pi0_jax import benchmark
@@ -181,9 +180,9 @@ def stage_calls(engine: Engine, batch: int, steps: int, cameras, bucket, packed,
     cache = pre(w, tokens, *packed[1:4])
     return {"encode_images": lambda: enc(w, packed[0]),
             "fill_prefix_cache": lambda: pre(w, tokens, *packed[1:4]),
-            "denoise": lambda: den(w, sched, cache, packed[4], jnp.copy(noise)),
-            "infer": lambda: fused(w, sched, *packed, jnp.copy(noise)),
-            "call": lambda: engine.sample_packed(packed, jnp.copy(noise), steps, cameras, bucket)}
+            "denoise": lambda: den(w, sched, cache, packed[4], noise),
+            "infer": lambda: fused(w, sched, *packed, noise),
+            "call": lambda: engine.sample_packed(packed, noise, steps, cameras, bucket)}
 
 
 def main() -> None:

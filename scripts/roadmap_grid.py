@@ -124,11 +124,11 @@ def stage_timings(preset: str, num_steps: int, other_steps: list[int], drop_frac
                                    2)["median_ms"]
         caches = [pre(w, t, p[1], p[2], p[3]) for t, p in zip(tokens, packed)]
         args = [(c, p, n) for c, p, (_, n) in zip(caches, packed, sets)]
-        out["denoise"] = time_calls(lambda c, p, n: den(w, sched, c, p[4], jnp.copy(n)), args, iters, 2)["median_ms"]
+        out["denoise"] = time_calls(lambda c, p, n: den(w, sched, c, p[4], n), args, iters, 2)["median_ms"]
         out["denoise_at"] = {str(num_steps): out["denoise"]}
         for n_steps in extra_steps:
             d_n, s_n = engine.executable("denoise", 1, n_steps, cameras, bucket), engine.schedule(n_steps)
-            out["denoise_at"][str(n_steps)] = time_calls(lambda c, p, n: d_n(w, s_n, c, p[4], jnp.copy(n)), args,
+            out["denoise_at"][str(n_steps)] = time_calls(lambda c, p, n: d_n(w, s_n, c, p[4], n), args,
                                                          iters, 2)["median_ms"]
         out.update(attention=str(engine.attention), prefix_tokens=int(caches[0].mask.shape[1]), depth=config.paligemma.depth)
         if guided:

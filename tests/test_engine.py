@@ -49,6 +49,18 @@ def test_fused_and_staged_match_reference_f32(model, unroll):
     np.testing.assert_allclose(np.where(valid, k, 0), np.where(valid, ref_cache.k[:, :, :n], 0), rtol=1e-5, atol=3e-5)
 
 
+def test_the_call_keeps_its_noise(model):
+    """The call's programs donate no input: the caller's noise survives the call and gives the same actions again
+    (a donated buffer would be deleted here; CPU honours donation)."""
+    config, params = model
+    obs = make_obs(config)
+    noise = jax.random.normal(jax.random.key(2), (2, config.action_horizon, config.action_dim))
+    engine = Engine(config, params, cache_dir=False)
+    first = np.asarray(engine.sample_actions(obs, noise, 2))
+    assert not noise.is_deleted()
+    np.testing.assert_array_equal(np.asarray(engine.sample_actions(obs, noise, 2)), first)
+
+
 def test_bf16_matches_reference_bf16(model):
     config, params = model
     config = config.replace(dtype="bfloat16")

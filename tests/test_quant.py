@@ -143,7 +143,7 @@ def _engine_and_reference(config, qp, params, obs, steps):
     engine = Engine(config, qp, cache_dir=False)
     noise = jnp.asarray(np.random.default_rng(0).normal(size=(1, config.action_horizon, config.action_dim)),
                         jnp.float32)
-    got = np.asarray(engine.sample_actions(obs, jnp.copy(noise), num_steps=steps))
+    got = np.asarray(engine.sample_actions(obs, noise, num_steps=steps))
     return (engine, noise, got, np.asarray(_sample(config, qp, obs, noise, steps)),
             np.asarray(_sample(config, params, obs, noise, steps)))
 
@@ -163,7 +163,7 @@ def test_engine_fp8_equals_the_reference_with_the_same_weights_and_hands_xla_fp8
     for norm in ("xla", "pallas"):   # the vision kernels between FP8 GEMMs: attention, and the LayerNorm too
         monkeypatch.setattr(programs, "vision_norm", lambda kernels, images, platform=None, n=norm: n)
         kernel = Engine(config, qp, attention="vision=pallas", cache_dir=False)
-        np.testing.assert_allclose(kernel.sample_actions(calib[1], jnp.copy(noise), num_steps=2), got, rtol=1e-5,
+        np.testing.assert_allclose(kernel.sample_actions(calib[1], noise, num_steps=2), got, rtol=1e-5,
                                    atol=1e-5)
     monkeypatch.undo()
 

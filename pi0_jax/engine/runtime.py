@@ -159,8 +159,8 @@ class Engine:
         if key not in self._executables:
             start = time.perf_counter()
             weights = self.stage_weights(stage)
-            fn, args, donate = self._stage(stage, _shapes(weights), batch, num_steps, cameras, prompt_len)
-            lowered = jax.jit(fn, donate_argnums=donate).lower(*args)
+            fn, args = self._stage(stage, _shapes(weights), batch, num_steps, cameras, prompt_len)
+            lowered = jax.jit(fn).lower(*args)
             options = matmul.compiler_options(weights, self.gemm, vision_tower=stage == "encode_images")
             self._executables[key] = Program(lowered.compile(options), tuple(weights))
             self.compile_seconds[key] = time.perf_counter() - start
@@ -204,22 +204,22 @@ class Engine:
         kw = {"unroll": self.unroll, "attention": self.attention}
         denoise_kw = {**kw, "num_steps": num_steps, "unroll_steps": self.unroll_steps, "kernels": self.kernels}
         if stage == "encode_images":
-            return functools.partial(programs.encode_images, cfg, **kw, kernels=self.kernels), (w, images), ()
+            return functools.partial(programs.encode_images, cfg, **kw, kernels=self.kernels), (w, images)
         image_tokens = spec((batch, c * cfg.siglip.num_patches, cfg.paligemma.width), dtype)
         # the prefix program alone has no expert weights to choose the cache's layout by: it is given the choice
         fill = functools.partial(programs.fill_prefix_cache, cfg, **kw, kernels=self.kernels_for(batch))
         if stage == "fill_prefix_cache":
-            return fill, (w, image_tokens, image_masks, tokens, token_mask), ()
+            return fill, (w, image_tokens, image_masks, tokens, token_mask)
         if stage == "denoise":
             cache = jax.eval_shape(fill, _shapes(self.stage_weights("fill_prefix_cache")), image_tokens, image_masks,
                                    tokens, token_mask)
             fn = functools.partial(programs.denoise, cfg, **denoise_kw)
-            return fn, (w, sched, cache, state, noise), (4,)
+            return fn, (w, sched, cache, state, noise)
         if stage == "prefix_denoise":
             fn = functools.partial(programs.prefix_denoise, cfg, **denoise_kw)
-            return fn, (w, sched, image_tokens, image_masks, tokens, token_mask, state, noise), (7,)
+            return fn, (w, sched, image_tokens, image_masks, tokens, token_mask, state, noise)
         fn = functools.partial(programs.infer, cfg, **denoise_kw)
-        return fn, (w, sched, images, image_masks, tokens, token_mask, state, noise), (7,)
+        return fn, (w, sched, images, image_masks, tokens, token_mask, state, noise)
 
 
     # -- inputs -----------------------------------------------------------------------------------------------------
@@ -242,7 +242,7 @@ class Engine:
 
     # -- running ------------------------------------------------------------------------------------------------------
     def sample_actions(self, obs: pi0.Observation, noise: jax.Array, num_steps: int = 10) -> jax.Array:
-        """Actions for a batch of observations. The noise buffer is donated (do not reuse it after the call)."""
+        """Actions for a batch of observations (noise is not consumed: the programs donate no input)."""
         cameras, prompt_len = self.plan(obs)
         return self.sample_packed(self.pack(obs, cameras, prompt_len), jnp.asarray(noise, jnp.float32), num_steps,
                                   cameras, prompt_len)
@@ -250,7 +250,7 @@ class Engine:
     def sample_packed(self, packed: tuple, noise: jax.Array, num_steps: int, cameras: Sequence[str],
                       prompt_len: int) -> jax.Array:
         """`sample_actions` on `pack`'s arrays: the call's two programs, the second dispatched while the GPU runs
-        the first (no host round trip between them). noise (B, H, action_dim) f32 is donated."""
+        the first (no host round trip between them). noise (B, H, action_dim) f32."""
         images, image_masks, tokens, token_mask, state = packed
         vision, act = self.call_programs(noise.shape[0], num_steps, cameras, prompt_len)
         return act(self.weights, self.schedule(num_steps), vision(self.weights, images), image_masks, tokens,
