@@ -7,12 +7,40 @@ Param names and the scanned (stacked) layer layout mirror openpi / big_vision, s
 
 from __future__ import annotations
 
+import einops
 import flax.linen as nn
 import jax.numpy as jnp
 import numpy as np
 
 from pi0_jax.config import SiglipConfig
 from pi0_jax.ops import matmul as ops_matmul
+
+
+def patch_embed(images, kernel, bias, p: int):
+    """The patch convolution (kernel p x p, stride p, VALID, bias) in f32 as one dot: (B, S, S, C) -> (B, T, D), tokens
+    row-major (token = row * (S / p) + col). The patches do not overlap, so the convolution is a reshape and a dot over
+    (p, p, C), the kernel's HWIO order. (On a GPU the dot is a GEMM inside the program's command buffer, where XLA ran
+    the convolution as cuDNN's kernel apart from it, with two layout conversions: docs/BENCHMARKS.md.)"""
+    b, s, _, c = images.shape
+    g = s // p
+    x = jnp.asarray(images, jnp.float32)[:, :g * p, :g * p].reshape(b, g, p, g, p, c)   # VALID: drop a remainder
+    x = einops.rearrange(x, "B gh ph gw pw C -> B (gh gw) (ph pw C)")
+    return x @ kernel.astype(jnp.float32).reshape(p * p * c, -1) + bias.astype(jnp.float32)
+
+
+class PatchEmbedding(nn.Module):
+    """`nn.Conv(width, (p, p), strides=(p, p), padding="VALID", dtype=float32)`'s parameters (kernel (p, p, C, D),
+    bias (D,)) and function, as `patch_embed`."""
+
+    width: int
+    patch: int
+
+    @nn.compact
+    def __call__(self, images):
+        p = self.patch
+        kernel = self.param("kernel", nn.initializers.lecun_normal(), (p, p, images.shape[-1], self.width), jnp.float32)
+        bias = self.param("bias", nn.initializers.zeros, (self.width,), jnp.float32)
+        return patch_embed(images, kernel, bias, p)
 
 
 class MlpBlock(nn.Module):
@@ -77,12 +105,9 @@ class Siglip(nn.Module):
     @nn.compact
     def __call__(self, image):
         # fp32 island: the patch conv and the position-embedding add run in f32, then cast to dtype_mm.
-        image = jnp.asarray(image, jnp.float32)
-        p = self.cfg.patch_size
-        x = nn.Conv(self.cfg.width, (p, p), strides=(p, p), padding="VALID", name="embedding", dtype=jnp.float32)(image)
-        b, h, w, c = x.shape
-        x = jnp.reshape(x, (b, h * w, c))  # row-major: token = row * (W/14) + col
-        pos = self.param("pos_embedding", nn.initializers.normal(stddev=1 / np.sqrt(c)), (1, h * w, c), jnp.float32)
+        x = PatchEmbedding(self.cfg.width, self.cfg.patch_size, name="embedding")(image)
+        _, t, c = x.shape
+        pos = self.param("pos_embedding", nn.initializers.normal(stddev=1 / np.sqrt(c)), (1, t, c), jnp.float32)
         x = x + pos
         stem = x
         x = x.astype(self.dtype_mm)

@@ -35,6 +35,7 @@ from pi0_jax.ops import attention as ops_attention
 from pi0_jax.ops import formats, matmul
 from pi0_jax.ops import layer_norm as ops_layer_norm
 from pi0_jax.ops import vision_attention
+from pi0_jax.siglip import patch_embed
 
 
 def layer_norm(x, vectors, rows, dtype):
@@ -112,19 +113,6 @@ def block(cfg: SiglipConfig, w, x, f, *, attention: str, norm: str = "xla"):
     h = nn.gelu(_finish(y, w["fc1_bias"], scale), approximate=True)
     y, scale = layers.raw_mm(h, w["fc2"], dtype)
     return x, (y, vectors, scale)
-
-
-def patch_embed(images, kernel, bias, p: int):
-    """SigLIP's patch convolution (stride = kernel size p, VALID) in f32 as one GEMM: (B, S, S, 3) -> (B, T, D),
-    row-major (token = row * (S / p) + col). The patches do not overlap, so the convolution is a reshape and one f32
-    dot over (p, p, 3), the kernel's HWIO order; a GPU runs it as a GEMM inside the program's command buffer, where
-    cuDNN's convolution ran apart from it with two layout conversions (docs/BENCHMARKS.md)."""
-    b, s, _, c = images.shape
-    g = s // p
-    x = jnp.asarray(images, jnp.float32)[:, :g * p, :g * p].reshape(b, g, p, g, p, c)   # VALID: drop a remainder
-    x = einops.rearrange(x, "B gh ph gw pw C -> B (gh gw) (ph pw C)")
-    x = x @ kernel.astype(jnp.float32).reshape(p * p * c, -1)
-    return x + bias.astype(jnp.float32)
 
 
 def encode(cfg: SiglipConfig, w: dict, images, *, dtype, unroll: bool, attention: str = "xla", norm: str = "xla"):
