@@ -47,15 +47,6 @@ def conv_patch_embed(images, kernel, bias, p: int):
 LOOPED = ("encode_images", "call")
 
 
-def looping(fn, n: int):
-    """n calls of fn in a row, each blocked on its output (the last one's output returned)."""
-    def run():
-        for _ in range(n):
-            out = jax.block_until_ready(fn())
-        return out
-    return run
-
-
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--preset", default="pi0_base")
@@ -102,7 +93,7 @@ def main() -> None:
         runtime.matmul.compiler_options, vision.patch_embed = own_options, own_embed
         times = profile_engine.round_robin(timed, args.iters)
         if args.loop:
-            looped = profile_engine.round_robin({(row["variant"], stage): looping(timed[row["variant"], stage], args.loop)
+            looped = profile_engine.round_robin({(row["variant"], stage): profile_engine.looping(timed[row["variant"], stage], args.loop)
                                                  for row in rows for stage in LOOPED}, args.iters)
         for row in rows:
             row["median_ms"] = {stage: float(np.median(t)) for (name, stage), t in times.items()

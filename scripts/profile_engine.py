@@ -170,6 +170,16 @@ def round_robin(calls: dict, iters: int, warmup: int = 3) -> dict:
     return times
 
 
+def looping(fn, n: int):
+    """A no-argument call of n calls of fn in a row, each blocked on its output (the loop a robot runs; `round_robin`
+    times it against other such loops)."""
+    def run():
+        for _ in range(n):
+            out = jax.block_until_ready(fn())
+        return out
+    return run
+
+
 def stage_calls(engine: Engine, batch: int, steps: int, cameras, bucket, packed, noise) -> dict:
     """Each stage program as a no-argument call on fixed inputs (the denoise gets a fresh copy of the noise), the
     fused program ("infer") and the engine's call ("call": `Engine.sample_packed`, two programs)."""
