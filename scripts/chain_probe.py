@@ -12,8 +12,6 @@ process on the same weights and inputs, each call blocked on its actions:
   chain_sub_cublas chain_sub with the vision program's GEMMs on cuBLAS
   two_sub_cublas   vision (cuBLAS, its weights) -> prefix and denoise as one program (their weights)
   call             `Engine.sample_packed`, the engine's call since this probe: two_sub_cublas through the engine
-  splitN           (--split N) the vision tower as two programs (cuBLAS, each its weights: the stem and the first N
-                   blocks, then the rest, `vision.encode_head` / `encode_tail`), then prefix and denoise as one
 
 It also times the vision program alone (synchronised, as the benchmark's stage row) on its weights, with XLA's
 GEMMs and with cuBLAS, and traces each chained variant for the device's span and idle time (`profile_engine.idle`).
@@ -30,7 +28,7 @@ import jax
 import numpy as np
 
 from pi0_jax import benchmark
-from pi0_jax.engine import programs, vision
+from pi0_jax.engine import programs
 # scripts/ is on the path when this runs as a script
 from profile_engine import kernel_times, looping, probe_arguments, probe_engine, round_robin, write_json
 
@@ -39,11 +37,8 @@ CUBLAS = {"xla_gpu_enable_triton_gemm": False}
 
 def main() -> None:
     p = probe_arguments(__doc__, iters=40, out="the times and traces")
-    p.add_argument("--split", type=int, action="append", default=[],
-                   help="also the splitN variant: the vision tower's first N blocks as a program of their own "
-                        "(repeatable)")
     p.add_argument("--loop", type=int, default=0,
-                   help="also time the call and the splitN variants in blocks of this many calls in a row "
+                   help="also time the call and the fused program in blocks of this many calls in a row "
                         "(`profile_engine.looping`), round-robin")
     args = p.parse_args()
 
@@ -108,21 +103,6 @@ def main() -> None:
         "vision_sub_cublas": lambda: enc_c(w_img, images),
         "vision_tree": lambda: enc_t(w, images),
     }
-    dtype = jax.numpy.dtype(config.dtype)
-    for k in args.split:
-        img = w["img"]
-        w_head = {"embedding": img["embedding"], "pos": img["pos"], "blocks": img["blocks"][:k]}
-        w_tail = {"blocks": img["blocks"][k:], "norm": img["norm"], "head": img["head"]}
-        c = images.shape[0]
-        flat = images.swapaxes(0, 1).reshape(-1, *images.shape[2:])
-        vis = {"attention": engine.attention.vision, "norm": programs.vision_norm(engine.kernels, flat.shape[0])}
-        head = compile_(lambda wh, im: vision.encode_head(config.siglip, wh, jax.numpy.swapaxes(im, 0, 1).reshape(
-            -1, *im.shape[2:]), dtype=dtype, **vis), (w_head, images), CUBLAS)
-        rest = compile_(lambda wt, x: vision.encode_tail(config.siglip, wt, x, **vis).reshape(b, c * x.shape[1], -1),
-                        (w_tail, head(w_head, images)), CUBLAS)
-        calls[f"split{k}"] = functools.partial(
-            lambda head, rest, wh, wt: tail(w_pre, w_den, sched, rest(wt, head(wh, images)), image_masks, tokens,
-                                            token_mask, state, noise), head, rest, w_head, w_tail)
     ref = np.asarray(calls["fused"](), np.float64)
     rel = {}
     for name, fn in calls.items():
@@ -140,8 +120,7 @@ def main() -> None:
               "trace": {}}
     print(json.dumps({k: round(v, 3) for k, v in report["median_ms"].items()}, indent=1), flush=True)
     if args.loop:
-        looped = round_robin({k: looping(calls[k], args.loop) for k in ("call", *(f"split{k}" for k in args.split))},
-                             args.iters)
+        looped = round_robin({k: looping(calls[k], args.loop) for k in ("call", "fused")}, args.iters)
         report["in_a_loop_ms"] = {k: float(np.median(v)) / args.loop for k, v in looped.items()}
         print("in a loop:", json.dumps({k: round(v, 3) for k, v in report["in_a_loop_ms"].items()}), flush=True)
     for name, fn in calls.items():

@@ -115,29 +115,6 @@ def block(cfg: SiglipConfig, w, x, f, *, attention: str, norm: str = "xla"):
     return x, (y, vectors, scale)
 
 
-def encode_head(cfg: SiglipConfig, w: dict, images, *, dtype, attention: str = "xla", norm: str = "xla"):
-    """`encode`'s first blocks, unrolled: w holds "embedding", "pos" and "blocks", the list of the first blocks'
-    weights -> the residual stream after them (B, T, D), the last MLP output added (as `add_norm`'s XLA path adds
-    it), for `encode_tail` to go on from. A call runs the tower as these two programs so that the first, with few
-    weight buffers, starts on the GPU while the host dispatches the second (docs/BENCHMARKS.md)."""
-    x = patch_embed(images, w["embedding"]["kernel"], w["embedding"]["bias"], cfg.patch_size)
-    x = (x + w["pos"].astype(jnp.float32)).astype(dtype)
-    f = None
-    for wi in w["blocks"]:
-        x, f = block(cfg, wi, x, f, attention=attention, norm=norm)
-    y, (table, row), *scale = _fc2(f)
-    return x + _finish(y, table[row].astype(x.dtype), *[v for v in scale if v is not None])
-
-
-def encode_tail(cfg: SiglipConfig, w: dict, x, *, attention: str = "xla", norm: str = "xla"):
-    """`encode` from `encode_head`'s residual stream x: w holds the remaining "blocks" (a list), "norm" and "head"."""
-    f = None
-    for wi in w["blocks"]:
-        x, f = block(cfg, wi, x, f, attention=attention, norm=norm)
-    _, x = add_norm(x, _fc2(f), (w["norm"], (0, 1)), x.dtype, norm)
-    return _dense(x, w["head"]["kernel"], w["head"]["bias"])
-
-
 def encode(cfg: SiglipConfig, w: dict, images, *, dtype, unroll: bool, attention: str = "xla", norm: str = "xla"):
     """images (B, S, S, 3) in [-1, 1] -> tokens (B, 256, out_dim) in dtype (image tokens are not scaled by
     sqrt(width), spec §3.8). w["blocks"]: a list of per-block dicts (unroll) or one stacked dict (lax.scan).
