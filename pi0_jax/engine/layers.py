@@ -169,8 +169,18 @@ def run_layers(layer_fn, weights, x, per_layer=(), *, unroll: bool):
     return x, list(outs)
 
 
+def pallas_tables(cfg: GemmaConfig, positions, prefix_mask, suffix_mask) -> tuple:
+    """`suffix_layers_pallas`' per-call tables, alike for every denoise step: RoPE's cos and sin for the suffix rows
+    (B Sp, hp) and the prefix and suffix masks as int32, the suffix's padded to (B Sp, Sp)."""
+    b, s = positions.shape
+    sp = layout.suffix_rows(s)
+    cos, sin = layout.rope_tables(jnp.pad(positions, ((0, 0), (0, sp - s))), cfg.head_dim)
+    smask = jnp.pad(suffix_mask, ((0, 0), (0, sp - s), (0, sp - s))).reshape(b * sp, sp).astype(jnp.int32)
+    return cos, sin, prefix_mask.astype(jnp.int32), smask
+
+
 def suffix_layers_pallas(cfg: GemmaConfig, weights, x, positions, cache_k, cache_v, prefix_mask, suffix_mask,
-                         mods=None, blocks: expert_kernels.Blocks = expert_kernels.Blocks()):
+                         mods=None, blocks: expert_kernels.Blocks = expert_kernels.Blocks(), tables=None):
     """All action-expert layers as Pallas kernels (`pi0_jax.ops`): per layer four split-K GEMMs and the attention,
     each followed by one XLA fusion (norm, RoPE, GeGLU, residuals, the split merges); the same function as
     `suffix_layer` applied layer by layer.
@@ -178,14 +188,13 @@ def suffix_layers_pallas(cfg: GemmaConfig, weights, x, positions, cache_k, cache
     weights: the engine's per-layer dicts, laid out for the kernels here (`ops.layout.expert_weights`: reshapes that
     XLA makes free at full size, where nothing is padded); cache_k/v: per layer (B, Pp, K, 2hp)
     and prefix_mask (B, Pp) in kernel layout (`ops.layout.cache_kv`); x (B, S, D); positions (B, S); suffix_mask
-    (B, S, S); mods: None (π0) or a step's π0.5 adaRMS outputs (attn, ffw), (L, 3D) each. Returns x (B, S, D).
+    (B, S, S); mods: None (π0) or a step's π0.5 adaRMS outputs (attn, ffw), (L, 3D) each; tables: `pallas_tables`
+    of these, made once per call by the caller (None: made here). Returns x (B, S, D).
     """
     b, s, d = x.shape
     sp = layout.suffix_rows(s)
     rows = layout.rows(x, sp)
-    cos, sin = layout.rope_tables(jnp.pad(positions, ((0, 0), (0, sp - s))), cfg.head_dim)
-    pmask = prefix_mask.astype(jnp.int32)
-    smask = jnp.pad(suffix_mask, ((0, 0), (0, sp - s), (0, sp - s))).reshape(b * sp, sp).astype(jnp.int32)
+    cos, sin, pmask, smask = pallas_tables(cfg, positions, prefix_mask, suffix_mask) if tables is None else tables
     heads = {"num_heads": cfg.num_heads, "num_kv_heads": cfg.num_kv_heads}
     adaptive = mods is not None
     if adaptive:

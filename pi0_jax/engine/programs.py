@@ -237,17 +237,34 @@ def velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, cac
     kv = None
     if fused_suffix_attention(config, attention, kernels, x_t.shape[0], weights["expert"]):
         kv = suffix_kv(config, cache)
-    return _velocity(config, weights, sched, step, cache, state, x_t, kv, unroll=unroll, attention=attention,
+    fixed = step_invariants(config, weights, cache, state, x_t.shape[0], kernels)
+    return _velocity(config, weights, sched, step, cache, fixed, x_t, kv, unroll=unroll, attention=attention,
                      kernels=kernels, frozen=frozen)[0]
 
 
-def _velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, cache: PrefixCache, state, x_t, kv, *,
-              unroll: bool, attention: Attention, kernels: str, frozen: jax.Array | None) -> tuple:
+def step_invariants(config: Pi0Config, weights: dict, cache: PrefixCache, state, batch: int, kernels: str) -> dict:
+    """What every denoise step of one call computes alike, made once before the loop (XLA left these kernels inside
+    its while loop: the state projection, the suffix's positions and mask and, for the Pallas expert, its RoPE and
+    mask tables): "state" π0's state token (B, D) in f32 (π0.5: None), "positions" (B, S), "suffix_mask" (B, S, S),
+    "tables" `layers.pallas_tables` or None."""
+    ar_state = [] if config.pi05 else [True]   # π0's state token: a causal block of its own before the actions
+    s = len(ar_state) + config.action_horizon
+    ar = jnp.asarray(ar_state + [True] + [False] * (config.action_horizon - 1))
+    suffix_mask = jnp.broadcast_to(pi0.make_attn_mask(jnp.ones((1, s), bool), ar), (batch, s, s))
+    positions = jnp.sum(cache.mask, axis=-1, keepdims=True) + jnp.arange(s)[None, :]
+    tables = None
+    if expert_path(kernels, batch, weights["expert"]) == "pallas":
+        tables = layers.pallas_tables(config.action_expert, positions, cache.mask, suffix_mask)
+    state_token = None if config.pi05 else _dense(weights["top"]["state_proj"], state)
+    return {"state": state_token, "positions": positions, "suffix_mask": suffix_mask, "tables": tables}
+
+
+def _velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, cache: PrefixCache, fixed: dict, x_t,
+              kv, *, unroll: bool, attention: Attention, kernels: str, frozen: jax.Array | None) -> tuple:
     """`velocity` -> (v, kv): kv, the suffix-first buffers of `suffix_kv` (exactly when `fused_suffix_attention`,
-    else None), comes back with this step's suffix keys written in."""
+    else None), comes back with this step's suffix keys written in. fixed: `step_invariants`."""
     dtype = jnp.dtype(config.dtype)
-    top, horizon = weights["top"], config.action_horizon
-    b = x_t.shape[0]
+    top, b = weights["top"], x_t.shape[0]
     attention = attention.at_batch(b, suffix_mask=not config.pi05)
 
     def at_step(key):   # the schedule row of `key` for every action: (1, 1, ...) or, with `frozen`, (B, H, ...)
@@ -261,26 +278,22 @@ def _velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, ca
     if config.pi05:
         x = action_tokens
         mods = (at_step("mods_attn"), at_step("mods_ffw"))  # (B or 1, H or 1, L, 3D) each
-        ar_state = []
     else:
         w_in = top["action_time_mlp_in"]["kernel"]
         h = action_tokens @ w_in[: config.action_expert.width].astype(jnp.float32) + at_step("time_in")
-        x = jnp.concatenate([_dense(top["state_proj"], state)[:, None, :],
-                             _dense(top["action_time_mlp_out"], jax.nn.swish(h))], axis=1)
+        x = jnp.concatenate([fixed["state"][:, None, :], _dense(top["action_time_mlp_out"], jax.nn.swish(h))], axis=1)
         mods = None
-        ar_state = [True]
     x = x.astype(dtype)
     s = x.shape[1]
-    ar = jnp.asarray(ar_state + [True] + [False] * (horizon - 1))
-    suffix_mask = jnp.broadcast_to(pi0.make_attn_mask(jnp.ones((1, s), bool), ar), (b, s, s))
-    positions = jnp.sum(cache.mask, axis=-1, keepdims=True) + jnp.arange(s)[None, :]
+    positions, suffix_mask = fixed["positions"], fixed["suffix_mask"]
     final_mod = at_step("mods_final") if config.pi05 else None
 
     if expert_path(kernels, b, weights["expert"]) == "pallas":
         if frozen is not None:
             raise ValueError("committed actions (training-time action conditioning) run on the XLA expert path")
         x = layers.suffix_layers_pallas(config.action_expert, weights["expert"], x, positions, cache.k, cache.v,
-                                        cache.mask, suffix_mask, None if mods is None else tuple(m[0, 0] for m in mods))
+                                        cache.mask, suffix_mask, None if mods is None else tuple(m[0, 0] for m in mods),
+                                        tables=fixed["tables"])
         return _top(config, weights, final_mod, x), kv
 
     prefix_mask = jnp.broadcast_to(cache.mask[:, None, :], (b, s, cache.mask.shape[1]))
@@ -288,7 +301,7 @@ def _velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, ca
     if attention.denoise == "cudnn":
         kv_len = (s + jnp.sum(cache.mask, axis=-1)).astype(jnp.int32)
         # only π0's state row masks suffix keys (it sees no action); the action rows, and π0.5's, see them all
-        suffix_mask = suffix_mask[:, : len(ar_state)] if ar_state else None
+        suffix_mask = None if config.pi05 else suffix_mask[:, :1]
 
     def layer(w, x, k, v, *mod):
         m = None if mods is None else mod
@@ -335,10 +348,11 @@ def denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixCache, s
     kv = None
     if fused_suffix_attention(config, attention, kernels, x.shape[0], weights["expert"]):
         kv = suffix_kv(config, cache)
+    fixed = step_invariants(config, weights, cache, state, x.shape[0], kernels)
 
     def step(i, carry):   # the suffix-first buffers ride in the carry, so each step fills their slots in place
         x_t, kv = carry
-        v, kv = _velocity(config, weights, sched, i, cache, state, x_t, kv, unroll=unroll, attention=attention,
+        v, kv = _velocity(config, weights, sched, i, cache, fixed, x_t, kv, unroll=unroll, attention=attention,
                           kernels=kernels, frozen=frozen)
         x_next = x_t + dt * v  # dt * v in v's dtype, then promoted to f32: as the reference
         return (x_next if frozen is None else jnp.where(frozen[..., None], x_t, x_next)), kv
