@@ -19,8 +19,8 @@ from pi0_jax.ops import matmul as ops_matmul
 def patch_embed(images, kernel, bias, p: int):
     """The patch convolution (kernel p x p, stride p, VALID, bias) in f32 as one dot: (B, S, S, C) -> (B, T, D), tokens
     row-major (token = row * (S / p) + col). The patches do not overlap, so the convolution is a reshape and a dot over
-    (p, p, C), the kernel's HWIO order. (On a GPU the dot is a GEMM inside the program's command buffer, where XLA ran
-    the convolution as cuDNN's kernel apart from it, with two layout conversions: docs/BENCHMARKS.md.)"""
+    (p, p, C), the kernel's HWIO order: the convolution's sums in another order (at default precision a GPU runs both
+    in TF32). The reference module and the engine share it, so they sum alike."""
     b, s, _, c = images.shape
     g = s // p
     x = jnp.asarray(images, jnp.float32)[:, :g * p, :g * p].reshape(b, g, p, g, p, c)   # VALID: drop a remainder

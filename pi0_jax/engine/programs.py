@@ -243,10 +243,9 @@ def velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, cac
 
 
 def step_invariants(config: Pi0Config, weights: dict, cache: PrefixCache, state, batch: int, kernels: str) -> dict:
-    """What every denoise step of one call computes alike, made once before the loop (XLA left these kernels inside
-    its while loop: the state projection, the suffix's positions and mask and, for the Pallas expert, its RoPE and
-    mask tables): "state" π0's state token (B, D) in f32 (π0.5: None), "positions" (B, S), "suffix_mask" (B, S, S),
-    "tables" `layers.pallas_tables` or None."""
+    """What every denoise step of one call computes alike, made once before the loop rather than in each step:
+    "state" π0's state token (B, D) in f32 (π0.5: None), "positions" (B, S), "suffix_mask" (B, S, S), "tables"
+    `layers.pallas_tables` for the Pallas expert, else None."""
     ar_state = [] if config.pi05 else [True]   # π0's state token: a causal block of its own before the actions
     s = len(ar_state) + config.action_horizon
     ar = jnp.asarray(ar_state + [True] + [False] * (config.action_horizon - 1))
