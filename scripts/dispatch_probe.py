@@ -28,21 +28,17 @@ import numpy as np
 
 from pi0_jax import benchmark
 # scripts/ is on the path when this runs as a script
-from profile_engine import count_ops, idle, probe_arguments, probe_engine, round_robin, traced, write_json
+from profile_engine import (count_ops, gpu_kernels, idle, probe_arguments, probe_engine, round_robin, traced,
+                            write_json)
 
 
 def host_events(fn, calls: int) -> dict:
     """Trace `calls` calls of fn; the host's events summed by name per call, and the GPU kernels' span per call."""
     events, threads, gpu, _ = traced(fn, calls)
     rows = collections.defaultdict(lambda: [0, 0.0])
-    kernels = []
+    kernels = gpu_kernels(events, threads, gpu)
     for e in events:
-        if e.get("ph") != "X":
-            continue
-        line = threads.get((e["pid"], e.get("tid")), "")
-        if e["pid"] in gpu:
-            if line.startswith("Stream"):
-                kernels.append((float(e["ts"]), float(e.get("dur", 0.0)), e["name"]))
+        if e.get("ph") != "X" or e["pid"] in gpu:
             continue
         name = re.sub(r"([._]\d+)+$", "", e["name"])[:100]
         rows[name][0] += 1
@@ -63,9 +59,7 @@ def timeline(fn, calls: int, n: int = 15) -> dict:
     events, threads, gpu, _ = traced(annotated, calls)
     spans = sorted((float(e["ts"]), float(e["ts"]) + float(e.get("dur", 0.0))) for e in events
                    if e.get("ph") == "X" and e.get("name") == "probe_call")
-    kernels = sorted((float(e["ts"]), float(e["ts"]) + float(e.get("dur", 0.0))) for e in events
-                     if e.get("ph") == "X" and e["pid"] in gpu
-                     and threads.get((e["pid"], e.get("tid")), "").startswith("Stream"))
+    kernels = [(ts, ts + dur) for ts, dur, _ in gpu_kernels(events, threads, gpu)]
     pre, span, post, rows = [], [], [], collections.defaultdict(float)
     for start, end in spans:
         inside = [k for k in kernels if start <= k[0] and k[1] <= end]

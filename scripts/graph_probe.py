@@ -93,8 +93,9 @@ def main() -> None:
         runtime.matmul.compiler_options, vision.patch_embed = own_options, own_embed
         times = profile_engine.round_robin(timed, args.iters)
         if args.loop:
-            looped = profile_engine.round_robin({(row["variant"], stage): profile_engine.looping(timed[row["variant"], stage], args.loop)
-                                                 for row in rows for stage in LOOPED}, args.iters)
+            loops = {(row["variant"], stage): profile_engine.looping(timed[row["variant"], stage], args.loop)
+                     for row in rows for stage in LOOPED}
+            looped = profile_engine.round_robin(loops, args.iters)
         for row in rows:
             row["median_ms"] = {stage: float(np.median(t)) for (name, stage), t in times.items()
                                 if name == row["variant"]}

@@ -70,6 +70,14 @@ def traced(fn, calls: int, log_dir: str | None = None) -> tuple:
     return events, threads, {pid for pid, name in procs.items() if "GPU" in name.upper()}, wall
 
 
+def gpu_kernels(events, threads, gpu) -> list:
+    """The trace's GPU kernels [(start us, duration us, full name)] in launch order: they sit on the device's
+    "Stream #N" lines; other device lines (XLA Ops / Modules) repeat them as spans."""
+    return sorted((float(e["ts"]), float(e.get("dur", 0.0)), e["name"]) for e in events
+                  if e.get("ph") == "X" and e["pid"] in gpu
+                  and threads.get((e["pid"], e.get("tid")), "").startswith("Stream"))
+
+
 def kernel_times(fn, calls: int = 5, log_dir: str | None = None, sequence: bool = False) -> dict:
     """Run fn() `calls` times under jax.profiler and sum the GPU kernels of the trace by name (numeric suffixes
     dropped: fusion.12 and fusion.40 are one row). Per call: kernels launched, their summed time, the host-timed wall
@@ -77,28 +85,20 @@ def kernel_times(fn, calls: int = 5, log_dir: str | None = None, sequence: bool 
     span and idle time (`idle`). sequence: also the first traced call's kernels in launch order, each with its
     full name (the optimized HLO's instruction name for XLA's fusions) and duration in us."""
     events, threads, gpu, wall = traced(fn, calls, log_dir)
-    # kernels sit on the device's "Stream #N" lines; other device lines (XLA Ops / Modules) repeat them as spans
-    gpu_lines = {key: name for key, name in threads.items() if key[0] in gpu}
+    kernels = gpu_kernels(events, threads, gpu)
     rows = collections.defaultdict(lambda: [0, 0.0])
-    kernels = []
-    for e in events:
-        if e.get("ph") == "X" and gpu_lines.get((e["pid"], e.get("tid")), "").startswith("Stream"):
-            name = re.sub(r"([._]\d+)+$", "", e["name"])
-            rows[name][0] += 1
-            rows[name][1] += float(e.get("dur", 0.0))
-            kernels.append((float(e["ts"]), float(e.get("dur", 0.0)), name))
-    launched = sum(c for c, _ in rows.values()) / calls
-    first = []
-    if sequence:
-        for e in sorted((e for e in events if e.get("ph") == "X"
-                         and gpu_lines.get((e["pid"], e.get("tid")), "").startswith("Stream")), key=lambda e: e["ts"]):
-            first.append((e["name"], round(float(e.get("dur", 0.0)), 3)))
-        first = first[:round(launched)]
+    for _, dur, name in kernels:
+        row = rows[re.sub(r"([._]\d+)+$", "", name)]
+        row[0] += 1
+        row[1] += dur
+    launched = len(kernels) / calls
+    first = [(name, round(dur, 3)) for _, dur, name in kernels[:round(launched)]] if sequence else []
     busy_us = sum(t for _, t in rows.values()) / calls
     top = sorted(rows.items(), key=lambda kv: -kv[1][1])
     return {"calls": calls, "wall_ms": wall * 1e3, "kernels_per_call": launched, "kernel_ms": busy_us / 1e3,
-            "busy": busy_us / 1e3 / (wall * 1e3) if wall else None, "device_lines": sorted(gpu_lines.values()),
-            **idle(kernels, calls),
+            "busy": busy_us / 1e3 / (wall * 1e3) if wall else None,
+            "device_lines": sorted(name for key, name in threads.items() if key[0] in gpu),
+            **idle([(ts, dur, re.sub(r"([._]\d+)+$", "", name)) for ts, dur, name in kernels], calls),
             "by_name": [{"name": n, "per_call": c / calls, "us_per_call": t / calls} for n, (c, t) in top[:60]],
             **({"sequence": first} if sequence else {})}
 
