@@ -92,12 +92,16 @@ def _attend_fused(q, keys, values, kv_len):
     return einops.rearrange(out, "B (T G) K H -> B T (K G H)", G=g)
 
 
-def prefix_layer(cfg: GemmaConfig, w, x, positions, mask, kv_len=None):
+def prefix_layer(cfg: GemmaConfig, w, x, positions, mask, kv_len=None, keys: int | None = None):
     """One VLM layer over the prefix. x (B,P,D); mask (B,P,P). Returns (x, k, v) with k, v (B,P,K,H) post-RoPE.
     kv_len: None for XLA attention under `mask`, else (B,) lengths for the fused kernel (the valid tokens are then
-    each element's first kv_len, see `programs.fill_prefix_cache`)."""
+    each element's first kv_len, see `programs.fill_prefix_cache`). keys: with kv_len, k and v are zero-padded to
+    this many keys first (the Pallas expert's cache length) and returned so; the fused kernel reads them padded,
+    cut off by kv_len, so the cache needs no copy of its own."""
     h, _ = rms_norm(x, w["pre_attn"])
     q, k, v = _qkv(h, w["qkv"], cfg, positions)
+    if keys is not None and kv_len is not None:
+        k, v = (jnp.pad(a, ((0, 0), (0, keys - a.shape[1]), (0, 0), (0, 0))) for a in (k, v))
     y = _attend(q, [k], [v], [mask], x.dtype) if kv_len is None else _attend_fused(q, k, v, kv_len)
     x = x + _mm(y, w["attn_out"])
     h, _ = rms_norm(x, w["pre_ffw"])

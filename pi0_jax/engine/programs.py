@@ -187,18 +187,16 @@ def fill_prefix_cache(config: Pi0Config, weights: dict, image_tokens, image_mask
         if attention.prefix == "cudnn":
             kv_len = jnp.sum(mask, axis=1, dtype=jnp.int32)
     attn_mask = mask[:, None, :] & mask[:, :, None]
-    layer = functools.partial(_prefix_layer, config, positions=positions, mask=attn_mask, kv_len=kv_len)
+    pallas = expert_path(kernels, x.shape[0], weights.get("expert")) == "pallas"
+    keys = layout.cache_len(x.shape[1]) if pallas else None   # each layer writes its cache padded
+    layer = functools.partial(layers.prefix_layer, config.paligemma, positions=positions, mask=attn_mask,
+                              kv_len=kv_len, keys=keys)
     _, (k, v) = layers.run_layers(layer, weights["vlm"], x, unroll=unroll)
-    if expert_path(kernels, x.shape[0], weights.get("expert")) == "pallas":  # once per call: no step pads
+    if pallas:  # once per call: no step pads
         head_dim = config.paligemma.head_dim
         k, v = (tuple(layout.cache_kv(a, head_dim) for a in c) for c in (k, v))
         mask = layout.cache_mask(mask)
     return PrefixCache(k=k, v=v, mask=mask)
-
-
-def _prefix_layer(config, w, x, *, positions, mask, kv_len):
-    x, k, v = layers.prefix_layer(config.paligemma, w, x, positions, mask, kv_len)
-    return x, k, v
 
 
 def _dense(p, x):

@@ -292,13 +292,30 @@ def attention(qkv, cache_k, cache_v, prefix_mask, suffix_mask, *, batch: int, nu
            jax.ShapeDtypeStruct(((splits + 1) * m, num_heads), jnp.float32))
     o, lse = _call(kernel, (batch, num_heads, sp // bq, splits + 1), out, "expert_attention",
                    blocks.attention_warps, blocks.attention_stages)(qkv, cache_k, cache_v, prefix_mask, suffix_mask)
-    # merge, elementwise over the splits (one XLA fusion): sum_s exp(lse_s - max) o_s / sum_s exp(lse_s - max)
-    o = list(o.reshape(splits + 1, m, num_heads, hd).astype(jnp.float32))
-    lse = list(lse.reshape(splits + 1, m, num_heads, 1))
+    return merge(o, lse, parts=splits + 1, num_heads=num_heads)
+
+
+def _merge_kernel(o_ref, lse_ref, out_ref, *, m, bm, bd, hd, parts):
+    """Program (i, n, c): rows block i, head n, columns block c of the head: the splits' outputs weighted by
+    exp(lse_s - max_s lse_s), in f32, over their sum."""
+    i, n, c = pl.program_id(0), pl.program_id(1), pl.program_id(2)
+    lse = [lse_ref[pl.ds(s * m + i * bm, bm), pl.ds(n, 1)] for s in range(parts)]
     top = functools.reduce(jnp.maximum, lse)
     weights = [jnp.exp(x - top) for x in lse]
-    merged = sum(w * x for w, x in zip(weights, o)) / sum(weights)
-    return merged.astype(qkv.dtype).reshape(m, num_heads * hd)
+    cols = pl.ds(n * hd + c * bd, bd)
+    acc = sum(w * o_ref[pl.ds(s * m + i * bm, bm), cols].astype(jnp.float32) for s, w in enumerate(weights))
+    out_ref[pl.ds(i * bm, bm), cols] = (acc / sum(weights)).astype(out_ref.dtype)
+
+
+def merge(o, lse, *, parts: int, num_heads: int, rows: int = 16, cols: int = 64):
+    """The key splits' softmaxes as one: o (parts * M, N * hd) normalised per split, lse (parts * M, N) f32 ->
+    (M, N * hd) = sum_s exp(lse_s - top) o_s / sum_s exp(lse_s - top), top = max_s lse_s, in f32 (in the splits'
+    order). One kernel of many small programs (rows x cols of one head): XLA made it two (the max apart)."""
+    m, hd = o.shape[0] // parts, o.shape[1] // num_heads
+    bm, bd = fit(rows, m), fit(cols, hd)
+    kernel = functools.partial(_merge_kernel, m=m, bm=bm, bd=bd, hd=hd, parts=parts)
+    out = jax.ShapeDtypeStruct((m, num_heads * hd), o.dtype)
+    return _call(kernel, (m // bm, num_heads, hd // bd), out, "expert_attention_merge", 4, 1)(o, lse)
 
 
 # -- GEMM + (gated) residual, norm + gate/up GEMM + GeGLU --------------------------------------------------------------

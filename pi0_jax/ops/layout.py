@@ -69,14 +69,19 @@ def expert_weights(w: dict, cfg: GemmaConfig) -> dict:
     return out
 
 
+def cache_len(p: int) -> int:
+    """Pp: a prefix of p keys padded."""
+    return _round_up(p, KEY_PAD)
+
+
 def cache_kv(x, head_dim: int):
-    """A prefix cache's k or v (B, P, K, H) -> (B, Pp, K, 2hp); padded keys are masked by `cache_mask`."""
-    return _pad(_heads(x, -1, head_dim), 1, _round_up(x.shape[1], KEY_PAD))
+    """A prefix cache's k or v (B, P or Pp, K, H) -> (B, Pp, K, 2hp); padded keys are masked by `cache_mask`."""
+    return _pad(_heads(x, -1, head_dim), 1, cache_len(x.shape[1]))
 
 
 def cache_mask(mask):
     """(B, P) bool -> (B, Pp), padded keys False."""
-    return _pad(mask, 1, _round_up(mask.shape[1], KEY_PAD))
+    return _pad(mask, 1, cache_len(mask.shape[1]))
 
 
 def rows(x, sp: int):
