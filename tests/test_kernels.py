@@ -52,13 +52,6 @@ def _unrows(rows, width):
     return rows.reshape(B, layout.suffix_rows(S), -1)[:, :S, :width]
 
 
-def _unheads(x, heads):
-    """(..., heads 2hp) -> (..., heads, H): drop each RoPE half's padding."""
-    half = CFG.head_dim // 2
-    x = x.reshape(*x.shape[:-1], heads, 2, layout.half_dim(CFG.head_dim))[..., :half]
-    return x.reshape(*x.shape[:-3], heads, CFG.head_dim)
-
-
 def _mods(adaptive, w):
     """(mods, row, gate_row) of the kernels and the XLA path's mod / scale, for layer 1 of a 2-layer table."""
     if not adaptive:
@@ -86,7 +79,7 @@ def test_norm_qkv_rope_matches_xla(adaptive):
         out = ek.norm_qkv_rope(layout.rows(x, sp), mods, row, adaptive, layout.expert_weights(w, CFG)["qkv"], cos,
                                sin, width=CFG.width, num_heads=CFG.num_heads, num_kv_heads=CFG.num_kv_heads,
                                head_dim=CFG.head_dim, blocks=Blocks(qkv=Gemm(128, splits)))
-        got = _unheads(out.reshape(B, sp, -1)[:, :S], CFG.num_heads + 2 * CFG.num_kv_heads)
+        got = layout.unheads(out.reshape(B, sp, -1)[:, :S], CFG.head_dim).reshape(B, S, -1, CFG.head_dim)
         np.testing.assert_allclose(got[:, :, : CFG.num_heads], q.reshape(B, S, CFG.num_heads, -1), **TOL)
         np.testing.assert_allclose(got[:, :, CFG.num_heads: -1], k, **TOL)
         np.testing.assert_allclose(got[:, :, -1:], v, **TOL)
@@ -103,13 +96,13 @@ def _attention_inputs(pi05):
 def _pallas_attention(q, k, v, ck, cv, pmask, smask, splits=4):
     sp, h = layout.suffix_rows(S), CFG.head_dim
     qkv = jnp.concatenate([q.reshape(B, S, -1), k.reshape(B, S, -1), v.reshape(B, S, -1)], axis=-1)
-    qkv = layout.rows(layout._heads(qkv, -1, h), sp)
+    qkv = layout.rows(layout.heads(qkv, -1, h), sp)
     ck, cv = (layout.cache_kv(c, h) for c in (ck, cv))
     smask = jnp.pad(smask, ((0, 0), (0, sp - S), (0, sp - S))).reshape(B * sp, sp).astype(jnp.int32)
     out = ek.attention(qkv, ck.reshape(-1, ck.shape[2] * ck.shape[3]), cv.reshape(-1, cv.shape[2] * cv.shape[3]),
                        layout.cache_mask(pmask).astype(jnp.int32), smask, batch=B, num_heads=CFG.num_heads,
                        num_kv_heads=CFG.num_kv_heads, blocks=Blocks(kv=32, kv_splits=splits))
-    return _unheads(out.reshape(B, sp, -1)[:, :S], CFG.num_heads).reshape(B, S, -1)
+    return layout.unheads(out.reshape(B, sp, -1)[:, :S], h)
 
 
 @pytest.mark.parametrize("pi05", [False, True])
@@ -165,6 +158,21 @@ def test_engine_with_kernels_matches_reference(model):
     _, cache, staged = engine.run_stages(obs, jnp.array(noise), 3)
     assert cache.mask.shape[1] % layout.KEY_PAD == 0 and cache.k[0].shape[-1] == 2 * layout.half_dim(16)
     np.testing.assert_allclose(staged, ref, **TOL)
+
+
+def test_xla_expert_with_the_attention_kernel_matches_reference(model):
+    """attention denoise=pallas: the XLA expert's layers with the Pallas split-key attention over a cache in its
+    layout, layers unrolled or scanned (a stacked cache), with the prefix's fused attention (valid keys first) or
+    XLA's. Element 1 has its last camera masked and its prompt padded."""
+    config, params = model
+    obs = make_obs(config)
+    noise = jax.random.normal(jax.random.key(3), (2, config.action_horizon, config.action_dim))
+    ref = jax.jit(pi0.sample_actions, static_argnums=(0, 4))(config, params, obs, noise, 2)
+    for unroll, attention in ((True, "denoise=pallas"), (False, "prefix=cudnn,denoise=pallas")):
+        engine = Engine(config, params, kernels="xla", attention=attention, unroll=unroll, cache_dir=False)
+        _, cache, got = engine.run_stages(obs, jnp.array(noise), 2)
+        assert cache.mask.shape[1] % layout.KEY_PAD == 0, cache.mask.shape
+        np.testing.assert_allclose(got, ref, **TOL)
 
 
 def test_engine_with_kernels_skips_a_camera_masked_everywhere():

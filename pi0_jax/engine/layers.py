@@ -128,19 +128,36 @@ def _attend_suffix_fused(q, k, v, buf_k, buf_v, kv_len, head_mask):
     return jnp.concatenate([head, _attend_fused(q[:, m:], keys, values, kv_len)], axis=1), keys, values
 
 
+def _attend_kernel(cfg: GemmaConfig, q, k, v, cache_k, cache_v, prefix_mask, suffix_mask):
+    """The Pallas expert's split-key attention (`ops.expert_kernels.attention`) for the XLA expert's q (B,T,K,G,H)
+    (post-RoPE, scaled), k, v (B,T,K,H): one row block of [q | k | v] per element, suffix rows padded to Sp, over
+    the cache in the kernels' layout (B,Pp,K,2hp); masks as `pallas_tables` makes them. Returns (B, T, N H)."""
+    b, t = q.shape[:2]
+    sp, hd = layout.suffix_rows(t), cfg.head_dim
+    qkv = jnp.concatenate([q.reshape(b, t, -1, hd), k, v], axis=2).reshape(b, t, -1)
+    qkv = layout.rows(layout.heads(qkv, -1, hd), sp)
+    kv = (c.reshape(b * c.shape[1], -1) for c in (cache_k, cache_v))
+    y = expert_kernels.attention(qkv, *kv, prefix_mask, suffix_mask, batch=b, num_heads=cfg.num_heads,
+                                 num_kv_heads=cfg.num_kv_heads, blocks=expert_kernels.blocks_at(b))
+    return layout.unheads(y.reshape(b, sp, -1)[:, :t], hd)
+
+
 def suffix_layer(cfg: GemmaConfig, w, x, positions, cache_k, cache_v, prefix_mask, suffix_mask, mods=None,
-                 kv_len=None):
+                 kv_len=None, kernel: bool = False):
     """One action-expert layer over the suffix, attending to [cached prefix | suffix]. Returns (x, cache_k, cache_v).
 
     cache_k/v (B,P,K,H); prefix_mask (B,S,P); suffix_mask (B,S,S); mods: None (π0) or (attn, ffw) adaRMS outputs.
     kv_len: None for XLA attention, else (B,) key lengths for the fused kernel; cache_k/v are then the suffix-first
     buffers (B,S+P,K,H) of `_attend_suffix_fused` and come back with this step's suffix keys in them, and
-    suffix_mask is its head_mask (B, m, S) or None.
+    suffix_mask is its head_mask (B, m, S) or None. kernel: the attention is the Pallas kernel's (`_attend_kernel`;
+    cache_k/v and the masks in its layout).
     """
     mod_attn, mod_ffw = mods if mods is not None else (None, None)
     h, gate = rms_norm(x, w.get("pre_attn"), mod_attn)
     q, k, v = _qkv(h, w["qkv"], cfg, positions)
-    if kv_len is None:
+    if kernel:
+        y = _attend_kernel(cfg, q, k, v, cache_k, cache_v, prefix_mask, suffix_mask)
+    elif kv_len is None:
         y = _attend(q, [cache_k, k], [cache_v, v], [prefix_mask, suffix_mask], x.dtype)
     else:
         y, cache_k, cache_v = _attend_suffix_fused(q, k, v, cache_k, cache_v, kv_len, suffix_mask)

@@ -84,9 +84,10 @@ class Attention:
     """Each stage's attention: "xla" (the reference's ops: logits, softmax, weighted sum) or "cudnn" (one fused
     flash kernel, `ops.attention.fused`: cuDNN on a GPU, its XLA form elsewhere; masks by lengths, so the prefix
     fill puts each element's valid tokens first). Vision's may also be "pallas" (`ops.vision_attention`: q, k and v
-    read in place from the fused GEMM's output). The denoise step's may also be "auto": "cudnn" from
-    CUDNN_DENOISE_MIN_BATCH on (π0: CUDNN_DENOISE_MIN_BATCH_MASKED), else "xla" (`at_batch` resolves it; the
-    programs do). It is unused by the Pallas kernels."""
+    read in place from the fused GEMM's output). The denoise step's may also be "pallas" (the XLA expert's layers
+    with the Pallas expert's split-key attention, `ops.expert_kernels.attention`, over a cache in its layout; not
+    differentiable) or "auto": "cudnn" from CUDNN_DENOISE_MIN_BATCH on (π0: CUDNN_DENOISE_MIN_BATCH_MASKED), else
+    "xla" (`at_batch` resolves it; the programs do). It is unused by the Pallas expert, which has its own."""
 
     vision: str = "xla"
     prefix: str = "xla"
@@ -94,7 +95,7 @@ class Attention:
 
     def __post_init__(self):
         for stage, value in dataclasses.asdict(self).items():
-            extra = {"vision": ("pallas",), "denoise": ("auto",)}.get(stage, ())
+            extra = {"vision": ("pallas",), "denoise": ("pallas", "auto")}.get(stage, ())
             if value not in ("xla", "cudnn", *extra):
                 raise ValueError(f"attention for {stage} must be one of {('xla', 'cudnn', *extra)}, got {value!r}")
 
@@ -187,20 +188,26 @@ def fill_prefix_cache(config: Pi0Config, weights: dict, image_tokens, image_mask
         if attention.prefix == "cudnn":
             kv_len = jnp.sum(mask, axis=1, dtype=jnp.int32)
     attn_mask = mask[:, None, :] & mask[:, :, None]
-    pallas = expert_path(kernels, x.shape[0], weights.get("expert")) == "pallas"
-    keys = layout.cache_len(x.shape[1]) if pallas else None   # each layer writes its cache padded
+    kernel = kernel_cache(kernels, attention, x.shape[0], weights.get("expert"))
+    keys = layout.cache_len(x.shape[1]) if kernel else None   # each layer writes its cache padded
     layer = functools.partial(layers.prefix_layer, config.paligemma, positions=positions, mask=attn_mask,
                               kv_len=kv_len, keys=keys)
     _, (k, v) = layers.run_layers(layer, weights["vlm"], x, unroll=unroll)
-    if pallas:  # once per call: no step pads
+    if kernel:  # once per call: no step pads
         head_dim = config.paligemma.head_dim
-        k, v = (tuple(layout.cache_kv(a, head_dim) for a in c) for c in (k, v))
+        k, v = (jax.tree.map(lambda a: layout.cache_kv(a, head_dim), c) for c in (k, v))
         mask = layout.cache_mask(mask)
     return PrefixCache(k=k, v=v, mask=mask)
 
 
 def _dense(p, x):
     return x @ p["kernel"] + p["bias"]
+
+
+def kernel_cache(kernels: str, attention: Attention, batch: int, expert_weights) -> bool:
+    """Whether a program at this batch keeps its prefix cache in the expert kernels' layout (`ops.layout.cache_kv`):
+    the Pallas expert's path, or the XLA expert's with the Pallas attention. `attention` resolved (`at_batch`)."""
+    return expert_path(kernels, batch, expert_weights) == "pallas" or attention.denoise == "pallas"
 
 
 def fused_suffix_attention(config: Pi0Config, attention: Attention, kernels: str, batch: int,
@@ -235,22 +242,23 @@ def velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, cac
     kv = None
     if fused_suffix_attention(config, attention, kernels, x_t.shape[0], weights["expert"]):
         kv = suffix_kv(config, cache)
-    fixed = step_invariants(config, weights, cache, state, x_t.shape[0], kernels)
+    fixed = step_invariants(config, weights, cache, state, x_t.shape[0], kernels, attention)
     return _velocity(config, weights, sched, step, cache, fixed, x_t, kv, unroll=unroll, attention=attention,
                      kernels=kernels, frozen=frozen)[0]
 
 
-def step_invariants(config: Pi0Config, weights: dict, cache: PrefixCache, state, batch: int, kernels: str) -> dict:
+def step_invariants(config: Pi0Config, weights: dict, cache: PrefixCache, state, batch: int, kernels: str,
+                    attention: Attention) -> dict:
     """What every denoise step of one call computes alike, made once before the loop rather than in each step:
     "state" π0's state token (B, D) in f32 (π0.5: None), "positions" (B, S), "suffix_mask" (B, S, S), "tables"
-    `layers.pallas_tables` for the Pallas expert, else None."""
+    `layers.pallas_tables` for a cache in the kernels' layout (`kernel_cache`), else None."""
     ar_state = [] if config.pi05 else [True]   # π0's state token: a causal block of its own before the actions
     s = len(ar_state) + config.action_horizon
     ar = jnp.asarray(ar_state + [True] + [False] * (config.action_horizon - 1))
     suffix_mask = jnp.broadcast_to(pi0.make_attn_mask(jnp.ones((1, s), bool), ar), (batch, s, s))
     positions = jnp.sum(cache.mask, axis=-1, keepdims=True) + jnp.arange(s)[None, :]
     tables = None
-    if expert_path(kernels, batch, weights["expert"]) == "pallas":
+    if kernel_cache(kernels, attention.at_batch(batch, suffix_mask=not config.pi05), batch, weights["expert"]):
         tables = layers.pallas_tables(config.action_expert, positions, cache.mask, suffix_mask)
     state_token = None if config.pi05 else _dense(weights["top"]["state_proj"], state)
     return {"state": state_token, "positions": positions, "suffix_mask": suffix_mask, "tables": tables}
@@ -295,7 +303,9 @@ def _velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, ca
 
     prefix_mask = jnp.broadcast_to(cache.mask[:, None, :], (b, s, cache.mask.shape[1]))
     kv_len = None
-    if attention.denoise == "cudnn":
+    if attention.denoise == "pallas":   # the kernel's masks: prefix (B, Pp), suffix (B Sp, Sp), int32
+        prefix_mask, suffix_mask = fixed["tables"][2:]
+    elif attention.denoise == "cudnn":
         kv_len = (s + jnp.sum(cache.mask, axis=-1)).astype(jnp.int32)
         # only π0's state row masks suffix keys (it sees no action); the action rows, and π0.5's, see them all
         suffix_mask = None if config.pi05 else suffix_mask[:, :1]
@@ -303,7 +313,7 @@ def _velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, ca
     def layer(w, x, k, v, *mod):
         m = None if mods is None else mod
         x, k, v = layers.suffix_layer(config.action_expert, w, x, positions, k, v, prefix_mask, suffix_mask, m,
-                                      kv_len)
+                                      kv_len, kernel=attention.denoise == "pallas")
         return (x, k, v) if kv_len is not None else (x,)
 
     per_layer = [cache.k, cache.v] if kv is None else list(kv)
@@ -345,7 +355,7 @@ def denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixCache, s
     kv = None
     if fused_suffix_attention(config, attention, kernels, x.shape[0], weights["expert"]):
         kv = suffix_kv(config, cache)
-    fixed = step_invariants(config, weights, cache, state, x.shape[0], kernels)
+    fixed = step_invariants(config, weights, cache, state, x.shape[0], kernels, attention)
 
     def step(i, carry):   # the suffix-first buffers ride in the carry, so each step fills their slots in place
         x_t, kv = carry
@@ -390,6 +400,9 @@ def guided_denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixC
     g = [(target - x̂) * weight]ᵀ ∂x̂/∂x_t (one vector-Jacobian product through `velocity`) and
     w = min(beta, (t² + (1 - t)²) / (t (1 - t))), = beta at t = 1. weight = 0 everywhere gives `denoise` exactly
     up to the VJP's extra arithmetic (g = 0)."""
+    if attention.at_batch(noise.shape[0], suffix_mask=not config.pi05).denoise == "pallas":
+        raise ValueError("real-time chunking differentiates the velocity: its denoise attention must be 'xla' or "
+                         "'cudnn', not the Pallas kernel's")
     dt = -1.0 / num_steps
     if not isinstance(num_steps, int):
         dt = jnp.asarray(dt, jnp.float32)

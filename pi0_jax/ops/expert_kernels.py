@@ -98,6 +98,13 @@ class Blocks:
                       for k, v in d.items()})
 
 
+def blocks_at(batch: int, blocks: Blocks = Blocks()) -> Blocks:
+    """The XLA expert's launch of the attention kernel at this batch (`engine.layers._attend_kernel`): the key splits
+    shared out over the elements, whose (element, head) programs fill the GPU themselves, so the merge reads fewer
+    split outputs."""
+    return dataclasses.replace(blocks, kv_splits=max(1, round(blocks.kv_splits / batch)))
+
+
 def _call(kernel, grid, out_shape, name: str, num_warps: int, num_stages: int):
     return pallas_base.call(kernel, grid=grid, out_shape=out_shape, name=name, num_warps=num_warps,
                             num_stages=num_stages)

@@ -42,7 +42,7 @@ def half_dim(head_dim: int) -> int:
     return _round_up(head_dim // 2, ALIGN)
 
 
-def _heads(x, axis: int, head_dim: int):
+def heads(x, axis: int, head_dim: int):
     """Split `axis` = (heads H) into (heads 2 hp) with each half zero-padded, and merge it back."""
     axis = axis % x.ndim
     shape = x.shape
@@ -58,8 +58,8 @@ def expert_weights(w: dict, cfg: GemmaConfig) -> dict:
     d, f = _round_up(cfg.width, ALIGN), _round_up(cfg.mlp_dim, ALIGN)
     gate_up = einops.rearrange(w["gate_up"], "D (two F) -> D two F", two=2)
     out = {
-        "qkv": _pad(_heads(w["qkv"], -1, cfg.head_dim), 0, d),
-        "attn_out": _pad(_heads(w["attn_out"], 0, cfg.head_dim), 1, d),
+        "qkv": _pad(heads(w["qkv"], -1, cfg.head_dim), 0, d),
+        "attn_out": _pad(heads(w["attn_out"], 0, cfg.head_dim), 1, d),
         "gate_up": einops.rearrange(_pad(_pad(gate_up, 0, d), 2, f), "D two F -> D (two F)"),
         "down": _pad(_pad(w["down"], 0, f), 1, d),
     }
@@ -74,9 +74,17 @@ def cache_len(p: int) -> int:
     return _round_up(p, KEY_PAD)
 
 
+def unheads(x, head_dim: int):
+    """The inverse of `heads` on the last axis: (..., heads 2hp) -> (..., heads H)."""
+    hp = half_dim(head_dim)
+    x = x.reshape(*x.shape[:-1], -1, 2, hp)[..., : head_dim // 2]
+    return x.reshape(*x.shape[:-3], -1)
+
+
 def cache_kv(x, head_dim: int):
-    """A prefix cache's k or v (B, P or Pp, K, H) -> (B, Pp, K, 2hp); padded keys are masked by `cache_mask`."""
-    return _pad(_heads(x, -1, head_dim), 1, cache_len(x.shape[1]))
+    """A prefix cache's k or v (B, P or Pp, K, H) -> (B, Pp, K, 2hp), or stacked layers (L, B, ...) alike; padded
+    keys are masked by `cache_mask`."""
+    return _pad(heads(x, -1, head_dim), -3, cache_len(x.shape[-3]))
 
 
 def cache_mask(mask):
