@@ -204,7 +204,16 @@ def test_attention_and_kernel_choices():
     assert A.parse("vision=pallas") == A(vision="pallas")
     masked = programs.CUDNN_DENOISE_MIN_BATCH_MASKED   # π0: measured 4 faster, 3 slower
     assert programs.AUTO_GPU.at_batch(masked - 1, suffix_mask=True).denoise == "xla" and masked > big
-    assert programs.AUTO_GPU.at_batch(masked, suffix_mask=True).denoise == "cudnn"
+    assert programs.AUTO_GPU.at_batch(masked, suffix_mask=True, differentiable=True).denoise == "cudnn"
+    kernel = programs.PALLAS_DENOISE_BATCHES_MASKED   # π0: measured faster at 4 and 8, slower at 64; π0.5 level at 8
+    assert {4, 8} <= set(kernel) and 64 not in kernel and A.parse("denoise=pallas") == A(denoise="pallas")
+    assert [programs.AUTO_GPU.at_batch(b, suffix_mask=True).denoise for b in (4, 8, 64)] == ["pallas", "pallas", "cudnn"]
+    assert programs.AUTO_GPU.at_batch(8).denoise == "cudnn"
+    assert all(programs.AUTO_GPU.at_batch(b, suffix_mask=True, differentiable=True).denoise != "pallas"
+               for b in range(1, 65))
+    with pytest.raises(ValueError, match="differentiates"):   # the Pallas kernel has no VJP
+        programs.guided_denoise(get_config("dummy"), None, None, None, None, jnp.zeros((4, 2, 2)), None, None,
+                                num_steps=2, unroll=True, attention=A(denoise="pallas"))
     assert A.parse("cudnn").at_batch(1) == A.parse("cudnn")
     for bad in ("flash", "prefix=flash", "decoder=cudnn", "prefix", "vision=auto", "prefix=pallas", "pallas"):
         with pytest.raises(ValueError, match="attention"):

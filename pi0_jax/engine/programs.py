@@ -35,6 +35,11 @@ PALLAS_MAX_BATCH = 2
 # the kernel): 9 % slower at B = 3, 4, 9 and 37 % faster at B = 4, 8 and 64.
 CUDNN_DENOISE_MIN_BATCH = 3
 CUDNN_DENOISE_MIN_BATCH_MASKED = 4
+# The batches at which π0's denoise attention="auto" is the Pallas split-key kernel in the XLA expert's layers (its
+# state row needs no XLA attention beside cuDNN's): the 10-step denoise 28 % faster than cuDNN's at B = 4 and 19 % at
+# B = 8, 18 % slower at B = 64 (H200); π0.5's was level at B = 8 and 47 % slower at B = 64, so it keeps cuDNN
+# (docs/BENCHMARKS.md, "The Pallas attention in the XLA expert").
+PALLAS_DENOISE_BATCHES_MASKED = range(4, 9)
 
 
 KERNELS = ("auto", "xla", "pallas")
@@ -87,7 +92,8 @@ class Attention:
     read in place from the fused GEMM's output). The denoise step's may also be "pallas" (the XLA expert's layers
     with the Pallas expert's split-key attention, `ops.expert_kernels.attention`, over a cache in its layout; not
     differentiable) or "auto": "cudnn" from CUDNN_DENOISE_MIN_BATCH on (π0: CUDNN_DENOISE_MIN_BATCH_MASKED), else
-    "xla" (`at_batch` resolves it; the programs do). It is unused by the Pallas expert, which has its own."""
+    "xla", but π0's "pallas" at PALLAS_DENOISE_BATCHES_MASKED (`at_batch` resolves it; the programs do). It is
+    unused by the Pallas expert, which has its own."""
 
     vision: str = "xla"
     prefix: str = "xla"
@@ -99,11 +105,14 @@ class Attention:
             if value not in ("xla", "cudnn", *extra):
                 raise ValueError(f"attention for {stage} must be one of {('xla', 'cudnn', *extra)}, got {value!r}")
 
-    def at_batch(self, batch: int, suffix_mask: bool = False) -> Attention:
+    def at_batch(self, batch: int, suffix_mask: bool = False, differentiable: bool = False) -> Attention:
         """The concrete choice of every stage for a program of this batch size; suffix_mask: the model's suffix
-        masks some of its own keys (π0; π0.5's attends everywhere)."""
+        masks some of its own keys (π0; π0.5's attends everywhere); differentiable: never the Pallas kernel (a
+        program that differentiates the velocity, `guided_denoise`)."""
         if self.denoise != "auto":
             return self
+        if suffix_mask and not differentiable and batch in PALLAS_DENOISE_BATCHES_MASKED:
+            return dataclasses.replace(self, denoise="pallas")
         cudnn = batch >= (CUDNN_DENOISE_MIN_BATCH_MASKED if suffix_mask else CUDNN_DENOISE_MIN_BATCH)
         return dataclasses.replace(self, denoise="cudnn" if cudnn else "xla")
 
@@ -400,9 +409,11 @@ def guided_denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixC
     g = [(target - x̂) * weight]ᵀ ∂x̂/∂x_t (one vector-Jacobian product through `velocity`) and
     w = min(beta, (t² + (1 - t)²) / (t (1 - t))), = beta at t = 1. weight = 0 everywhere gives `denoise` exactly
     up to the VJP's extra arithmetic (g = 0)."""
-    if attention.at_batch(noise.shape[0], suffix_mask=not config.pi05).denoise == "pallas":
+    attention = attention.at_batch(noise.shape[0], suffix_mask=not config.pi05, differentiable=True)
+    if attention.denoise == "pallas":
         raise ValueError("real-time chunking differentiates the velocity: its denoise attention must be 'xla' or "
-                         "'cudnn', not the Pallas kernel's")
+                         "'cudnn', not the Pallas kernel's; fill its cache with attention.at_batch(..., "
+                         "differentiable=True)")
     dt = -1.0 / num_steps
     if not isinstance(num_steps, int):
         dt = jnp.asarray(dt, jnp.float32)

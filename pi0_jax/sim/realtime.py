@@ -160,12 +160,15 @@ def make_model_callbacks(core, rt: Realtime, replan_steps: int, inputs, cameras,
     conditioned = rt.execution == "conditioned" and d > 0
     size, n_cam = cfg.image_size, len(cameras)
 
+    def attention(b: int):   # guided denoising differentiates the velocity: no Pallas attention, in its cache too
+        return core.attention.at_batch(b, suffix_mask=not cfg.pi05, differentiable=rtc)
+
     def prefix(model, pixels, image_masks, tokens, token_mask):
         w = model["weights"]
         image_tokens = programs.encode_images(cfg, w, pixels, unroll=core.unroll, attention=core.attention,
                                               kernels=core.kernels)
         return programs.fill_prefix_cache(cfg, w, image_tokens, image_masks, tokens, token_mask, unroll=core.unroll,
-                                          attention=core.attention)
+                                          attention=attention(tokens.shape[0]))
 
     def init(b: int) -> dict:
         ps = {"chunk": hold_chunk(b, horizon, dims), "count": jnp.zeros((b,), jnp.int32),
@@ -216,7 +219,7 @@ def make_model_callbacks(core, rt: Realtime, replan_steps: int, inputs, cameras,
                       * (jnp.arange(adim) < dims)[None, None, :] * ps["fresh"][:, None, None])
             raw = programs.guided_denoise(cfg, model["weights"], sched, cache, state, noise, target, weight,
                                           num_steps=num_steps, beta=rt.rtc_beta, unroll=core.unroll,
-                                          attention=core.attention)
+                                          attention=attention(noise.shape[0]))
             frozen = (jnp.arange(horizon) < d)[None, :, None] & ps["fresh"][:, None, None]
             raw = jnp.where(frozen, target, raw)
             out["raw"], out["fresh"] = raw, jnp.ones_like(ps["fresh"])
@@ -226,11 +229,11 @@ def make_model_callbacks(core, rt: Realtime, replan_steps: int, inputs, cameras,
             given = (executed - norm["action_offset"]) / jnp.where(scale == 0, 1.0, scale)
             given = jnp.pad(given, ((0, 0), (0, horizon - d), (0, adim - dims)))
             raw = programs.denoise(cfg, model["weights"], sched, cache, state, noise, num_steps=num_steps,
-                                   unroll=core.unroll, unroll_steps=False, attention=core.attention,
+                                   unroll=core.unroll, unroll_steps=False, attention=attention(noise.shape[0]),
                                    committed=given, num_committed=jnp.full((noise.shape[0],), d))
         else:
             raw = programs.denoise(cfg, model["weights"], sched, cache, state, noise, num_steps=num_steps,
-                                   unroll=core.unroll, unroll_steps=False, attention=core.attention)
+                                   unroll=core.unroll, unroll_steps=False, attention=attention(noise.shape[0]))
         if d:
             out["prev"] = ps["chunk"]
         out["chunk"] = raw[..., :dims].astype(jnp.float32) * norm["action_scale"] + norm["action_offset"]
