@@ -203,11 +203,12 @@ def test_attention_and_kernel_choices():
     assert programs.AUTO_GPU.at_batch(small) == A("pallas", "cudnn", "xla") and small >= 1
     assert A.parse("vision=pallas") == A(vision="pallas")
     masked = programs.CUDNN_DENOISE_MIN_BATCH_MASKED   # π0: measured 4 faster, 3 slower
-    assert programs.AUTO_GPU.at_batch(masked - 1, suffix_mask=True).denoise == "xla" and masked > big
-    assert programs.AUTO_GPU.at_batch(masked, suffix_mask=True, differentiable=True).denoise == "cudnn"
-    kernel = programs.PALLAS_DENOISE_BATCHES_MASKED   # π0: measured faster at 4 and 8, slower at 64; π0.5 level at 8
-    assert {4, 8} <= set(kernel) and 64 not in kernel and A.parse("denoise=pallas") == A(denoise="pallas")
-    assert [programs.AUTO_GPU.at_batch(b, suffix_mask=True).denoise for b in (4, 8, 64)] == ["pallas", "pallas", "cudnn"]
+    at = functools.partial(programs.AUTO_GPU.at_batch, suffix_mask=True, differentiable=True)
+    assert at(masked - 1).denoise == "xla" and at(masked).denoise == "cudnn" and masked > big
+    kernel = programs.PALLAS_DENOISE_BATCHES_MASKED   # π0: measured faster at 3-16, slower at 64; π0.5 level at 8
+    assert {3, 4, 8, 16} <= set(kernel) and 64 not in kernel and A.parse("denoise=pallas") == A(denoise="pallas")
+    assert [programs.AUTO_GPU.at_batch(b, suffix_mask=True).denoise for b in (2, 3, 16, 64)] == [
+        "xla", "pallas", "pallas", "cudnn"]
     assert programs.AUTO_GPU.at_batch(8).denoise == "cudnn"
     assert all(programs.AUTO_GPU.at_batch(b, suffix_mask=True, differentiable=True).denoise != "pallas"
                for b in range(1, 65))

@@ -36,10 +36,10 @@ PALLAS_MAX_BATCH = 2
 CUDNN_DENOISE_MIN_BATCH = 3
 CUDNN_DENOISE_MIN_BATCH_MASKED = 4
 # The batches at which π0's denoise attention="auto" is the Pallas split-key kernel in the XLA expert's layers (its
-# state row needs no XLA attention beside cuDNN's): the 10-step denoise 28 % faster than cuDNN's at B = 4 and 19 % at
-# B = 8, 18 % slower at B = 64 (H200); π0.5's was level at B = 8 and 47 % slower at B = 64, so it keeps cuDNN
-# (docs/BENCHMARKS.md, "The Pallas attention in the XLA expert").
-PALLAS_DENOISE_BATCHES_MASKED = range(4, 9)
+# state row needs no XLA attention beside cuDNN's): the 10-step denoise 25 % faster than XLA's attention at B = 3,
+# 28 / 19 / 9 % faster than cuDNN's at B = 4 / 8 / 16, 18 % slower at B = 64 (H200s); π0.5's was level at B = 8 and
+# 47 % slower at B = 64, so it keeps cuDNN (docs/BENCHMARKS.md, "The Pallas attention in the XLA expert").
+PALLAS_DENOISE_BATCHES_MASKED = range(3, 17)
 
 
 KERNELS = ("auto", "xla", "pallas")

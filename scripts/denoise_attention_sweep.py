@@ -1,7 +1,15 @@
-"""temporary (session 28): the denoise program at batch B with the XLA expert and attention auto against the
-Pallas attention at several (key splits, pipelining depth), round-robin in one process."""
-import dataclasses, json, sys
-import jax, numpy as np
+"""The denoise program at one batch size, XLA expert: attention "auto" against the Pallas split-key attention
+(denoise=pallas) at several launches (key splits, pipelining depth), timed round-robin in one process on the same
+weights, cache and noise; prints and writes each variant's median and its actions' relative L2 against auto's.
+
+    python scripts/denoise_attention_sweep.py pi0_base 8 48 sweep.json 1/3,2/3,4/1
+"""
+import argparse
+import dataclasses
+import json
+import sys
+
+import numpy as np
 from pi0_jax import benchmark
 from pi0_jax.config import get_config
 from pi0_jax.engine import Engine
@@ -9,8 +17,15 @@ from pi0_jax.ops import expert_kernels as ek
 sys.path.insert(0, "scripts")
 from profile_engine import round_robin
 
-preset, b, prompt, out = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), sys.argv[4]
-variants = [tuple(int(x) for x in v.split("/")) for v in sys.argv[5].split(",")]
+p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+p.add_argument("preset", help="model preset, random weights (e.g. pi0_base)")
+p.add_argument("batch", type=int)
+p.add_argument("prompt_tokens", type=int, help="valid prompt tokens (π0: 48, π0.5: 200)")
+p.add_argument("out", help="JSON results")
+p.add_argument("variants", help="comma list of SPLITS/DEPTH launches of the Pallas attention, e.g. 2/3,4/1")
+args = p.parse_args()
+preset, b, prompt, out = args.preset, args.batch, args.prompt_tokens, args.out
+variants = [tuple(int(x) for x in v.split("/")) for v in args.variants.split(",")]
 config = get_config(preset)
 params = benchmark.random_params(config, 0)
 obs, noise = benchmark.make_inputs(config, b, 3, prompt, 0)
