@@ -79,7 +79,8 @@ def add_serve_parser(subparsers) -> None:
     pol.add_argument("--attention", default="auto", type=_attention,
                      help="each stage's attention: xla, cudnn (one fused flash kernel), auto (the faster per stage "
                           "on a GPU, XLA on a CPU), or per stage, e.g. vision=pallas,prefix=cudnn,denoise=xla "
-                          "(vision may be pallas: a kernel that reads q, k, v in place) (default: %(default)s)")
+                          "(vision may be pallas: a kernel that reads q, k, v in place; denoise may be pallas: the "
+                          "action expert's split-key kernel) (default: %(default)s)")
     pol.add_argument("--tokenizer", type=Path, default=None, metavar="FILE",
                      help="PaliGemma SentencePiece model (default: CHECKPOINT/tokenizer.model, then "
                           "CHECKPOINT/assets/tokenizer.model)")
