@@ -1,7 +1,8 @@
 """The engine's fused program on a batch-sharded mesh (two CPU devices in a child process, as the simulator's eval
 runs it on several GPUs): samples are independent, so the partitioned program must hold no collective. Merging the
 camera axis in front of the sharded batch axis (the vision tower's input) once made XLA all-gather every image; so
-would the Pallas vision attention and LayerNorm without their partitioning rules."""
+would the Pallas vision attention and LayerNorm, and the action expert's attention kernel, without their
+partitioning rules."""
 
 import os
 import subprocess
@@ -37,6 +38,19 @@ CHILD = textwrap.dedent("""
         alone = jax.jit(lambda w, sc, *a: programs.infer(cfg, w, sc, *a, num_steps=2, unroll=True,
                                                          unroll_steps=False, attention=attention))
         np.testing.assert_allclose(fn(w, sched, *args), alone(w, sched, *args), rtol=1e-5, atol=1e-5)
+    # π0's denoise on the Pallas attention in the XLA expert (auto at B = 3-16 on a GPU)
+    cfg0 = get_config("dummy")
+    w0 = engine_weights(cfg0, pi0.random_params(cfg0, 0), unroll=True)
+    sched0 = jax.jit(weights.precompute_schedule, static_argnums=(0, 2))(
+        cfg0, weights.schedule_params(cfg0, pi0.random_params(cfg0, 0)), 2)
+    n0 = cfg0.max_token_len
+    args0 = (*args[:2], jnp.zeros((b, n0), jnp.int32), jnp.ones((b, n0), bool), jnp.zeros((b, cfg0.action_dim)),
+             jax.random.normal(jax.random.key(1), (b, cfg0.action_horizon, cfg0.action_dim)))
+    run = lambda w, sc, *a: programs.infer(cfg0, w, sc, *a, num_steps=2, unroll=True, unroll_steps=False,
+                                           attention=programs.Attention(denoise="pallas"))
+    fn = jax.jit(run, in_shardings=shardings)
+    print("denoise collectives", collectives(fn.lower(w0, sched0, *args0).compile().as_text()))
+    np.testing.assert_allclose(fn(w0, sched0, *args0), jax.jit(run)(w0, sched0, *args0), rtol=1e-5, atol=1e-5)
     # SigLIP's LayerNorm kernel (kernels="pallas"; the expert's kernels are for B <= 2 and not partitioned)
     enc = lambda w, im: programs.encode_images(cfg, w, im, unroll=True, kernels="pallas",
                                                attention=programs.Attention(vision="pallas"))
@@ -63,4 +77,5 @@ def test_engine_program_on_a_batch_mesh_has_no_collectives():
     # the Pallas vision attention is a kernel XLA cannot split: without its own partitioning rule, 12 collectives here
     assert "pallas collectives 0" in out.stdout, out.stdout
     assert "layer_norm collectives 0" in out.stdout, out.stdout   # likewise for the LayerNorm kernel
+    assert "denoise collectives 0" in out.stdout, out.stdout      # and the expert's attention kernel
     assert "fp8 collectives 0" in out.stdout, out.stdout

@@ -38,11 +38,14 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.experimental import pallas as pl
+from jax.experimental.custom_partitioning import custom_partitioning
+from jax.sharding import NamedSharding, PartitionSpec as P
 
 from pi0_jax.ops import mosaic_gemm, pallas_base
 from pi0_jax.ops.mosaic_gemm import Launch
@@ -286,7 +289,14 @@ def attention(qkv, cache_k, cache_v, prefix_mask, suffix_mask, *, batch: int, nu
     same for every query; suffix_mask (M, Sp) int32, query row -> suffix key. The prefix keys are split over
     `blocks.kv_splits` programs per query block, the suffix keys take one more; the splits' softmaxes are merged
     by their log-sum-exp. A split whose keys are all masked has a log-sum-exp of about BIG_NEG and weight 0.
+
+    Under a sharded jit (the simulator's batch mesh) each device attends its own elements: every operand is
+    batch-major, and XLA cannot split a kernel it does not know (it would gather every row onto every device).
     """
+    return _partitioned(qkv, cache_k, cache_v, prefix_mask, suffix_mask, batch, num_heads, num_kv_heads, blocks)
+
+
+def _attention(qkv, cache_k, cache_v, prefix_mask, suffix_mask, batch, num_heads, num_kv_heads, blocks):
     m, sp = suffix_mask.shape
     hd = qkv.shape[1] // (num_heads + 2 * num_kv_heads)
     pp = prefix_mask.shape[1]
@@ -300,6 +310,37 @@ def attention(qkv, cache_k, cache_v, prefix_mask, suffix_mask, *, batch: int, nu
     o, lse = _call(kernel, (batch, num_heads, sp // bq, splits + 1), out, "expert_attention",
                    blocks.attention_warps, blocks.attention_stages)(qkv, cache_k, cache_v, prefix_mask, suffix_mask)
     return merge(o, lse, parts=splits + 1, num_heads=num_heads)
+
+
+@functools.partial(custom_partitioning, static_argnums=(5, 6, 7, 8))
+def _partitioned(qkv, cache_k, cache_v, prefix_mask, suffix_mask, batch, num_heads, num_kv_heads, blocks):
+    return _attention(qkv, cache_k, cache_v, prefix_mask, suffix_mask, batch, num_heads, num_kv_heads, blocks)
+
+
+def _batch_rows(batch, mesh, sharding) -> tuple:
+    """(the operands' sharding: batch-major rows as qkv's, whole elements per device, else replicated; devices)."""
+    axes = sharding.spec[0] if len(sharding.spec) else None
+    n = math.prod(mesh.shape[a] for a in (axes if isinstance(axes, tuple) else (axes,))) if axes else 1
+    if n == 1 or batch % n:
+        return NamedSharding(mesh, P()), 1
+    return NamedSharding(mesh, P(axes, None)), n
+
+
+def _partition(batch, num_heads, num_kv_heads, blocks, mesh, arg_shapes, result_shape):
+    rows, n = _batch_rows(batch, mesh, arg_shapes[0].sharding)
+    fn = functools.partial(_attention, batch=batch // n, num_heads=num_heads, num_kv_heads=num_kv_heads,
+                           blocks=blocks)
+    return mesh, fn, rows, (rows,) * 5
+
+
+def _infer(batch, num_heads, num_kv_heads, blocks, mesh, arg_shapes, result_shape):
+    return _batch_rows(batch, mesh, arg_shapes[0].sharding)[0]
+
+
+# need_replication lists the factors in their order of appearance (Shardy's verifier wants them sorted)
+_partitioned.def_partition(partition=_partition, infer_sharding_from_operands=_infer,
+                           sharding_rule="r c, k e, k e, b p, r s -> r d",
+                           need_replication_factors=("c", "e", "p", "s", "d"))
 
 
 def _merge_kernel(o_ref, lse_ref, out_ref, *, m, bm, bd, hd, parts):
