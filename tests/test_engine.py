@@ -115,6 +115,17 @@ def test_committed_actions_match_reference_and_come_back_exactly(model):
     np.testing.assert_allclose(plain, sample_ref(config, params, obs, noise, 3), rtol=1e-5, atol=1e-5)  # = no prefix
     # the committed actions condition the rest: the same noise without them samples something else
     assert np.abs(got[0, 3:] - plain[0, 3:]).max() > 1e-3
+    # the XLA expert on the Pallas attention: its cache in the kernels' layout, the rows (π0.5: the per-token
+    # modulation too) padded to the kernel's Sp for the whole pass
+    attention = programs.Attention(denoise="pallas")
+    kernel = Engine(config, params, attention=attention, cache_dir=False)
+    cache = kernel.executable("fill_prefix_cache", 2, 3, cameras, bucket)(w, image_tokens, image_masks, tokens,
+                                                                           token_mask)
+    got = jax.jit(lambda c, s, n, x, k: programs.denoise(config, w, engine.schedule(3), c, s, n, num_steps=3,
+                                                         unroll=True, unroll_steps=False, attention=attention,
+                                                         committed=x, num_committed=k))(cache, state, noise,
+                                                                                        committed, d)
+    np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-5)
 
 
 @pytest.mark.parametrize("attention", ["cudnn", "vision=cudnn", "prefix=cudnn", "denoise=cudnn", "denoise=auto"])
