@@ -115,8 +115,7 @@ def test_committed_actions_match_reference_and_come_back_exactly(model):
     np.testing.assert_allclose(plain, sample_ref(config, params, obs, noise, 3), rtol=1e-5, atol=1e-5)  # = no prefix
     # the committed actions condition the rest: the same noise without them samples something else
     assert np.abs(got[0, 3:] - plain[0, 3:]).max() > 1e-3
-    # the XLA expert on the Pallas attention: its cache in the kernels' layout, the rows (π0.5: the per-token
-    # modulation too) padded to the kernel's Sp for the whole pass
+    # the XLA expert on the Pallas attention: its cache in the kernels' layout
     attention = programs.Attention(denoise="pallas")
     kernel = Engine(config, params, attention=attention, cache_dir=False)
     cache = kernel.executable("fill_prefix_cache", 2, 3, cameras, bucket)(w, image_tokens, image_masks, tokens,

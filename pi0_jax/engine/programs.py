@@ -314,12 +314,6 @@ def _velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, ca
     kv_len = None
     if attention.denoise == "pallas":   # the kernel's masks: prefix (B, Pp), suffix (B Sp, Sp), int32
         prefix_mask, suffix_mask = fixed["tables"][2:]
-        # the rows padded to the kernel's Sp for the whole pass, not in each layer: padded rows are zeros at the start
-        # and masked as keys, so no valid row sees them; they are cut off before the output projection
-        sp = layout.suffix_rows(s)
-        x, positions = (jnp.pad(a, ((0, 0), (0, sp - s)) + ((0, 0),) * (a.ndim - 2)) for a in (x, positions))
-        if mods is not None and mods[0].shape[1] == s > 1:   # per token (committed actions)
-            mods = tuple(jnp.pad(m, ((0, 0), (0, sp - s), (0, 0), (0, 0))) for m in mods)
     elif attention.denoise == "cudnn":
         kv_len = (s + jnp.sum(cache.mask, axis=-1)).astype(jnp.int32)
         # only π0's state row masks suffix keys (it sees no action); the action rows, and π0.5's, see them all
@@ -335,7 +329,7 @@ def _velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, ca
     if mods is not None:   # layer axis first: (L, B or 1, H or 1, 3D)
         per_layer += [_by_layer(jnp.moveaxis(m, 2, 0), unroll) for m in mods]
     x, outs = layers.run_layers(layer, weights["expert"], x, per_layer, unroll=unroll)
-    return _top(config, weights, final_mod, x[:, :s]), (None if kv is None else tuple(outs))
+    return _top(config, weights, final_mod, x), (None if kv is None else tuple(outs))
 
 
 def _top(config, weights, final_mod, x):
