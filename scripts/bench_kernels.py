@@ -79,6 +79,11 @@ STEP_SWEEPS = {
                      "mlp geglu 64 8st d1": dict(mosaic_mlp=L(64, 1, 8, geglu=True, delay=1)),
                      "mlp geglu 64 8st d2": dict(mosaic_mlp=L(64, 1, 8, geglu=True, delay=2)),
                      "mlp mosaic 64 1s 8st d1": dict(mosaic_mlp=L(64, 1, 8, delay=1))},
+    # the attention's key splits since its splits are merged by one Pallas kernel (session 28: XLA's merge had been
+    # two fusions), and its key block
+    "kv_splits": {"default": {}, "kv splits 7": dict(kv_splits=7), "kv splits 10": dict(kv_splits=10),
+                  "kv splits 16": dict(kv_splits=16), "kv 32 splits 13": dict(kv=32),
+                  "kv 32 splits 26": dict(kv=32, kv_splits=26)},
 }
 
 
