@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import functools
+import inspect
 import json
 import os
 import sys
@@ -83,8 +84,16 @@ STEP_SWEEPS = {
     # two fusions), and its key block
     "kv_splits": {"default": {}, "kv splits 7": dict(kv_splits=7), "kv splits 10": dict(kv_splits=10),
                   "kv splits 16": dict(kv_splits=16), "kv 32 splits 13": dict(kv=32),
-                  "kv 32 splits 26": dict(kv=32, kv_splits=26)},
+                  "kv 32 splits 26": dict(kv=32, kv_splits=26), "attention warps 4": dict(attention_warps=4)},
 }
+
+
+def set_blocks(blocks: ek.Blocks) -> None:
+    """The Blocks the programs traced from now on take: `layers.suffix_layers_pallas`' default (by name; a 2-tuple
+    of defaults, written before its `tables` parameter came, set blocks=None and failed every variant)."""
+    fn = layers.suffix_layers_pallas
+    names = [p.name for p in inspect.signature(fn).parameters.values() if p.default is not inspect.Parameter.empty]
+    fn.__defaults__ = tuple(blocks if n == "blocks" else d for n, d in zip(names, fn.__defaults__))
 
 
 def median_ms(fn, args, iters: int, warmup: int = 3) -> float:
@@ -296,7 +305,7 @@ def engine_runs(config, args, variants: dict, out):
     for name, blocks in variants.items():
         kernels = "xla" if blocks is None else "pallas"
         if blocks is not None:
-            layers.suffix_layers_pallas.__defaults__ = (None, blocks)
+            set_blocks(blocks)
         r = res[name] = {}
         for steps in (1, 10):
             t0 = time.perf_counter()
@@ -345,7 +354,7 @@ def step_sweep(config, args, out) -> ek.Blocks:
     def timed(variants: dict) -> dict:
         calls, kernels = {}, {}
         for name, fields in list(variants.items()):
-            layers.suffix_layers_pallas.__defaults__ = (None, dataclasses.replace(base, **fields))
+            set_blocks(dataclasses.replace(base, **fields))
             try:
                 den, calls[name] = denoise_program(config, engine, cache, packed, noise, 10)
             except Exception as e:  # noqa: BLE001  (e.g. a tile over the shared memory: recorded, not timed)
@@ -354,7 +363,7 @@ def step_sweep(config, args, out) -> ek.Blocks:
                 variants = {k: v for k, v in variants.items() if k != name}
                 continue
             kernels[name] = step_ops(den)["kernels_per_step"]
-        layers.suffix_layers_pallas.__defaults__ = (None, base)
+        set_blocks(base)
         ms = interleaved_ms(calls, args.iters)
         rows = [{"variant": n, "denoise_10_ms": ms[n], "vs_default": ms[n] / ms["default"],
                  "kernels_per_step": kernels[n], "fields": {k: dataclasses.asdict(v) if dataclasses.is_dataclass(v)
