@@ -76,8 +76,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--attention", default="auto", type=attention_spec,
                    help="each stage's attention: xla (the reference's ops), cudnn (one fused flash kernel), auto "
                         "(the faster per stage on a GPU: in vision a Pallas kernel that reads q, k, v in place, cuDNN "
-                        "in the prefix, in the denoise step cuDNN from batch 3 and XLA below, π0 the Pallas expert's "
-                        "split-key kernel at batch 3-16; XLA on a CPU), or per stage, e.g. "
+                        "in the prefix, in the denoise step the Pallas expert's split-key kernel at batch 4-8 (π0: "
+                        "3-16), cuDNN from batch 3 elsewhere, XLA below; XLA on a CPU), or per stage, e.g. "
                         "vision=pallas,prefix=xla,denoise=auto (vision and denoise may be pallas) "
                         "(default: %(default)s)")
     p.add_argument("--kernels", choices=KERNELS, default="auto",

@@ -35,11 +35,13 @@ PALLAS_MAX_BATCH = 2
 # the kernel): 9 % slower at B = 3, 4, 9 and 37 % faster at B = 4, 8 and 64.
 CUDNN_DENOISE_MIN_BATCH = 3
 CUDNN_DENOISE_MIN_BATCH_MASKED = 4
-# The batches at which π0's denoise attention="auto" is the Pallas split-key kernel in the XLA expert's layers (its
-# state row needs no XLA attention beside cuDNN's): the 10-step denoise 25 % faster than XLA's attention at B = 3,
-# 28 / 19 / 9 % faster than cuDNN's at B = 4 / 8 / 16, 18 % slower at B = 64 (H200s); π0.5's was level at B = 8 and
-# 47 % slower at B = 64, so it keeps cuDNN (docs/BENCHMARKS.md, "The Pallas attention in the XLA expert").
+# The batches at which the denoise attention="auto" is the Pallas split-key kernel in the XLA expert's layers, at
+# `expert_kernels.blocks_at`'s launch (docs/BENCHMARKS.md, "The Pallas attention in the XLA expert"). π0 (its state
+# row needs no XLA attention beside cuDNN's): the 10-step denoise 25 % faster than XLA's attention at B = 3, 28 / 19 /
+# 9 % faster than cuDNN's at B = 4 / 8 / 16 with 8 warps (H200s), 4 warps 6-9 % faster again (H100), 18 % slower at
+# B = 64. π0.5: with 4 warps 19 / 6.5 % faster than cuDNN's at B = 4 / 8, 5 % slower at B = 16 (H100).
 PALLAS_DENOISE_BATCHES_MASKED = range(3, 17)
+PALLAS_DENOISE_BATCHES = range(4, 9)
 
 
 KERNELS = ("auto", "xla", "pallas")
@@ -92,8 +94,8 @@ class Attention:
     read in place from the fused GEMM's output). The denoise step's may also be "pallas" (the XLA expert's layers
     with the Pallas expert's split-key attention, `ops.expert_kernels.attention`, over a cache in its layout; not
     differentiable) or "auto": "cudnn" from CUDNN_DENOISE_MIN_BATCH on (π0: CUDNN_DENOISE_MIN_BATCH_MASKED), else
-    "xla", but π0's "pallas" at PALLAS_DENOISE_BATCHES_MASKED (`at_batch` resolves it; the programs do). It is
-    unused by the Pallas expert, which has its own."""
+    "xla", but "pallas" at PALLAS_DENOISE_BATCHES (π0: PALLAS_DENOISE_BATCHES_MASKED) (`at_batch` resolves it; the
+    programs do). It is unused by the Pallas expert, which has its own."""
 
     vision: str = "xla"
     prefix: str = "xla"
@@ -111,7 +113,8 @@ class Attention:
         program that differentiates the velocity, `guided_denoise`)."""
         if self.denoise != "auto":
             return self
-        if suffix_mask and not differentiable and batch in PALLAS_DENOISE_BATCHES_MASKED:
+        kernel = PALLAS_DENOISE_BATCHES_MASKED if suffix_mask else PALLAS_DENOISE_BATCHES
+        if not differentiable and batch in kernel:
             return dataclasses.replace(self, denoise="pallas")
         cudnn = batch >= (CUDNN_DENOISE_MIN_BATCH_MASKED if suffix_mask else CUDNN_DENOISE_MIN_BATCH)
         return dataclasses.replace(self, denoise="cudnn" if cudnn else "xla")

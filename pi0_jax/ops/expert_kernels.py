@@ -104,8 +104,9 @@ class Blocks:
 def blocks_at(batch: int, blocks: Blocks = Blocks()) -> Blocks:
     """The XLA expert's launch of the attention kernel at this batch (`engine.layers._attend_kernel`): the key splits
     shared out over the elements, whose (element, head) programs fill the GPU themselves, so the merge reads fewer
-    split outputs."""
-    return dataclasses.replace(blocks, kv_splits=max(1, round(blocks.kv_splits / batch)))
+    split outputs; 4 warps a program (the 10-step denoise 5.5-9 % faster than with 8 at B = 4, 8 and 16 on an H100,
+    level at B = 1: docs/BENCHMARKS.md, "The Pallas attention in the XLA expert")."""
+    return dataclasses.replace(blocks, kv_splits=max(1, round(blocks.kv_splits / batch)), attention_warps=4)
 
 
 def _call(kernel, grid, out_shape, name: str, num_warps: int, num_stages: int):
