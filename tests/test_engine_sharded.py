@@ -40,9 +40,10 @@ CHILD = textwrap.dedent("""
         np.testing.assert_allclose(fn(w, sched, *args), alone(w, sched, *args), rtol=1e-5, atol=1e-5)
     # π0's denoise on the Pallas attention in the XLA expert (auto at B = 3-16 on a GPU)
     cfg0 = get_config("dummy")
-    w0 = engine_weights(cfg0, pi0.random_params(cfg0, 0), unroll=True)
-    sched0 = jax.jit(weights.precompute_schedule, static_argnums=(0, 2))(
-        cfg0, weights.schedule_params(cfg0, pi0.random_params(cfg0, 0)), 2)
+    params0 = pi0.random_params(cfg0, 0)
+    w0 = engine_weights(cfg0, params0, unroll=True)
+    sched0 = jax.jit(weights.precompute_schedule, static_argnums=(0, 2))(cfg0, weights.schedule_params(cfg0, params0),
+                                                                        2)
     n0 = cfg0.max_token_len
     args0 = (*args[:2], jnp.zeros((b, n0), jnp.int32), jnp.ones((b, n0), bool), jnp.zeros((b, cfg0.action_dim)),
              jax.random.normal(jax.random.key(1), (b, cfg0.action_horizon, cfg0.action_dim)))
@@ -51,7 +52,7 @@ CHILD = textwrap.dedent("""
     fn = jax.jit(run, in_shardings=shardings)
     print("denoise collectives", collectives(fn.lower(w0, sched0, *args0).compile().as_text()))
     np.testing.assert_allclose(fn(w0, sched0, *args0), jax.jit(run)(w0, sched0, *args0), rtol=1e-5, atol=1e-5)
-    # SigLIP's LayerNorm kernel (kernels="pallas"; the expert's kernels are for B <= 2 and not partitioned)
+    # SigLIP's LayerNorm kernel (kernels="pallas"; the expert's GEMM kernels are for B <= 2 and not partitioned)
     enc = lambda w, im: programs.encode_images(cfg, w, im, unroll=True, kernels="pallas",
                                                attention=programs.Attention(vision="pallas"))
     sharded = jax.jit(enc, in_shardings=(None, sh(None, "batch")))
