@@ -86,11 +86,11 @@ def kernel_times(fn, calls: int = 5, log_dir: str | None = None, sequence: bool 
     full name (the optimized HLO's instruction name for XLA's fusions) and duration in us."""
     events, threads, gpu, wall = traced(fn, calls, log_dir)
     kernels = gpu_kernels(events, threads, gpu)
+    short = [(ts, dur, re.sub(r"([._]\d+)+$", "", name)) for ts, dur, name in kernels]
     rows = collections.defaultdict(lambda: [0, 0.0])
-    for _, dur, name in kernels:
-        row = rows[re.sub(r"([._]\d+)+$", "", name)]
-        row[0] += 1
-        row[1] += dur
+    for _, dur, name in short:
+        rows[name][0] += 1
+        rows[name][1] += dur
     launched = len(kernels) / calls
     first = [(name, round(dur, 3)) for _, dur, name in kernels[:round(launched)]] if sequence else []
     busy_us = sum(t for _, t in rows.values()) / calls
@@ -98,7 +98,7 @@ def kernel_times(fn, calls: int = 5, log_dir: str | None = None, sequence: bool 
     return {"calls": calls, "wall_ms": wall * 1e3, "kernels_per_call": launched, "kernel_ms": busy_us / 1e3,
             "busy": busy_us / 1e3 / (wall * 1e3) if wall else None,
             "device_lines": sorted(name for key, name in threads.items() if key[0] in gpu),
-            **idle([(ts, dur, re.sub(r"([._]\d+)+$", "", name)) for ts, dur, name in kernels], calls),
+            **idle(short, calls),
             "by_name": [{"name": n, "per_call": c / calls, "us_per_call": t / calls} for n, (c, t) in top[:60]],
             **({"sequence": first} if sequence else {})}
 

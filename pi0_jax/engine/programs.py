@@ -313,11 +313,12 @@ def _velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, ca
                                         tables=fixed["tables"])
         return _top(config, weights, final_mod, x), kv
 
-    prefix_mask = jnp.broadcast_to(cache.mask[:, None, :], (b, s, cache.mask.shape[1]))
     kv_len = None
     if attention.denoise == "pallas":   # the kernel's masks: prefix (B, Pp), suffix (B Sp, Sp), int32
         prefix_mask, suffix_mask = fixed["tables"][2:]
-    elif attention.denoise == "cudnn":
+    else:
+        prefix_mask = jnp.broadcast_to(cache.mask[:, None, :], (b, s, cache.mask.shape[1]))
+    if attention.denoise == "cudnn":
         kv_len = (s + jnp.sum(cache.mask, axis=-1)).astype(jnp.int32)
         # only π0's state row masks suffix keys (it sees no action); the action rows, and π0.5's, see them all
         suffix_mask = None if config.pi05 else suffix_mask[:, :1]
