@@ -246,7 +246,8 @@ engine = Engine(cfg, params, unroll=sys.argv[4] == "1", kernels=sys.argv[8], att
 obs, noise = benchmark.make_inputs(cfg, 1, int(sys.argv[5]), int(sys.argv[6]), 0)
 start = time.perf_counter()
 engine.call_programs(1, int(sys.argv[7]), *engine.plan(obs))
-print(json.dumps({"warm_compile_s": time.perf_counter() - start, "process_s": time.perf_counter() - t0}))
+print(json.dumps({"warm_compile_s": time.perf_counter() - start, "process_s": time.perf_counter() - t0,
+                  "programs_loaded": engine.store.loaded}))
 """
 
 

@@ -42,6 +42,7 @@ from pi0_jax.engine import engine_weights, enable_compilation_cache, prompt_buck
 from pi0_jax.engine import programs
 from pi0_jax.engine import weights as weights_lib
 from pi0_jax.engine.runtime import STAGE_WEIGHTS
+from pi0_jax.engine.store import ProgramStore
 from pi0_jax.observation import DEFAULT_OPTIONAL_CAMERAS, ObservationError, Prepared, Validator
 from pi0_jax.ops import matmul
 from pi0_jax.preprocess import resize_with_pad
@@ -242,8 +243,10 @@ class Policy:
                  sampler: str = "engine", strict: bool = True, optional_cameras: Sequence[str] | None = None,
                  ignore_keys: Sequence[str] = (), max_batch: int = 8, kernels: str = "auto",
                  attention: str = "auto", cache_dir: str | os.PathLike | None | bool = None):
+        self.store = None   # the compiled programs on disk (`engine.store`), beside XLA's cache
         if cache_dir is not False:
-            enable_compilation_cache(None if cache_dir in (None, True) else cache_dir)
+            self.store = ProgramStore(enable_compilation_cache(None if cache_dir in (None, True) else cache_dir)
+                                      / "programs")
         self.core = PolicyCore(config, params, tokenizer, normalizer, num_steps=num_steps, action_dims=action_dims,
                                sampler=sampler, kernels=kernels, attention=attention)
         self.validator = Validator(self.core, camera_map=camera_map, default_prompt=default_prompt, strict=strict,
@@ -376,20 +379,28 @@ class Policy:
 
     def _compile(self, spec: tuple, cameras: tuple[str, ...]):
         core = self.core
+        # everything the traced programs depend on besides their arguments and compiler options
+        parts = (repr(core.config), core.sampler, core.num_steps, core.action_dims, core.unroll, core.kernels,
+                 repr(core.attention), core.gemm, cameras)
+
+        def compile_(name, fn, args, options):
+            if self.store is None:
+                return jax.jit(fn).lower(*args).compile(options)
+            return self.store.compile(f"policy_{name}", parts, fn, args, options)
+
         if core.sampler != "engine":
             def fn(model, norm, images, image_masks, tokens, token_mask, state, noise):
                 return core.program(model, norm, images, cameras, image_masks, tokens, token_mask, state, noise)
 
-            exe = jax.jit(fn).lower(core.model, self._norm, *spec).compile(
-                matmul.compiler_options(core.model, core.gemm))
+            exe = compile_("reference", fn, (core.model, self._norm, *spec),
+                           matmul.compiler_options(core.model, core.gemm))
             return functools.partial(exe, core.model)
         vision, rest = core.split_model(core.model)
         images = spec[0]
-        encode = jax.jit(core.encode).lower(vision, images).compile(
-            matmul.compiler_options(vision, core.gemm, vision_tower=True))
+        encode = compile_("encode", core.encode, (vision, images),
+                          matmul.compiler_options(vision, core.gemm, vision_tower=True))
         tokens = jax.eval_shape(core.encode, vision, images)
-        act = jax.jit(core.act).lower(rest, self._norm, tokens, *spec[1:]).compile(
-            matmul.compiler_options(rest, core.gemm))
+        act = compile_("act", core.act, (rest, self._norm, tokens, *spec[1:]), matmul.compiler_options(rest, core.gemm))
 
         def call(norm, images, *args):
             return act(rest, norm, encode(vision, images), *args)

@@ -312,6 +312,7 @@ def test_prompt_buckets():
 
 _CHILD = textwrap.dedent("""
     import json, sys, jax
+    import numpy as np
     hits = []
     jax.monitoring.register_event_listener(lambda name, **kw: hits.append(name))
     sys.path.insert(0, sys.argv[2])
@@ -320,21 +321,28 @@ _CHILD = textwrap.dedent("""
     from pi0_jax.engine import Engine
     from test_model import make_obs
     config = get_config("dummy")
-    params = jax.tree.map(lambda s: jax.numpy.zeros(s.shape, s.dtype), pi0.param_shapes(config))  # compile only
+    params = jax.tree.map(lambda s: jax.numpy.full(s.shape, 0.01, s.dtype), pi0.param_shapes(config))
     engine = Engine(config, params, cache_dir=sys.argv[1])
     obs = make_obs(config)
-    engine.call_programs(2, 2, *engine.plan(obs))
+    noise = np.random.default_rng(0).standard_normal((2, config.action_horizon, config.action_dim), np.float32)
+    actions = np.asarray(engine.sample_actions(obs, noise, 2))
     print(json.dumps({"hits": hits.count("/jax/compilation_cache/cache_hits"),
-                      "misses": hits.count("/jax/compilation_cache/cache_misses")}))
+                      "misses": hits.count("/jax/compilation_cache/cache_misses"),
+                      "stored": engine.store.loaded, "actions": actions.ravel().tolist()}))
 """)
 
 
-def test_persistent_cache_is_reused_by_a_second_process(tmp_path):
+def test_a_second_process_loads_the_programs_without_compiling(tmp_path):
+    """The call's two programs come back from the program store (no tracing); what else the engine compiles (its
+    weights' layout, the schedule) comes from XLA's persistent cache; the actions are the first process's."""
     tests_dir = str(__import__("pathlib").Path(__file__).parent)
     runs = []
     for _ in range(2):
         out = subprocess.run([sys.executable, "-c", _CHILD, str(tmp_path / "xla"), tests_dir], check=True,
                              capture_output=True, text=True).stdout
         runs.append(json.loads(out.strip().splitlines()[-1]))
-    assert runs[0]["misses"] >= 1
+    assert runs[0]["misses"] >= 1 and runs[0]["stored"] == 0
+    assert runs[1]["stored"] == 2, runs[1]["stored"]
     assert runs[1]["hits"] >= 1 and runs[1]["misses"] == 0, runs
+    assert len(list((tmp_path / "xla" / "programs").glob("*.pkl"))) == 2
+    np.testing.assert_array_equal(runs[0]["actions"], runs[1]["actions"])

@@ -249,3 +249,17 @@ def test_pi05_discrete_state_prompt(pi05_ckpt, sp_model_path):
     n = int(obs.tokenized_prompt_mask.sum())
     listed = tok.decode(obs.tokenized_prompt[0, 1:n]).split("State: ")[1].split(";")[0].split()
     assert len(listed) == config.action_dim and listed[8:] == ["128"] * (config.action_dim - 8)
+
+
+def test_a_policy_with_a_cache_dir_loads_its_programs_the_second_time(pi0_ckpt, pi0_policy, tmp_path):
+    """Policy's two programs through the program store (`engine.store`): the second policy compiles nothing, and its
+    actions are the first one's and the uncached policy's."""
+    _, config, _ = pi0_ckpt
+    noise = RNG.normal(size=(config.action_horizon, config.action_dim)).astype(np.float32)
+    want = pi0_policy.infer(libero_obs(), noise=noise)["actions"]
+    for stored in (0, 2):
+        policy = Policy.from_checkpoint(pi0_ckpt[0], cache_dir=tmp_path)
+        np.testing.assert_array_equal(policy.infer(libero_obs(), noise=noise)["actions"], want)
+        assert policy.store.loaded == stored
+    assert sorted(p.name.split("-")[0] for p in (tmp_path / "programs").glob("*.pkl")) == ["policy_act",
+                                                                                           "policy_encode"]

@@ -2,7 +2,8 @@
 
 One executable per (stage, batch, num_steps, active cameras, prompt bucket); the config (preset, dtype) is fixed per
 Engine. Executables are kept, compiled ahead of time (`jit(...).lower(...).compile()`), so an input of the wrong
-shape is an error, never a silent recompile. XLA's persistent compilation cache makes a second process start warm.
+shape is an error, never a silent recompile. With a cache directory, a second process starts warm: the programs come
+back from `store.ProgramStore` without tracing, and anything else compiled from XLA's persistent cache.
 
 A call (`sample_actions`) is two programs, dispatched one after the other with no host round trip between them:
 the vision tower, then the prefix fill and the denoise loop. Each takes only its own weights (`STAGE_WEIGHTS`): the
@@ -29,6 +30,7 @@ import numpy as np
 from pi0_jax import pi0
 from pi0_jax.config import IMAGE_KEYS, Pi0Config
 from pi0_jax.engine import programs, weights as weights_lib
+from pi0_jax.engine.store import ProgramStore
 from pi0_jax.ops import matmul
 
 PROMPT_BUCKETS = (16, 32, 48, 64, 96, 128, 160, 200)
@@ -126,8 +128,10 @@ class Engine:
         self.attention = programs.Attention.parse(attention, dtype=config.dtype)
         self.kernels = programs.check_kernels(kernels)
         self.gemm = matmul.check_gemm(gemm)
+        self.store = None
         if cache_dir is not False:
             self.cache_dir = enable_compilation_cache(None if cache_dir in (None, True) else cache_dir)
+            self.store = ProgramStore(self.cache_dir / "programs")
         self.config = config
         self.unroll = unroll
         self.unroll_steps = unroll_steps
@@ -160,9 +164,14 @@ class Engine:
             start = time.perf_counter()
             weights = self.stage_weights(stage)
             fn, args = self._stage(stage, _shapes(weights), batch, num_steps, cameras, prompt_len)
-            lowered = jax.jit(fn).lower(*args)
             options = matmul.compiler_options(weights, self.gemm, vision_tower=stage == "encode_images")
-            self._executables[key] = Program(lowered.compile(options), tuple(weights))
+            if self.store is None:
+                compiled = jax.jit(fn).lower(*args).compile(options)
+            else:   # everything the traced program depends on besides its arguments and options
+                parts = (key, repr(self.config), self.unroll, self.unroll_steps, repr(self.attention), self.kernels,
+                         self.gemm)
+                compiled = self.store.compile(stage, parts, fn, args, options)
+            self._executables[key] = Program(compiled, tuple(weights))
             self.compile_seconds[key] = time.perf_counter() - start
         return self._executables[key]
 

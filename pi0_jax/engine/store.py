@@ -1,0 +1,95 @@
+"""Compiled programs on disk, found without tracing: a second process loads its executables in well under a second.
+
+XLA's persistent compilation cache is keyed by the lowered module, so a warm process still traces and lowers every
+program first (π0's call at B = 1: about 4-5 s on an H100), and the key is not stable across processes: Mosaic GPU
+(jax 0.11) names each kernel module it lowers with a process-wide counter (`mosaic_gpu.dump_basename`,
+"expert_gate_up_<n>"), so a process that lowered other programs first computes another key and compiles again
+(docs/BENCHMARKS.md, "Warm start").
+
+Here a program is keyed by what it is made from instead: the engine's choices and shapes (the caller's `parts`),
+the argument tree (structure, shapes, dtypes, shardings), the compiler options, the device and backend, jax and
+jaxlib, XLA_FLAGS, the jax settings that change lowering, and a digest of this package's source. Module state
+changed at run time (a probe that patches a constant or a default) is not in the key: such code runs with
+`cache_dir=False`, as the tests and `scripts/` do. Entries are written whole (a temporary file, then a rename); one
+that fails to load is reported, removed and compiled again.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import os
+import pickle
+import tempfile
+import warnings
+from collections.abc import Callable
+from pathlib import Path
+
+import jax
+import jaxlib
+from jax.experimental import serialize_executable
+
+FORMAT = 1  # bump when the entry layout changes
+
+
+@functools.lru_cache(maxsize=1)
+def source_digest() -> str:
+    """sha256 over this package's Python source (relative paths and contents, sorted)."""
+    root = Path(__file__).resolve().parents[1]
+    h = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        h.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes() + b"\0")
+    return h.hexdigest()
+
+
+def _environment() -> tuple:
+    dev = jax.devices()[0]
+    return (FORMAT, jax.__version__, jaxlib.__version__, dev.platform, dev.device_kind, jax.device_count(),
+            getattr(dev.client, "platform_version", ""), os.environ.get("XLA_FLAGS", ""),
+            jax.config.jax_enable_x64, str(jax.config.jax_default_matmul_precision), source_digest())
+
+
+def _signature(args) -> tuple:
+    """The arguments' tree and each leaf's shape, dtype and sharding (None for abstract leaves)."""
+    leaves, tree = jax.tree.flatten(args)
+    return str(tree), tuple((tuple(x.shape), str(x.dtype), str(getattr(x, "sharding", None))) for x in leaves)
+
+
+class ProgramStore:
+    """Serialized executables under `root`, one file per key."""
+
+    def __init__(self, root: str | os.PathLike):
+        self.root = Path(root)
+        self.loaded = 0   # programs this store handed back from disk (tests and benchmarks read it)
+
+    def key(self, name: str, parts: tuple, args, options: dict | None) -> str:
+        blob = repr((name, parts, _signature(args), sorted((options or {}).items()), _environment()))
+        return f"{name}-{hashlib.sha256(blob.encode()).hexdigest()[:32]}"
+
+    def compile(self, name: str, parts: tuple, fn: Callable, args, options: dict | None = None):
+        """`jax.jit(fn).lower(*args).compile(options)`, or the stored executable of the same key."""
+        path = self.root / f"{self.key(name, parts, args, options)}.pkl"
+        if path.exists():
+            try:
+                payload, in_tree, out_tree = pickle.loads(path.read_bytes())
+                compiled = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
+                self.loaded += 1
+                return compiled
+            except Exception as e:   # a truncated or foreign file: say so, drop it, compile again
+                warnings.warn(f"compiled program {path} did not load ({type(e).__name__}: {e}); compiling again",
+                              stacklevel=2)
+                path.unlink(missing_ok=True)
+        compiled = jax.jit(fn).lower(*args).compile(options)
+        self._write(path, pickle.dumps(serialize_executable.serialize(compiled)))
+        return compiled
+
+    def _write(self, path: Path, data: bytes) -> None:
+        self.root.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=self.root, prefix=path.name, suffix=".tmp")
+        try:
+            with os.fdopen(fd, "wb") as f:
+                f.write(data)
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
