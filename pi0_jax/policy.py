@@ -235,6 +235,8 @@ class Policy:
     missing (masked, as LIBERO's absent right wrist); default `observation.DEFAULT_OPTIONAL_CAMERAS`. max_batch: the
     largest batch one device call takes (`infer_batch` and the server split larger ones). kernels, attention: the
     engine's paths (`pi0_jax.engine.Engine`); the defaults pick the faster on this device for each batch size.
+    cache_dir: where compiled programs are kept (`engine.store`, beside XLA's persistent cache; None: the default
+    directory, False: nothing kept).
     """
 
     def __init__(self, config: Pi0Config, params, tokenizer: PaligemmaTokenizer, normalizer: _norm.Normalizer, *,

@@ -119,7 +119,8 @@ class Engine:
     `programs.expert_path`: the kernels at B <= 2 on a GPU, XLA otherwise); the same choice for SigLIP's LayerNorm
     (`programs.vision_norm`: "auto" is the kernel on a GPU from 24 images a call); gemm: the library of XLA's GEMMs on a
     GPU (`pi0_jax.ops.matmul.compiler_options`: "auto", cuBLAS in the vision program and XLA's autotuned choice in
-    the others; "xla" or "cublas" in every program).
+    the others; "xla" or "cublas" in every program); cache_dir: where compiled programs are kept (`store`, beside
+    XLA's persistent cache; None: $PI0_JAX_CACHE_DIR or ~/.cache/pi0_jax/xla, False: nothing kept).
     """
 
     def __init__(self, config: Pi0Config, params: dict, *, unroll: bool = True, unroll_steps: bool = False,
