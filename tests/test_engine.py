@@ -318,8 +318,9 @@ _CHILD = textwrap.dedent("""
     sys.path.insert(0, sys.argv[2])
     from pi0_jax import pi0
     from pi0_jax.config import get_config
-    from pi0_jax.engine import Engine
+    from pi0_jax.engine import Engine, store
     from test_model import make_obs
+    store.PLATFORMS = ("cpu",)   # off on a CPU by default; here the two programs are all this process compiles
     config = get_config("dummy")
     params = jax.tree.map(lambda s: jax.numpy.full(s.shape, 0.01, s.dtype), pi0.param_shapes(config))
     engine = Engine(config, params, cache_dir=sys.argv[1])

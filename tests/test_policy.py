@@ -251,9 +251,12 @@ def test_pi05_discrete_state_prompt(pi05_ckpt, sp_model_path):
     assert len(listed) == config.action_dim and listed[8:] == ["128"] * (config.action_dim - 8)
 
 
-def test_a_policy_with_a_cache_dir_loads_its_programs_the_second_time(pi0_ckpt, pi0_policy, tmp_path):
-    """Policy's two programs through the program store (`engine.store`): the second policy compiles nothing, and its
-    actions are the first one's and the uncached policy's."""
+def test_a_policy_with_a_cache_dir_loads_its_programs_the_second_time(pi0_ckpt, pi0_policy, tmp_path, monkeypatch):
+    """Policy's two programs through the program store (`engine.store`, on for this CPU: written and read in one
+    process): the second policy compiles nothing, and its actions are the first one's and the uncached policy's."""
+    from pi0_jax.engine import store
+
+    monkeypatch.setattr(store, "PLATFORMS", ("cpu", "gpu"))
     _, config, _ = pi0_ckpt
     noise = RNG.normal(size=(config.action_horizon, config.action_dim)).astype(np.float32)
     want = pi0_policy.infer(libero_obs(), noise=noise)["actions"]

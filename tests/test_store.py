@@ -9,6 +9,12 @@ from pi0_jax.engine import store as store_lib
 from pi0_jax.engine.store import ProgramStore
 
 
+@pytest.fixture(autouse=True)
+def _on_this_cpu(monkeypatch):
+    """The store is off on a CPU (`store.PLATFORMS`); these tests write and read in one process, where it works."""
+    monkeypatch.setattr(store_lib, "PLATFORMS", ("cpu", "gpu"))
+
+
 def _fn(w, x):
     return {"y": jnp.tanh(x @ w["a"] + w["b"])}
 
@@ -58,7 +64,16 @@ def test_a_broken_entry_is_reported_removed_and_compiled_again(tmp_path):
         out = again.compile("f", (), _fn, args)
     assert again.loaded == 0
     np.testing.assert_array_equal(out(*args)["y"], jax.jit(_fn)(*args)["y"])
-    assert ProgramStore(tmp_path).compile("f", (), _fn, args) is not None and list(tmp_path.glob("*.tmp")) == []
+    assert list(tmp_path.glob("*.tmp")) == []   # the entry was written again, whole
     reread = ProgramStore(tmp_path)
     reread.compile("f", (), _fn, args)
     assert reread.loaded == 1
+
+
+def test_off_where_the_platform_is_not_listed(tmp_path, monkeypatch):
+    monkeypatch.setattr(store_lib, "PLATFORMS", ("gpu",))
+    args = _args()
+    s = ProgramStore(tmp_path)
+    for _ in range(2):
+        np.testing.assert_array_equal(s.compile("f", (), _fn, args)(*args)["y"], jax.jit(_fn)(*args)["y"])
+    assert s.loaded == 0 and list(tmp_path.iterdir()) == []

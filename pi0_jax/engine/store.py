@@ -12,6 +12,10 @@ jaxlib, XLA_FLAGS, the jax settings that change lowering, and a digest of this p
 changed at run time (a probe that patches a constant or a default) is not in the key: such code runs with
 `cache_dir=False`, as the tests and `scripts/` do. Entries are written whole (a temporary file, then a rename); one
 that fails to load is reported, removed and compiled again.
+
+GPU only (`PLATFORMS`): on a CPU (jaxlib 0.10.2) an executable written by a process that had compiled other programs
+first failed when another process ran it ("Function broadcast_maximum_fusion not found"), so there the programs
+compile as before, from XLA's cache. The CPU tests turn the store on where that cannot happen.
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ import jaxlib
 from jax.experimental import serialize_executable
 
 FORMAT = 1  # bump when the entry layout changes
+PLATFORMS = ("gpu",)  # where stored executables are used (the module doc says why not on a CPU)
 
 
 @functools.lru_cache(maxsize=1)
@@ -68,6 +73,8 @@ class ProgramStore:
 
     def compile(self, name: str, parts: tuple, fn: Callable, args, options: dict | None = None):
         """`jax.jit(fn).lower(*args).compile(options)`, or the stored executable of the same key."""
+        if jax.devices()[0].platform not in PLATFORMS:
+            return jax.jit(fn).lower(*args).compile(options)
         path = self.root / f"{self.key(name, parts, args, options)}.pkl"
         if path.exists():
             try:
@@ -89,6 +96,7 @@ class ProgramStore:
         try:
             with os.fdopen(fd, "wb") as f:
                 f.write(data)
+            os.chmod(tmp, 0o644)   # mkstemp's file is private; a cache directory may be shared
             os.replace(tmp, path)
         except BaseException:
             Path(tmp).unlink(missing_ok=True)
