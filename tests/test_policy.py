@@ -252,8 +252,9 @@ def test_pi05_discrete_state_prompt(pi05_ckpt, sp_model_path):
 
 
 def test_a_policy_with_a_cache_dir_loads_its_programs_the_second_time(pi0_ckpt, pi0_policy, tmp_path, monkeypatch):
-    """Policy's two programs through the program store (`engine.store`, on for this CPU: written and read in one
-    process): the second policy compiles nothing, and its actions are the first one's and the uncached policy's."""
+    """Policy's two programs through the program store (`engine.store`, turned on for this CPU): the second policy
+    loads both, and its actions are the first one's and the uncached policy's. (Should a loaded program fail to run,
+    as XLA:CPU's may in a process that compiled much before, `store._Loaded` compiles it again: the actions hold.)"""
     from pi0_jax.engine import store
 
     monkeypatch.setattr(store, "PLATFORMS", ("cpu", "gpu"))

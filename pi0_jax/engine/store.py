@@ -13,9 +13,11 @@ changed at run time (a probe that patches a constant or a default) is not in the
 `cache_dir=False`, as the tests and `scripts/` do. Entries are written whole (a temporary file, then a rename); one
 that fails to load is reported, removed and compiled again.
 
-GPU only (`PLATFORMS`): on a CPU (jaxlib 0.10.2) an executable written by a process that had compiled other programs
-first failed when another process ran it ("Function broadcast_maximum_fusion not found"), so there the programs
-compile as before, from XLA's cache. The CPU tests turn the store on where that cannot happen.
+GPU only (`PLATFORMS`): on a CPU (jaxlib 0.10.2) a loaded executable failed to run where the process that wrote it,
+or the one that read it, had compiled other programs first ("Function broadcast_maximum_fusion not found", "Function
+dot_kernel not found"), so there the programs compile as before, from XLA's cache; the CPU tests run loaded programs
+only in fresh processes. A loaded program's first call is checked wherever the store is on (`_Loaded`): one that
+fails to run is dropped and compiled again.
 """
 
 from __future__ import annotations
@@ -81,7 +83,7 @@ class ProgramStore:
                 payload, in_tree, out_tree = pickle.loads(path.read_bytes())
                 compiled = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
                 self.loaded += 1
-                return compiled
+                return _Loaded(compiled, path, lambda: jax.jit(fn).lower(*args).compile(options))
             except Exception as e:   # a truncated or foreign file: say so, drop it, compile again
                 warnings.warn(f"compiled program {path} did not load ({type(e).__name__}: {e}); compiling again",
                               stacklevel=2)
@@ -101,3 +103,27 @@ class ProgramStore:
         except BaseException:
             Path(tmp).unlink(missing_ok=True)
             raise
+
+
+class _Loaded:
+    """A stored executable whose first call waits for its result: if it fails to run, its entry is removed, the
+    program compiled here and the call made again (programs donate no input, so the arguments are intact)."""
+
+    def __init__(self, compiled, path: Path, recompile: Callable):
+        self._compiled, self._path, self._recompile, self._checked = compiled, path, recompile, False
+
+    def __call__(self, *args):
+        if self._checked:
+            return self._compiled(*args)
+        try:
+            out = jax.block_until_ready(self._compiled(*args))
+        except jax.errors.JaxRuntimeError as e:
+            warnings.warn(f"compiled program {self._path} failed to run ({e}); compiling it again", stacklevel=2)
+            self._path.unlink(missing_ok=True)
+            self._compiled = self._recompile()
+            out = self._compiled(*args)
+        self._checked = True
+        return out
+
+    def as_text(self) -> str:
+        return self._compiled.as_text()
