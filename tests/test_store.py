@@ -122,3 +122,17 @@ def test_a_loaded_program_that_fails_to_run_is_compiled_again(tmp_path, monkeypa
     np.testing.assert_array_equal(out["y"], jax.jit(_fn)(*args)["y"])
     np.testing.assert_array_equal(loaded(*args)["y"], out["y"])
     assert list(tmp_path.glob("*.pkl")) == []
+
+
+def test_a_loaded_program_that_runs_out_of_memory_keeps_its_entry(tmp_path, monkeypatch):
+    args = _args()
+    ProgramStore(tmp_path).compile("f", (), _fn, args)
+
+    def oom(*a):
+        raise jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory while trying to allocate 64 GiB")
+
+    monkeypatch.setattr(store_lib.serialize_executable, "deserialize_and_load", lambda *a, **k: oom)
+    loaded = ProgramStore(tmp_path).compile("f", (), _fn, args)
+    with pytest.raises(jax.errors.JaxRuntimeError, match="RESOURCE_EXHAUSTED"):
+        loaded(*args)
+    assert len(list(tmp_path.glob("*.pkl"))) == 1

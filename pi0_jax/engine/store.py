@@ -106,8 +106,10 @@ class ProgramStore:
 
 
 class _Loaded:
-    """A stored executable whose first call waits for its result: if it fails to run, its entry is removed, the
-    program compiled here and the call made again (programs donate no input, so the arguments are intact)."""
+    """A stored executable whose first call waits for its result: if it fails to run for want of a function of its
+    own (the CPU failure of the module doc: "Function ... not found"), its entry is removed, the program compiled
+    here and the call made again (programs donate no input, so the arguments are intact). Any other error (out of
+    memory, say) is the caller's, and the entry stays."""
 
     def __init__(self, compiled, path: Path, recompile: Callable):
         self._compiled, self._path, self._recompile, self._checked = compiled, path, recompile, False
@@ -118,6 +120,8 @@ class _Loaded:
         try:
             out = jax.block_until_ready(self._compiled(*args))
         except jax.errors.JaxRuntimeError as e:
+            if "not found" not in str(e):
+                raise
             warnings.warn(f"compiled program {self._path} failed to run ({e}); compiling it again", stacklevel=2)
             self._path.unlink(missing_ok=True)
             self._compiled = self._recompile()
