@@ -245,10 +245,10 @@ class Policy:
                  sampler: str = "engine", strict: bool = True, optional_cameras: Sequence[str] | None = None,
                  ignore_keys: Sequence[str] = (), max_batch: int = 8, kernels: str = "auto",
                  attention: str = "auto", cache_dir: str | os.PathLike | None | bool = None):
-        self.store = None   # the compiled programs on disk (`engine.store`), beside XLA's cache
+        root = None   # the compiled programs on disk (`engine.store`), beside XLA's cache
         if cache_dir is not False:
-            self.store = ProgramStore(enable_compilation_cache(None if cache_dir in (None, True) else cache_dir)
-                                      / "programs")
+            root = enable_compilation_cache(None if cache_dir in (None, True) else cache_dir) / "programs"
+        self.store = ProgramStore(root)
         self.core = PolicyCore(config, params, tokenizer, normalizer, num_steps=num_steps, action_dims=action_dims,
                                sampler=sampler, kernels=kernels, attention=attention)
         self.validator = Validator(self.core, camera_map=camera_map, default_prompt=default_prompt, strict=strict,
@@ -386,8 +386,6 @@ class Policy:
                  repr(core.attention), core.gemm, cameras)
 
         def compile_(name, fn, args, options):
-            if self.store is None:
-                return jax.jit(fn).lower(*args).compile(options)
             return self.store.compile(f"policy_{name}", parts, fn, args, options)
 
         if core.sampler != "engine":

@@ -129,10 +129,9 @@ class Engine:
         self.attention = programs.Attention.parse(attention, dtype=config.dtype)
         self.kernels = programs.check_kernels(kernels)
         self.gemm = matmul.check_gemm(gemm)
-        self.store = None
         if cache_dir is not False:
             self.cache_dir = enable_compilation_cache(None if cache_dir in (None, True) else cache_dir)
-            self.store = ProgramStore(self.cache_dir / "programs")
+        self.store = ProgramStore(self.cache_dir / "programs" if cache_dir is not False else None)
         self.config = config
         self.unroll = unroll
         self.unroll_steps = unroll_steps
@@ -166,13 +165,10 @@ class Engine:
             weights = self.stage_weights(stage)
             fn, args = self._stage(stage, _shapes(weights), batch, num_steps, cameras, prompt_len)
             options = matmul.compiler_options(weights, self.gemm, vision_tower=stage == "encode_images")
-            if self.store is None:
-                compiled = jax.jit(fn).lower(*args).compile(options)
-            else:   # everything the traced program depends on besides its arguments and options
-                parts = (key, repr(self.config), self.unroll, self.unroll_steps, repr(self.attention), self.kernels,
-                         self.gemm)
-                compiled = self.store.compile(stage, parts, fn, args, options)
-            self._executables[key] = Program(compiled, tuple(weights))
+            # everything the traced program depends on besides its arguments and options
+            parts = (key, repr(self.config), self.unroll, self.unroll_steps, repr(self.attention), self.kernels,
+                     self.gemm)
+            self._executables[key] = Program(self.store.compile(stage, parts, fn, args, options), tuple(weights))
             self.compile_seconds[key] = time.perf_counter() - start
         return self._executables[key]
 

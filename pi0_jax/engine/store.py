@@ -63,10 +63,10 @@ def _signature(args) -> tuple:
 
 
 class ProgramStore:
-    """Serialized executables under `root`, one file per key."""
+    """Serialized executables under `root`, one file per key; root None: nothing kept, every program compiled."""
 
-    def __init__(self, root: str | os.PathLike):
-        self.root = Path(root)
+    def __init__(self, root: str | os.PathLike | None):
+        self.root = None if root is None else Path(root)
         self.loaded = 0   # programs this store handed back from disk (tests and benchmarks read it)
 
     def key(self, name: str, parts: tuple, args, options: dict | None) -> str:
@@ -75,20 +75,23 @@ class ProgramStore:
 
     def compile(self, name: str, parts: tuple, fn: Callable, args, options: dict | None = None):
         """`jax.jit(fn).lower(*args).compile(options)`, or the stored executable of the same key."""
-        if jax.devices()[0].platform not in PLATFORMS:
+        def fresh():
             return jax.jit(fn).lower(*args).compile(options)
+
+        if self.root is None or jax.devices()[0].platform not in PLATFORMS:
+            return fresh()
         path = self.root / f"{self.key(name, parts, args, options)}.pkl"
         if path.exists():
             try:
                 payload, in_tree, out_tree = pickle.loads(path.read_bytes())
                 compiled = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
                 self.loaded += 1
-                return _Loaded(compiled, path, lambda: jax.jit(fn).lower(*args).compile(options))
+                return _Loaded(compiled, path, fresh)
             except Exception as e:   # a truncated or foreign file: say so, drop it, compile again
                 warnings.warn(f"compiled program {path} did not load ({type(e).__name__}: {e}); compiling again",
                               stacklevel=2)
                 path.unlink(missing_ok=True)
-        compiled = jax.jit(fn).lower(*args).compile(options)
+        compiled = fresh()
         self._write(path, pickle.dumps(serialize_executable.serialize(compiled)))
         return compiled
 
