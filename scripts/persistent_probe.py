@@ -1,0 +1,430 @@
+"""Can one persistent Pallas kernel stream the action expert's weights faster than a kernel per GEMM?
+
+The denoise step at B = 1 (64 rows) is about 9 kernels a layer; each GEMM reads its weights at 20-50 % of the
+bandwidth because a kernel's first loads wait a DRAM latency and its last programs run alone (ramp-up and tail).
+A grid barrier costs about what a kernel boundary does (`grid_barrier_probe.py`), so a persistent kernel can win
+only by overlap: issuing the next GEMM's first weight loads before it waits at the barrier, so that the weights
+are in flight while the previous phase drains and the reduction runs.
+
+The probe runs a layer's four GEMMs (q/k/v, out-projection, gate/up with GeGLU, down) for L layers of distinct
+random weights at π0's expert sizes, the attention left out (the out-projection reads q's columns), as:
+
+  persistent  one pallas_call of P programs: each GEMM phase splits (column tile, K split) items over the programs,
+              f32 partials where K is split, then a reduction phase (sum, residual or GeGLU, bf16); a grid barrier
+              after every phase; `--prefetch C`: the first C K-chunks of a program's next GEMM item are loaded
+              before the barriers that precede it (0: none)
+  phases      the same phases, each its own pallas_call of P programs in one jit (kernel boundaries, no barrier)
+  engine      the engine's kernels for the same GEMMs (`ops.expert_kernels`: split-K Triton with XLA's sums, gate/up
+              on the Mosaic GPU kernel with GeGLU), as the Pallas expert's step runs them
+  xla         x @ w per GEMM in XLA (cuBLAS and fusions)
+
+Weights are stored tile-major ([L, column tiles, K, tile columns]) so a program's chunk is contiguous.
+Every variant's output is checked against `xla` (bf16 rounding). GPU only for timing; `--cpu-check` runs the
+persistent kernel with one program in interpret mode at small sizes (one program never waits at a barrier).
+
+    python scripts/persistent_probe.py --out persistent.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import functools
+import json
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.experimental import pallas as pl
+from jax.experimental.pallas import triton as plgpu
+
+M = 64  # rows: 50 suffix tokens padded
+
+
+@dataclasses.dataclass(frozen=True)
+class Phase:
+    name: str
+    k: int  # contraction
+    n: int  # output columns (geglu: hidden units)
+    bn: int  # output columns of a tile
+    splits: int  # K splits (> 1: f32 partials and a reduction phase)
+    kind: str  # "store" | "residual" | "geglu"
+
+    @property
+    def tiles(self) -> int:
+        return self.n // self.bn
+
+    @property
+    def items(self) -> int:
+        return self.tiles * self.splits
+
+    @property
+    def chunk(self) -> int:
+        return self.k // self.splits
+
+    @property
+    def width(self) -> int:  # a weight tile's columns
+        return 2 * self.bn if self.kind == "geglu" else self.bn
+
+
+def phases(d: int, q: int, a: int, f: int, spec: dict) -> list[Phase]:
+    """q/k/v (d -> q), out (a -> d, + x), gate/up (d -> 2f, GeGLU), down (f -> d, + the out residual)."""
+    shapes = {"qkv": (d, q, "store"), "out": (a, d, "residual"), "gate_up": (d, f, "geglu"),
+              "down": (f, d, "residual")}
+    return [Phase(name, k, n, *spec[name], kind) for name, (k, n, kind) in shapes.items()]
+
+
+def tile_major(w, bn: int, geglu: bool):
+    """(L, K, N) -> (L, N / bn, K, bn); geglu: (L, K, 2F) = [gate | up] -> (L, F / bn, K, 2 bn), gate then up."""
+    L, k, n = w.shape
+    if geglu:
+        g, u = w[..., : n // 2], w[..., n // 2:]
+        return jnp.concatenate([tile_major(g, bn, False), tile_major(u, bn, False)], axis=-1)
+    return w.reshape(L, k, n // bn, bn).transpose(0, 2, 1, 3)
+
+
+def _gelu_product(g, u):
+    inner = np.float32(np.sqrt(2 / np.pi)) * (g + np.float32(0.044715) * g * g * g)
+    return np.float32(0.5) * g * (1 + jnp.tanh(inner)) * u
+
+
+def reference(x, ws, a: int):
+    """The chain in XLA: bf16 GEMMs with f32 accumulation, rounded as the kernels round."""
+    w_qkv, w_out, w_gu, w_down = ws
+    f = w_gu.shape[-1] // 2
+
+    def layer(x, w):
+        wq, wo, wg, wd = w
+        qkv = jnp.dot(x, wq, preferred_element_type=jnp.float32).astype(x.dtype)
+        x2 = jnp.dot(qkv[:, :a], wo, preferred_element_type=jnp.float32).astype(x.dtype) + x
+        gu = jnp.dot(x2, wg, preferred_element_type=jnp.float32)
+        h = _gelu_product(gu[:, :f], gu[:, f:]).astype(x.dtype)
+        x3 = jnp.dot(h, wd, preferred_element_type=jnp.float32).astype(x.dtype) + x2
+        return x3, None
+
+    return jax.lax.scan(layer, x, (w_qkv, w_out, w_gu, w_down))[0]
+
+
+# -- the kernel ---------------------------------------------------------------------------------------------------------
+def _steps(ps: list[Phase]):
+    """The kernel's steps in order: ("gemm", phase index) and ("reduce", phase index) where the phase splits K."""
+    out = []
+    for i, p in enumerate(ps):
+        out.append(("gemm", i))
+        if p.splits > 1:
+            out.append(("reduce", i))
+    return out
+
+
+def _kernel(*refs, ps, layers, programs, bk, prefetch, rc, only, interpret=False):
+    """refs: xs (aliased to the output xs, row 0 the input), 4 tile-major weights, counter | xs (L + 1, M, D), qkv (L, M, Q), x2 (L, M, D), h (L, M, F),
+    parts (per phase with splits > 1), counter out. `only`: run one step (the `phases` variant) for one layer."""
+    nw = len(ps)
+    w_refs = refs[1:1 + nw]
+    outs = refs[2 + nw:]
+    xs_ref, qkv_ref, x2_ref, h_ref = outs[:4]
+    part_refs = {i: outs[4 + j] for j, i in enumerate(i for i, p in enumerate(ps) if p.splits > 1)}
+    count_ref = refs[1 + nw]
+    pid = pl.program_id(0)
+    steps = _steps(ps)
+    # each GEMM's A operand and output; the layer's input is xs[l], its output xs[l + 1]
+    a_of = {0: lambda l: xs_ref.at[l], 1: lambda l: qkv_ref.at[l], 2: lambda l: x2_ref.at[l], 3: lambda l: h_ref.at[l]}
+    out_of = {0: lambda l: qkv_ref.at[l], 1: lambda l: x2_ref.at[l], 2: lambda l: h_ref.at[l],
+              3: lambda l: xs_ref.at[l + 1]}
+    resid_of = {1: lambda l: xs_ref.at[l], 3: lambda l: x2_ref.at[l]}
+
+    def item_of(i, r):
+        p = ps[i]
+        it = jnp.minimum(pid + r * programs, p.items - 1)
+        return jax.lax.div(it, p.splits), jax.lax.rem(it, p.splits)
+
+    def w_chunk(i, l, j, s, c):
+        p = ps[i]
+        ks = pl.ds(s * p.chunk + c * bk, bk)
+        if p.kind == "geglu":
+            return (w_refs[i][l, j, ks, pl.ds(0, p.bn)], w_refs[i][l, j, ks, pl.ds(p.bn, p.bn)])
+        return (w_refs[i][l, j, ks, :],)
+
+    def load_first(i, l):
+        """The first `prefetch` chunks of this program's first item of GEMM phase i in layer l."""
+        j, s = item_of(i, 0)
+        return tuple(w_chunk(i, l, j, s, c) for c in range(min(prefetch, ps[i].chunk // bk)))
+
+    def gemm(i, l, pf):
+        p = ps[i]
+        a_ref, dtype = a_of[i](l), xs_ref.dtype
+        nch = p.chunk // bk
+        for r in range(-(-p.items // programs)):
+            j, s = item_of(i, r)
+            live = pid + r * programs < p.items
+            pre = pf if r == 0 else ()
+            nacc = 2 if p.kind == "geglu" else 1
+
+            @pl.when(live)
+            def _():
+                accs = [jnp.zeros((M, p.bn), jnp.float32) for _ in range(nacc)]
+                for c in range(len(pre)):
+                    a = a_ref[:, pl.ds(s * p.chunk + c * bk, bk)]
+                    accs = [acc + jax.lax.dot(a, w, preferred_element_type=jnp.float32)
+                            for acc, w in zip(accs, pre[c])]
+
+                def body(c, accs):
+                    a = a_ref[:, pl.ds(s * p.chunk + c * bk, bk)]
+                    return tuple(acc + jax.lax.dot(a, w, preferred_element_type=jnp.float32)
+                                 for acc, w in zip(accs, w_chunk(i, l, j, s, c)))
+
+                accs = jax.lax.fori_loop(len(pre), nch, body, tuple(accs))
+                cols = pl.ds(j * p.bn, p.bn)
+                if p.splits > 1:
+                    for t, acc in enumerate(accs):
+                        part_refs[i][l, s, jnp.int32(t), :, cols] = acc
+                    return
+                if p.kind == "geglu":
+                    out_of[i](l)[:, cols] = _gelu_product(*[acc.astype(dtype).astype(jnp.float32)
+                                                            for acc in accs]).astype(dtype)
+                elif p.kind == "residual":
+                    out_of[i](l)[:, cols] = accs[0].astype(dtype) + resid_of[i](l)[:, cols]
+                else:
+                    out_of[i](l)[:, cols] = accs[0].astype(dtype)
+
+    def reduce(i, l):
+        p, dtype = ps[i], xs_ref.dtype
+        n_items = p.n // rc
+        for r in range(-(-n_items // programs)):
+            it = pid + r * programs
+
+            @pl.when(it < n_items)
+            def _():
+                cols = pl.ds(it * rc, rc)
+                sums = [sum(part_refs[i][l, jnp.int32(s), jnp.int32(t), :, cols] for s in range(p.splits))
+                        for t in range(2 if p.kind == "geglu" else 1)]
+                if p.kind == "geglu":
+                    out_of[i](l)[:, cols] = _gelu_product(*[x.astype(dtype).astype(jnp.float32)
+                                                            for x in sums]).astype(dtype)
+                elif p.kind == "residual":
+                    out_of[i](l)[:, cols] = sums[0].astype(dtype) + resid_of[i](l)[:, cols]
+                else:
+                    out_of[i](l)[:, cols] = sums[0].astype(dtype)
+
+    def barrier(target):
+        if interpret:  # one program: nothing to wait for
+            return
+        plgpu.debug_barrier()
+        plgpu.atomic_add(count_ref, (jnp.int32(0),), jnp.ones((), jnp.int32))
+
+        def seen(_):
+            return jnp.max(plgpu.load(count_ref.at[pl.ds(0, 16)], volatile=True))
+
+        jax.lax.while_loop(lambda c: c < target, seen, jnp.zeros((), jnp.int32))
+        plgpu.atomic_add(count_ref, (jnp.int32(1),), jnp.ones((), jnp.int32))  # an acquire: no later load moves above it
+        plgpu.debug_barrier()
+
+    if only is not None:
+        kind, i = only
+        l = refs[0][0]  # only: the layer index arrives as the first input (an int32 scalar array)
+        (gemm(i, l, ()) if kind == "gemm" else reduce(i, l))
+        return
+
+    gemms = [i for kind, i in steps if kind == "gemm"]
+    nb = len(steps)
+
+    def layer(l, pf):
+        for t, (kind, i) in enumerate(steps):
+            if kind == "gemm":
+                gemm(i, l, pf)
+                nxt = gemms[(gemms.index(i) + 1) % len(gemms)]
+                nl = l + 1 if nxt == gemms[0] else l
+                pf = load_first(nxt, jnp.minimum(nl, layers - 1)) if prefetch else ()
+            else:
+                reduce(i, l)
+            barrier((l * nb + t + 1) * programs)
+        return pf
+
+    jax.lax.fori_loop(0, layers, layer, load_first(gemms[0], jnp.int32(0)) if prefetch else ())
+
+
+def _outs(ps, layers, dims, dtype):
+    d, q, a, f = dims
+    shapes = [(layers + 1, M, d), (layers, M, q), (layers, M, d), (layers, M, f)]
+    outs = [jax.ShapeDtypeStruct(s, dtype) for s in shapes]
+    outs += [jax.ShapeDtypeStruct((layers, p.splits, 2 if p.kind == "geglu" else 1, M, p.n), jnp.float32)
+             for p in ps if p.splits > 1]
+    return outs
+
+
+def _params(warps, stages, interpret):
+    return None if interpret else plgpu.CompilerParams(num_warps=warps, num_stages=stages)
+
+
+def persistent(ps, layers, dims, dtype, *, programs, bk, prefetch, rc, warps, stages, interpret=False):
+    kernel = functools.partial(_kernel, ps=ps, layers=layers, programs=programs, bk=bk, prefetch=prefetch, rc=rc,
+                               only=None, interpret=interpret)
+    outs = _outs(ps, layers, dims, dtype) + [jax.ShapeDtypeStruct((16,), jnp.int32)]
+    call = pl.pallas_call(kernel, grid=(programs,), out_shape=outs, interpret=interpret,
+                          compiler_params=_params(warps, stages, interpret), name="persistent_chain",
+                          input_output_aliases={0: 0, 5: len(outs) - 1})
+
+    def run(x, ws):
+        xs = jnp.zeros(outs[0].shape, outs[0].dtype).at[0].set(x)
+        xs = call(xs, *ws, jnp.zeros((16,), jnp.int32))[0]
+        return xs[layers]
+
+    return jax.jit(run)
+
+
+def phased(ps, layers, dims, dtype, *, programs, bk, rc, warps, stages, interpret=False):
+    """Each step of each layer its own pallas_call (same code, no barrier): buffers are threaded through aliases."""
+    outs = _outs(ps, layers, dims, dtype)
+    calls = {}
+    for step in _steps(ps):
+        kernel = functools.partial(_kernel, ps=ps, layers=layers, programs=programs, bk=bk, prefetch=0, rc=rc,
+                                   only=step, interpret=interpret)
+        # inputs: layer index, 4 weights, a dummy counter, then every buffer (aliased to the outputs)
+        n_in = 6
+        calls[step] = pl.pallas_call(
+            lambda *r, kernel=kernel: kernel(*r[:n_in], *r[n_in + len(outs):]),
+            grid=(programs,), out_shape=outs, interpret=interpret, compiler_params=_params(warps, stages, interpret),
+            name=f"phase_{step[0]}_{ps[step[1]].name}", input_output_aliases={n_in + k: k for k in range(len(outs))})
+
+    def run(x, ws):
+        bufs = [jnp.zeros(o.shape, o.dtype) for o in outs]
+        bufs[0] = bufs[0].at[0].set(x)
+        dummy = jnp.zeros((16,), jnp.int32)
+        for l in range(layers):
+            for step in _steps(ps):
+                bufs = list(calls[step](jnp.full((1,), l, jnp.int32), *ws, dummy, *bufs))
+        return bufs[0][layers]
+
+    return jax.jit(run)
+
+
+def engine_chain(ws_plain, a: int, d: int):
+    """The engine's kernels for the four GEMMs (Pallas expert at B = 1): q/k/v with its norm statistics and RoPE,
+    out and down with their split sums and residuals, gate/up on the Mosaic GPU kernel with GeGLU."""
+    from pi0_jax.ops import expert_kernels as ek
+    blocks = ek.Blocks()
+    mods = jnp.zeros((2, d), jnp.bfloat16)
+    hp = 128
+    cos, sin = jnp.ones((M, hp), jnp.float32), jnp.zeros((M, hp), jnp.float32)
+
+    def run(x, ws):
+        for wq, wo, wg, wd in zip(*ws):
+            qkv = ek.norm_qkv_rope(x, mods, 0, False, wq, cos, sin, width=d, num_heads=8, num_kv_heads=1,
+                                   head_dim=256, blocks=blocks)
+            x2 = ek.matmul_residual(qkv[:, :a], wo, x, gemm=blocks.out, blocks=blocks, name="expert_out")
+            h = ek.norm_geglu(x2, mods, 0, False, wg, width=d, blocks=blocks)
+            x = ek.matmul_residual(h, wd, x2, gemm=blocks.down, blocks=blocks, name="expert_down")
+        return x
+
+    return jax.jit(run)
+
+
+def median_ms(fn, args, iters: int) -> float:
+    jax.block_until_ready(fn(*args))
+    times = []
+    for _ in range(iters):
+        t = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - t)
+    return float(np.median(times) * 1e3)
+
+
+def parse_spec(text: str) -> dict:
+    spec = {"qkv": (32, 1), "out": (64, 8), "gate_up": (32, 1), "down": (64, 8)}
+    for part in filter(None, text.split(",")):
+        name, v = part.split("=")
+        bn, s = v.split("x")
+        spec[name] = (int(bn), int(s))
+    return spec
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", help="JSON file to write")
+    p.add_argument("--layers", type=int, default=18, help="layers of distinct weights (default: %(default)s)")
+    p.add_argument("--programs", default="132", help="comma list of grid sizes of the persistent kernel")
+    p.add_argument("--prefetch", default="0,1,2", help="comma list of K-chunks prefetched before a barrier")
+    p.add_argument("--spec", action="append", default=[],
+                   help="tiles as name=COLSxSPLITS,... for qkv, out, gate_up, down (repeatable: one variant each; "
+                        "default qkv=32x1,out=64x8,gate_up=32x1,down=64x8)")
+    p.add_argument("--bk", type=int, default=128, help="K rows per chunk (default: %(default)s)")
+    p.add_argument("--rc", type=int, default=16, help="columns a program reduces (default: %(default)s)")
+    p.add_argument("--warps", type=int, default=4, help="warps a program (default: %(default)s)")
+    p.add_argument("--stages", type=int, default=2, help="Triton pipelining depth (default: %(default)s)")
+    p.add_argument("--iters", type=int, default=30, help="timed calls per variant (default: %(default)s)")
+    p.add_argument("--cpu-check", action="store_true", help="one program in interpret mode at small sizes")
+    args = p.parse_args()
+    cpu = args.cpu_check
+    dims = (64, 160, 128, 128) if cpu else (1024, 2560, 2048, 4096)  # D, q/k/v columns, attention width, F
+    layers = 2 if cpu else args.layers
+    d, q, a, f = dims
+    key = jax.random.PRNGKey(0)
+    ks = jax.random.split(key, 5)
+    dtype = jnp.float32 if cpu else jnp.bfloat16  # f32 on the CPU: the check is to f32 rounding
+    x = (jax.random.normal(ks[0], (M, d), jnp.float32)).astype(dtype)
+    plain = [(jax.random.normal(k, (layers, kk, n), jnp.float32) / np.sqrt(kk)).astype(dtype)
+             for k, (kk, n) in zip(ks[1:], [(d, q), (a, d), (d, 2 * f), (f, d)])]
+    ref = jax.jit(lambda x, ws: reference(x, ws, a))
+    want = np.asarray(ref(x, plain).astype(jnp.float32))
+
+    def err(y):
+        y = np.asarray(y.astype(jnp.float32))
+        return float(np.linalg.norm(y - want) / np.linalg.norm(want))
+
+    res = {"device": jax.devices()[0].device_kind, "jax": jax.__version__, "layers": layers, "dims": dims,
+           "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()), "args": vars(args), "rows": []}
+    variants = []
+    specs = args.spec or [""]
+    for text in specs:
+        ps = phases(*dims, parse_spec(text if not cpu else "qkv=16x1,out=32x2,gate_up=16x1,down=32x2"))
+        tiled = [tile_major(w, ph.bn, ph.kind == "geglu") for w, ph in zip(plain, ps)]
+        for programs in ([1] if cpu else [int(v) for v in args.programs.split(",")]):
+            for pf in [int(v) for v in args.prefetch.split(",")]:
+                fn = persistent(ps, layers, dims, dtype, programs=programs, bk=min(args.bk, 32 if cpu else args.bk),
+                                prefetch=pf, rc=min(args.rc, 16), warps=args.warps, stages=args.stages,
+                                interpret=cpu)
+                variants.append((f"persistent P={programs} prefetch={pf} {text or 'default'}", fn, tiled))
+        fn = phased(ps, layers, dims, dtype, programs=1 if cpu else int(args.programs.split(",")[0]),
+                    bk=min(args.bk, 32) if cpu else args.bk, rc=min(args.rc, 16), warps=args.warps,
+                    stages=args.stages, interpret=cpu)
+        variants.append((f"phases {text or 'default'}", fn, tiled))
+    if not cpu:
+        variants.append(("engine", engine_chain(plain, a, d), plain))
+        variants.append(("xla", jax.jit(lambda x, ws: reference(x, ws, a)), plain))
+    # interleaved rounds, so every variant sees the same machine state
+    times = {name: [] for name, _, _ in variants}
+    errors = {}
+    for name, fn, ws in variants:
+        try:
+            errors[name] = err(fn(x, ws))
+        except Exception as e:  # a variant that does not compile or run is recorded, the rest go on
+            errors[name] = f"failed: {type(e).__name__}: {str(e)[:300]}"
+        print(f"{name}: rel L2 vs XLA {errors[name]}", flush=True)
+    if cpu:
+        res["rows"] = [{"variant": k, "rel_l2": v} for k, v in errors.items()]
+        print(json.dumps(res["rows"], indent=1))
+        bad = [k for k, v in errors.items() if not isinstance(v, float) or v > 1e-5]
+        raise SystemExit(f"failed: {bad}" if bad else 0)
+    live = [(n, fn, ws) for n, fn, ws in variants if isinstance(errors[n], float)]
+    for _ in range(3):
+        for name, fn, ws in live:
+            times[name].append(median_ms(fn, (x, ws), args.iters // 3 or 1))
+    for name, _, _ in variants:
+        t = float(np.median(times[name])) if times[name] else None
+        row = {"variant": name, "ms": t, "us_per_layer": t * 1e3 / layers if t else None, "rel_l2": errors[name],
+               "rounds_ms": times[name]}
+        res["rows"].append(row)
+        if t:
+            print(f"{name:60s} {t:8.3f} ms  {row['us_per_layer']:7.2f} us/layer  rel L2 {errors[name]:.2e}",
+                  flush=True)
+    weight_bytes = sum(int(np.prod(w.shape[1:])) * 2 for w in plain)
+    res["weight_mb_per_layer"] = weight_bytes / 1e6
+    print(f"weights per layer {weight_bytes / 1e6:.1f} MB")
+    if args.out:
+        with open(args.out, "w") as fh:
+            json.dump(res, fh, indent=1)
+
+
+if __name__ == "__main__":
+    main()
