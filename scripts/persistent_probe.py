@@ -124,7 +124,7 @@ def _steps(ps: list[Phase]):
     return out
 
 
-def _kernel(*refs, ps, layers, programs, bk, prefetch, rc, only, interpret=False):
+def _kernel(*refs, ps, layers, programs, bk, prefetch, rc, only, interpret=False, act_load="plain", lanes=0):
     """refs: xs (aliased to the output xs, row 0 the input), 4 tile-major weights, counter | xs (L + 1, M, D), qkv (L, M, Q), x2 (L, M, D), h (L, M, F),
     parts (per phase with splits > 1), counter out. `only`: run one step (the `phases` variant) for one layer."""
     nw = len(ps)
@@ -140,9 +140,16 @@ def _kernel(*refs, ps, layers, programs, bk, prefetch, rc, only, interpret=False
     out_of = {0: (qkv_ref, 0), 1: (x2_ref, 0), 2: (h_ref, 0), 3: (xs_ref, 1)}
     resid_of = {1: (xs_ref, 0), 3: (x2_ref, 0)}
 
+    def load(ref, idx):
+        """An activation or partial written in this launch by other programs: `act_load` says how it is read
+        (plain, .cg: past L1, or volatile)."""
+        if act_load == "plain" or interpret:
+            return ref[idx]
+        return plgpu.load(ref.at[idx], **({"volatile": True} if act_load == "volatile" else {"cache_modifier": "cg"}))
+
     def rd(where, l, cols):
         ref, off = where
-        return ref[l + off, :, cols]
+        return load(ref, (l + off, slice(None), cols))
 
     def wr(where, l, cols, v):
         ref, off = where
@@ -215,7 +222,8 @@ def _kernel(*refs, ps, layers, programs, bk, prefetch, rc, only, interpret=False
             @pl.when(it < n_items)
             def _():
                 cols = pl.ds(it * rc, rc)
-                sums = [sum(part_refs[i][l, jnp.int32(s), jnp.int32(t), :, cols] for s in range(p.splits))
+                sums = [sum(load(part_refs[i], (l, jnp.int32(s), jnp.int32(t), slice(None), cols))
+                            for s in range(p.splits))
                         for t in range(2 if p.kind == "geglu" else 1)]
                 epilogue(i, l, cols, sums)
 
@@ -223,6 +231,15 @@ def _kernel(*refs, ps, layers, programs, bk, prefetch, rc, only, interpret=False
         if interpret:  # one program: nothing to wait for
             return
         plgpu.debug_barrier()
+        if lanes:  # every thread releases its own writes: one counter a lane, each reaching `target`
+            plgpu.atomic_add(count_ref, (pl.ds(16, lanes),), jnp.ones((lanes,), jnp.int32))
+
+            def seen(_):
+                return jnp.min(plgpu.load(count_ref.at[pl.ds(16, lanes)], volatile=True))
+
+            jax.lax.while_loop(lambda c: c < target, seen, jnp.zeros((), jnp.int32))
+            plgpu.debug_barrier()
+            return
         plgpu.atomic_add(count_ref, (jnp.int32(0),), jnp.ones((), jnp.int32))
 
         def seen(_):
@@ -269,23 +286,24 @@ def _params(warps, stages, interpret):
     return None if interpret else plgpu.CompilerParams(num_warps=warps, num_stages=stages)
 
 
-def persistent(ps, layers, dims, dtype, *, programs, bk, prefetch, rc, warps, stages, interpret=False):
+def persistent(ps, layers, dims, dtype, *, programs, bk, prefetch, rc, warps, stages, interpret=False,
+               full=False, act_load="plain", lanes=0):
     kernel = functools.partial(_kernel, ps=ps, layers=layers, programs=programs, bk=bk, prefetch=prefetch, rc=rc,
-                               only=None, interpret=interpret)
-    outs = _outs(ps, layers, dims, dtype) + [jax.ShapeDtypeStruct((16,), jnp.int32)]
+                               only=None, interpret=interpret, act_load=act_load, lanes=lanes)
+    outs = _outs(ps, layers, dims, dtype) + [jax.ShapeDtypeStruct((16 + lanes,), jnp.int32)]
     call = pl.pallas_call(kernel, grid=(programs,), out_shape=outs, interpret=interpret,
                           compiler_params=_params(warps, stages, interpret), name="persistent_chain",
                           input_output_aliases={0: 0, 5: len(outs) - 1})
 
     def run(x, ws):
         xs = jnp.zeros(outs[0].shape, outs[0].dtype).at[0].set(x)
-        xs = call(xs, *ws, jnp.zeros((16,), jnp.int32))[0]
-        return xs[layers]
+        bufs = call(xs, *ws, jnp.zeros((16 + lanes,), jnp.int32))
+        return bufs[:4] if full else bufs[0][layers]
 
     return jax.jit(run)
 
 
-def phased(ps, layers, dims, dtype, *, programs, bk, rc, warps, stages, interpret=False):
+def phased(ps, layers, dims, dtype, *, programs, bk, rc, warps, stages, interpret=False, full=False):
     """Each step of each layer its own pallas_call (same code, no barrier): buffers are threaded through aliases."""
     outs = _outs(ps, layers, dims, dtype)
     calls = {}
@@ -306,7 +324,7 @@ def phased(ps, layers, dims, dtype, *, programs, bk, rc, warps, stages, interpre
         for l in range(layers):
             for step in _steps(ps):
                 bufs = list(calls[step](jnp.full((1,), l, jnp.int32), *ws, dummy, *bufs))
-        return bufs[0][layers]
+        return bufs[:4] if full else bufs[0][layers]
 
     return jax.jit(run)
 
@@ -330,6 +348,17 @@ def engine_chain(a: int, d: int):
         return x
 
     return jax.jit(run)
+
+
+def count_check(programs: int, warps: int) -> int:
+    """Each of `programs` programs adds 1 to a counter the way the barrier does: the result should be `programs`."""
+    def kernel(c_ref, o_ref):
+        del o_ref
+        plgpu.atomic_add(c_ref, (jnp.int32(0),), jnp.ones((), jnp.int32))
+
+    call = pl.pallas_call(kernel, grid=(programs,), out_shape=jax.ShapeDtypeStruct((16,), jnp.int32),
+                          input_output_aliases={0: 0}, compiler_params=_params(warps, 1, False), name="count_check")
+    return int(jax.jit(call)(jnp.zeros((16,), jnp.int32))[0])
 
 
 def median_ms(fn, args, iters: int) -> float:
@@ -360,11 +389,18 @@ def main() -> None:
     p.add_argument("--spec", action="append", default=[],
                    help="tiles as name=COLSxSPLITS,... for qkv, out, gate_up, down (repeatable: one variant each; "
                         "default qkv=32x1,out=64x8,gate_up=32x1,down=64x8)")
+    p.add_argument("--act-load", default="volatile",
+                   help="comma list: how activations written in the launch are read: plain, cg (past L1), volatile")
+    p.add_argument("--lanes", default="0",
+                   help="comma list: 0, one counter the program's first thread increments after a block barrier; "
+                        "N (the threads of a program), a counter per thread, each releasing its own writes")
     p.add_argument("--bk", type=int, default=128, help="K rows per chunk (default: %(default)s)")
     p.add_argument("--rc", type=int, default=16, help="columns a program reduces (default: %(default)s)")
     p.add_argument("--warps", type=int, default=4, help="warps a program (default: %(default)s)")
     p.add_argument("--stages", type=int, default=2, help="Triton pipelining depth (default: %(default)s)")
     p.add_argument("--iters", type=int, default=30, help="timed calls per variant (default: %(default)s)")
+    p.add_argument("--diagnose", action="store_true",
+                   help="compare the persistent kernel's buffers with the kernel-per-phase's, layer by layer")
     p.add_argument("--cpu-check", action="store_true", help="one program in interpret mode at small sizes")
     args = p.parse_args()
     cpu = args.cpu_check
@@ -383,9 +419,15 @@ def main() -> None:
     want = np.asarray(ref(x, plain).astype(jnp.float32))
 
     def err(y):
+        if y.shape != want.shape:
+            return float("nan")
         y = np.asarray(y.astype(jnp.float32))
         return float(np.linalg.norm(y - want) / np.linalg.norm(want))
 
+    if not cpu:
+        for w in (4, 8):
+            print(f"counter after {args.programs.split(',')[0]} programs of {w} warps added 1 each: "
+                  f"{count_check(int(args.programs.split(',')[0]), w)}", flush=True)
     res = {"device": jax.devices()[0].device_kind, "jax": jax.__version__, "layers": layers, "dims": dims,
            "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()), "args": vars(args), "rows": []}
     variants = []
@@ -395,17 +437,38 @@ def main() -> None:
         tiled = [tile_major(w, ph.bn, ph.kind == "geglu") for w, ph in zip(plain, ps)]
         for programs in ([1] if cpu else [int(v) for v in args.programs.split(",")]):
             for pf in [int(v) for v in args.prefetch.split(",")]:
-                fn = persistent(ps, layers, dims, dtype, programs=programs, bk=min(args.bk, 32 if cpu else args.bk),
-                                prefetch=pf, rc=min(args.rc, 16), warps=args.warps, stages=args.stages,
-                                interpret=cpu)
-                variants.append((f"persistent P={programs} prefetch={pf} {text or 'default'}", fn, tiled))
+                for act in args.act_load.split(","):
+                    for lanes in ([0] if cpu else [int(v) for v in args.lanes.split(",")]):
+                        fn = persistent(ps, layers, dims, dtype, programs=programs,
+                                        bk=min(args.bk, 32 if cpu else args.bk), prefetch=pf, rc=min(args.rc, 16),
+                                        warps=args.warps, stages=args.stages, interpret=cpu, act_load=act,
+                                        lanes=lanes)
+                        variants.append((f"persistent P={programs} prefetch={pf} {act} lanes={lanes} "
+                                         f"{text or 'default'}", fn, tiled))
         fn = phased(ps, layers, dims, dtype, programs=1 if cpu else int(args.programs.split(",")[0]),
                     bk=min(args.bk, 32) if cpu else args.bk, rc=min(args.rc, 16), warps=args.warps,
                     stages=args.stages, interpret=cpu)
         variants.append((f"phases {text or 'default'}", fn, tiled))
     if not cpu:
+        variants.append(("read every weight once (XLA sums)",
+                         jax.jit(lambda x, ws: x + sum(jnp.sum(w, dtype=jnp.float32) for lw in ws for w in lw)
+                                 .astype(x.dtype)), per_layer))
         variants.append(("engine (its norm before q/k/v: other numbers)", engine_chain(a, d), per_layer))
         variants.append(("xla", jax.jit(lambda x, ws: reference_unrolled(x, ws, a)), per_layer))
+    if args.diagnose and not cpu:  # where the persistent kernel first differs from the kernel per phase
+        ps = phases(*dims, parse_spec(specs[0]))
+        tiled = [tile_major(w, ph.bn, ph.kind == "geglu") for w, ph in zip(plain, ps)]
+        kw = dict(programs=int(args.programs.split(",")[0]), bk=args.bk, rc=args.rc, warps=args.warps,
+                  stages=args.stages, full=True)
+        a_bufs = persistent(ps, layers, dims, dtype, prefetch=0, act_load=args.act_load.split(",")[0],
+                            lanes=int(args.lanes.split(",")[-1]), **kw)(x, tiled)
+        b_bufs = phased(ps, layers, dims, dtype, **kw)(x, tiled)
+        for l in range(min(3, layers)):
+            for name, u, v in zip(["xs[l+1]", "qkv", "x2", "h"], a_bufs, b_bufs):
+                u, v = (np.asarray(t[l + 1 if name == "xs[l+1]" else l].astype(jnp.float32)) for t in (u, v))
+                bad = np.argwhere(np.abs(u - v) > 1e-2 * (np.abs(v).max() + 1e-6))
+                print(f"layer {l} {name:8s}: max |diff| {np.abs(u - v).max():.3e} of {np.abs(v).max():.3e}, "
+                      f"{len(bad)} elements off, first {bad[:3].tolist()}", flush=True)
     # interleaved rounds, so every variant sees the same machine state
     times = {name: [] for name, _, _ in variants}
     errors = {}
