@@ -124,7 +124,8 @@ def _steps(ps: list[Phase]):
     return out
 
 
-def _kernel(*refs, ps, layers, programs, bk, prefetch, rc, only, interpret=False, act_load="plain", lanes=0):
+def _kernel(*refs, ps, layers, programs, bk, prefetch, rc, only, interpret=False, act_load="plain", lanes=0,
+            sync=False):
     """refs: xs (aliased to the output xs, row 0 the input), 4 tile-major weights, counter | xs (L + 1, M, D), qkv (L, M, Q), x2 (L, M, D), h (L, M, F),
     parts (per phase with splits > 1), counter out. `only`: run one step (the `phases` variant) for one layer."""
     nw = len(ps)
@@ -139,6 +140,11 @@ def _kernel(*refs, ps, layers, programs, bk, prefetch, rc, only, interpret=False
     a_of = {0: (xs_ref, 0), 1: (qkv_ref, 0), 2: (x2_ref, 0), 3: (h_ref, 0)}
     out_of = {0: (qkv_ref, 0), 1: (x2_ref, 0), 2: (h_ref, 0), 3: (xs_ref, 1)}
     resid_of = {1: (xs_ref, 0), 3: (x2_ref, 0)}
+
+    def fence():
+        """`sync`: a block barrier between a program's items and phases (a shared-memory hazard check)."""
+        if sync and not interpret:
+            plgpu.debug_barrier()
 
     def load(ref, idx):
         """An activation or partial written in this launch by other programs: `act_load` says how it is read
@@ -183,6 +189,7 @@ def _kernel(*refs, ps, layers, programs, bk, prefetch, rc, only, interpret=False
 
             @pl.when(live)
             def _():
+                fence()
                 accs = [jnp.zeros((M, p.bn), jnp.float32) for _ in range(nacc)]
                 for c in range(len(pre)):
                     a = rd(a_of[i], l, pl.ds(s * p.chunk + c * bk, bk))
@@ -195,6 +202,7 @@ def _kernel(*refs, ps, layers, programs, bk, prefetch, rc, only, interpret=False
                                  for acc, w in zip(accs, w_chunk(i, l, j, s, c)))
 
                 accs = jax.lax.fori_loop(len(pre), nch, body, tuple(accs))
+                fence()
                 cols = pl.ds(j * p.bn, p.bn)
                 if p.splits > 1:
                     for t, acc in enumerate(accs):
@@ -228,8 +236,11 @@ def _kernel(*refs, ps, layers, programs, bk, prefetch, rc, only, interpret=False
                 epilogue(i, l, cols, sums)
 
     def barrier(target):
+        """Every program's writes so far visible to every program; returns 0, computed from the counter it waited
+        for: the next phase's addresses add it, so no compiler pass can hoist a load above the wait (Triton did:
+        with the loads free of the spin, a phase read activations still being written)."""
         if interpret:  # one program: nothing to wait for
-            return
+            return jnp.zeros((), jnp.int32)
         plgpu.debug_barrier()
         if lanes:  # every thread releases its own writes: one counter a lane, each reaching `target`
             plgpu.atomic_add(count_ref, (pl.ds(16, lanes),), jnp.ones((lanes,), jnp.int32))
@@ -237,17 +248,17 @@ def _kernel(*refs, ps, layers, programs, bk, prefetch, rc, only, interpret=False
             def seen(_):
                 return jnp.min(plgpu.load(count_ref.at[pl.ds(16, lanes)], volatile=True))
 
-            jax.lax.while_loop(lambda c: c < target, seen, jnp.zeros((), jnp.int32))
+            got = jax.lax.while_loop(lambda c: c < target, seen, jnp.zeros((), jnp.int32))
             plgpu.debug_barrier()
-            return
+            return jnp.minimum(got - target, 0)
         plgpu.atomic_add(count_ref, (jnp.int32(0),), jnp.ones((), jnp.int32))
 
         def seen(_):
             return jnp.max(plgpu.load(count_ref.at[pl.ds(0, 16)], volatile=True))
 
-        jax.lax.while_loop(lambda c: c < target, seen, jnp.zeros((), jnp.int32))
-        plgpu.atomic_add(count_ref, (jnp.int32(1),), jnp.ones((), jnp.int32))  # an acquire: no later load moves above it
+        got = jax.lax.while_loop(lambda c: c < target, seen, jnp.zeros((), jnp.int32))
         plgpu.debug_barrier()
+        return jnp.minimum(got - target, 0)
 
     if only is not None:
         kind, i = only
@@ -258,19 +269,22 @@ def _kernel(*refs, ps, layers, programs, bk, prefetch, rc, only, interpret=False
     gemms = [i for kind, i in steps if kind == "gemm"]
     nb = len(steps)
 
-    def layer(l, pf):
+    def layer(l, carry):
+        pf, zero = carry
         for t, (kind, i) in enumerate(steps):
+            la = l + zero  # the layer index for this phase's activations: after the last barrier's wait
             if kind == "gemm":
-                gemm(i, l, pf)
+                gemm(i, la, pf)
                 nxt = gemms[(gemms.index(i) + 1) % len(gemms)]
                 nl = l + 1 if nxt == gemms[0] else l
-                pf = load_first(nxt, jnp.minimum(nl, layers - 1)) if prefetch else ()
+                pf = load_first(nxt, jnp.minimum(nl, layers - 1)) if prefetch else ()  # before the wait
             else:
-                reduce(i, l)
-            barrier((l * nb + t + 1) * programs)
-        return pf
+                reduce(i, la)
+            zero = barrier((l * nb + t + 1) * programs)
+        return pf, zero
 
-    jax.lax.fori_loop(0, layers, layer, load_first(gemms[0], jnp.int32(0)) if prefetch else ())
+    first = load_first(gemms[0], jnp.int32(0)) if prefetch else ()
+    jax.lax.fori_loop(0, layers, layer, (first, jnp.zeros((), jnp.int32)))
 
 
 def _outs(ps, layers, dims, dtype):
@@ -287,9 +301,9 @@ def _params(warps, stages, interpret):
 
 
 def persistent(ps, layers, dims, dtype, *, programs, bk, prefetch, rc, warps, stages, interpret=False,
-               full=False, act_load="plain", lanes=0):
+               full=False, act_load="plain", lanes=0, sync=False):
     kernel = functools.partial(_kernel, ps=ps, layers=layers, programs=programs, bk=bk, prefetch=prefetch, rc=rc,
-                               only=None, interpret=interpret, act_load=act_load, lanes=lanes)
+                               only=None, interpret=interpret, act_load=act_load, lanes=lanes, sync=sync)
     outs = _outs(ps, layers, dims, dtype) + [jax.ShapeDtypeStruct((16 + lanes,), jnp.int32)]
     call = pl.pallas_call(kernel, grid=(programs,), out_shape=outs, interpret=interpret,
                           compiler_params=_params(warps, stages, interpret), name="persistent_chain",
@@ -361,6 +375,44 @@ def count_check(programs: int, warps: int) -> int:
     return int(jax.jit(call)(jnp.zeros((16,), jnp.int32))[0])
 
 
+def barrier_check(programs: int, warps: int, rounds: int = 64) -> dict:
+    """The barrier alone, for data: each round every program writes its block of a buffer, crosses the barrier, and
+    reads its neighbour's block (written that round); the values read and the spin iterations are returned."""
+    lanes = 128
+
+    def kernel(c_ref, buf_ref, got_ref, spins_ref, c_out):
+        del c_out
+        pid = pl.program_id(0)
+        mine = pl.ds(pid * lanes, lanes)
+        nb = pl.ds(jax.lax.rem(pid + 1, programs) * lanes, lanes)
+
+        def rnd(r, total):
+            buf_ref[r, mine] = jnp.full((lanes,), r * 1000, jnp.int32) + pid
+            plgpu.debug_barrier()
+            plgpu.atomic_add(c_ref, (jnp.int32(0),), jnp.ones((), jnp.int32))
+
+            def seen(cs):
+                return jnp.max(plgpu.load(c_ref.at[pl.ds(0, 16)], volatile=True)), cs[1] + 1
+
+            _, n = jax.lax.while_loop(lambda cs: cs[0] < (r + 1) * programs, seen,
+                                      (jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32)))
+            plgpu.debug_barrier()
+            got_ref[r, mine] = buf_ref[r, nb]
+            return total + n
+
+        spins_ref[pl.ds(pid, 1)] = jnp.full((1,), jax.lax.fori_loop(0, rounds, rnd, jnp.zeros((), jnp.int32)))
+
+    outs = [jax.ShapeDtypeStruct((rounds, programs * lanes), jnp.int32)] * 2
+    outs += [jax.ShapeDtypeStruct((programs,), jnp.int32), jax.ShapeDtypeStruct((16,), jnp.int32)]
+    call = pl.pallas_call(kernel, grid=(programs,), out_shape=outs, input_output_aliases={0: 3},
+                          compiler_params=_params(warps, 1, False), name="barrier_check")
+    _, got, spins, count = jax.jit(call)(jnp.zeros((16,), jnp.int32))
+    got = np.asarray(got).reshape(rounds, programs, lanes)
+    want = (np.arange(rounds)[:, None, None] * 1000 + (np.arange(programs)[None, :, None] + 1) % programs)
+    return {"wrong": int((got != want).sum()), "of": int(got.size), "spins_min": int(np.asarray(spins).min()),
+            "spins_max": int(np.asarray(spins).max()), "count": int(np.asarray(count)[0])}
+
+
 def median_ms(fn, args, iters: int) -> float:
     jax.block_until_ready(fn(*args))
     times = []
@@ -394,6 +446,8 @@ def main() -> None:
     p.add_argument("--lanes", default="0",
                    help="comma list: 0, one counter the program's first thread increments after a block barrier; "
                         "N (the threads of a program), a counter per thread, each releasing its own writes")
+    p.add_argument("--sync", default="0", choices=["0", "1", "0,1"],
+                   help="1: a block barrier around every item's GEMM loop (default: %(default)s)")
     p.add_argument("--bk", type=int, default=128, help="K rows per chunk (default: %(default)s)")
     p.add_argument("--rc", type=int, default=16, help="columns a program reduces (default: %(default)s)")
     p.add_argument("--warps", type=int, default=4, help="warps a program (default: %(default)s)")
@@ -428,6 +482,7 @@ def main() -> None:
         for w in (4, 8):
             print(f"counter after {args.programs.split(',')[0]} programs of {w} warps added 1 each: "
                   f"{count_check(int(args.programs.split(',')[0]), w)}", flush=True)
+            print(f"barrier data check, {w} warps: {barrier_check(int(args.programs.split(',')[0]), w)}", flush=True)
     res = {"device": jax.devices()[0].device_kind, "jax": jax.__version__, "layers": layers, "dims": dims,
            "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()), "args": vars(args), "rows": []}
     variants = []
@@ -439,12 +494,13 @@ def main() -> None:
             for pf in [int(v) for v in args.prefetch.split(",")]:
                 for act in args.act_load.split(","):
                     for lanes in ([0] if cpu else [int(v) for v in args.lanes.split(",")]):
-                        fn = persistent(ps, layers, dims, dtype, programs=programs,
-                                        bk=min(args.bk, 32 if cpu else args.bk), prefetch=pf, rc=min(args.rc, 16),
-                                        warps=args.warps, stages=args.stages, interpret=cpu, act_load=act,
-                                        lanes=lanes)
-                        variants.append((f"persistent P={programs} prefetch={pf} {act} lanes={lanes} "
-                                         f"{text or 'default'}", fn, tiled))
+                        for sync in {"0": [False], "1": [True], "0,1": [False, True]}[args.sync]:
+                            fn = persistent(ps, layers, dims, dtype, programs=programs,
+                                            bk=min(args.bk, 32 if cpu else args.bk), prefetch=pf,
+                                            rc=min(args.rc, 16), warps=args.warps, stages=args.stages,
+                                            interpret=cpu, act_load=act, lanes=lanes, sync=sync)
+                            variants.append((f"persistent P={programs} prefetch={pf} {act} lanes={lanes} sync={sync:d} "
+                                             f"{text or 'default'}", fn, tiled))
         fn = phased(ps, layers, dims, dtype, programs=1 if cpu else int(args.programs.split(",")[0]),
                     bk=min(args.bk, 32) if cpu else args.bk, rc=min(args.rc, 16), warps=args.warps,
                     stages=args.stages, interpret=cpu)
@@ -461,14 +517,26 @@ def main() -> None:
         kw = dict(programs=int(args.programs.split(",")[0]), bk=args.bk, rc=args.rc, warps=args.warps,
                   stages=args.stages, full=True)
         a_bufs = persistent(ps, layers, dims, dtype, prefetch=0, act_load=args.act_load.split(",")[0],
-                            lanes=int(args.lanes.split(",")[-1]), **kw)(x, tiled)
+                            lanes=int(args.lanes.split(",")[-1]), sync=args.sync.endswith("1"), **kw)(x, tiled)
         b_bufs = phased(ps, layers, dims, dtype, **kw)(x, tiled)
-        for l in range(min(3, layers)):
-            for name, u, v in zip(["xs[l+1]", "qkv", "x2", "h"], a_bufs, b_bufs):
-                u, v = (np.asarray(t[l + 1 if name == "xs[l+1]" else l].astype(jnp.float32)) for t in (u, v))
-                bad = np.argwhere(np.abs(u - v) > 1e-2 * (np.abs(v).max() + 1e-6))
-                print(f"layer {l} {name:8s}: max |diff| {np.abs(u - v).max():.3e} of {np.abs(v).max():.3e}, "
-                      f"{len(bad)} elements off, first {bad[:3].tolist()}", flush=True)
+        f32 = lambda t: np.asarray(t.astype(jnp.float32))  # noqa: E731
+        wq, wo, wg, wd = (f32(w) for w in plain)
+        for label, bufs in (("persistent", a_bufs), ("phases", b_bufs)):
+            xs_, qkv_, x2_, h_ = (f32(t) for t in bufs)
+            for l in range(min(3, layers)):  # each buffer against its own inputs (bf16 rounding ~ 1e-2)
+                gu = x2_[l] @ wg[l]
+                checks = {"qkv": (qkv_[l], xs_[l] @ wq[l]), "x2": (x2_[l], qkv_[l][:, :a] @ wo[l] + xs_[l]),
+                          "h": (h_[l], np.asarray(_gelu_product(gu[:, :f], gu[:, f:]))),
+                          "xs": (xs_[l + 1], h_[l] @ wd[l] + x2_[l])}
+                hu, hv = checks["h"]
+                tiles = np.abs(hu - hv).reshape(M, -1, ps[2].bn).max(axis=(0, 2))
+                bad_tiles = [int(t) for t in np.nonzero(~(tiles < 1e-2 * np.abs(hv).max()))[0]]
+                bad_rows = [int(r) for r in np.nonzero(~(np.abs(hu - hv).max(axis=1) < 1e-2 * np.abs(hv).max()))[0]]
+                print(f"{label} layer {l}: h's bad column tiles {bad_tiles[:40]} ({len(bad_tiles)}), "
+                      f"bad rows {bad_rows[:20]} ({len(bad_rows)})", flush=True)
+                print(f"{label} layer {l}: " + ", ".join(
+                    f"{k} {np.abs(u - v).max() / (np.abs(v).max() + 1e-9):.1e}" for k, (u, v) in checks.items()),
+                    flush=True)
     # interleaved rounds, so every variant sees the same machine state
     times = {name: [] for name, _, _ in variants}
     errors = {}
