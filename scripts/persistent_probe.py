@@ -17,6 +17,12 @@ random weights at π0's expert sizes, the attention left out (the out-projection
   engine      the engine's kernels for the same GEMMs (`ops.expert_kernels`: split-K Triton with XLA's sums, gate/up
               on the Mosaic GPU kernel with GeGLU), as the Pallas expert's step runs them
   xla         x @ w per GEMM in XLA (cuBLAS and fusions)
+  read        every weight array summed once by XLA (a kernel each): what streaming them costs, no GEMM
+
+The barrier returns a zero computed from the counter it waited for, and the next phase's addresses add it: without
+that data dependence Triton hoisted a phase's activation loads above the wait, and the kernel read activations still
+being written (about 30 % of gate/up's output wrong at 18 layers; volatile loads, a counter per thread and block
+barriers around every item did not help; docs/BENCHMARKS.md, session 30).
 
 Weights are stored tile-major ([L, column tiles, K, tile columns]) so a program's chunk is contiguous.
 Every variant's output is checked against `xla` (bf16 rounding). GPU only for timing; `--cpu-check` runs the
@@ -124,8 +130,7 @@ def _steps(ps: list[Phase]):
     return out
 
 
-def _kernel(*refs, ps, layers, programs, bk, prefetch, rc, only, interpret=False, act_load="plain", lanes=0,
-            sync=False):
+def _kernel(*refs, ps, layers, programs, bk, prefetch, rc, only, interpret=False):
     """refs: xs (aliased to the output xs, row 0 the input), 4 tile-major weights, counter | xs (L + 1, M, D), qkv (L, M, Q), x2 (L, M, D), h (L, M, F),
     parts (per phase with splits > 1), counter out. `only`: run one step (the `phases` variant) for one layer."""
     nw = len(ps)
@@ -141,21 +146,9 @@ def _kernel(*refs, ps, layers, programs, bk, prefetch, rc, only, interpret=False
     out_of = {0: (qkv_ref, 0), 1: (x2_ref, 0), 2: (h_ref, 0), 3: (xs_ref, 1)}
     resid_of = {1: (xs_ref, 0), 3: (x2_ref, 0)}
 
-    def fence():
-        """`sync`: a block barrier between a program's items and phases (a shared-memory hazard check)."""
-        if sync and not interpret:
-            plgpu.debug_barrier()
-
-    def load(ref, idx):
-        """An activation or partial written in this launch by other programs: `act_load` says how it is read
-        (plain, .cg: past L1, or volatile)."""
-        if act_load == "plain" or interpret:
-            return ref[idx]
-        return plgpu.load(ref.at[idx], **({"volatile": True} if act_load == "volatile" else {"cache_modifier": "cg"}))
-
     def rd(where, l, cols):
         ref, off = where
-        return load(ref, (l + off, slice(None), cols))
+        return ref[l + off, :, cols]
 
     def wr(where, l, cols, v):
         ref, off = where
@@ -189,7 +182,6 @@ def _kernel(*refs, ps, layers, programs, bk, prefetch, rc, only, interpret=False
 
             @pl.when(live)
             def _():
-                fence()
                 accs = [jnp.zeros((M, p.bn), jnp.float32) for _ in range(nacc)]
                 for c in range(len(pre)):
                     a = rd(a_of[i], l, pl.ds(s * p.chunk + c * bk, bk))
@@ -202,7 +194,6 @@ def _kernel(*refs, ps, layers, programs, bk, prefetch, rc, only, interpret=False
                                  for acc, w in zip(accs, w_chunk(i, l, j, s, c)))
 
                 accs = jax.lax.fori_loop(len(pre), nch, body, tuple(accs))
-                fence()
                 cols = pl.ds(j * p.bn, p.bn)
                 if p.splits > 1:
                     for t, acc in enumerate(accs):
@@ -230,8 +221,7 @@ def _kernel(*refs, ps, layers, programs, bk, prefetch, rc, only, interpret=False
             @pl.when(it < n_items)
             def _():
                 cols = pl.ds(it * rc, rc)
-                sums = [sum(load(part_refs[i], (l, jnp.int32(s), jnp.int32(t), slice(None), cols))
-                            for s in range(p.splits))
+                sums = [sum(part_refs[i][l, jnp.int32(s), jnp.int32(t), :, cols] for s in range(p.splits))
                         for t in range(2 if p.kind == "geglu" else 1)]
                 epilogue(i, l, cols, sums)
 
@@ -242,15 +232,6 @@ def _kernel(*refs, ps, layers, programs, bk, prefetch, rc, only, interpret=False
         if interpret:  # one program: nothing to wait for
             return jnp.zeros((), jnp.int32)
         plgpu.debug_barrier()
-        if lanes:  # every thread releases its own writes: one counter a lane, each reaching `target`
-            plgpu.atomic_add(count_ref, (pl.ds(16, lanes),), jnp.ones((lanes,), jnp.int32))
-
-            def seen(_):
-                return jnp.min(plgpu.load(count_ref.at[pl.ds(16, lanes)], volatile=True))
-
-            got = jax.lax.while_loop(lambda c: c < target, seen, jnp.zeros((), jnp.int32))
-            plgpu.debug_barrier()
-            return jnp.minimum(got - target, 0)
         plgpu.atomic_add(count_ref, (jnp.int32(0),), jnp.ones((), jnp.int32))
 
         def seen(_):
@@ -301,17 +282,17 @@ def _params(warps, stages, interpret):
 
 
 def persistent(ps, layers, dims, dtype, *, programs, bk, prefetch, rc, warps, stages, interpret=False,
-               full=False, act_load="plain", lanes=0, sync=False):
+               full=False):
     kernel = functools.partial(_kernel, ps=ps, layers=layers, programs=programs, bk=bk, prefetch=prefetch, rc=rc,
-                               only=None, interpret=interpret, act_load=act_load, lanes=lanes, sync=sync)
-    outs = _outs(ps, layers, dims, dtype) + [jax.ShapeDtypeStruct((16 + lanes,), jnp.int32)]
+                               only=None, interpret=interpret)
+    outs = _outs(ps, layers, dims, dtype) + [jax.ShapeDtypeStruct((16,), jnp.int32)]
     call = pl.pallas_call(kernel, grid=(programs,), out_shape=outs, interpret=interpret,
                           compiler_params=_params(warps, stages, interpret), name="persistent_chain",
                           input_output_aliases={0: 0, 5: len(outs) - 1})
 
     def run(x, ws):
         xs = jnp.zeros(outs[0].shape, outs[0].dtype).at[0].set(x)
-        bufs = call(xs, *ws, jnp.zeros((16 + lanes,), jnp.int32))
+        bufs = call(xs, *ws, jnp.zeros((16,), jnp.int32))
         return bufs[:4] if full else bufs[0][layers]
 
     return jax.jit(run)
@@ -436,25 +417,21 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", help="JSON file to write")
     p.add_argument("--layers", type=int, default=18, help="layers of distinct weights (default: %(default)s)")
-    p.add_argument("--programs", default="132", help="comma list of grid sizes of the persistent kernel")
+    p.add_argument("--programs", default="132",
+                   help="comma list of grid sizes of the persistent kernel; all must be resident at once "
+                        "(default: %(default)s, an H100's SMs)")
     p.add_argument("--prefetch", default="0,1,2", help="comma list of K-chunks prefetched before a barrier")
     p.add_argument("--spec", action="append", default=[],
                    help="tiles as name=COLSxSPLITS,... for qkv, out, gate_up, down (repeatable: one variant each; "
                         "default qkv=32x1,out=64x8,gate_up=32x1,down=64x8)")
-    p.add_argument("--act-load", default="volatile",
-                   help="comma list: how activations written in the launch are read: plain, cg (past L1), volatile")
-    p.add_argument("--lanes", default="0",
-                   help="comma list: 0, one counter the program's first thread increments after a block barrier; "
-                        "N (the threads of a program), a counter per thread, each releasing its own writes")
-    p.add_argument("--sync", default="0", choices=["0", "1", "0,1"],
-                   help="1: a block barrier around every item's GEMM loop (default: %(default)s)")
     p.add_argument("--bk", type=int, default=128, help="K rows per chunk (default: %(default)s)")
     p.add_argument("--rc", type=int, default=16, help="columns a program reduces (default: %(default)s)")
     p.add_argument("--warps", type=int, default=4, help="warps a program (default: %(default)s)")
     p.add_argument("--stages", type=int, default=2, help="Triton pipelining depth (default: %(default)s)")
     p.add_argument("--iters", type=int, default=30, help="timed calls per variant (default: %(default)s)")
     p.add_argument("--diagnose", action="store_true",
-                   help="compare the persistent kernel's buffers with the kernel-per-phase's, layer by layer")
+                   help="check every buffer of the persistent kernel and of the kernel per phase against its own inputs, "
+                        "layer by layer (which phase goes wrong)")
     p.add_argument("--cpu-check", action="store_true", help="one program in interpret mode at small sizes")
     args = p.parse_args()
     cpu = args.cpu_check
@@ -492,15 +469,10 @@ def main() -> None:
         tiled = [tile_major(w, ph.bn, ph.kind == "geglu") for w, ph in zip(plain, ps)]
         for programs in ([1] if cpu else [int(v) for v in args.programs.split(",")]):
             for pf in [int(v) for v in args.prefetch.split(",")]:
-                for act in args.act_load.split(","):
-                    for lanes in ([0] if cpu else [int(v) for v in args.lanes.split(",")]):
-                        for sync in {"0": [False], "1": [True], "0,1": [False, True]}[args.sync]:
-                            fn = persistent(ps, layers, dims, dtype, programs=programs,
-                                            bk=min(args.bk, 32 if cpu else args.bk), prefetch=pf,
-                                            rc=min(args.rc, 16), warps=args.warps, stages=args.stages,
-                                            interpret=cpu, act_load=act, lanes=lanes, sync=sync)
-                            variants.append((f"persistent P={programs} prefetch={pf} {act} lanes={lanes} sync={sync:d} "
-                                             f"{text or 'default'}", fn, tiled))
+                fn = persistent(ps, layers, dims, dtype, programs=programs, bk=min(args.bk, 32 if cpu else args.bk),
+                                prefetch=pf, rc=min(args.rc, 16), warps=args.warps, stages=args.stages,
+                                interpret=cpu)
+                variants.append((f"persistent P={programs} prefetch={pf} {text or 'default'}", fn, tiled))
         fn = phased(ps, layers, dims, dtype, programs=1 if cpu else int(args.programs.split(",")[0]),
                     bk=min(args.bk, 32) if cpu else args.bk, rc=min(args.rc, 16), warps=args.warps,
                     stages=args.stages, interpret=cpu)
@@ -516,8 +488,7 @@ def main() -> None:
         tiled = [tile_major(w, ph.bn, ph.kind == "geglu") for w, ph in zip(plain, ps)]
         kw = dict(programs=int(args.programs.split(",")[0]), bk=args.bk, rc=args.rc, warps=args.warps,
                   stages=args.stages, full=True)
-        a_bufs = persistent(ps, layers, dims, dtype, prefetch=0, act_load=args.act_load.split(",")[0],
-                            lanes=int(args.lanes.split(",")[-1]), sync=args.sync.endswith("1"), **kw)(x, tiled)
+        a_bufs = persistent(ps, layers, dims, dtype, prefetch=0, **kw)(x, tiled)
         b_bufs = phased(ps, layers, dims, dtype, **kw)(x, tiled)
         f32 = lambda t: np.asarray(t.astype(jnp.float32))  # noqa: E731
         wq, wo, wg, wd = (f32(w) for w in plain)
