@@ -37,13 +37,18 @@ import argparse
 import dataclasses
 import functools
 import json
+import sys
 import time
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plgpu
+
+sys.path.insert(0, str(Path(__file__).parent))
+from bench_kernels import median_ms  # noqa: E402
 
 M = 64  # rows: 50 suffix tokens padded
 
@@ -394,16 +399,6 @@ def barrier_check(programs: int, warps: int, rounds: int = 64) -> dict:
             "spins_max": int(np.asarray(spins).max()), "count": int(np.asarray(count)[0])}
 
 
-def median_ms(fn, args, iters: int) -> float:
-    jax.block_until_ready(fn(*args))
-    times = []
-    for _ in range(iters):
-        t = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - t)
-    return float(np.median(times) * 1e3)
-
-
 def parse_spec(text: str) -> dict:
     spec = {"qkv": (32, 1), "out": (64, 8), "gate_up": (32, 1), "down": (64, 8)}
     for part in filter(None, text.split(",")):
@@ -525,7 +520,7 @@ def main() -> None:
     live = [(n, fn, ws) for n, fn, ws in variants if isinstance(errors[n], float)]
     for _ in range(3):
         for name, fn, ws in live:
-            times[name].append(median_ms(fn, (x, ws), args.iters // 3 or 1))
+            times[name].append(median_ms(fn, (x, ws), args.iters // 3 or 1, warmup=1))
     for name, _, _ in variants:
         t = float(np.median(times[name])) if times[name] else None
         row = {"variant": name, "ms": t, "us_per_layer": t * 1e3 / layers if t else None, "rel_l2": errors[name],
