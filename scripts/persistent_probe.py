@@ -20,7 +20,7 @@ random weights at π0's expert sizes, the attention left out (the out-projection
   read        every weight array summed once by XLA (a kernel each): what streaming them costs, no GEMM
 
 The barrier returns a zero computed from the counter it waited for, and the next phase's addresses add it: without
-that data dependence Triton hoisted a phase's activation loads above the wait, and the kernel read activations still
+that data dependence the compiler moved a phase's activation loads above the wait, and the kernel read activations still
 being written (about 30 % of gate/up's output wrong at 18 layers; volatile loads, a counter per thread and block
 barriers around every item did not help; docs/BENCHMARKS.md, session 30).
 
@@ -136,8 +136,9 @@ def _steps(ps: list[Phase]):
 
 
 def _kernel(*refs, ps, layers, programs, bk, prefetch, rc, only, interpret=False):
-    """refs: xs (aliased to the output xs, row 0 the input), 4 tile-major weights, counter | xs (L + 1, M, D), qkv (L, M, Q), x2 (L, M, D), h (L, M, F),
-    parts (per phase with splits > 1), counter out. `only`: run one step (the `phases` variant) for one layer."""
+    """refs: xs (row 0 the input), 4 tile-major weights, counter | xs (L + 1, M, D; aliased), qkv (L, M, Q),
+    x2 (L, M, D), h (L, M, F), parts (per phase with splits > 1), counter (aliased). `only`: run one step (the
+    `phases` variant) of the layer whose index is the first input."""
     nw = len(ps)
     w_refs = refs[1:1 + nw]
     outs = refs[2 + nw:]
@@ -232,8 +233,8 @@ def _kernel(*refs, ps, layers, programs, bk, prefetch, rc, only, interpret=False
 
     def barrier(target):
         """Every program's writes so far visible to every program; returns 0, computed from the counter it waited
-        for: the next phase's addresses add it, so no compiler pass can hoist a load above the wait (Triton did:
-        with the loads free of the spin, a phase read activations still being written)."""
+        for: the next phase's addresses add it, so no compiler pass can hoist a load above the wait (one did: with
+        the loads free of the spin, a phase read activations still being written)."""
         if interpret:  # one program: nothing to wait for
             return jnp.zeros((), jnp.int32)
         plgpu.debug_barrier()
