@@ -124,7 +124,7 @@ def reference_unrolled(x, layer_ws, a: int):
     return x
 
 
-# -- the kernel ---------------------------------------------------------------------------------------------------------
+# -- the kernel -------------------------------------------------------------------------------------------------------
 def _steps(ps: list[Phase]):
     """The kernel's steps in order: ("gemm", phase index) and ("reduce", phase index) where the phase splits K."""
     out = []
@@ -426,8 +426,8 @@ def main() -> None:
     p.add_argument("--stages", type=int, default=2, help="Triton pipelining depth (default: %(default)s)")
     p.add_argument("--iters", type=int, default=30, help="timed calls per variant (default: %(default)s)")
     p.add_argument("--diagnose", action="store_true",
-                   help="check every buffer of the persistent kernel and of the kernel per phase against its own inputs, "
-                        "layer by layer (which phase goes wrong)")
+                   help="check every buffer of the persistent kernel and of the kernel per phase against its own "
+                        "inputs, layer by layer (which phase goes wrong)")
     p.add_argument("--cpu-check", action="store_true", help="one program in interpret mode at small sizes")
     args = p.parse_args()
     cpu = args.cpu_check
