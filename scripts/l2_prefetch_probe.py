@@ -10,6 +10,8 @@ attention kernel could have loaded them meanwhile. This probe measures the two h
   prefetch     a Pallas kernel whose programs read the same weights once (summed, so the loads stay)
   both         prefetch, then the GEMMs, layer by layer: (both - prefetch) is what the GEMMs cost from L2
 
+`--trace` also times each kernel under the profiler (the host-timed call holds the host's share too).
+
 GPU only.
 
     python scripts/l2_prefetch_probe.py --out l2.json
@@ -34,6 +36,7 @@ from pi0_jax.ops import expert_kernels as ek
 
 sys.path.insert(0, str(Path(__file__).parent))
 from bench_kernels import median_ms  # noqa: E402
+from profile_engine import kernel_times  # noqa: E402
 
 M, D, A, F = 64, 1024, 2048, 4096  # rows, width, attention width, MLP hidden (π0's expert)
 COLS = 1024  # a prefetch row: the weights viewed as (rows, 1024)
@@ -72,6 +75,8 @@ def main() -> None:
     p.add_argument("--rows", default="64,128", help="comma list: weight rows a prefetch program reads")
     p.add_argument("--block", type=int, default=16, help="rows a prefetch load takes (default: %(default)s)")
     p.add_argument("--warps", type=int, default=4, help="warps a prefetch program (default: %(default)s)")
+    p.add_argument("--trace", action="store_true",
+                   help="also each variant's kernels under the profiler: time per kernel name and layer")
     p.add_argument("--iters", type=int, default=30, help="timed calls per variant (default: %(default)s)")
     args = p.parse_args()
     if jax.default_backend() != "gpu":
@@ -120,6 +125,14 @@ def main() -> None:
     for rows in (int(r) for r in args.rows.split(",")):
         warm = per[f"both rows={rows}"] - per[f"prefetch rows={rows}"]
         print(f"rows={rows}: the GEMMs after the prefetch {warm:.2f} us/layer, cold {per['gemms']:.2f}", flush=True)
+    if args.trace:
+        res["kernels"] = {}
+        for k, fn in variants.items():
+            t = kernel_times(lambda fn=fn: jax.block_until_ready(fn(y, x, w_out, w_gu)), 5)
+            res["kernels"][k] = t
+            names = ", ".join(f"{r['name']} {r['us_per_call'] / args.layers:.2f}" for r in t["by_name"][:6])
+            print(f"{k:24s} kernels per layer (us): {names}; span {t['span_ms'] * 1e3 / args.layers:.2f}, "
+                  f"idle {t['idle_ms'] * 1e3 / args.layers:.2f}", flush=True)
     if args.out:
         with open(args.out, "w") as fh:
             json.dump(res, fh, indent=1)
