@@ -17,6 +17,7 @@ and by its kernels' durations in a profiler trace. Each is checked against XLA's
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
 import json
 import sys
@@ -46,6 +47,11 @@ MGPU = {"qkv": [(64, 1, 4, 4), (64, 1, 2, 6), (64, 2, 4, 4), (128, 1, 4, 4), (64
         "down": [(64, 1, 8, 4), (64, 1, 4, 8), (64, 2, 8, 4), (128, 1, 8, 4), (64, 1, 16, 4)]}
 
 
+def _stages(stages: int, tk: int) -> int:
+    """The pipeline depth that keeps a launch's shared memory when each step brings tk rows instead of 64."""
+    return max(2, stages * mosaic_gemm.TK // tk)
+
+
 def probe_shape(name, k, n, triton, args, rows: int = 64):
     key = jax.random.key([s[0] for s in SHAPES].index(name))
     kx, kw = jax.random.split(key)
@@ -53,6 +59,7 @@ def probe_shape(name, k, n, triton, args, rows: int = 64):
     ws = [(jax.random.normal(w, (k, n), jnp.float32) * k**-0.5).astype(jnp.bfloat16)
           for w in jax.random.split(kw, args.copies)]
     want = np.asarray(jnp.dot(x, ws[0], preferred_element_type=jnp.float32))
+    res, calls = {}, {}
 
     def total(parts):   # the split sum in f32 (the engine's epilogue fusion does it)
         return parts.astype(jnp.float32).sum(0)
@@ -60,11 +67,32 @@ def probe_shape(name, k, n, triton, args, rows: int = 64):
     variants = {"xla": lambda x, w: jnp.dot(x, w, preferred_element_type=jnp.float32)[None],
                 f"triton {triton.cols}x{triton.splits}s{triton.stages}":
                     lambda x, w: ek.matmul_partials(x, w, gemm=triton, name=f"expert_{name}")[0]}
-    for cols, wgs, splits, stages in MGPU[name]:
-        variants[f"mgpu {cols}x{wgs}wg {splits}s {stages}st"] = functools.partial(
-            lambda x, w, launch: mosaic_gemm.partials(x, w, launch),
-            launch=mosaic_gemm.Launch(cols, splits, stages, wgs))
-    res, calls = {}, {}
+    launches = [(mosaic_gemm.Launch(cols, splits, stages, wgs), f"mgpu {cols}x{wgs}wg {splits}s {stages}st")
+                for cols, wgs, splits, stages in MGPU[name]]
+    if args.tk:   # the first launch of the sweep at each pipeline step's contraction rows
+        first = launches[0][0]
+        launches = [(dataclasses.replace(first, tk=tk, stages=_stages(first.stages, tk)), f"mgpu {first.cols}x"
+                     f"{first.wgs}wg {first.splits}s {_stages(first.stages, tk)}st tk{tk}") for tk in args.tk]
+    for launch, label in launches:
+        variants[label] = functools.partial(lambda x, w, launch: mosaic_gemm.partials(x, w, launch), launch=launch)
+    if name == "gate_up" and args.tk:   # the engine's gate/up: GeGLU in the epilogue (checked against XLA's)
+        hidden = n // 2
+        g, u = jnp.split(jnp.asarray(want), 2, axis=-1)
+        geglu_want = np.asarray(jax.nn.gelu(g, approximate=True) * u)
+        for tk in args.tk:
+            base = ek.Blocks().mosaic_mlp
+            launch = dataclasses.replace(base, tk=tk, stages=_stages(base.stages, tk))
+            try:
+                got = np.asarray(jax.jit(mosaic_gemm.geglu, static_argnums=2)(x, ws[0], launch), np.float32)
+                err = float(np.abs(got - geglu_want).max() / np.abs(geglu_want).max())
+                prog = jax.jit(lambda x, ws, launch=launch: [mosaic_gemm.geglu(x, w, launch) for w in ws])
+                prog(x, ws)
+                label = f"mgpu geglu {launch.cols} {launch.stages}st tk{tk}"
+                calls[label] = functools.partial(prog, x, ws)
+                res[label] = {"max_rel_err": err, "hidden": hidden}
+            except Exception:
+                res[f"geglu tk{tk}"] = {"error": traceback.format_exc()[-1500:]}
+                print(f"geglu tk{tk}", res[f"geglu tk{tk}"]["error"], flush=True)
     for label, fn in variants.items():
         try:
             got = np.asarray(jax.jit(lambda x, w: total(fn(x, w)))(x, ws[0]))
@@ -96,6 +124,9 @@ def main():
     p.add_argument("--copies", type=int, default=18, help="independent weights per program (default: %(default)s)")
     p.add_argument("--bandwidth", type=float, default=4.8e12, help="the floor's bytes/s (default: H200's 4.8e12)")
     p.add_argument("--shapes", default=",".join(s[0] for s in SHAPES), help="which of the four (default: all)")
+    p.add_argument("--tk", type=lambda v: [int(t) for t in v.split(",")], default=None,
+                   help="comma list of contraction rows per pipeline step (multiples of 64): each shape's first "
+                        "launch at each, instead of the sweep; gate/up also as the engine's GeGLU kernel")
     p.add_argument("--out", type=Path, default=Path("mgpu_gemm.json"), help="JSON results (default: %(default)s)")
     args = p.parse_args()
     out = {"device": jax.devices()[0].device_kind, "jax": jax.__version__,

@@ -31,7 +31,8 @@ def _rand(key, *shape, scale=1.0):
 
 @pytest.mark.parametrize("rows,k,n,launch", [(64, 256, 256, Launch(64, 2, 2)),
                                              (100, 128, 256, Launch(64, 1, 2, 2, delay=1)),
-                                             (130, 256, 128, Launch(128, 4, 3))])
+                                             (130, 256, 128, Launch(128, 4, 3)),
+                                             (64, 512, 128, Launch(64, 2, 2, tk=128))])
 def test_partials_equal_xla(rows, k, n, launch):
     """Rows padded to 64 and cut back; split-K partials in f32; one chunk in the input's dtype."""
     x, w = _rand(0, rows, k), _rand(1, k, n, scale=k**-0.5)
@@ -52,7 +53,8 @@ def test_geglu_equals_xla():
     x, w = _rand(2, 100, 128), _rand(3, 128, 512, scale=128**-0.5)
     gate, up = jnp.split(x @ w, 2, axis=-1)
     want = jax.nn.gelu(gate, approximate=True) * up
-    for launch in (Launch(64, 1, 2, geglu=True), Launch(128, 1, 3, geglu=True, delay=1)):
+    for launch in (Launch(64, 1, 2, geglu=True), Launch(128, 1, 3, geglu=True, delay=1),
+                   Launch(64, 1, 2, geglu=True, tk=128)):
         assert mosaic_gemm.applies(x, w, launch)
         np.testing.assert_allclose(mosaic_gemm.geglu(x, w, launch), want, **TOL)
     assert not np.allclose(jax.nn.gelu(up, approximate=True) * gate, want, **TOL)   # gate and up not swapped
@@ -66,6 +68,8 @@ def test_geglu_equals_xla():
         Launch(64, 2, geglu=True)
     with pytest.raises(ValueError, match="delay"):
         Launch(64, 1, 2, delay=2)
+    with pytest.raises(ValueError, match="multiple of 64"):
+        Launch(64, tk=96)
 
 
 def test_applies_only_where_the_launch_tiles():
@@ -76,6 +80,8 @@ def test_applies_only_where_the_launch_tiles():
     assert mosaic_gemm.applies(x, jnp.zeros((128, 128)), Launch(64, 2))
     assert not mosaic_gemm.applies(x, jnp.zeros((128, 128)), Launch(64, 2, 3, delay=1))  # one step per chunk
     assert not mosaic_gemm.applies(x, jnp.zeros((128, 192)), Launch(64, geglu=True))   # 96 hidden units
+    assert not mosaic_gemm.applies(x, jnp.zeros((128, 128)), Launch(64, 2, tk=128))  # chunks of 64 < a 128-row step
+    assert mosaic_gemm.applies(x, jnp.zeros((256, 128)), Launch(64, 2, tk=128))
 
 
 def _layers_inputs(pi05: bool):

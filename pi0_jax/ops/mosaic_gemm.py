@@ -31,7 +31,7 @@ import numpy as np
 from jax import lax
 
 ROWS = 64  # a warpgroup's wgmma rows; M is padded to a multiple
-TK = 64  # contraction per pipeline step: one 128-byte swizzled row of bf16
+TK = 64  # a swizzled tile's contraction: one 128-byte row of bf16; a pipeline step takes `Launch.tk` of it
 
 
 @dataclasses.dataclass(frozen=True)
@@ -39,8 +39,9 @@ class Launch:
     """Output columns per compute warpgroup (`geglu`: hidden units), K chunks (one CTA each per column block), TMA
     pipeline depth, compute warpgroups per CTA, whether the gate/up GEMM ends in GeGLU (`geglu`; one chunk, one
     warpgroup), and how many steps' wgmma may still run when the next is issued (`delay`: their tiles are released
-    that many steps later). On a GPU, cols is a multiple of 64: 32-column accumulators failed Mosaic GPU's layout
-    inference (jax 0.11.2), where the CPU interpreter took them."""
+    that many steps later), and the contraction rows a pipeline step brings (`tk`, a multiple of TK: each step's
+    barrier handshake is paid once for that many rows). On a GPU, cols is a multiple of 64: 32-column accumulators
+    failed Mosaic GPU's layout inference (jax 0.11.2), where the CPU interpreter took them."""
 
     cols: int = 64
     splits: int = 1
@@ -48,8 +49,11 @@ class Launch:
     wgs: int = 1
     geglu: bool = False
     delay: int = 0
+    tk: int = TK
 
     def __post_init__(self):
+        if self.tk % TK:
+            raise ValueError(f"{self}: tk must be a multiple of {TK}")
         if self.geglu and (self.splits, self.wgs) != (1, 1):
             raise ValueError(f"{self}: the GeGLU epilogue needs the whole K in one CTA of one compute warpgroup")
         if not 0 <= self.delay < self.stages:
@@ -69,8 +73,8 @@ def applies(x, w, launch: Launch) -> bool:
     TK steps (more than `delay` of them), N (geglu: each half) into column blocks."""
     k, n = w.shape
     n = n // 2 if launch.geglu else n
-    tiles = k % (launch.splits * TK) == 0 and n % (launch.cols * launch.wgs) == 0
-    tiles = tiles and k // (launch.splits * TK) > launch.delay   # the pipeline is no deeper than its steps
+    tiles = k % (launch.splits * launch.tk) == 0 and n % (launch.cols * launch.wgs) == 0
+    tiles = tiles and k // (launch.splits * launch.tk) > launch.delay   # the pipeline is no deeper than its steps
     if jax.default_backend() == "cpu":
         return tiles
     hopper = jax.default_backend() == "gpu" and getattr(jax.devices()[0], "compute_capability", "") == "9.0"
@@ -108,7 +112,7 @@ def _gelu_product(g, u, dtype):
 @functools.lru_cache(maxsize=None)
 def _call(m: int, k: int, n: int, dtype, launch: Launch, name: str):
     """The kernel for x (m, k) and n output columns (geglu: n hidden units of a (k, 2n) weight)."""
-    cols, splits, wgs, pair = launch.cols, launch.splits, launch.wgs, launch.geglu
+    cols, splits, wgs, pair, tk = launch.cols, launch.splits, launch.wgs, launch.geglu, launch.tk
     chunk, cta_n = k // splits, cols * wgs
     out_dtype = dtype if splits == 1 else jnp.float32
 
@@ -119,11 +123,11 @@ def _call(m: int, k: int, n: int, dtype, launch: Launch, name: str):
 
     def pipeline(body, context):
         spec = functools.partial(plgpu.BlockSpec, memory_space=plgpu.SMEM, delay_release=launch.delay)
-        w_spec = spec((TK, cta_n), lambda kk: (kk, 0), transforms=transforms(cta_n, dtype))
+        w_spec = spec((tk, cta_n), lambda kk: (kk, 0), transforms=transforms(cta_n, dtype))
         return plgpu.emit_pipeline_warp_specialized(
-            body, grid=(chunk // TK,), memory_registers=40, wg_axis="wg", num_compute_wgs=wgs,
+            body, grid=(chunk // tk,), memory_registers=40, wg_axis="wg", num_compute_wgs=wgs,
             max_concurrent_steps=launch.stages, compute_context=context,
-            in_specs=[spec((ROWS, TK), lambda kk: (0, kk), transforms=transforms(TK, dtype)),
+            in_specs=[spec((ROWS, tk), lambda kk: (0, kk), transforms=transforms(tk, dtype)),
                       *([w_spec] * (2 if pair else 1))])
 
     def kernel(x_gmem, w_gmem, o_gmem):
