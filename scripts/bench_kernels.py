@@ -80,6 +80,11 @@ STEP_SWEEPS = {
                      "mlp geglu 64 8st d1": dict(mosaic_mlp=L(64, 1, 8, geglu=True, delay=1)),
                      "mlp geglu 64 8st d2": dict(mosaic_mlp=L(64, 1, 8, geglu=True, delay=2)),
                      "mlp mosaic 64 1s 8st d1": dict(mosaic_mlp=L(64, 1, 8, delay=1))},
+    # more contraction rows per pipeline step (`Launch.tk`, session 30: gate/up + GeGLU alone 9.76 -> 9.27 us with 128
+    # rows a step at depth 3, the same shared memory as 64 at depth 6; q/k/v on the Mosaic kernel 7.03 -> 6.71 us)
+    "mosaic_tk": {"default": {}, "mlp geglu 64 3st tk128": dict(mosaic_mlp=L(64, 1, 3, geglu=True, tk=128)),
+                  "mlp geglu 64 2st tk256": dict(mosaic_mlp=L(64, 1, 2, geglu=True, tk=256)),
+                  "qkv mosaic 64 4s 2st tk128": dict(mosaic_qkv=L(64, 4, 2, tk=128))},
     # the attention's key splits since its splits are merged by one Pallas kernel (session 28: XLA's merge had been
     # two fusions), and its key block
     "kv_splits": {"default": {}, "kv splits 7": dict(kv_splits=7), "kv splits 10": dict(kv_splits=10),
