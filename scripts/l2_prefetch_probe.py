@@ -10,7 +10,9 @@ attention kernel could have loaded them meanwhile. This probe measures the two h
   prefetch     a Pallas kernel whose programs read the same weights once (summed, so the loads stay)
   both         prefetch, then the GEMMs, layer by layer: (both - prefetch) is what the GEMMs cost from L2
 
-`--trace` also times each kernel under the profiler (the host-timed call holds the host's share too).
+`--trace` also times each kernel under the profiler. Use it: the host-timed chains hold the host's share of each
+call, and on 2026-11-26 they showed the GEMMs 10 us a layer faster after the prefetch where the trace showed the
+same kernel times (docs/BENCHMARKS.md, session 30).
 
 GPU only.
 
@@ -124,7 +126,8 @@ def main() -> None:
         print(f"{k:24s} {per[k]:7.2f} us/layer", flush=True)
     for rows in (int(r) for r in args.rows.split(",")):
         warm = per[f"both rows={rows}"] - per[f"prefetch rows={rows}"]
-        print(f"rows={rows}: the GEMMs after the prefetch {warm:.2f} us/layer, cold {per['gemms']:.2f}", flush=True)
+        print(f"rows={rows}: the GEMMs after the prefetch {warm:.2f} us/layer, cold {per['gemms']:.2f} "
+              "(host-timed: see --trace)", flush=True)
     if args.trace:
         res["kernels"] = {}
         for k, fn in variants.items():
