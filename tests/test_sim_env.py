@@ -142,3 +142,22 @@ def test_substep_is_mjx_step_with_its_kinematics_last():
     np.testing.assert_allclose(out.site_xpos, ref.site_xpos, atol=1e-6)   # refreshed for the new qpos, as _refresh
     np.testing.assert_allclose(out.cam_xpos, ref.cam_xpos, atol=1e-6)
     assert np.abs(np.asarray(out.qvel[:, :arm] - data.qvel[:, :arm])).max() > 1e-2   # the servos did move the arm
+
+
+def test_the_cpu_flags_are_set_only_where_jax_runs_on_the_cpu():
+    """Importing `pi0_jax.sim` (the `pi0-jax` command does, for its parser) appends the XLA:CPU flags MJX needs to
+    XLA_FLAGS when JAX will run on the CPU, and leaves XLA_FLAGS alone where a GPU platform comes first: the flags
+    are part of every program's cache key, so a GPU `pi0-jax serve` and a script must not differ by them."""
+    import os
+    import subprocess
+    import sys
+
+    code = "import os, pi0_jax.sim; print(os.environ.get('XLA_FLAGS', ''))"
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    cpu = subprocess.run([sys.executable, "-c", code], env={**env, "JAX_PLATFORMS": "cpu"}, capture_output=True,
+                         text=True, timeout=120)
+    gpu = subprocess.run([sys.executable, "-c", code], env={**env, "JAX_PLATFORMS": "cuda,cpu"},
+                         capture_output=True, text=True, timeout=120)
+    assert cpu.returncode == 0 and gpu.returncode == 0, cpu.stderr[-2000:] + gpu.stderr[-2000:]
+    assert "--xla_cpu_enable_concurrency_optimized_scheduler=false" in cpu.stdout
+    assert gpu.stdout.strip() == ""

@@ -19,7 +19,10 @@ import warnings
 # MJX on XLA:CPU: the CPU fusion emitter blows up on deep kinematic chains (one 7-joint arm step took ~0.6 s instead
 # of ~4 ms on this project's machines), and XLA:CPU's concurrency-optimised scheduler deadlocked this scene's batched
 # step at batch >= 48 on a 2-core machine (all threads idle in BlockUntilReady). XLA reads XLA_FLAGS when its first
-# backend starts, so the flags are appended here unless a backend is already running; GPU backends ignore them.
+# backend starts, so the flags are appended here unless a backend is already running, and only where JAX will run on
+# the CPU: XLA_FLAGS is part of every compiled program's cache key (XLA's and `engine.store`'s), and the `pi0-jax`
+# command imports this package for its parser, so on a GPU machine the flags would set `pi0-jax serve` apart from a
+# script running the same programs.
 _CPU_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_cpu_enable_concurrency_optimized_scheduler=false")
 
 
@@ -31,6 +34,18 @@ def _backends_started() -> bool:
         return bool(xla_bridge.backends_are_initialized())
     except (ImportError, AttributeError):   # private API moved: assume the worst
         return True
+
+
+def _runs_on_cpu() -> bool:
+    """Whether JAX's default backend will be the CPU: JAX_PLATFORMS names it first, or (unset) no GPU plugin of jax
+    is installed (jax-cuda*/jax-rocm* distributions)."""
+    platforms = os.environ.get("JAX_PLATFORMS", "").strip()
+    if platforms:
+        return platforms.split(",")[0].strip() == "cpu"
+    import importlib.metadata
+
+    gpu = ("jax-cuda", "jax_cuda", "jax-rocm", "jax_rocm")
+    return not any((d.metadata["Name"] or "").lower().startswith(gpu) for d in importlib.metadata.distributions())
 
 
 def _known_to_xla(flags) -> list[str]:
@@ -52,7 +67,7 @@ def _known_to_xla(flags) -> list[str]:
 
 
 _missing = [f for f in _CPU_FLAGS if f.split("=")[0] not in os.environ.get("XLA_FLAGS", "")]
-if _missing:
+if _missing and _runs_on_cpu():
     if _backends_started():
         warnings.warn("pi0_jax.sim imported after a JAX backend started: on CPU, set "
                       f"XLA_FLAGS='{' '.join(_CPU_FLAGS)}' before JAX starts, or MJX steps are much slower",
