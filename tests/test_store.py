@@ -136,3 +136,26 @@ def test_a_loaded_program_that_runs_out_of_memory_keeps_its_entry(tmp_path, monk
     with pytest.raises(jax.errors.JaxRuntimeError, match="RESOURCE_EXHAUSTED"):
         loaded(*args)
     assert len(list(tmp_path.glob("*.pkl"))) == 1
+
+
+def test_the_store_prunes_entries_unused_for_max_age_days(tmp_path):
+    """A write removes entries neither loaded nor written for max_age_days and a killed writer's temporary files over
+    a day old; fresh entries, other files and a store without a directory are left alone."""
+    import os
+    import time
+
+    s = ProgramStore(tmp_path / "programs", max_age_days=2)
+    assert s.prune() == []   # no directory yet
+    s.root.mkdir()
+    now = time.time()
+    ages = {"old-1.pkl": 3, "fresh-2.pkl": 1, "left.pkl.tmp": 1.5, "new.pkl.tmp": 0.5, "notes.txt": 9}
+    for name, days in ages.items():
+        (s.root / name).write_bytes(b"x")
+        os.utime(s.root / name, (now - days * 86400, now - days * 86400))
+    assert sorted(p.name for p in s.prune(now)) == ["left.pkl.tmp", "old-1.pkl"]
+    assert sorted(p.name for p in s.root.iterdir()) == ["fresh-2.pkl", "new.pkl.tmp", "notes.txt"]
+    program = s.compile("f", ("v",), _fn, _args())   # a write prunes too
+    assert len(list(s.root.glob("f-*.pkl"))) == 1 and program is not None
+    os.utime(s.root / "fresh-2.pkl", (now - 5 * 86400, now - 5 * 86400))
+    s.compile("f", ("w",), _fn, _args())
+    assert not (s.root / "fresh-2.pkl").exists() and len(list(s.root.glob("f-*.pkl"))) == 2

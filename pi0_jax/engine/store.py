@@ -11,7 +11,9 @@ the argument tree (structure, shapes, dtypes, shardings), the compiler options, 
 jaxlib, XLA_FLAGS, the jax settings that change lowering, and a digest of this package's source. Module state
 changed at run time (a probe that patches a constant or a default) is not in the key: such code runs with
 `cache_dir=False`, as the tests and `scripts/` do. Entries are written whole (a temporary file, then a rename); one
-that fails to load is reported, removed and compiled again.
+that fails to load is reported, removed and compiled again. Each source change or upgrade makes new keys (about
+2 MB a program), so the store prunes itself when it writes: an entry not loaded or written for `max_age_days` goes,
+as does a temporary file a killed writer left.
 
 GPU only (`PLATFORMS`): on a CPU (jaxlib 0.10.2) a loaded executable failed to run where the process that wrote it,
 or the one that read it, had compiled other programs first ("Function broadcast_maximum_fusion not found", "Function
@@ -27,6 +29,7 @@ import hashlib
 import os
 import pickle
 import tempfile
+import time
 import warnings
 from collections.abc import Callable
 from pathlib import Path
@@ -63,10 +66,12 @@ def _signature(args) -> tuple:
 
 
 class ProgramStore:
-    """Serialized executables under `root`, one file per key; root None: nothing kept, every program compiled."""
+    """Serialized executables under `root`, one file per key; root None: nothing kept, every program compiled.
+    max_age_days: an entry neither loaded nor written for that long is removed at the next write."""
 
-    def __init__(self, root: str | os.PathLike | None):
+    def __init__(self, root: str | os.PathLike | None, max_age_days: float = 30.0):
         self.root = None if root is None else Path(root)
+        self.max_age_s = max_age_days * 86400.0
         self.loaded = 0   # programs this store handed back from disk (tests and benchmarks read it)
 
     def key(self, name: str, parts: tuple, args, options: dict | None) -> str:
@@ -86,6 +91,7 @@ class ProgramStore:
                 payload, in_tree, out_tree = pickle.loads(path.read_bytes())
                 compiled = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
                 self.loaded += 1
+                _touch(path)   # in use: the age the pruning reads
                 return _Loaded(compiled, path, fresh)
             except Exception as e:   # a truncated or foreign file: say so, drop it, compile again
                 warnings.warn(f"compiled program {path} did not load ({type(e).__name__}: {e}); compiling again",
@@ -93,7 +99,25 @@ class ProgramStore:
                 path.unlink(missing_ok=True)
         compiled = fresh()
         self._write(path, pickle.dumps(serialize_executable.serialize(compiled)))
+        self.prune()
         return compiled
+
+    def prune(self, now: float | None = None) -> list[Path]:
+        """Remove entries older than `max_age_s` (by modification time, which a load renews) and temporary files
+        over a day old; returns what went. Another process's removal or a read-only directory is not an error."""
+        if self.root is None or not self.root.is_dir():
+            return []
+        now = time.time() if now is None else now
+        gone = []
+        for path in self.root.iterdir():
+            limit = self.max_age_s if path.suffix == ".pkl" else 86400.0 if path.suffix == ".tmp" else None
+            try:
+                if limit is not None and now - path.stat().st_mtime > limit:
+                    path.unlink()
+                    gone.append(path)
+            except OSError:
+                pass
+        return gone
 
     def _write(self, path: Path, data: bytes) -> None:
         self.root.mkdir(parents=True, exist_ok=True)
@@ -106,6 +130,13 @@ class ProgramStore:
         except BaseException:
             Path(tmp).unlink(missing_ok=True)
             raise
+
+
+def _touch(path: Path) -> None:
+    try:
+        os.utime(path)
+    except OSError:   # a read-only shared store: its entries just age
+        pass
 
 
 class _Loaded:
