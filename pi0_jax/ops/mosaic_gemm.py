@@ -40,7 +40,8 @@ class Launch:
     pipeline depth, compute warpgroups per CTA, whether the gate/up GEMM ends in GeGLU (`geglu`; one chunk, one
     warpgroup), and how many steps' wgmma may still run when the next is issued (`delay`: their tiles are released
     that many steps later), and the contraction rows a pipeline step brings (`tk`, a multiple of TK: each step's
-    barrier handshake is paid once for that many rows). On a GPU, cols is a multiple of 64: 32-column accumulators
+    barrier handshake is paid once for that many rows; 128 took gate/up alone 5 % faster and the step not at all,
+    docs/BENCHMARKS.md, session 30). On a GPU, cols is a multiple of 64: 32-column accumulators
     failed Mosaic GPU's layout inference (jax 0.11.2), where the CPU interpreter took them."""
 
     cols: int = 64
@@ -70,7 +71,7 @@ def _interpret():
 
 def applies(x, w, launch: Launch) -> bool:
     """Whether this kernel takes x @ w: bf16 on a Hopper GPU (or any float on the CPU interpreter), K splitting into
-    TK steps (more than `delay` of them), N (geglu: each half) into column blocks."""
+    steps of `launch.tk` rows (more than `delay` of them), N (geglu: each half) into column blocks."""
     k, n = w.shape
     n = n // 2 if launch.geglu else n
     tiles = k % (launch.splits * launch.tk) == 0 and n % (launch.cols * launch.wgs) == 0
