@@ -38,12 +38,16 @@ def _backends_started() -> bool:
 
 def _runs_on_cpu() -> bool:
     """Whether JAX's default backend will be the CPU: JAX_PLATFORMS names it first, or (unset) no GPU plugin of jax
-    is installed (jax-cuda*/jax-rocm* distributions)."""
+    is installed (jax-cuda*/jax-rocm* distributions) or no GPU device node exists (a CUDA install on a machine
+    without a GPU falls back to the CPU)."""
+    import glob
+    import importlib.metadata
+
     platforms = os.environ.get("JAX_PLATFORMS", "").strip()
     if platforms:
         return platforms.split(",")[0].strip() == "cpu"
-    import importlib.metadata
-
+    if not (glob.glob("/dev/nvidia[0-9]*") or os.path.exists("/dev/kfd")):
+        return True
     gpu = ("jax-cuda", "jax_cuda", "jax-rocm", "jax_rocm")
     return not any((d.metadata["Name"] or "").lower().startswith(gpu) for d in importlib.metadata.distributions())
 
