@@ -118,6 +118,36 @@ def probe_shape(name, k, n, triton, args, rows: int = 64):
     return res
 
 
+def k_sweep(ks, args, rows: int = 64, hidden: int = 4096) -> dict:
+    """The engine's two GEMM kernels of the step at growing K, the columns fixed: gate/up + GeGLU (Mosaic GPU, its
+    default launch) and the Triton split-K kernel at 8 splits (64 columns, as down). A fit t = a + b K splits a
+    kernel's time into what it costs whatever its work (a) and per K row (b)."""
+    out = {"k": ks, "rows": []}
+    for label in ("geglu", "triton"):
+        times = []
+        for k in ks:
+            key = jax.random.key(k)
+            x = jax.random.normal(key, (rows, k), jnp.float32).astype(jnp.bfloat16)
+            n = 2 * hidden if label == "geglu" else 1024
+            ws = [(jax.random.normal(w, (k, n), jnp.float32) * k**-0.5).astype(jnp.bfloat16)
+                  for w in jax.random.split(key, args.copies)]
+            if label == "geglu":
+                launch = ek.Blocks().mosaic_mlp
+                prog = jax.jit(lambda x, ws: [mosaic_gemm.geglu(x, w, launch) for w in ws])
+            else:
+                gemm = ek.Gemm(64, 8)
+                prog = jax.jit(lambda x, ws: [ek.matmul_partials(x, w, gemm=gemm)[0] for w in ws])
+            prog(x, ws)
+            t = kernel_times(functools.partial(prog, x, ws), 5)
+            times.append(t["kernel_ms"] * 1e3 / args.copies)
+            print(f"k-sweep {label:6s} K={k:5d} N={n}: {times[-1]:6.2f} us a kernel "
+                  f"({k * n * 2 / 1e6:.1f} MB)", flush=True)
+        b, a = np.polyfit(np.asarray(ks, float), np.asarray(times), 1)
+        print(f"k-sweep {label}: {a:.2f} us + {b * 1e3:.3f} us per 1000 rows of K", flush=True)
+        out["rows"].append({"kernel": label, "us": times, "fixed_us": float(a), "us_per_k_row": float(b)})
+    return out
+
+
 def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--iters", type=int, default=30, help="timed calls per median (default: %(default)s)")
@@ -128,9 +158,16 @@ def main():
                    help="comma list of contraction rows per pipeline step (multiples of 64): each shape's first "
                         "launch at each, instead of the sweep; gate/up also as the engine's GeGLU kernel")
     p.add_argument("--out", type=Path, default=Path("mgpu_gemm.json"), help="JSON results (default: %(default)s)")
+    p.add_argument("--k-sweep", type=lambda v: [int(t) for t in v.split(",")], default=None,
+                   help="comma list of K: time the gate/up + GeGLU and a Triton split-K kernel at each (columns "
+                        "fixed) and fit a fixed cost plus a cost per K row, instead of the shapes")
     args = p.parse_args()
     out = {"device": jax.devices()[0].device_kind, "jax": jax.__version__,
            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "copies": args.copies}
+    if args.k_sweep:
+        out["k_sweep"] = k_sweep(args.k_sweep, args)
+        args.out.write_text(json.dumps(out, indent=1))
+        return
     for name, k, n, triton in SHAPES:
         if name in args.shapes.split(","):
             out[name] = probe_shape(name, k, n, triton, args)
