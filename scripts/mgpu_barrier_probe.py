@@ -1,0 +1,93 @@
+"""A grid-wide barrier inside one Pallas Mosaic GPU kernel, against a Mosaic GPU kernel boundary.
+
+Session 30 measured why the denoise step costs what it does: past its first microseconds a GEMM kernel streams the
+weights at 70-90 % of the bandwidth, and each kernel pays 3-4 us whatever its work (`mgpu_gemm_probe.py --k-sweep`,
+docs/BENCHMARKS.md). A persistent kernel whose phases are TMA pipelines could issue a phase's first weight copies
+before it waits for the previous phase, which Triton's register loads could not (`persistent_probe.py`). That needs a
+grid barrier in Mosaic GPU. This probe builds one from a GPU-scope semaphore in global memory: every CTA signals it
+once a round and waits, without taking it, until it holds (round + 1) x CTAs; after the last round every CTA signals
+once more and CTA 0 takes the whole count back (the semaphore ends at zero). Timed as the slope over R rounds in one
+call, against a chain of R of the same kernel with no round (a kernel boundary each) in one jit.
+
+GPU only (Hopper), like `grid_barrier_probe.py`.
+
+    python scripts/mgpu_barrier_probe.py --out mgpu_barrier.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.experimental.pallas as pl
+import jax.experimental.pallas.mosaic_gpu as plgpu
+import jax.numpy as jnp
+from jax import lax
+
+sys.path.insert(0, str(Path(__file__).parent))
+from grid_barrier_probe import median_us, slope  # noqa: E402
+
+
+def barrier_kernel(rounds: int, programs: int):
+    def kernel(o_gmem, sem):
+        del o_gmem   # nothing written: the rounds are the work
+
+        def crossing(r, carry):
+            plgpu.semaphore_signal(sem, 1, memory_scope="gpu")
+            plgpu.semaphore_wait(sem, (r + 1) * programs, decrement=False, memory_scope="gpu")
+            return carry
+
+        lax.fori_loop(0, rounds, crossing, jnp.int32(0))
+        plgpu.semaphore_signal(sem, 1, memory_scope="gpu")
+
+        @pl.when(lax.axis_index("b") == 0)
+        def _():
+            plgpu.semaphore_wait(sem, (rounds + 1) * programs, decrement=True, memory_scope="gpu")
+
+    return plgpu.kernel(kernel, out_type=jax.ShapeDtypeStruct((16,), jnp.int32), grid=(programs,),
+                        grid_names=("b",), scratch_types=[plgpu.SemaphoreType.REGULAR], kernel_name="mgpu_barrier",
+                        compiler_params=plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup))
+
+
+def barrier_call(rounds: int, programs: int):
+    call = barrier_kernel(rounds, programs)
+    return jax.jit(lambda x: x + call()[0] * 0)
+
+
+def chain_call(kernels: int, programs: int):
+    call = barrier_kernel(0, programs)
+    return jax.jit(lambda x: x + sum(call()[0] for _ in range(kernels)) * 0)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", required=True, help="JSON file to write")
+    p.add_argument("--programs", default="66,132", help="comma list of grid sizes (default: %(default)s)")
+    p.add_argument("--counts", default="0,25,100,200", help="comma list of barriers / kernels (default: %(default)s)")
+    p.add_argument("--iters", type=int, default=50, help="timed calls per point (default: %(default)s)")
+    args = p.parse_args()
+    if jax.default_backend() != "gpu":
+        raise SystemExit("mgpu_barrier_probe needs a GPU (Hopper)")
+    counts = [int(c) for c in args.counts.split(",")]
+    res = {"device": jax.devices()[0].device_kind, "jax": jax.__version__,
+           "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()), "rows": []}
+    x = jnp.zeros((), jnp.int32)
+    for programs in (int(g) for g in args.programs.split(",")):
+        bar = [median_us(barrier_call(r, programs), x, args.iters) for r in counts]
+        chain = [median_us(chain_call(max(r, 1), programs), x, args.iters) for r in counts]
+        row = {"programs": programs, "counts": counts, "barrier_call_us": bar, "chain_call_us": chain,
+               "per_barrier_us": slope(counts, bar), "per_kernel_us": slope([max(r, 1) for r in counts], chain)}
+        res["rows"].append(row)
+        print(f"programs {programs:4d}: barrier {row['per_barrier_us']:.3f} us, kernel boundary "
+              f"{row['per_kernel_us']:.3f} us   (calls {[round(b, 1) for b in bar]} / "
+              f"{[round(c, 1) for c in chain]} us)", flush=True)
+    with open(args.out, "w") as f:
+        json.dump(res, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
