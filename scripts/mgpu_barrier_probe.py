@@ -10,7 +10,7 @@ once more and CTA 0 takes the whole count back (the semaphore ends at zero). Tim
 call, against a chain of R of the same kernel with no round (a kernel boundary each) in one jit.
 
 GPU only (Hopper), like `grid_barrier_probe.py`. Status (session 30, jax 0.11.2, H100): it lowers, but the run at
-`5c7b2fa` did not finish in 280 s (a hang, not diagnosed: whether `scratch_types`' semaphore is one for the whole
+`c1916d7` did not finish in 280 s (a hang, not diagnosed: whether `scratch_types`' semaphore is one for the whole
 grid or one per CTA is the first thing to check; if per CTA, CTA 0 waits for ever). Not yet a measurement.
 
     python scripts/mgpu_barrier_probe.py --out mgpu_barrier.json
