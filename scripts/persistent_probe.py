@@ -20,9 +20,9 @@ random weights at π0's expert sizes, the attention left out (the out-projection
   read        every weight array summed once by XLA (a kernel each): what streaming them costs, no GEMM
 
 The barrier returns a zero computed from the counter it waited for, and the next phase's addresses add it: without
-that data dependence the compiler moved a phase's activation loads above the wait, and the kernel read activations still
-being written (about 30 % of gate/up's output wrong at 18 layers; volatile loads, a counter per thread and block
-barriers around every item did not help; docs/BENCHMARKS.md, session 30).
+that data dependence the compiler moved a phase's activation loads above the wait, and the kernel read activations
+still being written (16-30 % of the out-projection's output and up to half of gate/up's wrong in layer 0; volatile
+loads, a counter per thread and block barriers around every item did not help; docs/BENCHMARKS.md, session 30).
 
 Weights are stored tile-major ([L, column tiles, K, tile columns]) so a program's chunk is contiguous.
 Every variant's output is checked against `xla` (bf16 rounding). GPU only for timing; `--cpu-check` runs the
