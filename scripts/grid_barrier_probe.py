@@ -100,6 +100,20 @@ def slope(xs, ys) -> float:
     return float(np.polyfit(np.asarray(xs, float), np.asarray(ys, float), 1)[0])
 
 
+def measure(programs: int, barrier, chain, counts, x, iters: int) -> dict:
+    """One grid size: the call with R barriers (barrier(R)) and with R kernels (chain(R)) for R in counts, each
+    synchronisation's cost as the slope; printed and returned as a JSON row."""
+    bar = [median_us(barrier(r), x, iters) for r in counts]
+    kernels = [max(r, 1) for r in counts]
+    links = [median_us(chain(r), x, iters) for r in kernels]
+    row = {"programs": programs, "counts": counts, "barrier_call_us": bar, "chain_call_us": links,
+           "per_barrier_us": slope(counts, bar), "per_kernel_us": slope(kernels, links)}
+    print(f"programs {programs:4d}: barrier {row['per_barrier_us']:.3f} us, kernel boundary "
+          f"{row['per_kernel_us']:.3f} us   (calls {[round(b, 1) for b in bar]} / "
+          f"{[round(c, 1) for c in links]} us)", flush=True)
+    return row
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", required=True, help="JSON file to write")
@@ -117,13 +131,8 @@ def main() -> None:
            "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()), "rows": []}
     for programs in (int(g) for g in args.programs.split(",")):
         x = jnp.zeros((programs * LANES,), jnp.float32)
-        bar = [median_us(barrier_call(r, programs, args.warps), x, args.iters) for r in counts]
-        chain = [median_us(chain_call(max(r, 1), programs, args.warps), x, args.iters) for r in counts]
-        row = {"programs": programs, "counts": counts, "barrier_call_us": bar, "chain_call_us": chain,
-               "per_barrier_us": slope(counts, bar), "per_kernel_us": slope([max(r, 1) for r in counts], chain)}
-        res["rows"].append(row)
-        print(f"programs {programs:4d}: barrier {row['per_barrier_us']:.3f} us, kernel boundary "
-              f"{row['per_kernel_us']:.3f} us   (calls {bar} / {chain} us)", flush=True)
+        res["rows"].append(measure(programs, lambda r: barrier_call(r, programs, args.warps),
+                                   lambda r: chain_call(r, programs, args.warps), counts, x, args.iters))
     with open(args.out, "w") as f:
         json.dump(res, f, indent=1)
 

@@ -31,7 +31,7 @@ import jax.numpy as jnp
 from jax import lax
 
 sys.path.insert(0, str(Path(__file__).parent))
-from grid_barrier_probe import median_us, slope  # noqa: E402
+from grid_barrier_probe import measure  # noqa: E402
 
 
 def barrier_kernel(rounds: int, programs: int):
@@ -79,14 +79,8 @@ def main() -> None:
            "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()), "rows": []}
     x = jnp.zeros((), jnp.int32)
     for programs in (int(g) for g in args.programs.split(",")):
-        bar = [median_us(barrier_call(r, programs), x, args.iters) for r in counts]
-        chain = [median_us(chain_call(max(r, 1), programs), x, args.iters) for r in counts]
-        row = {"programs": programs, "counts": counts, "barrier_call_us": bar, "chain_call_us": chain,
-               "per_barrier_us": slope(counts, bar), "per_kernel_us": slope([max(r, 1) for r in counts], chain)}
-        res["rows"].append(row)
-        print(f"programs {programs:4d}: barrier {row['per_barrier_us']:.3f} us, kernel boundary "
-              f"{row['per_kernel_us']:.3f} us   (calls {[round(b, 1) for b in bar]} / "
-              f"{[round(c, 1) for c in chain]} us)", flush=True)
+        res["rows"].append(measure(programs, lambda r: barrier_call(r, programs),
+                                   lambda r: chain_call(r, programs), counts, x, args.iters))
     with open(args.out, "w") as f:
         json.dump(res, f, indent=1)
 

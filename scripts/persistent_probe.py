@@ -426,8 +426,8 @@ def main() -> None:
     p.add_argument("--stages", type=int, default=2, help="Triton pipelining depth (default: %(default)s)")
     p.add_argument("--iters", type=int, default=30, help="timed calls per variant (default: %(default)s)")
     p.add_argument("--diagnose", action="store_true",
-                   help="check every buffer of the persistent kernel and of the kernel per phase against its own "
-                        "inputs, layer by layer (which phase goes wrong)")
+                   help="check the barrier alone (its counter, data across it), then every buffer of the persistent "
+                        "kernel and of the kernel per phase against its own inputs, layer by layer")
     p.add_argument("--cpu-check", action="store_true", help="one program in interpret mode at small sizes")
     args = p.parse_args()
     cpu = args.cpu_check
@@ -451,7 +451,7 @@ def main() -> None:
         y = np.asarray(y.astype(jnp.float32))
         return float(np.linalg.norm(y - want) / np.linalg.norm(want))
 
-    if not cpu:
+    if args.diagnose and not cpu:  # the counter and the barrier alone, for data
         for w in (4, 8):
             print(f"counter after {args.programs.split(',')[0]} programs of {w} warps added 1 each: "
                   f"{count_check(int(args.programs.split(',')[0]), w)}", flush=True)
