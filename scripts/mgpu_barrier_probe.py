@@ -9,9 +9,10 @@ once a round and waits, without taking it, until it holds (round + 1) x CTAs; af
 once more and CTA 0 takes the whole count back (the semaphore ends at zero). Timed as the slope over R rounds in one
 call, against a chain of R of the same kernel with no round (a kernel boundary each) in one jit.
 
-GPU only (Hopper), like `grid_barrier_probe.py`. Status (session 30, jax 0.11.2, H100): it lowers, but the run at
-`c1916d7` did not finish in 280 s (a hang, not diagnosed: whether `scratch_types`' semaphore is one for the whole
-grid or one per CTA is the first thing to check; if per CTA, CTA 0 waits for ever). Not yet a measurement.
+GPU only (Hopper), like `grid_barrier_probe.py`. Session 30's version hung (280 s on an H100, `c1916d7`): it took
+the semaphore from `scratch_types`, which gives each CTA its own, so no count ever reached (round + 1) x CTAs. A
+semaphore shared by the grid comes from `pl.get_global` (JAX's Pallas Mosaic GPU reference, "Global (grid-wide)
+allocations").
 
     python scripts/mgpu_barrier_probe.py --out mgpu_barrier.json
 """
@@ -35,8 +36,9 @@ from grid_barrier_probe import measure  # noqa: E402
 
 
 def barrier_kernel(rounds: int, programs: int):
-    def kernel(o_gmem, sem):
+    def kernel(o_gmem):
         del o_gmem   # nothing written: the rounds are the work
+        sem = pl.get_global(plgpu.SemaphoreType.REGULAR)   # one for the grid (scratch_types' is one per CTA)
 
         def crossing(r, carry):
             plgpu.semaphore_signal(sem, 1, memory_scope="gpu")
@@ -51,7 +53,7 @@ def barrier_kernel(rounds: int, programs: int):
             plgpu.semaphore_wait(sem, (rounds + 1) * programs, decrement=True, memory_scope="gpu")
 
     return plgpu.kernel(kernel, out_type=jax.ShapeDtypeStruct((16,), jnp.int32), grid=(programs,),
-                        grid_names=("b",), scratch_types=[plgpu.SemaphoreType.REGULAR], kernel_name="mgpu_barrier",
+                        grid_names=("b",), kernel_name="mgpu_barrier",
                         compiler_params=plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup))
 
 

@@ -1,0 +1,212 @@
+"""Programmatic dependent launch (PDL) on the Mosaic GPU gate/up kernel: a chain of gate/up + GeGLU kernels, each
+reading the previous one's output, with each kernel's weight copies issued before it waits for the previous kernel.
+
+Session 30 measured what a step kernel costs whatever its work: 3-4 us (`mgpu_gemm_probe.py --k-sweep`), paid ~9.7
+times a layer, against 5-10 us of streaming. A kernel's weights do not depend on the kernel before it, only its
+activations do. With PDL (`plgpu.griddepcontrol_launch_dependents` early in a kernel, `griddepcontrol_wait` in the
+next before it touches what the first wrote), the next kernel is launched onto the SMs the first leaves free and its
+producer warpgroup can stream weights into shared memory while the first finishes: the launch and the pipeline's
+first DRAM round trip leave the chain's critical path.
+
+Variants of one kernel (64 rows of x (64, 4096) read as x[:, :1024], @ a (1024, 8192) [gate | up] weight, GELU-tanh
+(gate) * up -> (64, 4096), the engine's `mosaic_gemm` geglu launch: 64 columns a CTA, a producer warpgroup):
+  base       x and w pipelined together (the engine's kernel), no PDL
+  pdl        base, both warpgroups wait for the previous kernel first, dependents launched at the start
+  whole      x brought whole into shared memory by the compute warpgroup, only w pipelined, no PDL
+  whole_pdl  whole, the producer streams w at once, the compute warpgroup waits for the previous kernel before it
+             brings x; dependents launched at the start
+Each variant runs as a chain of `--layers` kernels on distinct weights in one jit, is checked against XLA's chain, and
+is timed (host, interleaved) and traced (the device span per kernel).
+
+GPU only (Hopper; PDL needs the Mosaic GPU runtime). `--cpu-check` runs the non-PDL variants in Mosaic GPU's
+interpreter at a small shape.
+
+    python scripts/mgpu_pdl_probe.py --out mgpu_pdl.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import sys
+import time
+import traceback
+from pathlib import Path
+
+import jax
+import jax.experimental.pallas as pl
+import jax.experimental.pallas.mosaic_gpu as plgpu
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+from pi0_jax.ops import mosaic_gemm
+
+sys.path.insert(0, str(Path(__file__).parent))
+from bench_kernels import interleaved_ms  # noqa: E402
+from profile_engine import kernel_times  # noqa: E402
+
+ROWS, TK = mosaic_gemm.ROWS, mosaic_gemm.TK
+MODES = ("base", "pdl", "whole", "whole_pdl")
+
+
+def _transforms(minor, dtype):
+    size = jnp.dtype(dtype).itemsize
+    swizzle = plgpu.find_swizzle(minor * size * 8)
+    return plgpu.TilingTransform((8, swizzle // size)), plgpu.SwizzleTransform(swizzle)
+
+
+@functools.lru_cache(maxsize=None)
+def chain_kernel(k: int, hidden: int, width: int, mode: str, cols: int = 64, stages: int = 6):
+    """x (64, width) [:, :k] @ w (k, 2 hidden) -> GeGLU (64, hidden), as `mode` says."""
+    whole, pdl = mode.startswith("whole"), mode.endswith("pdl")
+    dtype, steps = jnp.bfloat16, k // TK
+    spec = functools.partial(plgpu.BlockSpec, memory_space=plgpu.SMEM)
+    w_spec = spec((TK, cols), lambda kk: (kk, 0), transforms=_transforms(cols, dtype))
+    x_spec = spec((ROWS, TK), lambda kk: (0, kk), transforms=_transforms(TK, dtype))
+
+    def pipeline(body, context):
+        return plgpu.emit_pipeline_warp_specialized(
+            body, grid=(steps,), memory_registers=40, wg_axis="wg", num_compute_wgs=1, max_concurrent_steps=stages,
+            compute_context=context, in_specs=[w_spec, w_spec] if whole else [x_spec, w_spec, w_spec])
+
+    def kernel(x_gmem, w_gmem, o_gmem):
+        j = lax.axis_index("n")
+        w_tiles = (w_gmem.at[:, pl.ds(j * cols, cols)], w_gmem.at[:, pl.ds(hidden + j * cols, cols)])
+        srcs = w_tiles if whole else (x_gmem.at[:, pl.ds(0, k)], *w_tiles)
+        scratch = dict(allocs=pipeline(None, None).get_allocations(*srcs),
+                       out_smem=plgpu.SMEM((ROWS, cols), dtype, transforms=_transforms(cols, dtype)))
+        if whole:
+            scratch.update(x_smem=plgpu.SMEM((steps, ROWS, TK), dtype, transforms=_transforms(TK, dtype)),
+                           x_bar=plgpu.Barrier(num_arrivals=steps))
+
+        @functools.partial(pl.run_scoped, **scratch, collective_axes="wg")
+        def scope(allocs, out_smem, x_smem=None, x_bar=None):
+            if pdl:
+                if not whole:   # both warpgroups read x: both wait for the kernel that wrote it
+                    plgpu.griddepcontrol_wait()
+                plgpu.griddepcontrol_launch_dependents()
+
+            def context(run):
+                if whole:
+                    if pdl:
+                        plgpu.griddepcontrol_wait()
+                    for i in range(steps):
+                        plgpu.copy_gmem_to_smem(x_gmem.at[:, pl.ds(i * TK, TK)], x_smem.at[i], x_bar)
+                    plgpu.barrier_wait(x_bar)
+                acc = plgpu.ACC((ROWS, cols), jnp.float32)
+
+                @functools.partial(pl.run_scoped, accs=(acc, acc))
+                def accumulate(accs):
+                    run(accs)
+                    out_smem[...] = mosaic_gemm._gelu_product(accs[0][...], accs[1][...], dtype)
+                    plgpu.commit_smem()
+                    plgpu.copy_smem_to_gmem(out_smem, o_gmem.at[:, pl.ds(j * cols, cols)])
+                    plgpu.wait_smem_to_gmem(0)
+
+            def step(idx, *refs):
+                if whole:
+                    (w_gate, w_up), accs, x = refs[:2], refs[2], x_smem.at[idx[0]]
+                else:
+                    x, w_gate, w_up, accs = refs
+                plgpu.wgmma(accs[0], x, w_gate)
+                plgpu.wgmma(accs[1], x, w_up)
+                plgpu.wgmma_wait(0)
+                return accs
+
+            pipeline(step, context)(*srcs, allocations=allocs)
+
+    on_cpu = jax.default_backend() == "cpu"
+    return plgpu.kernel(kernel, out_type=jax.ShapeDtypeStruct((ROWS, hidden), dtype), grid=(hidden // cols,),
+                        grid_names=("n",), num_threads=2, thread_name="wg", kernel_name=f"chain_{mode}",
+                        compiler_params=plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup),
+                        **({"interpret": mosaic_gemm._interpret()} if on_cpu else {}))
+
+
+def reference_chain(x, ws, k, hidden):
+    for w in ws:
+        y = jnp.dot(x[:, :k], w, preferred_element_type=jnp.float32)
+        x = mosaic_gemm._gelu_product(y[:, :hidden], y[:, hidden:], x.dtype)
+    return x
+
+
+def chain(mode, k, hidden, width, cols, stages):
+    call = chain_kernel(k, hidden, width, mode, cols, stages)
+
+    def run(x, ws):
+        for w in ws:
+            x = call(x, w)
+        return x
+    return jax.jit(run)
+
+
+def inputs(k, hidden, layers, seed=0):
+    kx, kw = jax.random.split(jax.random.key(seed))
+    x = jax.random.normal(kx, (ROWS, hidden), jnp.float32).astype(jnp.bfloat16)
+    ws = [(jax.random.normal(w, (k, 2 * hidden), jnp.float32) * k**-0.5).astype(jnp.bfloat16)
+          for w in jax.random.split(kw, layers)]
+    return x, ws
+
+
+def check(modes, k, hidden, layers, cols, stages):
+    x, ws = inputs(k, hidden, layers)
+    want = np.asarray(reference_chain(x, ws, k, hidden), np.float32)
+    out = {}
+    for mode in modes:
+        got = np.asarray(chain(mode, k, hidden, hidden, cols, stages)(x, ws), np.float32)
+        out[mode] = float(np.linalg.norm(got - want) / np.linalg.norm(want))
+    return out
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", help="JSON file to write (GPU run)")
+    p.add_argument("--layers", type=int, default=18, help="kernels in a chain (default: %(default)s)")
+    p.add_argument("--iters", type=int, default=50, help="timed calls per variant (default: %(default)s)")
+    p.add_argument("--modes", default=",".join(MODES), help="comma list of variants (default: %(default)s)")
+    p.add_argument("--stages", type=int, default=6, help="weight pipeline depth (default: %(default)s)")
+    p.add_argument("--cols", type=int, default=64, help="hidden units a CTA (default: %(default)s)")
+    p.add_argument("--cpu-check", action="store_true",
+                   help="run base and whole in the CPU interpreter at k=128, hidden=128, 2 layers, and exit")
+    args = p.parse_args()
+    modes = args.modes.split(",")
+    if args.cpu_check:
+        errs = check(["base", "whole"], 128, 128, 2, 64, 2)
+        print(json.dumps(errs))
+        sys.exit(0 if all(e < 1e-2 for e in errs.values()) else 1)
+    if jax.default_backend() != "gpu" or not args.out:
+        raise SystemExit("mgpu_pdl_probe needs a GPU (Hopper) and --out (or --cpu-check)")
+    k, hidden = 1024, 4096
+    res = {"device": jax.devices()[0].device_kind, "jax": jax.__version__, "layers": args.layers,
+           "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()), "shape": [ROWS, k, 2 * hidden],
+           "stages": args.stages, "cols": args.cols, "rows": {}}
+    x, ws = inputs(k, hidden, args.layers)
+    want = np.asarray(reference_chain(x, ws, k, hidden), np.float32)
+    xla = jax.jit(lambda x, ws: reference_chain(x, ws, k, hidden))
+    fns = {"xla": functools.partial(xla, x, ws)}
+    for mode in modes:
+        try:
+            fn = chain(mode, k, hidden, hidden, args.cols, args.stages)
+            got = np.asarray(fn(x, ws), np.float32)
+            err = float(np.linalg.norm(got - want) / np.linalg.norm(want))
+            res["rows"][mode] = {"rel_l2_vs_xla": err}
+            print(f"{mode}: rel L2 {err:.2e}", flush=True)
+            fns[mode] = functools.partial(fn, x, ws)
+        except Exception as e:   # a variant that fails to lower is a result, not the end of the run
+            res["rows"][mode] = {"error": f"{type(e).__name__}: {e}"[:2000]}
+            traceback.print_exc()
+    ms = interleaved_ms(fns, args.iters)
+    for name, fn in fns.items():
+        row = res["rows"].setdefault(name, {})
+        trace = kernel_times(fn, calls=5)
+        row.update(host_ms=ms[name], host_us_per_kernel=ms[name] * 1e3 / args.layers,
+                   span_us_per_kernel=trace["span_ms"] * 1e3 / args.layers, kernels_per_call=trace["kernels_per_call"],
+                   busy_us_per_kernel=trace["kernel_ms"] * 1e3 / args.layers)
+        print(name, {key: round(v, 3) if isinstance(v, float) else v for key, v in row.items()}, flush=True)
+    with open(args.out, "w") as f:
+        json.dump(res, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
