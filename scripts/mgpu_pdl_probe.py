@@ -124,6 +124,85 @@ def chain_kernel(k: int, hidden: int, width: int, mode: str, cols: int = 64, sta
                         **({"interpret": mosaic_gemm._interpret()} if on_cpu else {}))
 
 
+@functools.lru_cache(maxsize=None)
+def persistent_kernel(layers: int, k: int, hidden: int, cols: int = 64, stages: int = 4):
+    """The whole chain as one kernel: a CTA per `cols` hidden units runs every layer, the layers separated by a grid
+    barrier (a GPU-scope semaphore from `pl.get_global`). The producer warpgroup streams the weights of one layer
+    after another as pipeline slots free up (`pipeline_state`: a pipeline of pipelines), so the next layer's first
+    tiles are in flight while the compute warpgroup finishes this layer and waits at the barrier; after it, the
+    compute warpgroup brings x (the previous layer's output, ping-ponged between o's two halves) whole."""
+    dtype, steps, ctas = jnp.bfloat16, k // TK, hidden // cols
+    spec = functools.partial(plgpu.BlockSpec, memory_space=plgpu.SMEM)
+    w_spec = spec((TK, cols), lambda kk: (kk, 0), transforms=_transforms(cols, dtype))
+
+    def pipeline(body, context, state):
+        return plgpu.emit_pipeline_warp_specialized(
+            body, grid=(steps,), memory_registers=40, wg_axis="wg", num_compute_wgs=1, max_concurrent_steps=stages,
+            compute_context=context, in_specs=[w_spec, w_spec], pipeline_state=state)
+
+    def kernel(x_gmem, w_gmem, o_gmem):   # w (layers, k, 2 hidden); o (2, 64, hidden)
+        j = lax.axis_index("n")
+        sem = pl.get_global(plgpu.SemaphoreType.REGULAR)
+
+        def tiles(p):
+            return (w_gmem.at[p, :, pl.ds(j * cols, cols)], w_gmem.at[p, :, pl.ds(hidden + j * cols, cols)])
+
+        @functools.partial(pl.run_scoped, allocs=pipeline(None, None, None).get_allocations(*tiles(0)),
+                           out_smem=plgpu.SMEM((ROWS, cols), dtype, transforms=_transforms(cols, dtype)),
+                           x_smem=plgpu.SMEM((steps, ROWS, TK), dtype, transforms=_transforms(TK, dtype)),
+                           x_bar=plgpu.Barrier(num_arrivals=steps), collective_axes="wg")
+        def scope(allocs, out_smem, x_smem, x_bar):
+            @pl.loop(0, layers)
+            def layer(p):
+                state = jnp.where(p == 0, plgpu.PipelinePipeline.START, plgpu.PipelinePipeline.STEADY)
+                state = jnp.where(p == layers - 1, plgpu.PipelinePipeline.STOP, state)
+
+                def bring_x(src):
+                    for i in range(steps):
+                        plgpu.copy_gmem_to_smem(src.at[:, pl.ds(i * TK, TK)], x_smem.at[i], x_bar)
+
+                def context(run):
+                    @pl.when(p == 0)
+                    def _():
+                        bring_x(x_gmem)
+
+                    @pl.when(p > 0)
+                    def _():
+                        plgpu.semaphore_wait(sem, p * ctas, decrement=False, memory_scope="gpu")
+                        bring_x(o_gmem.at[lax.rem(p + 1, 2)])
+                    plgpu.barrier_wait(x_bar)
+                    acc = plgpu.ACC((ROWS, cols), jnp.float32)
+
+                    @functools.partial(pl.run_scoped, accs=(acc, acc))
+                    def accumulate(accs):
+                        run(accs)
+                        out_smem[...] = mosaic_gemm._gelu_product(accs[0][...], accs[1][...], dtype)
+                        plgpu.commit_smem()
+                        plgpu.copy_smem_to_gmem(out_smem, o_gmem.at[lax.rem(p, 2), :, pl.ds(j * cols, cols)])
+                        plgpu.wait_smem_to_gmem(0)
+                    plgpu.semaphore_signal(sem, 1, memory_scope="gpu")
+
+                def step(idx, w_gate, w_up, accs):
+                    x = x_smem.at[idx[0]]
+                    plgpu.wgmma(accs[0], x, w_gate)
+                    plgpu.wgmma(accs[1], x, w_up)
+                    plgpu.wgmma_wait(0)
+                    return accs
+
+                pipeline(step, context, state)(*tiles(p), allocations=allocs)
+
+            @pl.when((j == 0) & (lax.axis_index("wg") == 0))
+            def _():   # every CTA signalled once a layer: take the count back, so the next call starts at zero
+                plgpu.semaphore_wait(sem, layers * ctas, decrement=True, memory_scope="gpu")
+
+    on_cpu = jax.default_backend() == "cpu"
+    call = plgpu.kernel(kernel, out_type=jax.ShapeDtypeStruct((2, ROWS, hidden), dtype), grid=(ctas,),
+                        grid_names=("n",), num_threads=2, thread_name="wg", kernel_name="chain_persistent",
+                        compiler_params=plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup),
+                        **({"interpret": mosaic_gemm._interpret()} if on_cpu else {}))
+    return jax.jit(lambda x, ws: call(x, jnp.stack(ws))[(layers - 1) % 2])
+
+
 def reference_chain(x, ws, k, hidden):
     for w in ws:
         y = jnp.dot(x[:, :k], w, preferred_element_type=jnp.float32)
@@ -193,6 +272,8 @@ def main() -> None:
                    help="weight pipeline depth of whole and whole_pdl, whose x takes 128 KB of shared memory "
                         "(default: %(default)s)")
     p.add_argument("--cols", type=int, default=64, help="hidden units a CTA (default: %(default)s)")
+    p.add_argument("--persistent", action="store_true",
+                   help="also the chain as one persistent kernel with grid barriers (`persistent_kernel`)")
     p.add_argument("--cpu-check", action="store_true",
                    help="check base and whole in the CPU interpreter at k=128, hidden=128, 3 layers, and exit")
     args = p.parse_args()
@@ -218,6 +299,21 @@ def main() -> None:
             fns[mode] = functools.partial(chain(mode, k, hidden, hidden, args.cols, stages), x, ws)
         except Exception as e:   # a variant that fails to lower is a result, not the end of the run
             res["rows"][mode] = {"error": f"{type(e).__name__}: {e}"[:2000]}
+            traceback.print_exc()
+    if args.persistent:
+        try:
+            cx, cws = inputs(k, hidden, 6)
+            base = np.asarray(chain("base", k, hidden, hidden, args.cols, args.stages)(cx, cws), np.float32)
+            got = np.asarray(persistent_kernel(6, k, hidden, args.cols, args.whole_stages)(cx, cws), np.float32)
+            again = np.asarray(persistent_kernel(6, k, hidden, args.cols, args.whole_stages)(cx, cws), np.float32)
+            res["rows"]["persistent"] = {"max_abs_vs_base": float(np.abs(got - base).max()),
+                                         "max_abs_second_call": float(np.abs(again - base).max()),
+                                         "out_abs_max": float(np.abs(base).max())}
+            print("persistent", res["rows"]["persistent"], flush=True)
+            fns["persistent"] = functools.partial(
+                persistent_kernel(args.layers, k, hidden, args.cols, args.whole_stages), x, ws)
+        except Exception as e:
+            res["rows"]["persistent"] = {"error": f"{type(e).__name__}: {e}"[:2000]}
             traceback.print_exc()
     ms = interleaved_ms(fns, args.iters)
     for name, fn in fns.items():
