@@ -200,7 +200,7 @@ def persistent_kernel(layers: int, k: int, hidden: int, cols: int = 64, stages: 
                         grid_names=("n",), num_threads=2, thread_name="wg", kernel_name="chain_persistent",
                         compiler_params=plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup),
                         **({"interpret": mosaic_gemm._interpret()} if on_cpu else {}))
-    return jax.jit(lambda x, ws: call(x, jnp.stack(ws))[(layers - 1) % 2])
+    return jax.jit(lambda x, w: call(x, w)[(layers - 1) % 2])   # w: the layers' weights stacked
 
 
 def reference_chain(x, ws, k, hidden):
@@ -304,14 +304,14 @@ def main() -> None:
         try:
             cx, cws = inputs(k, hidden, 6)
             base = np.asarray(chain("base", k, hidden, hidden, args.cols, args.stages)(cx, cws), np.float32)
-            got = np.asarray(persistent_kernel(6, k, hidden, args.cols, args.whole_stages)(cx, cws), np.float32)
-            again = np.asarray(persistent_kernel(6, k, hidden, args.cols, args.whole_stages)(cx, cws), np.float32)
+            got = np.asarray(persistent_kernel(6, k, hidden, args.cols, args.whole_stages)(cx, jnp.stack(cws)), np.float32)
+            again = np.asarray(persistent_kernel(6, k, hidden, args.cols, args.whole_stages)(cx, jnp.stack(cws)), np.float32)
             res["rows"]["persistent"] = {"max_abs_vs_base": float(np.abs(got - base).max()),
                                          "max_abs_second_call": float(np.abs(again - base).max()),
                                          "out_abs_max": float(np.abs(base).max())}
             print("persistent", res["rows"]["persistent"], flush=True)
             fns["persistent"] = functools.partial(
-                persistent_kernel(args.layers, k, hidden, args.cols, args.whole_stages), x, ws)
+                persistent_kernel(args.layers, k, hidden, args.cols, args.whole_stages), x, jnp.stack(ws))
         except Exception as e:
             res["rows"]["persistent"] = {"error": f"{type(e).__name__}: {e}"[:2000]}
             traceback.print_exc()
