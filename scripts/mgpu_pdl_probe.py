@@ -271,6 +271,9 @@ def main() -> None:
     p.add_argument("--whole-stages", type=int, default=4,
                    help="weight pipeline depth of whole and whole_pdl, whose x takes 128 KB of shared memory "
                         "(default: %(default)s)")
+    p.add_argument("--k", type=int, default=1024, help="contraction rows (default: %(default)s, the expert's width)")
+    p.add_argument("--hidden", type=int, default=4096,
+                   help="GeGLU units, hidden / cols CTAs (default: %(default)s, the expert's MLP)")
     p.add_argument("--cols", type=int, default=64, help="hidden units a CTA (default: %(default)s)")
     p.add_argument("--persistent", action="store_true",
                    help="also the chain as one persistent kernel with grid barriers (`persistent_kernel`)")
@@ -284,7 +287,7 @@ def main() -> None:
         sys.exit(0 if all(r["first_vs_xla"] < 1e-2 and r["max_abs_vs_alone"] == 0 for r in rows.values()) else 1)
     if jax.default_backend() != "gpu" or not args.out:
         raise SystemExit("mgpu_pdl_probe needs a GPU (Hopper) and --out (or --cpu-check)")
-    k, hidden = 1024, 4096
+    k, hidden = args.k, args.hidden
     res = {"device": jax.devices()[0].device_kind, "jax": jax.__version__, "layers": args.layers,
            "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()), "shape": [ROWS, k, 2 * hidden],
            "stages": args.stages, "cols": args.cols, "rows": {}}
