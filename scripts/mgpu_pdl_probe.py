@@ -48,7 +48,7 @@ from bench_kernels import interleaved_ms  # noqa: E402
 from profile_engine import gpu_kernels, kernel_times, traced  # noqa: E402
 
 ROWS, TK = mosaic_gemm.ROWS, mosaic_gemm.TK
-MODES = ("base", "pdl", "whole", "whole_pdl")
+MODES = ("base", "pdl", "whole", "whole_pdl", "pair", "pair_smem")
 
 
 def _transforms(minor, dtype):
@@ -119,6 +119,67 @@ def chain_kernel(k: int, hidden: int, width: int, mode: str, cols: int = 64, sta
 
     on_cpu = jax.default_backend() == "cpu"
     return plgpu.kernel(kernel, out_type=jax.ShapeDtypeStruct((ROWS, hidden), dtype), grid=(hidden // cols,),
+                        grid_names=("n",), num_threads=2, thread_name="wg", kernel_name=f"chain_{mode}",
+                        compiler_params=plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup),
+                        **({"interpret": mosaic_gemm._interpret()} if on_cpu else {}))
+
+
+def interleave(w, hidden: int, units: int):
+    """(k, 2 hidden) [gate | up] -> blocks of `units` gate columns, each followed by its `units` up columns."""
+    k = w.shape[0]
+    g, u = w[:, :hidden].reshape(k, -1, 1, units), w[:, hidden:].reshape(k, -1, 1, units)
+    return jnp.concatenate([g, u], axis=2).reshape(k, 2 * hidden)
+
+
+@functools.lru_cache(maxsize=None)
+def pair_kernel(k: int, hidden: int, mode: str, units: int = 32, stages: int = 6):
+    """GeGLU for `units` hidden units a CTA (hidden / units CTAs: 128 for the expert) from ONE (64 x 2 units)
+    accumulator over the interleaved weight (`interleave`): half the wgmma work of a 64-unit CTA and twice the CTAs.
+    The accumulator's halves are split in registers (`pair`) or through shared memory (`pair_smem`)."""
+    dtype, steps, cols = jnp.bfloat16, k // TK, 2 * units
+    spec = functools.partial(plgpu.BlockSpec, memory_space=plgpu.SMEM)
+    w_spec = spec((TK, cols), lambda kk: (kk, 0), transforms=_transforms(cols, dtype))
+    x_spec = spec((ROWS, TK), lambda kk: (0, kk), transforms=_transforms(TK, dtype))
+
+    def pipeline(body, context):
+        return plgpu.emit_pipeline_warp_specialized(
+            body, grid=(steps,), memory_registers=40, wg_axis="wg", num_compute_wgs=1, max_concurrent_steps=stages,
+            compute_context=context, in_specs=[x_spec, w_spec])
+
+    def kernel(x_gmem, w_gmem, o_gmem):
+        j = lax.axis_index("n")
+        srcs = (x_gmem.at[:, pl.ds(0, k)], w_gmem.at[:, pl.ds(j * cols, cols)])
+        scratch = dict(allocs=pipeline(None, None).get_allocations(*srcs),
+                       out_smem=plgpu.SMEM((ROWS, units), dtype, transforms=_transforms(units, dtype)))
+        if mode == "pair_smem":
+            scratch["acc_smem"] = plgpu.SMEM((ROWS, cols), jnp.float32)
+
+        @functools.partial(pl.run_scoped, **scratch, collective_axes="wg")
+        def scope(allocs, out_smem, acc_smem=None):
+            def context(run):
+                @functools.partial(pl.run_scoped, acc=plgpu.ACC((ROWS, cols), jnp.float32))
+                def accumulate(acc):
+                    run(acc)
+                    if acc_smem is None:
+                        y = acc[...]
+                        g, u = y[:, :units], y[:, units:]
+                    else:
+                        acc_smem[...] = acc[...]
+                        g, u = acc_smem[:, :units], acc_smem[:, units:]
+                    out_smem[...] = mosaic_gemm._gelu_product(g, u, dtype)
+                    plgpu.commit_smem()
+                    plgpu.copy_smem_to_gmem(out_smem, o_gmem.at[:, pl.ds(j * units, units)])
+                    plgpu.wait_smem_to_gmem(0)
+
+            def step(idx, x, w, acc):
+                plgpu.wgmma(acc, x, w)
+                plgpu.wgmma_wait(0)
+                return acc
+
+            pipeline(step, context)(*srcs, allocations=allocs)
+
+    on_cpu = jax.default_backend() == "cpu"
+    return plgpu.kernel(kernel, out_type=jax.ShapeDtypeStruct((ROWS, hidden), dtype), grid=(hidden // units,),
                         grid_names=("n",), num_threads=2, thread_name="wg", kernel_name=f"chain_{mode}",
                         compiler_params=plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup),
                         **({"interpret": mosaic_gemm._interpret()} if on_cpu else {}))
@@ -211,8 +272,10 @@ def reference_chain(x, ws, k, hidden):
 
 
 def chain(mode, k, hidden, width, cols, stages, keep=False):
-    """The chain as one jit; keep: return every kernel's output (for the check)."""
-    call = chain_kernel(k, hidden, width, mode, cols, stages)
+    """The chain as one jit; keep: return every kernel's output (for the check). The pair modes take the weights
+    interleaved (`prepare`)."""
+    call = (pair_kernel(k, hidden, mode, cols // 2, stages) if mode.startswith("pair")
+            else chain_kernel(k, hidden, width, mode, cols, stages))
 
     def run(x, ws):
         outs = []
@@ -221,6 +284,11 @@ def chain(mode, k, hidden, width, cols, stages, keep=False):
             outs.append(x)
         return outs if keep else x
     return jax.jit(run)
+
+
+def prepare(mode, ws, hidden, cols):
+    """The weights as `mode`'s kernel reads them."""
+    return [interleave(w, hidden, cols // 2) for w in ws] if mode.startswith("pair") else ws
 
 
 def inputs(k, hidden, layers, seed=0):
@@ -241,10 +309,11 @@ def check(mode, k, hidden, layers, cols, stages):
     """Each kernel of the chain against the same kernel run alone on what the chain gave it (bit-equal unless a
     kernel read its input before the previous one had written it), and the first against XLA's f32 product."""
     x, ws = inputs(k, hidden, layers)
-    outs = [np.asarray(o, np.float32) for o in chain(mode, k, hidden, hidden, cols, stages, keep=True)(x, ws)]
+    kws = prepare(mode, ws, hidden, cols)
+    outs = [np.asarray(o, np.float32) for o in chain(mode, k, hidden, hidden, cols, stages, keep=True)(x, kws)]
     one = chain(mode, k, hidden, hidden, cols, stages)
     ins = [x] + [jnp.asarray(o, jnp.bfloat16) for o in outs[:-1]]
-    alone = [np.asarray(one(i, [w]), np.float32) for i, w in zip(ins, ws)]
+    alone = [np.asarray(one(i, [w]), np.float32) for i, w in zip(ins, kws)]
     want = np.asarray(reference_chain(x, ws[:1], k, hidden), np.float32)
     return {"first_vs_xla": _rel(outs[0], want),
             "max_abs_vs_alone": max(float(np.abs(a - o).max()) for a, o in zip(alone, outs)),
@@ -282,7 +351,7 @@ def main() -> None:
     args = p.parse_args()
     modes = args.modes.split(",")
     if args.cpu_check:
-        rows = {mode: check(mode, 128, 128, 3, 64, 2) for mode in ("base", "whole")}
+        rows = {mode: check(mode, 128, 128, 3, 64, 2) for mode in ("base", "whole", "pair", "pair_smem")}
         print(json.dumps(rows))
         sys.exit(0 if all(r["first_vs_xla"] < 1e-2 and r["max_abs_vs_alone"] == 0 for r in rows.values()) else 1)
     if jax.default_backend() != "gpu" or not args.out:
@@ -299,7 +368,8 @@ def main() -> None:
         try:
             res["rows"][mode] = check(mode, k, hidden, 6, args.cols, stages)
             print(mode, res["rows"][mode], flush=True)
-            fns[mode] = functools.partial(chain(mode, k, hidden, hidden, args.cols, stages), x, ws)
+            fns[mode] = functools.partial(chain(mode, k, hidden, hidden, args.cols, stages), x,
+                                          prepare(mode, ws, hidden, args.cols))
         except Exception as e:   # a variant that fails to lower is a result, not the end of the run
             res["rows"][mode] = {"error": f"{type(e).__name__}: {e}"[:2000]}
             traceback.print_exc()
