@@ -143,7 +143,7 @@ def xla_stages(cfg, out, xs, w, pos, ck, cv, pmask, ys, hs, s, p, rnd, args):
                                           (w, x3[0]), args.iters)
     out["xla"]["norm_geglu"] = stage_ms(
         lambda x, w: (lambda g: jax.nn.gelu(g[0], approximate=True) * g[1])(
-            jnp.split(layers.rms_norm(x, w["pre_attn"])[0] @ w["gate_up"], 2, axis=-1)), x3, (w,), args.iters)
+            layout.split_gate_up(layers.rms_norm(x, w["pre_attn"])[0] @ w["gate_up"])), x3, (w,), args.iters)
     out["xla"]["down_residual"] = stage_ms(lambda hh, w, x: x + hh @ w["down"], [hh[None, :s] for hh in hs],
                                            (w, x3[0]), args.iters)
     out["xla"]["layer"] = stage_ms(

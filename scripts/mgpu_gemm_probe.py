@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from pi0_jax.ops import expert_kernels as ek
-from pi0_jax.ops import mosaic_gemm
+from pi0_jax.ops import layout, mosaic_gemm
 
 sys.path.insert(0, str(Path(__file__).parent))
 from bench_kernels import interleaved_ms  # noqa: E402
@@ -77,7 +77,7 @@ def probe_shape(name, k, n, triton, args, rows: int = 64):
         variants[label] = functools.partial(lambda x, w, launch: mosaic_gemm.partials(x, w, launch), launch=launch)
     if name == "gate_up" and args.tk:   # the engine's gate/up: GeGLU in the epilogue (checked against XLA's)
         hidden = n // 2
-        g, u = jnp.split(jnp.asarray(want), 2, axis=-1)
+        g, u = layout.split_gate_up(jnp.asarray(want))   # the engine's layout: gate and up in blocks of 32
         geglu_want = np.asarray(jax.nn.gelu(g, approximate=True) * u)
         for tk in args.tk:
             base = ek.Blocks().mosaic_mlp

@@ -127,7 +127,7 @@ def test_mlp_kernels_match_xla(adaptive):
     x = _rand(40, B, S, CFG.width)
     (mods, row, gate_row), norm_kw, gate = _mods(adaptive, w)
     h, _ = layers.rms_norm(x, **norm_kw)
-    gate_up = jnp.split(h @ w["gate_up"], 2, axis=-1)
+    gate_up = layout.split_gate_up(h @ w["gate_up"])   # the engine's layout: gate and up in blocks of 32 units
     hidden = jax.nn.gelu(gate_up[0], approximate=True) * gate_up[1]
     down = hidden @ w["down"]
     want = x + (down if gate is None else down * gate)
@@ -385,3 +385,32 @@ def test_kernel_flag_is_checked():
         Engine(config, params, kernels="triton", cache_dir=False)
     with pytest.raises(ValueError, match="needs unroll"):
         Engine(config, params, kernels="pallas", unroll=False, cache_dir=False)
+
+
+@pytest.mark.parametrize("hidden", [96, 40])
+def test_the_fused_gate_up_weight_splits_back_into_gate_and_up(hidden):
+    """The engine's gate/up weight (`engine.weights`) holds gate and up in alternating blocks of 32 units
+    (`layout.gate_up_block`; one block of all units where 32 does not divide them), and `split_gate_up` of a product
+    with it is the products with openpi's gate and up; the kernel layout pads it in the same blocks."""
+    from pi0_jax.engine import weights as engine_weights
+
+    d = 16
+    gating = _rand(80, 1, 2, d, hidden)   # openpi's (L, two, D, F)
+    fused = engine_weights._expert_weights(
+        {"q_einsum": {"w": _rand(81, 1, 2, d, 8)}, "kv_einsum": {"w": _rand(82, 1, 2, 1, d, 8)},
+         "attn_vec_einsum": {"w": _rand(83, 1, 2, 8, d)}},
+        {"gating_einsum": gating, "linear": _rand(84, 1, hidden, d)}, "", jnp.float32)["gate_up"][0]
+    assert layout.gate_up_block(hidden) == (32 if hidden % 32 == 0 else hidden)
+    if hidden % 32 == 0:
+        np.testing.assert_array_equal(fused[:, 32:64], gating[0, 1, :, :32])   # up of units 0-31 after their gate
+    x = _rand(85, 5, d)
+    gate, up = layout.split_gate_up(x @ fused)
+    np.testing.assert_allclose(gate, x @ gating[0, 0], **TOL)
+    np.testing.assert_allclose(up, x @ gating[0, 1], **TOL)
+    cfg = CFG.__class__(width=d, depth=1, mlp_dim=hidden, num_heads=2, num_kv_heads=1, head_dim=8)
+    padded = layout.expert_weights({"qkv": _rand(86, d, 32), "attn_out": _rand(87, 16, d), "gate_up": fused,
+                                    "down": _rand(88, hidden, d)}, cfg)["gate_up"]
+    pg, pu = layout.split_gate_up(x @ padded)
+    np.testing.assert_allclose(pg[:, :hidden], gate, **TOL)
+    np.testing.assert_allclose(pu[:, :hidden], up, **TOL)
+    assert not np.any(pg[:, hidden:]) and not np.any(pu[:, hidden:])

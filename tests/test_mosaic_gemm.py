@@ -49,17 +49,17 @@ def test_partials_equal_xla(rows, k, n, launch):
 
 
 def test_geglu_equals_xla():
-    """Gate and up columns of the same hidden units in one CTA; rows padded."""
+    """One block pair of gate and up columns (the engine's layout, `layout.gate_up_block`) a CTA; rows padded."""
     x, w = _rand(2, 100, 128), _rand(3, 128, 512, scale=128**-0.5)
-    gate, up = jnp.split(x @ w, 2, axis=-1)
+    gate, up = layout.split_gate_up(x @ w)
     want = jax.nn.gelu(gate, approximate=True) * up
-    for launch in (Launch(64, 1, 2, geglu=True), Launch(128, 1, 3, geglu=True, delay=1),
+    for launch in (Launch(64, 1, 2, geglu=True), Launch(64, 1, 3, geglu=True, delay=1),
                    Launch(64, 1, 2, geglu=True, tk=128)):
         assert mosaic_gemm.applies(x, w, launch)
         np.testing.assert_allclose(mosaic_gemm.geglu(x, w, launch), want, **TOL)
     assert not np.allclose(jax.nn.gelu(up, approximate=True) * gate, want, **TOL)   # gate and up not swapped
     xb, wb = x.astype(jnp.bfloat16), w.astype(jnp.bfloat16)
-    gate, up = jnp.split(xb @ wb, 2, axis=-1)
+    gate, up = layout.split_gate_up(xb @ wb)
     got = mosaic_gemm.geglu(xb, wb, Launch(64, 1, 2, geglu=True))
     assert got.dtype == jnp.bfloat16
     np.testing.assert_allclose(got.astype(jnp.float32), jax.nn.gelu(gate, approximate=True) * up, rtol=1e-2,
@@ -79,7 +79,9 @@ def test_applies_only_where_the_launch_tiles():
     assert not mosaic_gemm.applies(x, jnp.zeros((128, 128)), Launch(64, 4))  # 4 chunks of 32 < one 64-wide step
     assert mosaic_gemm.applies(x, jnp.zeros((128, 128)), Launch(64, 2))
     assert not mosaic_gemm.applies(x, jnp.zeros((128, 128)), Launch(64, 2, 3, delay=1))  # one step per chunk
-    assert not mosaic_gemm.applies(x, jnp.zeros((128, 192)), Launch(64, geglu=True))   # 96 hidden units
+    assert not mosaic_gemm.applies(x, jnp.zeros((128, 80)), Launch(64, geglu=True))   # 40 units: one block of 40
+    assert not mosaic_gemm.applies(x, jnp.zeros((128, 512)), Launch(128, geglu=True))   # a CTA is one pair of 32
+    assert mosaic_gemm.applies(x, jnp.zeros((128, 192)), Launch(64, geglu=True))   # 96 units: 3 pairs of 32
     assert not mosaic_gemm.applies(x, jnp.zeros((128, 128)), Launch(64, 2, tk=128))  # chunks of 64 < a 128-row step
     assert mosaic_gemm.applies(x, jnp.zeros((256, 128)), Launch(64, 2, tk=128))
 

@@ -64,7 +64,7 @@ def _qkv(h, w, cfg: GemmaConfig, positions):
 
 
 def _mlp(h, w):
-    gate, up = jnp.split(_mm(h, w["gate_up"]), 2, axis=-1)
+    gate, up = layout.split_gate_up(_mm(h, w["gate_up"]))
     return _mm(jax.nn.gelu(gate, approximate=True) * up, w["down"])
 
 

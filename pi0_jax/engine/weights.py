@@ -1,7 +1,8 @@
 """Engine weights: the openpi param tree rearranged for inference, computing the same function.
 
-- q/k/v of each expert fused into one (D, (N + 2K) H) GEMM, gate/up into one (D, 2F) GEMM, attention out as
-  (N H, D): fewer, larger kernels. The same for SigLIP's q/k/v and attention out (`vision_weights`).
+- q/k/v of each expert fused into one (D, (N + 2K) H) GEMM, gate/up into one (D, 2F) GEMM whose gate and up
+  columns alternate in blocks of 32 units (`ops.layout.gate_up_block`), attention out as (N H, D): fewer, larger
+  kernels. The same for SigLIP's q/k/v and attention out (`vision_weights`).
 - Per-layer weights split into separate buffers (unrolled layers) or kept stacked (scanned layers).
 - The prefix pass returns only K/V, so XLA drops the VLM's last MLP and final norm as dead code; the VLM's final
   norm weights are not carried at all.
@@ -23,6 +24,7 @@ import numpy as np
 
 from pi0_jax import pi0
 from pi0_jax.ops import formats as quant
+from pi0_jax.ops import layout
 from pi0_jax.config import Pi0Config
 
 
@@ -43,7 +45,7 @@ def step_times(num_steps, length: int | None = None):
     return times
 
 
-def _rearrange(w, pattern: str, dtype):
+def _rearrange(w, pattern: str, dtype, **sizes):
     """A plain weight rearranged to (in, out) and cast; a quantised one (`pi0_jax.ops.formats.QArray`, fused after
     quantising, so its scales are per output channel of the fused matrix) keeps its storage dtype and is laid out
     (out, in): the operand layout cuBLASLt's FP8 GEMM reads as is (an (in, out) FP8 weight is transposed by XLA
@@ -51,8 +53,8 @@ def _rearrange(w, pattern: str, dtype):
     if isinstance(w, quant.QArray):
         src, dst = pattern.split("->")
         *lead, d_in, d_out = _groups(dst)
-        return quant.rearrange(w, f"{src}-> {' '.join(lead)} {d_out} {d_in}", contract=(-1,))
-    return einops.rearrange(w, pattern).astype(dtype)
+        return quant.rearrange(w, f"{src}-> {' '.join(lead)} {d_out} {d_in}", contract=(-1,), **sizes)
+    return einops.rearrange(w, pattern, **sizes).astype(dtype)
 
 
 def _groups(spec: str) -> list[str]:
@@ -74,7 +76,8 @@ def _expert_weights(attn: dict, mlp: dict, suffix: str, dtype) -> dict:
     return {
         "qkv": qkv,
         "attn_out": _rearrange(attn[f"attn_vec_einsum{suffix}"]["w"], "L N H D -> L (N H) D", dtype),
-        "gate_up": _rearrange(mlp["gating_einsum"], "L two D F -> L D (two F)", dtype),
+        "gate_up": _rearrange(mlp["gating_einsum"], "L two D (Fb u) -> L D (Fb two u)", dtype,
+                              u=layout.gate_up_block(getattr(mlp["gating_einsum"], "q", mlp["gating_einsum"]).shape[-1])),
         "down": _rearrange(mlp["linear"], "L F D -> L F D", dtype),
     }
 

@@ -47,7 +47,7 @@ from jax.experimental import pallas as pl
 from jax.experimental.custom_partitioning import custom_partitioning
 from jax.sharding import NamedSharding, PartitionSpec as P
 
-from pi0_jax.ops import mosaic_gemm, pallas_base
+from pi0_jax.ops import layout, mosaic_gemm, pallas_base
 from pi0_jax.ops.mosaic_gemm import Launch
 from pi0_jax.ops.pallas_base import ALIGN, dot, fit
 
@@ -382,8 +382,9 @@ def matmul_residual(y, w, x, mods=None, gate_row: int | None = None, *, gemm: Ge
 
 
 def norm_geglu(x, mods, mod_row: int, adaptive: bool, w_gate_up, *, width: int, blocks: Blocks = Blocks()):
-    """gelu_tanh(h @ w_gate) * (h @ w_up) with h = norm(x): x (M, D), w_gate_up (D, 2F) = [gate | up] -> (M, F)."""
-    dtype, hidden = x.dtype, w_gate_up.shape[1] // 2
+    """gelu_tanh(h @ w_gate) * (h @ w_up) with h = norm(x): x (M, D), w_gate_up (D, 2F) in `layout.gate_up_block`
+    pairs -> (M, F)."""
+    dtype = x.dtype
     launch = blocks.mosaic_mlp
     if launch is not None and launch.geglu:
         if _mosaic(x, w_gate_up, launch):
@@ -392,5 +393,6 @@ def norm_geglu(x, mods, mod_row: int, adaptive: bool, w_gate_up, *, width: int, 
         launch = None   # the Triton kernel
     acc = _normed_product(x, mods, mod_row, adaptive, w_gate_up, width=width, gemm=blocks.mlp, blocks=blocks,
                           name="expert_gate_up", mosaic=launch)
-    gate = _round(jax.nn.gelu(_round(acc[:, :hidden], dtype), approximate=True), dtype)
-    return (gate * _round(acc[:, hidden:], dtype)).astype(dtype)
+    gate, up = layout.split_gate_up(acc)
+    gate = _round(jax.nn.gelu(_round(gate, dtype), approximate=True), dtype)
+    return (gate * _round(up, dtype)).astype(dtype)

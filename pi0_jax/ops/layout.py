@@ -16,6 +16,7 @@ from pi0_jax.config import GemmaConfig
 from pi0_jax.ops.pallas_base import ALIGN
 
 KEY_PAD = 64  # prefix keys are padded to a multiple of this (the attention kernel's largest key block)
+GATE_UP_BLOCK = 32  # hidden units per block of the fused gate/up weight (`gate_up_block`)
 
 
 def _round_up(n: int, m: int) -> int:
@@ -30,6 +31,21 @@ def _pad(x, axis: int, size: int):
     widths = [(0, 0)] * x.ndim
     widths[axis] = (0, size - x.shape[axis])
     return jnp.pad(x, widths)
+
+
+def gate_up_block(hidden: int) -> int:
+    """Units per block of a fused gate/up weight (D, 2F) with F = hidden: its columns are [gate of units 0..u-1 |
+    up of the same | gate of units u..2u-1 | ...]. GATE_UP_BLOCK where it divides F (every real size), else F: one
+    block, [gate | up]. Block pairs let the Mosaic GPU GeGLU kernel take one pair a CTA into one accumulator
+    (`ops.mosaic_gemm`); XLA reads the halves through a reshape (`split_gate_up`)."""
+    return GATE_UP_BLOCK if hidden % GATE_UP_BLOCK == 0 else hidden
+
+
+def split_gate_up(y):
+    """x @ gate_up (..., 2F), blocks as `gate_up_block(F)` -> (gate, up), each (..., F)."""
+    f = y.shape[-1] // 2
+    y = y.reshape(*y.shape[:-1], -1, 2, gate_up_block(f))
+    return (y[..., 0, :].reshape(*y.shape[:-3], f), y[..., 1, :].reshape(*y.shape[:-3], f))
 
 
 def suffix_rows(s: int) -> int:
@@ -53,14 +69,17 @@ def heads(x, axis: int, head_dim: int):
 
 def expert_weights(w: dict, cfg: GemmaConfig) -> dict:
     """One expert layer's engine weights (`engine.weights.prepare`) -> kernel layout:
-    qkv (D, (N + 2K) 2hp), attn_out (N 2hp, D), gate_up (D, 2F) = [gate | up], down (F, D), and π0's norm scales
-    pre_attn / pre_ffw as (1, D)."""
+    qkv (D, (N + 2K) 2hp), attn_out (N 2hp, D), gate_up (D, 2F) in `gate_up_block(F)` pairs, down (F, D), and π0's
+    norm scales pre_attn / pre_ffw as (1, D)."""
     d, f = _round_up(cfg.width, ALIGN), _round_up(cfg.mlp_dim, ALIGN)
-    gate_up = einops.rearrange(w["gate_up"], "D (two F) -> D two F", two=2)
+    gate_up = w["gate_up"]
+    if f != cfg.mlp_dim:   # padded hidden units: their gate and up columns zero, in f's block pairs
+        gate_up = einops.rearrange(gate_up, "D (Fb two u) -> D two (Fb u)", two=2, u=gate_up_block(cfg.mlp_dim))
+        gate_up = einops.rearrange(_pad(gate_up, 2, f), "D two (Fb u) -> D (Fb two u)", u=gate_up_block(f))
     out = {
         "qkv": _pad(heads(w["qkv"], -1, cfg.head_dim), 0, d),
         "attn_out": _pad(heads(w["attn_out"], 0, cfg.head_dim), 1, d),
-        "gate_up": einops.rearrange(_pad(_pad(gate_up, 0, d), 2, f), "D two F -> D (two F)"),
+        "gate_up": _pad(gate_up, 0, d),
         "down": _pad(_pad(w["down"], 0, f), 1, d),
     }
     for name in ("pre_attn", "pre_ffw"):

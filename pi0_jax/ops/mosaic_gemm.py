@@ -9,10 +9,13 @@ so each SM keeps several tiles in flight whatever its registers (docs/BENCHMARKS
 A CTA takes `wgs * cols` output columns of one K chunk for 64 rows; each compute warpgroup owns `cols` of them as a
 (64 x cols) f32 accumulator. splits > 1: f32 partials per K chunk, summed by the caller's XLA epilogue (as the
 Triton kernel's); splits == 1: the product rounded to x's dtype, as XLA's `x @ w` returns it. `geglu`: the Gemma
-MLP's gate/up GEMM with GELU-tanh(gate) * up in the epilogue; a CTA streams `cols` gate columns and their `cols` up
-partners (two accumulators) and writes only the product. Its numerics: gate and up rounded to the dtype (as XLA's
-GEMM output), GELU-tanh and the product in f32, rounded once; XLA's fusion may round between its bf16 ops, so the
-two agree to bf16 rounding (in f32, to f32 rounding).
+MLP's gate/up GEMM with GELU-tanh(gate) * up in the epilogue, on the engine's fused weight, whose gate and up
+columns alternate in blocks (`ops.layout.gate_up_block`: 32 units at every real size): a CTA streams one block pair
+(`cols` = 2 x the block) into one accumulator and writes the block's product. Half the wgmma work of a CTA that
+takes 64 units' gate and up, on twice the CTAs (128 for the expert): the kernel 19 % faster alone
+(docs/BENCHMARKS.md, session 31). Its numerics: gate and up rounded to the dtype (as XLA's GEMM output),
+GELU-tanh and the product in f32, rounded once; XLA's fusion may round between its bf16 ops, so the two agree to
+bf16 rounding (in f32, to f32 rounding).
 
 bf16 only on a GPU (wgmma would take f32 as tf32); `applies` says when. On a CPU the kernel runs in Mosaic GPU's
 interpreter (tests). Axis legend: M rows, K contraction, N output columns, S splits.
@@ -30,13 +33,15 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from pi0_jax.ops.layout import gate_up_block
+
 ROWS = 64  # a warpgroup's wgmma rows; M is padded to a multiple
 TK = 64  # a swizzled tile's contraction: one 128-byte row of bf16; a pipeline step takes `Launch.tk` of it
 
 
 @dataclasses.dataclass(frozen=True)
 class Launch:
-    """Output columns per compute warpgroup (`geglu`: hidden units), K chunks (one CTA each per column block), TMA
+    """Output columns per compute warpgroup (`geglu`: the accumulator's, a block pair of gate and up), K chunks (one CTA each per column block), TMA
     pipeline depth, compute warpgroups per CTA, whether the gate/up GEMM ends in GeGLU (`geglu`; one chunk, one
     warpgroup), and how many steps' wgmma may still run when the next is issued (`delay`: their tiles are released
     that many steps later), and the contraction rows a pipeline step brings (`tk`, a multiple of TK: each step's
@@ -73,8 +78,11 @@ def applies(x, w, launch: Launch) -> bool:
     """Whether this kernel takes x @ w: bf16 on a Hopper GPU (or any float on the CPU interpreter), K splitting into
     steps of `launch.tk` rows (more than `delay` of them), N (geglu: each half) into column blocks."""
     k, n = w.shape
-    n = n // 2 if launch.geglu else n
-    tiles = k % (launch.splits * launch.tk) == 0 and n % (launch.cols * launch.wgs) == 0
+    if launch.geglu:   # one block pair of the fused weight a CTA
+        tiles = launch.cols == 2 * gate_up_block(n // 2)
+    else:
+        tiles = n % (launch.cols * launch.wgs) == 0
+    tiles = tiles and k % (launch.splits * launch.tk) == 0
     tiles = tiles and k // (launch.splits * launch.tk) > launch.delay   # the pipeline is no deeper than its steps
     if jax.default_backend() == "cpu":
         return tiles
@@ -98,7 +106,8 @@ def partials(x, w, launch: Launch = Launch(), name: str = "mosaic_gemm"):
 
 
 def geglu(x, w, launch: Launch = Launch(geglu=True), name: str = "mosaic_geglu"):
-    """x (M, K) @ w (K, 2F) = [gate | up] -> GELU-tanh(gate) * up (M, F) in x's dtype."""
+    """x (M, K) @ w (K, 2F), gate and up in alternating blocks (`ops.layout.gate_up_block`) -> GELU-tanh(gate) * up
+    (M, F) in x's dtype."""
     assert launch.geglu, launch
     xp, mp = _padded(x)
     return _call(mp, x.shape[1], w.shape[1] // 2, x.dtype, launch, name)(xp, w)[:x.shape[0]]
@@ -112,9 +121,10 @@ def _gelu_product(g, u, dtype):
 
 @functools.lru_cache(maxsize=None)
 def _call(m: int, k: int, n: int, dtype, launch: Launch, name: str):
-    """The kernel for x (m, k) and n output columns (geglu: n hidden units of a (k, 2n) weight)."""
+    """The kernel for x (m, k) and n output columns (geglu: n hidden units of a (k, 2n) weight in block pairs)."""
     cols, splits, wgs, pair, tk = launch.cols, launch.splits, launch.wgs, launch.geglu, launch.tk
     chunk, cta_n = k // splits, cols * wgs
+    out_cols = cols // 2 if pair else cols   # a warpgroup's output columns (geglu: the block's units)
     out_dtype = dtype if splits == 1 else jnp.float32
 
     def transforms(minor, dt):   # TMA tiles of 8 rows, swizzled by the row's bytes (at most 128)
@@ -124,53 +134,51 @@ def _call(m: int, k: int, n: int, dtype, launch: Launch, name: str):
 
     def pipeline(body, context):
         spec = functools.partial(plgpu.BlockSpec, memory_space=plgpu.SMEM, delay_release=launch.delay)
-        w_spec = spec((tk, cta_n), lambda kk: (kk, 0), transforms=transforms(cta_n, dtype))
         return plgpu.emit_pipeline_warp_specialized(
             body, grid=(chunk // tk,), memory_registers=40, wg_axis="wg", num_compute_wgs=wgs,
             max_concurrent_steps=launch.stages, compute_context=context,
             in_specs=[spec((ROWS, tk), lambda kk: (0, kk), transforms=transforms(tk, dtype)),
-                      *([w_spec] * (2 if pair else 1))])
+                      spec((tk, cta_n), lambda kk: (kk, 0), transforms=transforms(cta_n, dtype))])
 
     def kernel(x_gmem, w_gmem, o_gmem):
         j, s, i = lax.axis_index("n"), lax.axis_index("s"), lax.axis_index("m")
-        ks, cta_cols, rows = pl.ds(s * chunk, chunk), pl.ds(j * cta_n, cta_n), pl.ds(i * ROWS, ROWS)
-        w_tiles = (w_gmem.at[ks, cta_cols], w_gmem.at[ks, pl.ds(n + j * cta_n, cta_n)])[:2 if pair else 1]
+        ks, rows = pl.ds(s * chunk, chunk), pl.ds(i * ROWS, ROWS)
+        w_tile = w_gmem.at[ks, pl.ds(j * cta_n, cta_n)]
 
         def nothing(*_, **__):
             return None
 
-        @functools.partial(pl.run_scoped, allocs=pipeline(nothing, nothing).get_allocations(x_gmem, *w_tiles),
-                           out_smem=plgpu.SMEM((wgs, ROWS, cols), out_dtype, transforms=transforms(cols, out_dtype)),
+        @functools.partial(pl.run_scoped, allocs=pipeline(nothing, nothing).get_allocations(x_gmem, w_tile),
+                           out_smem=plgpu.SMEM((wgs, ROWS, out_cols), out_dtype,
+                                               transforms=transforms(out_cols, out_dtype)),
                            collective_axes="wg")
         def scope(allocs, out_smem):
             wg = lax.axis_index("wg")
             wg_cols = pl.ds(wg * cols, cols)
 
             def context(run):
-                acc = plgpu.ACC((ROWS, cols), jnp.float32)
-
-                @functools.partial(pl.run_scoped, accs=(acc, acc) if pair else (acc,))
-                def accumulate(accs):
-                    run(accs)
-                    y = accs[0][...]
-                    out_smem[wg] = _gelu_product(y, accs[1][...], dtype) if pair else y.astype(out_dtype)
+                @functools.partial(pl.run_scoped, acc=plgpu.ACC((ROWS, cols), jnp.float32))
+                def accumulate(acc):
+                    run(acc)
+                    y = acc[...]
+                    out_smem[wg] = (_gelu_product(y[:, :out_cols], y[:, out_cols:], dtype) if pair
+                                    else y.astype(out_dtype))
                     plgpu.commit_smem()
                     out_rows = pl.ds(s * m + i * ROWS, ROWS)
-                    plgpu.copy_smem_to_gmem(out_smem.at[wg], o_gmem.at[out_rows, cta_cols].at[:, wg_cols])
+                    out = o_gmem.at[out_rows, pl.ds((j * wgs + wg) * out_cols, out_cols)]
+                    plgpu.copy_smem_to_gmem(out_smem.at[wg], out)
                     plgpu.wait_smem_to_gmem(0)
 
-            def step(_, x_smem, *w_and_accs):
-                w_smems, accs = w_and_accs[:-1], w_and_accs[-1]
-                for w_smem, acc in zip(w_smems, accs):
-                    plgpu.wgmma(acc, x_smem, w_smem.at[:, wg_cols])
+            def step(_, x_smem, w_smem, acc):
+                plgpu.wgmma(acc, x_smem, w_smem.at[:, wg_cols])
                 plgpu.wgmma_wait(launch.delay)
-                return accs
+                return acc
 
-            pipeline(step, context)(x_gmem.at[rows, ks], *w_tiles, allocations=allocs)
+            pipeline(step, context)(x_gmem.at[rows, ks], w_tile, allocations=allocs)
 
     on_cpu = jax.default_backend() == "cpu"
     return plgpu.kernel(kernel, out_type=jax.ShapeDtypeStruct((splits * m, n), out_dtype),
-                        grid=(n // cta_n, splits, m // ROWS), grid_names=("n", "s", "m"), num_threads=wgs + 1,
-                        thread_name="wg", kernel_name=name,
+                        grid=(n // (out_cols * wgs), splits, m // ROWS), grid_names=("n", "s", "m"),
+                        num_threads=wgs + 1, thread_name="wg", kernel_name=name,
                         compiler_params=plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup),
                         **({"interpret": _interpret()} if on_cpu else {}))
