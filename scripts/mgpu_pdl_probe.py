@@ -1,27 +1,38 @@
-"""Programmatic dependent launch (PDL) on the Mosaic GPU gate/up kernel: a chain of gate/up + GeGLU kernels, each
-reading the previous one's output, with each kernel's weight copies issued before it waits for the previous kernel.
+"""A chain of the denoise step's gate/up + GeGLU kernel (Mosaic GPU), each reading the previous one's output: where a
+kernel's time goes, and what programmatic dependent launch (PDL), a persistent kernel, and CTAs of half the work do.
 
 Session 30 measured what a step kernel costs whatever its work: 3-4 us (`mgpu_gemm_probe.py --k-sweep`), paid ~9.7
-times a layer, against 5-10 us of streaming. A kernel's weights do not depend on the kernel before it, only its
-activations do. With PDL (`plgpu.griddepcontrol_launch_dependents` early in a kernel, `griddepcontrol_wait` in the
-next before it touches what the first wrote), the next kernel is launched onto the SMs the first leaves free and its
-producer warpgroup can stream weights into shared memory while the first finishes: the launch and the pipeline's
-first DRAM round trip leave the chain's critical path.
+times a layer. A kernel's weights do not depend on the kernel before it, only its activations do: with PDL
+(`plgpu.griddepcontrol_launch_dependents` early in a kernel, `griddepcontrol_wait` in the next before it touches
+what the first wrote) the next kernel could stream its weights while the first finishes.
 
-Variants of one kernel (64 rows of x (64, 4096) read as x[:, :1024], @ a (1024, 8192) [gate | up] weight, GELU-tanh
-(gate) * up -> (64, 4096), the engine's `mosaic_gemm` geglu launch: 64 columns a CTA, a producer warpgroup):
-  base       x and w pipelined together (the engine's kernel), no PDL
+One kernel: 64 rows of x (64, hidden) read as x[:, :k], @ a (k, 2 hidden) gate/up weight, GELU-tanh(gate) * up ->
+(64, hidden); k 1024 and hidden 4096 are the expert's. Variants (`--modes`):
+  base       x and w pipelined together, 64 units a CTA (two accumulators), no PDL: the engine's kernel until
+             session 31
   pdl        base, both warpgroups wait for the previous kernel first, dependents launched at the start
   whole      x brought whole into shared memory by the compute warpgroup, only w pipelined, no PDL
   whole_pdl  whole, the producer streams w at once, the compute warpgroup waits for the previous kernel before it
              brings x; dependents launched at the start
-Each variant runs as a chain of `--layers` kernels on distinct weights in one jit, is checked against XLA's chain, and
-is timed (host, interleaved) and traced (the device span per kernel).
+  pair       32 units a CTA from ONE 64-column accumulator over gate and up interleaved in blocks of 32 (twice the
+             CTAs, half the wgmma work each; split in registers): the engine's kernel since session 31
+  pair_smem  pair, the accumulator split through shared memory
+  --persistent  the whole chain as one kernel: grid barriers (a `pl.get_global` semaphore), the producer streaming
+             one layer's weights after another (`pipeline_state`), x brought whole after each barrier
+Each runs as a chain of `--layers` kernels on distinct weights in one jit; each kernel is checked against itself run
+alone on what the chain gave it (bit-equal unless it read its input too early) and the first against XLA's product;
+timed (host, interleaved) and traced (device span and busy time per kernel, and how long kernels overlapped).
 
-GPU only (Hopper; PDL needs the Mosaic GPU runtime). `--cpu-check` runs the non-PDL variants in Mosaic GPU's
-interpreter at a small shape.
+What it showed (H200, jax 0.11.2, session 31; docs/BENCHMARKS.md, "PDL, a Mosaic GPU grid barrier, a persistent
+chain, and gate/up on 128 CTAs"): PDL does nothing inside XLA's command buffers (no kernel overlapped); with command
+buffers off it overlaps kernels by 2.8-5.3 us, but the chain is then host-bound. The persistent chain is bit-equal
+and 9 % faster a layer (7.79 against 8.53 us). A CTA's 16 pipeline steps, not the bytes in flight, bound the kernel:
+4 stages are as fast as 8, 32 CTAs are as slow per layer as 64; `pair` takes 6.8-6.9 us against 8.5.
 
-    python scripts/mgpu_pdl_probe.py --out mgpu_pdl.json
+GPU only (Hopper; PDL needs the Mosaic GPU runtime). `--cpu-check` runs base, whole and the pair modes in Mosaic GPU's
+interpreter at a small shape (the persistent kernel does not run in the interpreter of jax 0.10.2).
+
+    python scripts/mgpu_pdl_probe.py --out mgpu_pdl.json [--persistent] [--modes base,pair]
 """
 
 from __future__ import annotations

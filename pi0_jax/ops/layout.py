@@ -4,6 +4,10 @@ Widths are padded to multiples of 16 (Triton's smallest dot), suffix rows to a p
 a multiple of KEY_PAD, and each head dim H to [x1 | 0 | x2 | 0] with both RoPE halves padded to hp. At π0 / π0.5
 full size (D 1024, H 256, F 4096) the weights need no padding: these are reshapes, free in XLA.
 
+One layout is the engine's everywhere, not only here: the fused gate/up weight's columns alternate gate and up in
+blocks of GATE_UP_BLOCK units (`gate_up_block`, `split_gate_up`), which the Mosaic GPU GeGLU kernel takes one block
+pair a CTA.
+
 Axis legend: L layers, B batch, S suffix tokens, P prefix keys, D width, N query heads, K kv heads, F MLP hidden.
 """
 
