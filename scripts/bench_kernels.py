@@ -70,7 +70,8 @@ STEP_SWEEPS = {
                "out mosaic 64 8s 4st": dict(mosaic_out=L(64, 8, 4)),
                "down mosaic 64 8s 4st": dict(mosaic_down=L(64, 8, 4))},
     # gate/up: the Triton kernel, the Mosaic kernel plain (XLA's GeGLU after it), or with GeGLU in its epilogue (the
-    # default since run 30; 32 hidden units per CTA failed Mosaic's layout inference there)
+    # default since run 30; 32 hidden units per CTA failed Mosaic's layout inference there). Since session 31 a GeGLU
+    # CTA takes one block pair of 32 units (cols 64): "geglu 128" no longer applies and runs the Triton kernel
     "mosaic_geglu": {"default": {}, "mlp triton": dict(mosaic_mlp=None),
                      "mlp mosaic 64 1s 8st": dict(mosaic_mlp=L(64, 1, 8)),
                      "mlp geglu 64 8st": dict(mosaic_mlp=L(64, 1, 8, geglu=True)),
@@ -85,6 +86,10 @@ STEP_SWEEPS = {
     "mosaic_tk": {"default": {}, "mlp geglu 64 3st tk128": dict(mosaic_mlp=L(64, 1, 3, geglu=True, tk=128)),
                   "mlp geglu 64 2st tk256": dict(mosaic_mlp=L(64, 1, 2, geglu=True, tk=256)),
                   "qkv mosaic 64 4s 2st tk128": dict(mosaic_qkv=L(64, 4, 2, tk=128))},
+    # the GeGLU kernel on 128 CTAs (session 31, one block pair of 32 units a CTA): its pipeline depth and delay
+    "mosaic_pair": {"default": {}, "mlp geglu 64 4st": dict(mosaic_mlp=L(64, 1, 4, geglu=True)),
+                    "mlp geglu 64 8st": dict(mosaic_mlp=L(64, 1, 8, geglu=True)),
+                    "mlp geglu 64 8st d1": dict(mosaic_mlp=L(64, 1, 8, geglu=True, delay=1))},
     # the attention's key splits since its splits are merged by one Pallas kernel (session 28: XLA's merge had been
     # two fusions), and its key block
     "kv_splits": {"default": {}, "kv splits 7": dict(kv_splits=7), "kv splits 10": dict(kv_splits=10),

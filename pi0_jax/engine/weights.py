@@ -73,11 +73,12 @@ def _fused(parts, dtype):
 def _expert_weights(attn: dict, mlp: dict, suffix: str, dtype) -> dict:
     qkv = _fused([(attn[f"q_einsum{suffix}"]["w"], "L N D H -> L D (N H)"),
                   (attn[f"kv_einsum{suffix}"]["w"], "L two K D H -> L D (two K H)")], dtype)
+    gating = mlp["gating_einsum"]
+    hidden = getattr(gating, "q", gating).shape[-1]   # a QArray's storage, or the plain array
     return {
         "qkv": qkv,
         "attn_out": _rearrange(attn[f"attn_vec_einsum{suffix}"]["w"], "L N H D -> L (N H) D", dtype),
-        "gate_up": _rearrange(mlp["gating_einsum"], "L two D (Fb u) -> L D (Fb two u)", dtype,
-                              u=layout.gate_up_block(getattr(mlp["gating_einsum"], "q", mlp["gating_einsum"]).shape[-1])),
+        "gate_up": _rearrange(gating, "L two D (Fb u) -> L D (Fb two u)", dtype, u=layout.gate_up_block(hidden)),
         "down": _rearrange(mlp["linear"], "L F D -> L F D", dtype),
     }
 

@@ -41,13 +41,13 @@ TK = 64  # a swizzled tile's contraction: one 128-byte row of bf16; a pipeline s
 
 @dataclasses.dataclass(frozen=True)
 class Launch:
-    """Output columns per compute warpgroup (`geglu`: the accumulator's, a block pair of gate and up), K chunks (one CTA each per column block), TMA
-    pipeline depth, compute warpgroups per CTA, whether the gate/up GEMM ends in GeGLU (`geglu`; one chunk, one
-    warpgroup), and how many steps' wgmma may still run when the next is issued (`delay`: their tiles are released
-    that many steps later), and the contraction rows a pipeline step brings (`tk`, a multiple of TK: each step's
-    barrier handshake is paid once for that many rows; 128 took gate/up alone 5 % faster and the step not at all,
-    docs/BENCHMARKS.md, session 30). On a GPU, cols is a multiple of 64: 32-column accumulators
-    failed Mosaic GPU's layout inference (jax 0.11.2), where the CPU interpreter took them."""
+    """Output columns per compute warpgroup (`geglu`: the accumulator's, one block pair of gate and up), K chunks (one
+    CTA each per column block), TMA pipeline depth, compute warpgroups per CTA, whether the gate/up GEMM ends in
+    GeGLU (`geglu`; one chunk, one warpgroup), and how many steps' wgmma may still run when the next is issued
+    (`delay`: their tiles are released that many steps later), and the contraction rows a pipeline step brings (`tk`,
+    a multiple of TK: each step's barrier handshake is paid once for that many rows; 128 took gate/up alone 5 %
+    faster and the step not at all, docs/BENCHMARKS.md, session 30). On a GPU, cols is a multiple of 64: 32-column
+    accumulators failed Mosaic GPU's layout inference (jax 0.11.2), where the CPU interpreter took them."""
 
     cols: int = 64
     splits: int = 1
@@ -76,7 +76,8 @@ def _interpret():
 
 def applies(x, w, launch: Launch) -> bool:
     """Whether this kernel takes x @ w: bf16 on a Hopper GPU (or any float on the CPU interpreter), K splitting into
-    steps of `launch.tk` rows (more than `delay` of them), N (geglu: each half) into column blocks."""
+    steps of `launch.tk` rows (more than `delay` of them), N into column blocks (geglu: `cols` is one block pair of the
+    fused weight, `ops.layout.gate_up_block`)."""
     k, n = w.shape
     if launch.geglu:   # one block pair of the fused weight a CTA
         tiles = launch.cols == 2 * gate_up_block(n // 2)
