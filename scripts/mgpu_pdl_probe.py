@@ -68,6 +68,42 @@ def _transforms(minor, dtype):
     return plgpu.TilingTransform((8, swizzle // size)), plgpu.SwizzleTransform(swizzle)
 
 
+def _pipeline(body, context, steps, stages, in_specs, state=None):
+    """A warp-specialised pipeline: one compute warpgroup, a producer warpgroup streaming `in_specs` `stages` deep."""
+    return plgpu.emit_pipeline_warp_specialized(
+        body, grid=(steps,), memory_registers=40, wg_axis="wg", num_compute_wgs=1, max_concurrent_steps=stages,
+        compute_context=context, in_specs=in_specs, pipeline_state=state)
+
+
+def _launch(kernel, out_shape, ctas: int, name: str):
+    """A Mosaic GPU kernel of `ctas` CTAs (a compute and a producer warpgroup each); Mosaic GPU's interpreter on CPU."""
+    on_cpu = jax.default_backend() == "cpu"
+    return plgpu.kernel(kernel, out_type=jax.ShapeDtypeStruct(out_shape, jnp.bfloat16), grid=(ctas,),
+                        grid_names=("n",), num_threads=2, thread_name="wg", kernel_name=name,
+                        compiler_params=plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup),
+                        **({"interpret": mosaic_gemm._interpret()} if on_cpu else {}))
+
+
+def _bring_x(src, x_smem, x_bar, steps: int):
+    """x (64, steps x TK) from GMEM into the (steps, 64, TK) tiles of x_smem, all copies on one barrier."""
+    for i in range(steps):
+        plgpu.copy_gmem_to_smem(src.at[:, pl.ds(i * TK, TK)], x_smem.at[i], x_bar)
+    plgpu.barrier_wait(x_bar)
+
+
+def _geglu_into(run, cols: int, out_smem, out_gmem):
+    """Run the pipeline into a gate and an up accumulator (64 x cols each), then GELU-tanh(gate) * up to out_gmem."""
+    acc = plgpu.ACC((ROWS, cols), jnp.float32)
+
+    @functools.partial(pl.run_scoped, accs=(acc, acc))
+    def accumulate(accs):
+        run(accs)
+        out_smem[...] = mosaic_gemm._gelu_product(accs[0][...], accs[1][...], out_smem.dtype)
+        plgpu.commit_smem()
+        plgpu.copy_smem_to_gmem(out_smem, out_gmem)
+        plgpu.wait_smem_to_gmem(0)
+
+
 @functools.lru_cache(maxsize=None)
 def chain_kernel(k: int, hidden: int, width: int, mode: str, cols: int = 64, stages: int = 6):
     """x (64, width) [:, :k] @ w (k, 2 hidden) -> GeGLU (64, hidden), as `mode` says."""
@@ -78,9 +114,7 @@ def chain_kernel(k: int, hidden: int, width: int, mode: str, cols: int = 64, sta
     x_spec = spec((ROWS, TK), lambda kk: (0, kk), transforms=_transforms(TK, dtype))
 
     def pipeline(body, context):
-        return plgpu.emit_pipeline_warp_specialized(
-            body, grid=(steps,), memory_registers=40, wg_axis="wg", num_compute_wgs=1, max_concurrent_steps=stages,
-            compute_context=context, in_specs=[w_spec, w_spec] if whole else [x_spec, w_spec, w_spec])
+        return _pipeline(body, context, steps, stages, [w_spec, w_spec] if whole else [x_spec, w_spec, w_spec])
 
     def kernel(x_gmem, w_gmem, o_gmem):
         j = lax.axis_index("n")
@@ -103,18 +137,8 @@ def chain_kernel(k: int, hidden: int, width: int, mode: str, cols: int = 64, sta
                 if whole:
                     if pdl:
                         plgpu.griddepcontrol_wait()
-                    for i in range(steps):
-                        plgpu.copy_gmem_to_smem(x_gmem.at[:, pl.ds(i * TK, TK)], x_smem.at[i], x_bar)
-                    plgpu.barrier_wait(x_bar)
-                acc = plgpu.ACC((ROWS, cols), jnp.float32)
-
-                @functools.partial(pl.run_scoped, accs=(acc, acc))
-                def accumulate(accs):
-                    run(accs)
-                    out_smem[...] = mosaic_gemm._gelu_product(accs[0][...], accs[1][...], dtype)
-                    plgpu.commit_smem()
-                    plgpu.copy_smem_to_gmem(out_smem, o_gmem.at[:, pl.ds(j * cols, cols)])
-                    plgpu.wait_smem_to_gmem(0)
+                    _bring_x(x_gmem, x_smem, x_bar, steps)
+                _geglu_into(run, cols, out_smem, o_gmem.at[:, pl.ds(j * cols, cols)])
 
             def step(idx, *refs):
                 if whole:
@@ -128,11 +152,7 @@ def chain_kernel(k: int, hidden: int, width: int, mode: str, cols: int = 64, sta
 
             pipeline(step, context)(*srcs, allocations=allocs)
 
-    on_cpu = jax.default_backend() == "cpu"
-    return plgpu.kernel(kernel, out_type=jax.ShapeDtypeStruct((ROWS, hidden), dtype), grid=(hidden // cols,),
-                        grid_names=("n",), num_threads=2, thread_name="wg", kernel_name=f"chain_{mode}",
-                        compiler_params=plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup),
-                        **({"interpret": mosaic_gemm._interpret()} if on_cpu else {}))
+    return _launch(kernel, (ROWS, hidden), hidden // cols, f"chain_{mode}")
 
 
 def interleave(w, hidden: int, units: int):
@@ -153,9 +173,7 @@ def pair_kernel(k: int, hidden: int, mode: str, units: int = 32, stages: int = 6
     x_spec = spec((ROWS, TK), lambda kk: (0, kk), transforms=_transforms(TK, dtype))
 
     def pipeline(body, context):
-        return plgpu.emit_pipeline_warp_specialized(
-            body, grid=(steps,), memory_registers=40, wg_axis="wg", num_compute_wgs=1, max_concurrent_steps=stages,
-            compute_context=context, in_specs=[x_spec, w_spec])
+        return _pipeline(body, context, steps, stages, [x_spec, w_spec])
 
     def kernel(x_gmem, w_gmem, o_gmem):
         j = lax.axis_index("n")
@@ -189,11 +207,7 @@ def pair_kernel(k: int, hidden: int, mode: str, units: int = 32, stages: int = 6
 
             pipeline(step, context)(*srcs, allocations=allocs)
 
-    on_cpu = jax.default_backend() == "cpu"
-    return plgpu.kernel(kernel, out_type=jax.ShapeDtypeStruct((ROWS, hidden), dtype), grid=(hidden // units,),
-                        grid_names=("n",), num_threads=2, thread_name="wg", kernel_name=f"chain_{mode}",
-                        compiler_params=plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup),
-                        **({"interpret": mosaic_gemm._interpret()} if on_cpu else {}))
+    return _launch(kernel, (ROWS, hidden), hidden // units, f"chain_{mode}")
 
 
 @functools.lru_cache(maxsize=None)
@@ -208,9 +222,7 @@ def persistent_kernel(layers: int, k: int, hidden: int, cols: int = 64, stages: 
     w_spec = spec((TK, cols), lambda kk: (kk, 0), transforms=_transforms(cols, dtype))
 
     def pipeline(body, context, state):
-        return plgpu.emit_pipeline_warp_specialized(
-            body, grid=(steps,), memory_registers=40, wg_axis="wg", num_compute_wgs=1, max_concurrent_steps=stages,
-            compute_context=context, in_specs=[w_spec, w_spec], pipeline_state=state)
+        return _pipeline(body, context, steps, stages, [w_spec, w_spec], state)
 
     def kernel(x_gmem, w_gmem, o_gmem):   # w (layers, k, 2 hidden); o (2, 64, hidden)
         j = lax.axis_index("n")
@@ -229,29 +241,16 @@ def persistent_kernel(layers: int, k: int, hidden: int, cols: int = 64, stages: 
                 state = jnp.where(p == 0, plgpu.PipelinePipeline.START, plgpu.PipelinePipeline.STEADY)
                 state = jnp.where(p == layers - 1, plgpu.PipelinePipeline.STOP, state)
 
-                def bring_x(src):
-                    for i in range(steps):
-                        plgpu.copy_gmem_to_smem(src.at[:, pl.ds(i * TK, TK)], x_smem.at[i], x_bar)
-
                 def context(run):
                     @pl.when(p == 0)
                     def _():
-                        bring_x(x_gmem)
+                        _bring_x(x_gmem, x_smem, x_bar, steps)
 
                     @pl.when(p > 0)
                     def _():
                         plgpu.semaphore_wait(sem, p * ctas, decrement=False, memory_scope="gpu")
-                        bring_x(o_gmem.at[lax.rem(p + 1, 2)])
-                    plgpu.barrier_wait(x_bar)
-                    acc = plgpu.ACC((ROWS, cols), jnp.float32)
-
-                    @functools.partial(pl.run_scoped, accs=(acc, acc))
-                    def accumulate(accs):
-                        run(accs)
-                        out_smem[...] = mosaic_gemm._gelu_product(accs[0][...], accs[1][...], dtype)
-                        plgpu.commit_smem()
-                        plgpu.copy_smem_to_gmem(out_smem, o_gmem.at[lax.rem(p, 2), :, pl.ds(j * cols, cols)])
-                        plgpu.wait_smem_to_gmem(0)
+                        _bring_x(o_gmem.at[lax.rem(p + 1, 2)], x_smem, x_bar, steps)
+                    _geglu_into(run, cols, out_smem, o_gmem.at[lax.rem(p, 2), :, pl.ds(j * cols, cols)])
                     plgpu.semaphore_signal(sem, 1, memory_scope="gpu")
 
                 def step(idx, w_gate, w_up, accs):
@@ -267,11 +266,7 @@ def persistent_kernel(layers: int, k: int, hidden: int, cols: int = 64, stages: 
             def _():   # every CTA signalled once a layer: take the count back, so the next call starts at zero
                 plgpu.semaphore_wait(sem, layers * ctas, decrement=True, memory_scope="gpu")
 
-    on_cpu = jax.default_backend() == "cpu"
-    call = plgpu.kernel(kernel, out_type=jax.ShapeDtypeStruct((2, ROWS, hidden), dtype), grid=(ctas,),
-                        grid_names=("n",), num_threads=2, thread_name="wg", kernel_name="chain_persistent",
-                        compiler_params=plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup),
-                        **({"interpret": mosaic_gemm._interpret()} if on_cpu else {}))
+    call = _launch(kernel, (2, ROWS, hidden), ctas, "chain_persistent")
     return jax.jit(lambda x, w: call(x, w)[(layers - 1) % 2])   # w: the layers' weights stacked
 
 
