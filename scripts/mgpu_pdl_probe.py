@@ -59,7 +59,7 @@ from bench_kernels import interleaved_ms  # noqa: E402
 from profile_engine import gpu_kernels, kernel_times, traced  # noqa: E402
 
 ROWS, TK = mosaic_gemm.ROWS, mosaic_gemm.TK
-MODES = ("base", "pdl", "whole", "whole_pdl", "pair", "pair_smem")
+MODES = ("base", "pdl", "whole", "whole_pdl", "pair", "pair_smem", "pair_mc2", "pair_mc4")
 
 
 def _transforms(minor, dtype):
@@ -75,11 +75,13 @@ def _pipeline(body, context, steps, stages, in_specs, state=None):
         compute_context=context, in_specs=in_specs, pipeline_state=state)
 
 
-def _launch(kernel, out_shape, ctas: int, name: str):
-    """A Mosaic GPU kernel of `ctas` CTAs (a compute and a producer warpgroup each); Mosaic GPU's interpreter on CPU."""
+def _launch(kernel, out_shape, ctas: int, name: str, cluster: int = 1):
+    """A Mosaic GPU kernel of `ctas` CTAs (a compute and a producer warpgroup each), in clusters of `cluster` along
+    axis "c" (then "n" counts clusters); Mosaic GPU's interpreter on CPU."""
     on_cpu = jax.default_backend() == "cpu"
-    return plgpu.kernel(kernel, out_type=jax.ShapeDtypeStruct(out_shape, jnp.bfloat16), grid=(ctas,),
-                        grid_names=("n",), num_threads=2, thread_name="wg", kernel_name=name,
+    clusters = dict(cluster=(cluster,), cluster_names=("c",)) if cluster > 1 else {}
+    return plgpu.kernel(kernel, out_type=jax.ShapeDtypeStruct(out_shape, jnp.bfloat16), grid=(ctas // cluster,),
+                        grid_names=("n",), num_threads=2, thread_name="wg", kernel_name=name, **clusters,
                         compiler_params=plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup),
                         **({"interpret": mosaic_gemm._interpret()} if on_cpu else {}))
 
@@ -166,17 +168,21 @@ def interleave(w, hidden: int, units: int):
 def pair_kernel(k: int, hidden: int, mode: str, units: int = 32, stages: int = 6):
     """GeGLU for `units` hidden units a CTA (hidden / units CTAs: 128 for the expert) from ONE (64 x 2 units)
     accumulator over the interleaved weight (`interleave`): half the wgmma work of a 64-unit CTA and twice the CTAs.
-    The accumulator's halves are split in registers (`pair`) or through shared memory (`pair_smem`)."""
+    The accumulator's halves are split in registers (`pair`) or through shared memory (`pair_smem`); `pair_mc2` /
+    `pair_mc4`: clusters of 2 / 4 CTAs that share each x tile by one multicast copy (x is read from L2 once a cluster
+    instead of once a CTA)."""
     dtype, steps, cols = jnp.bfloat16, k // TK, 2 * units
     spec = functools.partial(plgpu.BlockSpec, memory_space=plgpu.SMEM)
     w_spec = spec((TK, cols), lambda kk: (kk, 0), transforms=_transforms(cols, dtype))
-    x_spec = spec((ROWS, TK), lambda kk: (0, kk), transforms=_transforms(TK, dtype))
+    cluster = int(mode[len("pair_mc"):]) if mode.startswith("pair_mc") else 1
+    x_spec = spec((ROWS, TK), lambda kk: (0, kk), transforms=_transforms(TK, dtype),
+                  **({"collective_axes": ("c",)} if cluster > 1 else {}))
 
     def pipeline(body, context):
         return _pipeline(body, context, steps, stages, [x_spec, w_spec])
 
     def kernel(x_gmem, w_gmem, o_gmem):
-        j = lax.axis_index("n")
+        j = lax.axis_index("n") * cluster + (lax.axis_index("c") if cluster > 1 else 0)
         srcs = (x_gmem.at[:, pl.ds(0, k)], w_gmem.at[:, pl.ds(j * cols, cols)])
         scratch = dict(allocs=pipeline(None, None).get_allocations(*srcs),
                        out_smem=plgpu.SMEM((ROWS, units), dtype, transforms=_transforms(units, dtype)))
@@ -207,7 +213,7 @@ def pair_kernel(k: int, hidden: int, mode: str, units: int = 32, stages: int = 6
 
             pipeline(step, context)(*srcs, allocations=allocs)
 
-    return _launch(kernel, (ROWS, hidden), hidden // units, f"chain_{mode}")
+    return _launch(kernel, (ROWS, hidden), hidden // units, f"chain_{mode}", cluster)
 
 
 @functools.lru_cache(maxsize=None)
