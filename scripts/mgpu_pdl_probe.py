@@ -106,6 +106,26 @@ def _geglu_into(run, cols: int, out_smem, out_gmem):
         plgpu.wait_smem_to_gmem(0)
 
 
+def _pair_into(run, cols: int, out_smem, out_gmem, acc_smem=None):
+    """Run the pipeline into one (64 x cols) accumulator of [gate | up] for cols / 2 units, then GELU-tanh(gate) * up
+    to out_gmem; the halves split in registers, or through acc_smem (f32, 64 x cols) where one is given."""
+    units = cols // 2
+
+    @functools.partial(pl.run_scoped, acc=plgpu.ACC((ROWS, cols), jnp.float32))
+    def accumulate(acc):
+        run(acc)
+        if acc_smem is None:
+            y = acc[...]
+            g, u = y[:, :units], y[:, units:]
+        else:
+            acc_smem[...] = acc[...]
+            g, u = acc_smem[:, :units], acc_smem[:, units:]
+        out_smem[...] = mosaic_gemm._gelu_product(g, u, out_smem.dtype)
+        plgpu.commit_smem()
+        plgpu.copy_smem_to_gmem(out_smem, out_gmem)
+        plgpu.wait_smem_to_gmem(0)
+
+
 @functools.lru_cache(maxsize=None)
 def chain_kernel(k: int, hidden: int, width: int, mode: str, cols: int = 64, stages: int = 6):
     """x (64, width) [:, :k] @ w (k, 2 hidden) -> GeGLU (64, hidden), as `mode` says."""
@@ -192,19 +212,7 @@ def pair_kernel(k: int, hidden: int, mode: str, units: int = 32, stages: int = 6
         @functools.partial(pl.run_scoped, **scratch, collective_axes="wg")
         def scope(allocs, out_smem, acc_smem=None):
             def context(run):
-                @functools.partial(pl.run_scoped, acc=plgpu.ACC((ROWS, cols), jnp.float32))
-                def accumulate(acc):
-                    run(acc)
-                    if acc_smem is None:
-                        y = acc[...]
-                        g, u = y[:, :units], y[:, units:]
-                    else:
-                        acc_smem[...] = acc[...]
-                        g, u = acc_smem[:, :units], acc_smem[:, units:]
-                    out_smem[...] = mosaic_gemm._gelu_product(g, u, dtype)
-                    plgpu.commit_smem()
-                    plgpu.copy_smem_to_gmem(out_smem, o_gmem.at[:, pl.ds(j * units, units)])
-                    plgpu.wait_smem_to_gmem(0)
+                _pair_into(run, cols, out_smem, o_gmem.at[:, pl.ds(j * units, units)], acc_smem)
 
             def step(idx, x, w, acc):
                 plgpu.wgmma(acc, x, w)
@@ -217,28 +225,33 @@ def pair_kernel(k: int, hidden: int, mode: str, units: int = 32, stages: int = 6
 
 
 @functools.lru_cache(maxsize=None)
-def persistent_kernel(layers: int, k: int, hidden: int, cols: int = 64, stages: int = 4):
+def persistent_kernel(layers: int, k: int, hidden: int, cols: int = 64, stages: int = 4, pair: bool = False):
     """The whole chain as one kernel: a CTA per `cols` hidden units runs every layer, the layers separated by a grid
     barrier (a GPU-scope semaphore from `pl.get_global`). The producer warpgroup streams the weights of one layer
     after another as pipeline slots free up (`pipeline_state`: a pipeline of pipelines), so the next layer's first
     tiles are in flight while the compute warpgroup finishes this layer and waits at the barrier; after it, the
-    compute warpgroup brings x (the previous layer's output, ping-ponged between o's two halves) whole."""
-    dtype, steps, ctas = jnp.bfloat16, k // TK, hidden // cols
+    compute warpgroup brings x (the previous layer's output, ping-ponged between o's two halves) whole. pair: each
+    CTA takes one block pair of the interleaved weight (`pair_kernel`'s layout), cols / 2 units, on twice the CTAs."""
+    dtype, steps = jnp.bfloat16, k // TK
+    units = cols // 2 if pair else cols
+    ctas = hidden // units
     spec = functools.partial(plgpu.BlockSpec, memory_space=plgpu.SMEM)
     w_spec = spec((TK, cols), lambda kk: (kk, 0), transforms=_transforms(cols, dtype))
 
     def pipeline(body, context, state):
-        return _pipeline(body, context, steps, stages, [w_spec, w_spec], state)
+        return _pipeline(body, context, steps, stages, [w_spec] if pair else [w_spec, w_spec], state)
 
     def kernel(x_gmem, w_gmem, o_gmem):   # w (layers, k, 2 hidden); o (2, 64, hidden)
         j = lax.axis_index("n")
         sem = pl.get_global(plgpu.SemaphoreType.REGULAR)
 
         def tiles(p):
+            if pair:
+                return (w_gmem.at[p, :, pl.ds(j * cols, cols)],)
             return (w_gmem.at[p, :, pl.ds(j * cols, cols)], w_gmem.at[p, :, pl.ds(hidden + j * cols, cols)])
 
         @functools.partial(pl.run_scoped, allocs=pipeline(None, None, None).get_allocations(*tiles(0)),
-                           out_smem=plgpu.SMEM((ROWS, cols), dtype, transforms=_transforms(cols, dtype)),
+                           out_smem=plgpu.SMEM((ROWS, units), dtype, transforms=_transforms(units, dtype)),
                            x_smem=plgpu.SMEM((steps, ROWS, TK), dtype, transforms=_transforms(TK, dtype)),
                            x_bar=plgpu.Barrier(num_arrivals=steps), collective_axes="wg")
         def scope(allocs, out_smem, x_smem, x_bar):
@@ -256,13 +269,14 @@ def persistent_kernel(layers: int, k: int, hidden: int, cols: int = 64, stages: 
                     def _():
                         plgpu.semaphore_wait(sem, p * ctas, decrement=False, memory_scope="gpu")
                         _bring_x(o_gmem.at[lax.rem(p + 1, 2)], x_smem, x_bar, steps)
-                    _geglu_into(run, cols, out_smem, o_gmem.at[lax.rem(p, 2), :, pl.ds(j * cols, cols)])
+                    out = o_gmem.at[lax.rem(p, 2), :, pl.ds(j * units, units)]
+                    (_pair_into if pair else _geglu_into)(run, cols, out_smem, out)
                     plgpu.semaphore_signal(sem, 1, memory_scope="gpu")
 
-                def step(idx, w_gate, w_up, accs):
-                    x = x_smem.at[idx[0]]
-                    plgpu.wgmma(accs[0], x, w_gate)
-                    plgpu.wgmma(accs[1], x, w_up)
+                def step(idx, *ws_accs):
+                    x, (ws, accs) = x_smem.at[idx[0]], (ws_accs[:-1], ws_accs[-1])
+                    for w, acc in zip(ws, accs if isinstance(accs, tuple) else (accs,)):
+                        plgpu.wgmma(acc, x, w)
                     plgpu.wgmma_wait(0)
                     return accs
 
@@ -272,7 +286,7 @@ def persistent_kernel(layers: int, k: int, hidden: int, cols: int = 64, stages: 
             def _():   # every CTA signalled once a layer: take the count back, so the next call starts at zero
                 plgpu.semaphore_wait(sem, layers * ctas, decrement=True, memory_scope="gpu")
 
-    call = _launch(kernel, (2, ROWS, hidden), ctas, "chain_persistent")
+    call = _launch(kernel, (2, ROWS, hidden), ctas, "chain_persistent_pair" if pair else "chain_persistent")
     return jax.jit(lambda x, w: call(x, w)[(layers - 1) % 2])   # w: the layers' weights stacked
 
 
@@ -398,6 +412,13 @@ def main() -> None:
             print("persistent", res["rows"]["persistent"], flush=True)
             fns["persistent"] = functools.partial(
                 persistent_kernel(args.layers, k, hidden, args.cols, args.whole_stages), x, jnp.stack(ws))
+            pair_chain = persistent_kernel(6, k, hidden, args.cols, args.whole_stages, True)
+            got = np.asarray(pair_chain(cx, jnp.stack(prepare("pair", cws, hidden, args.cols))), np.float32)
+            res["rows"]["persistent_pair"] = {"max_abs_vs_base": float(np.abs(got - base).max())}
+            print("persistent_pair", res["rows"]["persistent_pair"], flush=True)
+            fns["persistent_pair"] = functools.partial(
+                persistent_kernel(args.layers, k, hidden, args.cols, args.whole_stages, True), x,
+                jnp.stack(prepare("pair", ws, hidden, args.cols)))
         except Exception as e:
             res["rows"]["persistent"] = {"error": f"{type(e).__name__}: {e}"[:2000]}
             traceback.print_exc()
