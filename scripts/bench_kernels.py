@@ -90,6 +90,10 @@ STEP_SWEEPS = {
     "mosaic_pair": {"default": {}, "mlp geglu 64 4st": dict(mosaic_mlp=L(64, 1, 4, geglu=True)),
                     "mlp geglu 64 8st": dict(mosaic_mlp=L(64, 1, 8, geglu=True)),
                     "mlp geglu 64 8st d1": dict(mosaic_mlp=L(64, 1, 8, geglu=True, delay=1))},
+    # programs a GEMM launches against the SMs (session 31: q/k/v at 128 x 8 is 160 programs on 132 SMs, 1.2 waves)
+    "waves": {"default": {}, "qkv 128x4": dict(qkv=G(128, 4)), "qkv 128x2": dict(qkv=G(128, 2)),
+              "qkv 256x4": dict(qkv=G(256, 4)), "qkv 64x4": dict(qkv=G(64, 4)), "out 64x8": dict(out=G(64, 8)),
+              "out 128x8": dict(out=G(128, 8))},
     # the attention's key splits since its splits are merged by one Pallas kernel (session 28: XLA's merge had been
     # two fusions), and its key block
     "kv_splits": {"default": {}, "kv splits 7": dict(kv_splits=7), "kv splits 10": dict(kv_splits=10),
