@@ -37,7 +37,7 @@ from bench_kernels import interleaved_ms  # noqa: E402
 from profile_engine import kernel_times  # noqa: E402
 
 # π0 full size, B = 1 (64 rows): (name, K, N, the engine's Triton launch)
-SHAPES = [("qkv", 1024, 2560, ek.Gemm(128, 8)), ("attn_out", 2048, 1024, ek.Gemm(64, 4)),
+SHAPES = [("qkv", 1024, 2560, ek.Gemm(128, 4)), ("attn_out", 2048, 1024, ek.Gemm(64, 4)),
           ("gate_up", 1024, 8192, ek.Gemm(128, 4, 1)), ("down", 4096, 1024, ek.Gemm(64, 8))]
 
 # Mosaic launches per shape: (cols per warpgroup, warpgroups, splits, stages); each gives 64-256 CTAs

@@ -74,11 +74,13 @@ class Blocks:
     π0's step 3-4 % faster on two machines and was level on a third and for π0.5 ("Launch parameters inside the
     step"); no other tiling, split count or depth moved the step by more than 1 %. On Hopper, gate/up runs the Mosaic
     GPU kernel with GeGLU in its epilogue: π0's step 4.7 % and π0.5's 9.5 % faster on an H200; the other three
-    GEMMs on it were 1-3 % slower, each needing its norm or sum apart ("A Mosaic GPU GEMM")."""
+    GEMMs on it were 1-3 % slower, each needing its norm or sum apart ("A Mosaic GPU GEMM"). q/k/v at 4 splits (80
+    programs, one wave on 132 SMs, half the partials to sum; 8 splits were 160 programs): π0's 10-step denoise 1.7-3 %
+    and π0.5's 4.6-5.2 % faster on an H100 ("Gate/up on 128 CTAs", session 31)."""
 
     rows: int = 64  # GEMM rows per program
     k: int = 256  # GEMM contraction chunk per loop step
-    qkv: Gemm = Gemm(128, 8)
+    qkv: Gemm = Gemm(128, 4)
     mlp: Gemm = Gemm(128, 4, 1)  # gate/up
     out: Gemm = Gemm(64, 4)  # the attention's out-projection
     down: Gemm = Gemm(64, 8)
