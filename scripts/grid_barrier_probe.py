@@ -114,13 +114,19 @@ def measure(programs: int, barrier, chain, counts, x, iters: int) -> dict:
     return row
 
 
-def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def parser(doc: str, programs: str, counts: str) -> argparse.ArgumentParser:
+    """The options both barrier probes take: --out, --programs, --counts, --iters."""
+    p = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", required=True, help="JSON file to write")
-    p.add_argument("--programs", default="66,132,264", help="comma list of grid sizes (default: %(default)s)")
-    p.add_argument("--counts", default="0,50,200,800", help="comma list of barriers / kernels (default: %(default)s)")
-    p.add_argument("--warps", type=int, default=4, help="warps a program (default: %(default)s)")
+    p.add_argument("--programs", default=programs, help="comma list of grid sizes (default: %(default)s)")
+    p.add_argument("--counts", default=counts, help="comma list of barriers / kernels (default: %(default)s)")
     p.add_argument("--iters", type=int, default=50, help="timed calls per point (default: %(default)s)")
+    return p
+
+
+def main() -> None:
+    p = parser(__doc__, "66,132,264", "0,50,200,800")
+    p.add_argument("--warps", type=int, default=4, help="warps a program (default: %(default)s)")
     args = p.parse_args()
     if jax.default_backend() != "gpu":
         raise SystemExit("grid_barrier_probe needs a GPU: interpret mode runs programs in turn (the barrier hangs)")

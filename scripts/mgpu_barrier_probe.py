@@ -21,7 +21,6 @@ call also syncs the grid once to reset the semaphore.
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -34,7 +33,7 @@ import jax.numpy as jnp
 from jax import lax
 
 sys.path.insert(0, str(Path(__file__).parent))
-from grid_barrier_probe import measure  # noqa: E402
+from grid_barrier_probe import measure, parser  # noqa: E402
 
 
 def barrier_kernel(rounds: int, programs: int):
@@ -70,12 +69,7 @@ def chain_call(kernels: int, programs: int):
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--out", required=True, help="JSON file to write")
-    p.add_argument("--programs", default="66,132", help="comma list of grid sizes (default: %(default)s)")
-    p.add_argument("--counts", default="0,25,100,200", help="comma list of barriers / kernels (default: %(default)s)")
-    p.add_argument("--iters", type=int, default=50, help="timed calls per point (default: %(default)s)")
-    args = p.parse_args()
+    args = parser(__doc__, "66,132", "0,25,100,200").parse_args()
     if jax.default_backend() != "gpu":
         raise SystemExit("mgpu_barrier_probe needs a GPU (Hopper)")
     counts = [int(c) for c in args.counts.split(",")]
