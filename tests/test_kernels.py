@@ -4,6 +4,8 @@ the engine with kernels="pallas" (the expert's kernels and SigLIP's LayerNorm; w
 SigLIP's attention) matches the reference sampler. f32 throughout: the kernels and XLA differ only in summation
 order (measured ~1e-6)."""
 
+import dataclasses
+
 import jax
 import jax.extend
 import jax.numpy as jnp
@@ -120,6 +122,26 @@ def test_attention_matches_xla_with_masked_camera_and_padded_prompt(pi05):
         assert not np.allclose(_pallas_attention(q, k, v, ck, cv, pmask, _suffix_mask(True)), want, **TOL)
 
 
+@pytest.mark.parametrize("pi05", [False, True])
+def test_xla_experts_call_of_the_attention_kernel_folds_query_heads(pi05, monkeypatch):
+    """`layers._attend_kernel` (the XLA expert on the kernel) with a kv head's 4 query heads folded into its rows
+    (44 rows an element, padded to whole query blocks) or not, and its masks from `layers.pallas_tables`."""
+    q, k, v, ck, cv, pmask, smask = _attention_inputs(pi05)
+    want = layers._attend(q, [ck, k], [cv, v], [jnp.broadcast_to(pmask[:, None], (B, S, P)), smask], jnp.float32)
+    ck, cv = (layout.cache_kv(c, CFG.head_dim) for c in (ck, cv))
+    for fold, rows, q_block in ((False, 16, 16), (True, 48, 16), (True, 64, 32)):
+        blocks = Blocks(q=q_block, kv=32, kv_splits=3, fold=fold)
+        monkeypatch.setattr(ek, "blocks_at", lambda batch, blocks=blocks: blocks)
+        assert layers.query_rows(CFG, S, blocks) == rows
+        tables = layers.pallas_tables(CFG, jnp.zeros((B, S), jnp.int32), layout.cache_mask(pmask), smask, blocks)
+        assert tables[3].shape == (B * rows, layout.suffix_rows(S))
+        got = layers._attend_kernel(CFG, q, k, v, ck, cv, *tables[2:])
+        np.testing.assert_allclose(got, want.reshape(got.shape), **TOL)
+    with pytest.raises(ValueError, match="suffix rows"):
+        ek.attention(jnp.zeros((B * 64, ck.shape[-1])), ck, cv, tables[2], tables[3], batch=B, num_heads=1,
+                     num_kv_heads=1, kv=jnp.zeros((B * S, 2 * ck.shape[-1])))
+
+
 @pytest.mark.parametrize("adaptive", [False, True])
 def test_mlp_kernels_match_xla(adaptive):
     w = _layer_weights(30)
@@ -160,15 +182,19 @@ def test_engine_with_kernels_matches_reference(model):
     np.testing.assert_allclose(staged, ref, **TOL)
 
 
-def test_xla_expert_with_the_attention_kernel_matches_reference(model):
+def test_xla_expert_with_the_attention_kernel_matches_reference(model, monkeypatch):
     """attention denoise=pallas: the XLA expert's layers with the Pallas split-key attention over a cache in its
     layout, layers unrolled or scanned (a stacked cache), with the prefix's fused attention (valid keys first) or
-    XLA's. Element 1 has its last camera masked and its prompt padded."""
+    XLA's, the query heads folded into rows or not (`blocks_at` folds from B = 8). Element 1 has its last camera
+    masked and its prompt padded."""
     config, params = model
     obs = make_obs(config)
     noise = jax.random.normal(jax.random.key(3), (2, config.action_horizon, config.action_dim))
     ref = jax.jit(pi0.sample_actions, static_argnums=(0, 4))(config, params, obs, noise, 2)
-    for unroll, attention in ((True, "denoise=pallas"), (False, "prefix=cudnn,denoise=pallas")):
+    at = ek.blocks_at
+    assert not at(2).fold and at(8).fold
+    for unroll, attention, fold in ((True, "denoise=pallas", False), (False, "prefix=cudnn,denoise=pallas", True)):
+        monkeypatch.setattr(ek, "blocks_at", lambda batch, fold=fold: dataclasses.replace(at(batch), fold=fold))
         engine = Engine(config, params, kernels="xla", attention=attention, unroll=unroll, cache_dir=False)
         _, cache, got = engine.run_stages(obs, jnp.array(noise), 2)
         assert cache.mask.shape[1] % layout.KEY_PAD == 0, cache.mask.shape

@@ -128,18 +128,39 @@ def _attend_suffix_fused(q, k, v, buf_k, buf_v, kv_len, head_mask):
     return jnp.concatenate([head, _attend_fused(q[:, m:], keys, values, kv_len)], axis=1), keys, values
 
 
+def query_rows(cfg: GemmaConfig, s: int, blocks: expert_kernels.Blocks) -> int:
+    """An element's query rows in the attention kernel's call from the XLA expert: its S suffix rows padded to Sp,
+    or with blocks.fold its S G rows (a kv head's G query heads folded in) padded to whole query blocks."""
+    if not blocks.fold:
+        return layout.suffix_rows(s)
+    rows = s * (cfg.num_heads // cfg.num_kv_heads)
+    return -(-rows // blocks.q) * blocks.q
+
+
 def _attend_kernel(cfg: GemmaConfig, q, k, v, cache_k, cache_v, prefix_mask, suffix_mask):
     """The Pallas expert's split-key attention (`ops.expert_kernels.attention`) for the XLA expert's q (B,T,K,G,H)
-    (post-RoPE, scaled), k, v (B,T,K,H): one row block of [q | k | v] per element, suffix rows padded to Sp, over
-    the cache in the kernels' layout (B,Pp,K,2hp); masks as `pallas_tables` makes them. Returns (B, T, N H)."""
+    (post-RoPE, scaled), k, v (B,T,K,H), over the cache in the kernels' layout (B,Pp,K,2hp); masks as
+    `pallas_tables` makes them at `expert_kernels.blocks_at`'s launch. Unfolded, one row block of [q | k | v] per
+    element, suffix rows padded to Sp. Folded (MQA), the G query heads of a kv head are rows (T G) of one head, as
+    in `_attend_fused`: a program then reads each key block once for G heads' rows, where unfolded each of the G
+    heads' programs read it. Same sums per row. Returns (B, T, N H)."""
     b, t = q.shape[:2]
-    sp, hd = layout.suffix_rows(t), cfg.head_dim
-    qkv = jnp.concatenate([q.reshape(b, t, -1, hd), k, v], axis=2).reshape(b, t, -1)
-    qkv = layout.rows(layout.heads(qkv, -1, hd), sp)
-    kv = (c.reshape(b * c.shape[1], -1) for c in (cache_k, cache_v))
-    y = expert_kernels.attention(qkv, *kv, prefix_mask, suffix_mask, batch=b, num_heads=cfg.num_heads,
-                                 num_kv_heads=cfg.num_kv_heads, blocks=expert_kernels.blocks_at(b))
-    return layout.unheads(y.reshape(b, sp, -1)[:, :t], hd)
+    hd, kv_heads, blocks = cfg.head_dim, cfg.num_kv_heads, expert_kernels.blocks_at(b)
+    cache = (c.reshape(b * c.shape[1], -1) for c in (cache_k, cache_v))
+    sp = layout.suffix_rows(t)
+    if not blocks.fold:
+        qkv = jnp.concatenate([q.reshape(b, t, -1, hd), k, v], axis=2).reshape(b, t, -1)
+        qkv = layout.rows(layout.heads(qkv, -1, hd), sp)
+        y = expert_kernels.attention(qkv, *cache, prefix_mask, suffix_mask, batch=b, num_heads=cfg.num_heads,
+                                     num_kv_heads=kv_heads, blocks=blocks)
+        return layout.unheads(y.reshape(b, sp, -1)[:, :t], hd)
+    g, rows = cfg.num_heads // kv_heads, query_rows(cfg, t, blocks)
+    kv = layout.rows(layout.heads(jnp.concatenate([k, v], axis=2).reshape(b, t, -1), -1, hd), sp)
+    qf = layout.rows(layout.heads(einops.rearrange(q, "B T K G H -> B (T G) (K H)"), -1, hd), rows)
+    y = expert_kernels.attention(qf, *cache, prefix_mask, suffix_mask, batch=b, num_heads=kv_heads,
+                                 num_kv_heads=kv_heads, blocks=blocks, kv=kv)
+    y = layout.unheads(y.reshape(b, rows, -1)[:, : t * g], hd)
+    return einops.rearrange(y, "B (T G) (K H) -> B T (K G H)", G=g, H=hd)
 
 
 def suffix_layer(cfg: GemmaConfig, w, x, positions, cache_k, cache_v, prefix_mask, suffix_mask, mods=None,
@@ -190,13 +211,19 @@ def run_layers(layer_fn, weights, x, per_layer=(), *, unroll: bool):
     return x, list(outs)
 
 
-def pallas_tables(cfg: GemmaConfig, positions, prefix_mask, suffix_mask) -> tuple:
+def pallas_tables(cfg: GemmaConfig, positions, prefix_mask, suffix_mask, blocks=None) -> tuple:
     """`suffix_layers_pallas`' per-call tables, alike for every denoise step: RoPE's cos and sin for the suffix rows
-    (B Sp, hp) and the prefix and suffix masks as int32, the suffix's padded to (B Sp, Sp)."""
+    (B Sp, hp) and the prefix and suffix masks as int32, the suffix's padded to (B Sp, Sp). blocks: the XLA expert's
+    launch (`_attend_kernel`); with blocks.fold the suffix mask's rows are the folded query rows (B R, Sp), row
+    t G + g of an element being its token t's (`query_rows`)."""
     b, s = positions.shape
     sp = layout.suffix_rows(s)
     cos, sin = layout.rope_tables(jnp.pad(positions, ((0, 0), (0, sp - s))), cfg.head_dim)
-    smask = jnp.pad(suffix_mask, ((0, 0), (0, sp - s), (0, sp - s))).reshape(b * sp, sp).astype(jnp.int32)
+    smask = jnp.pad(suffix_mask, ((0, 0), (0, 0), (0, sp - s)))
+    rows = sp
+    if blocks is not None and blocks.fold:
+        smask, rows = jnp.repeat(smask, cfg.num_heads // cfg.num_kv_heads, axis=1), query_rows(cfg, s, blocks)
+    smask = jnp.pad(smask, ((0, 0), (0, rows - smask.shape[1]), (0, 0))).reshape(b * rows, sp).astype(jnp.int32)
     return cos, sin, prefix_mask.astype(jnp.int32), smask
 
 

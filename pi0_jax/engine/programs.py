@@ -20,7 +20,7 @@ import jax.numpy as jnp
 from pi0_jax import pi0
 from pi0_jax.config import Pi0Config
 from pi0_jax.engine import layers, vision
-from pi0_jax.ops import layout
+from pi0_jax.ops import expert_kernels, layout
 from pi0_jax.ops import matmul as quant
 
 # The batch sizes at which kernels="auto" runs the expert's Pallas kernels on a GPU: measured faster than XLA at
@@ -271,7 +271,9 @@ def step_invariants(config: Pi0Config, weights: dict, cache: PrefixCache, state,
     positions = jnp.sum(cache.mask, axis=-1, keepdims=True) + jnp.arange(s)[None, :]
     tables = None
     if kernel_cache(kernels, attention.at_batch(batch, suffix_mask=not config.pi05), batch, weights["expert"]):
-        tables = layers.pallas_tables(config.action_expert, positions, cache.mask, suffix_mask)
+        xla_expert = expert_path(kernels, batch, weights["expert"]) == "xla"   # the kernel's launch in its layers
+        tables = layers.pallas_tables(config.action_expert, positions, cache.mask, suffix_mask,
+                                      expert_kernels.blocks_at(batch) if xla_expert else None)
     state_token = None if config.pi05 else _dense(weights["top"]["state_proj"], state)
     return {"state": state_token, "positions": positions, "suffix_mask": suffix_mask, "tables": tables}
 

@@ -90,6 +90,8 @@ class Blocks:
     num_warps: int = 4  # the GEMM kernel's
     attention_warps: int = 8
     attention_stages: int = 3
+    # the XLA expert's call (`layers._attend_kernel`): a kv head's query heads folded into its query rows
+    fold: bool = False
     # a GEMM as `ops.mosaic_gemm` with this launch where it applies (bf16 on Hopper), None: the Triton kernel
     mosaic_qkv: Launch | None = None
     mosaic_mlp: Launch | None = Launch(64, 1, 6, geglu=True)
@@ -107,8 +109,11 @@ def blocks_at(batch: int, blocks: Blocks = Blocks()) -> Blocks:
     """The XLA expert's launch of the attention kernel at this batch (`engine.layers._attend_kernel`): the key splits
     shared out over the elements, whose (element, head) programs fill the GPU themselves, so the merge reads fewer
     split outputs; 4 warps a program (the 10-step denoise 5.5-9 % faster than with 8 at B = 4, 8 and 16 on an H100,
-    level at B = 1: docs/BENCHMARKS.md, "The Pallas attention in the XLA expert")."""
-    return dataclasses.replace(blocks, kv_splits=max(1, round(blocks.kv_splits / batch)), attention_warps=4)
+    level at B = 1: docs/BENCHMARKS.md, "The Pallas attention in the XLA expert"); from B = 8 a kv head's query
+    heads folded into its rows (π0's 10-step denoise 1.1-2 % and π0.5's 3.5 % faster at B = 8 on an H200, π0's
+    level at B = 16 and 0.8 % slower at B = 4: "Query heads folded into the kernel's rows", session 32)."""
+    return dataclasses.replace(blocks, kv_splits=max(1, round(blocks.kv_splits / batch)), attention_warps=4,
+                               fold=batch >= 8)
 
 
 def _call(kernel, grid, out_shape, name: str, num_warps: int, num_stages: int):
@@ -237,15 +242,16 @@ def norm_qkv_rope(x, mods, mod_row: int, adaptive: bool, w_qkv, cos, sin, *, wid
 
 
 # -- attention over [cached prefix | suffix] ---------------------------------------------------------------------------
-def _attention_kernel(qkv_ref, ck_ref, cv_ref, pmask_ref, smask_ref, o_ref, lse_ref, *, m, bq, bkv, sp, pp, hd,
-                      num_heads, num_kv_heads, splits, per_split):
+def _attention_kernel(q_ref, kv_ref, ck_ref, cv_ref, pmask_ref, smask_ref, o_ref, lse_ref, *, m, bq, bkv, sq, sk, pp,
+                      hd, num_heads, num_kv_heads, splits, per_split, kv_cols):
     """Program (b, n, qi, s): query block qi of head n over prefix key blocks [s * per_split, (s + 1) * per_split)
     (s < splits; blocks past the cache are masked), or over the suffix keys (s == splits). Writes the split's
-    normalised output (in the dtype) and its log-sum-exp (f32)."""
+    normalised output (in the dtype) and its log-sum-exp (f32). An element's queries are rows [b sq, (b + 1) sq) of
+    q, its suffix keys and values rows [b sk, (b + 1) sk) of kv at columns kv_cols (+ the kv head's offset)."""
     b, n, qi, s = pl.program_id(0), pl.program_id(1), pl.program_id(2), pl.program_id(3)
     kh = jax.lax.div(n, num_heads // num_kv_heads) if num_kv_heads > 1 else 0  # this query head's kv head
-    rows = pl.ds(b * sp + qi * bq, bq)
-    q = qkv_ref[rows, pl.ds(n * hd, hd)]
+    rows = pl.ds(b * sq + qi * bq, bq)
+    q = q_ref[rows, pl.ds(n * hd, hd)]
     dtype = q.dtype
     blocks = pp // bkv
 
@@ -259,7 +265,7 @@ def _attention_kernel(qkv_ref, ck_ref, cv_ref, pmask_ref, smask_ref, o_ref, lse_
 
     def write(carry):
         o, mx, l = carry
-        out_rows = pl.ds(s * m + b * sp + qi * bq, bq)
+        out_rows = pl.ds(s * m + b * sq + qi * bq, bq)
         o_ref[out_rows, pl.ds(n * hd, hd)] = (o / l[:, None]).astype(o_ref.dtype)
         lse_ref[out_rows, pl.ds(n, 1)] = (mx + jnp.log(l))[:, None]
 
@@ -278,14 +284,14 @@ def _attention_kernel(qkv_ref, ck_ref, cv_ref, pmask_ref, smask_ref, o_ref, lse_
 
     @pl.when(s == splits)
     def _suffix():
-        suffix = pl.ds(b * sp, sp)
-        k_col, v_col = (num_heads + kh) * hd, (num_heads + num_kv_heads + kh) * hd
-        write(update(init, qkv_ref[suffix, pl.ds(k_col, hd)], qkv_ref[suffix, pl.ds(v_col, hd)],
+        suffix = pl.ds(b * sk, sk)
+        k_col, v_col = kv_cols[0] + kh * hd, kv_cols[1] + kh * hd
+        write(update(init, kv_ref[suffix, pl.ds(k_col, hd)], kv_ref[suffix, pl.ds(v_col, hd)],
                      smask_ref[rows, :] != 0))
 
 
 def attention(qkv, cache_k, cache_v, prefix_mask, suffix_mask, *, batch: int, num_heads: int, num_kv_heads: int,
-              blocks: Blocks = Blocks()):
+              blocks: Blocks = Blocks(), kv=None):
     """Softmax attention of the suffix queries over [cached prefix | suffix] keys -> (M, N * 2hp).
 
     qkv (M, (N + 2K) * 2hp) from `norm_qkv_rope`; cache_k / cache_v (B * P, K * 2hp); prefix_mask (B, P) int32, the
@@ -293,31 +299,42 @@ def attention(qkv, cache_k, cache_v, prefix_mask, suffix_mask, *, batch: int, nu
     `blocks.kv_splits` programs per query block, the suffix keys take one more; the splits' softmaxes are merged
     by their log-sum-exp. A split whose keys are all masked has a log-sum-exp of about BIG_NEG and weight 0.
 
+    kv: None, or the suffix's keys and values (B * Sp, 2K * 2hp) as rows of their own, qkv then only queries
+    (M, N * 2hp) with M / B rows an element. That is how a kv head's query heads folded into rows arrive (the caller
+    passes num_heads = num_kv_heads): each key block is then read once for all of them (`layers._attend_kernel`).
+
     Under a sharded jit (the simulator's batch mesh) each device attends its own elements: every operand is
     batch-major, and XLA cannot split a kernel it does not know (it would gather every row onto every device).
     """
-    return _partitioned(qkv, cache_k, cache_v, prefix_mask, suffix_mask, batch, num_heads, num_kv_heads, blocks)
+    hd = qkv.shape[1] // (num_heads + (0 if kv is not None else 2 * num_kv_heads))
+    kv_cols = (num_heads * hd, (num_heads + num_kv_heads) * hd) if kv is None else (0, num_kv_heads * hd)
+    if kv is not None and kv.shape != (batch * suffix_mask.shape[1], 2 * num_kv_heads * hd):
+        raise ValueError(f"kv must be (batch * {suffix_mask.shape[1]}, {2 * num_kv_heads * hd}) suffix rows of "
+                         f"[k | v], got {kv.shape}")
+    return _partitioned(qkv, qkv if kv is None else kv, cache_k, cache_v, prefix_mask, suffix_mask, batch, num_heads,
+                        num_kv_heads, kv_cols, blocks)
 
 
-def _attention(qkv, cache_k, cache_v, prefix_mask, suffix_mask, batch, num_heads, num_kv_heads, blocks):
-    m, sp = suffix_mask.shape
-    hd = qkv.shape[1] // (num_heads + 2 * num_kv_heads)
-    pp = prefix_mask.shape[1]
-    bq, bkv = fit(blocks.q, sp), fit(blocks.kv, pp)
+def _attention(q, kv, cache_k, cache_v, prefix_mask, suffix_mask, batch, num_heads, num_kv_heads, kv_cols, blocks):
+    (m, sk), hd = suffix_mask.shape, (kv_cols[1] - kv_cols[0]) // num_kv_heads
+    sq, pp = m // batch, prefix_mask.shape[1]
+    bq, bkv = fit(blocks.q, sq), fit(blocks.kv, pp)
     splits = max(1, min(blocks.kv_splits, pp // bkv))
     per_split = -(-(pp // bkv) // splits)
-    kernel = functools.partial(_attention_kernel, m=m, bq=bq, bkv=bkv, sp=sp, pp=pp, hd=hd, num_heads=num_heads,
-                               num_kv_heads=num_kv_heads, splits=splits, per_split=per_split)
-    out = (jax.ShapeDtypeStruct(((splits + 1) * m, num_heads * hd), qkv.dtype),
+    kernel = functools.partial(_attention_kernel, m=m, bq=bq, bkv=bkv, sq=sq, sk=sk, pp=pp, hd=hd,
+                               num_heads=num_heads, num_kv_heads=num_kv_heads, splits=splits, per_split=per_split,
+                               kv_cols=kv_cols)
+    out = (jax.ShapeDtypeStruct(((splits + 1) * m, num_heads * hd), q.dtype),
            jax.ShapeDtypeStruct(((splits + 1) * m, num_heads), jnp.float32))
-    o, lse = _call(kernel, (batch, num_heads, sp // bq, splits + 1), out, "expert_attention",
-                   blocks.attention_warps, blocks.attention_stages)(qkv, cache_k, cache_v, prefix_mask, suffix_mask)
+    o, lse = _call(kernel, (batch, num_heads, sq // bq, splits + 1), out, "expert_attention",
+                   blocks.attention_warps, blocks.attention_stages)(q, kv, cache_k, cache_v, prefix_mask, suffix_mask)
     return merge(o, lse, parts=splits + 1, num_heads=num_heads)
 
 
-@functools.partial(custom_partitioning, static_argnums=(5, 6, 7, 8))
-def _partitioned(qkv, cache_k, cache_v, prefix_mask, suffix_mask, batch, num_heads, num_kv_heads, blocks):
-    return _attention(qkv, cache_k, cache_v, prefix_mask, suffix_mask, batch, num_heads, num_kv_heads, blocks)
+@functools.partial(custom_partitioning, static_argnums=(6, 7, 8, 9, 10))
+def _partitioned(q, kv, cache_k, cache_v, prefix_mask, suffix_mask, batch, num_heads, num_kv_heads, kv_cols, blocks):
+    return _attention(q, kv, cache_k, cache_v, prefix_mask, suffix_mask, batch, num_heads, num_kv_heads, kv_cols,
+                      blocks)
 
 
 def _batch_rows(batch, mesh, sharding) -> tuple:
@@ -329,21 +346,21 @@ def _batch_rows(batch, mesh, sharding) -> tuple:
     return NamedSharding(mesh, P(axes, None)), n
 
 
-def _partition(batch, num_heads, num_kv_heads, blocks, mesh, arg_shapes, result_shape):
+def _partition(batch, num_heads, num_kv_heads, kv_cols, blocks, mesh, arg_shapes, result_shape):
     rows, n = _batch_rows(batch, mesh, arg_shapes[0].sharding)
     fn = functools.partial(_attention, batch=batch // n, num_heads=num_heads, num_kv_heads=num_kv_heads,
-                           blocks=blocks)
-    return mesh, fn, rows, (rows,) * 5
+                           kv_cols=kv_cols, blocks=blocks)
+    return mesh, fn, rows, (rows,) * 6
 
 
-def _infer(batch, num_heads, num_kv_heads, blocks, mesh, arg_shapes, result_shape):
+def _infer(batch, num_heads, num_kv_heads, kv_cols, blocks, mesh, arg_shapes, result_shape):
     return _batch_rows(batch, mesh, arg_shapes[0].sharding)[0]
 
 
 # need_replication lists the factors in their order of appearance (Shardy's verifier wants them sorted)
 _partitioned.def_partition(partition=_partition, infer_sharding_from_operands=_infer,
-                           sharding_rule="r c, k e, k e, b p, r s -> r d",
-                           need_replication_factors=("c", "e", "p", "s", "d"))
+                           sharding_rule="r c, u f, k e, k e, b p, r s -> r d",
+                           need_replication_factors=("c", "f", "e", "p", "s", "d"))
 
 
 def _merge_kernel(o_ref, lse_ref, out_ref, *, m, bm, bd, hd, parts):
