@@ -51,7 +51,17 @@ CHILD = textwrap.dedent("""
                                            attention=programs.Attention(denoise="pallas"))
     fn = jax.jit(run, in_shardings=shardings)
     print("denoise collectives", collectives(fn.lower(w0, sched0, *args0).compile().as_text()))
-    np.testing.assert_allclose(fn(w0, sched0, *args0), jax.jit(run)(w0, sched0, *args0), rtol=1e-5, atol=1e-5)
+    alone0 = jax.jit(run)(w0, sched0, *args0)
+    np.testing.assert_allclose(fn(w0, sched0, *args0), alone0, rtol=1e-5, atol=1e-5)
+    # the same with the query heads folded into the kernel's rows (`blocks_at` folds from B = 8)
+    import dataclasses
+    from pi0_jax.ops import expert_kernels as ek
+    at = ek.blocks_at
+    ek.blocks_at = lambda batch: dataclasses.replace(at(batch), fold=True)
+    fn = jax.jit(lambda w, sc, *a: run(w, sc, *a), in_shardings=shardings)
+    print("folded collectives", collectives(fn.lower(w0, sched0, *args0).compile().as_text()))
+    np.testing.assert_allclose(fn(w0, sched0, *args0), alone0, rtol=1e-5, atol=1e-5)
+    ek.blocks_at = at
     # SigLIP's LayerNorm kernel (kernels="pallas"; the expert's GEMM kernels are for B <= 2 and not partitioned)
     enc = lambda w, im: programs.encode_images(cfg, w, im, unroll=True, kernels="pallas",
                                                attention=programs.Attention(vision="pallas"))
@@ -79,4 +89,5 @@ def test_engine_program_on_a_batch_mesh_has_no_collectives():
     assert "pallas collectives 0" in out.stdout, out.stdout
     assert "layer_norm collectives 0" in out.stdout, out.stdout   # likewise for the LayerNorm kernel
     assert "denoise collectives 0" in out.stdout, out.stdout      # and the expert's attention kernel
+    assert "folded collectives 0" in out.stdout, out.stdout       # also with its query heads folded into rows
     assert "fp8 collectives 0" in out.stdout, out.stdout

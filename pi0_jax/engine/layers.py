@@ -142,8 +142,8 @@ def _attend_kernel(cfg: GemmaConfig, q, k, v, cache_k, cache_v, prefix_mask, suf
     (post-RoPE, scaled), k, v (B,T,K,H), over the cache in the kernels' layout (B,Pp,K,2hp); masks as
     `pallas_tables` makes them at `expert_kernels.blocks_at`'s launch. Unfolded, one row block of [q | k | v] per
     element, suffix rows padded to Sp. Folded (MQA), the G query heads of a kv head are rows (T G) of one head, as
-    in `_attend_fused`: a program then reads each key block once for G heads' rows, where unfolded each of the G
-    heads' programs read it. Same sums per row. Returns (B, T, N H)."""
+    in `_attend_fused`: an element's cache is then read by its blocks of T G rows (7 of 64 for 51 x 8) rather than
+    by its G heads' blocks of Sp rows (8 of 64), with less padding. Same sums per row. Returns (B, T, N H)."""
     b, t = q.shape[:2]
     hd, kv_heads, blocks = cfg.head_dim, cfg.num_kv_heads, expert_kernels.blocks_at(b)
     cache = (c.reshape(b * c.shape[1], -1) for c in (cache_k, cache_v))

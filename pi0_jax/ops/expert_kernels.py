@@ -301,7 +301,7 @@ def attention(qkv, cache_k, cache_v, prefix_mask, suffix_mask, *, batch: int, nu
 
     kv: None, or the suffix's keys and values (B * Sp, 2K * 2hp) as rows of their own, qkv then only queries
     (M, N * 2hp) with M / B rows an element. That is how a kv head's query heads folded into rows arrive (the caller
-    passes num_heads = num_kv_heads): each key block is then read once for all of them (`layers._attend_kernel`).
+    passes num_heads = num_kv_heads; `layers._attend_kernel`).
 
     Under a sharded jit (the simulator's batch mesh) each device attends its own elements: every operand is
     batch-major, and XLA cannot split a kernel it does not know (it would gather every row onto every device).
