@@ -197,6 +197,9 @@ def bench_engine(engine: Engine, args, batch: int) -> list[dict]:
                                                                                           "prefix_denoise")},
                "vision": t_vis, "prefix": t_pre, "denoise": t_den,
                "denoise_per_step_ms": t_den["median_ms"] / steps}
+        if row["kernels"] == "xla" and "denoise=pallas" in row["attention"]:   # the XLA expert on the kernel attention
+            launch = expert_kernels.blocks_at(batch)
+            row["denoise_attention_launch"] = {k: getattr(launch, k) for k in ("kv_splits", "attention_warps", "fold")}
         if args.fused_steps is None or steps in args.fused_steps:
             row["total"] = time_calls(lambda p, n: engine.sample_packed(p, n, steps, cameras, bucket),
                                       [(p, n) for p, (_, n) in zip(packed, sets)], args.iters, args.warmup)

@@ -21,8 +21,21 @@ def test_benchmark_dummy_writes_every_stage(tmp_path):
         assert row["prompt_bucket"] == 32 and row["cameras"] == 3
         assert row["kernels"] == "xla" and row["attention"] == "vision=xla,prefix=xla,denoise=xla"  # auto, CPU
         assert row["gemm"] == "auto" and set(row["gemm_library"].values()) == {"xla"}
+        assert "denoise_attention_launch" not in row   # only where the XLA expert runs the kernel attention
     assert results["peers"][0]["impl"].startswith("reference")
     assert results["peers"][0]["engine_vs_reference"]["rel_l2"] < 1e-2  # bf16, different matmul grouping
     assert results["env"]["device"] and results["env"]["kernels"] == results["env"]["attention"] == "auto"
     assert list(results["compile"]["bfloat16"]["cold_compile_s_call"]) == ["B1_S2"]
     assert out.with_suffix(".png").stat().st_size > 1000
+
+
+def test_benchmark_names_the_denoise_attention_kernels_launch(tmp_path):
+    """The XLA expert on the Pallas attention (interpreted here) at B = 8: the row records its launch, folded."""
+    out = tmp_path / "bench.json"
+    args = ["benchmark", "--preset", "dummy", "--steps", "1", "--batch", "8", "--iters", "1", "--warmup", "1",
+            "--input-sets", "1", "--attention", "denoise=pallas", "--kernels", "xla", "--out", str(out),
+            "--cache-dir", str(tmp_path / "xla")]
+    assert cli.main(args) == 0
+    (row,) = json.loads(out.read_text())["rows"]
+    assert row["attention"] == "vision=xla,prefix=xla,denoise=pallas" and row["kernels"] == "xla"
+    assert row["denoise_attention_launch"] == {"kv_splits": 2, "attention_warps": 4, "fold": True}
