@@ -5,13 +5,17 @@ import json
 from pi0_jax import cli
 
 
-def test_benchmark_dummy_writes_every_stage(tmp_path):
+def _benchmark(tmp_path, *args) -> dict:
+    """`pi0-jax benchmark --preset dummy ARGS` -> its JSON."""
     out = tmp_path / "bench.json"
-    args = ["benchmark", "--preset", "dummy", "--steps", "1,2", "--batch", "1", "--iters", "2", "--warmup", "1",
-            "--input-sets", "2", "--reference", "--fused-steps", "2", "--one-program", "--out", str(out),
-            "--cache-dir", str(tmp_path / "xla")]
+    args = ["benchmark", "--preset", "dummy", *args, "--out", str(out), "--cache-dir", str(tmp_path / "xla")]
     assert cli.main(args) == 0
-    results = json.loads(out.read_text())
+    return json.loads(out.read_text())
+
+
+def test_benchmark_dummy_writes_every_stage(tmp_path):
+    results = _benchmark(tmp_path, "--steps", "1,2", "--batch", "1", "--iters", "2", "--warmup", "1", "--input-sets",
+                         "2", "--reference", "--fused-steps", "2", "--one-program")
     assert [(r["batch"], r["steps"]) for r in results["rows"]] == [(1, 1), (1, 2)]
     for row in results["rows"]:
         timed = ("vision", "prefix", "denoise") + (("total", "one_program") if row["steps"] == 2 else ())
@@ -26,16 +30,12 @@ def test_benchmark_dummy_writes_every_stage(tmp_path):
     assert results["peers"][0]["engine_vs_reference"]["rel_l2"] < 1e-2  # bf16, different matmul grouping
     assert results["env"]["device"] and results["env"]["kernels"] == results["env"]["attention"] == "auto"
     assert list(results["compile"]["bfloat16"]["cold_compile_s_call"]) == ["B1_S2"]
-    assert out.with_suffix(".png").stat().st_size > 1000
+    assert (tmp_path / "bench.png").stat().st_size > 1000
 
 
 def test_benchmark_names_the_denoise_attention_kernels_launch(tmp_path):
     """The XLA expert on the Pallas attention (interpreted here) at B = 8: the row records its launch, folded."""
-    out = tmp_path / "bench.json"
-    args = ["benchmark", "--preset", "dummy", "--steps", "1", "--batch", "8", "--iters", "1", "--warmup", "1",
-            "--input-sets", "1", "--attention", "denoise=pallas", "--kernels", "xla", "--out", str(out),
-            "--cache-dir", str(tmp_path / "xla")]
-    assert cli.main(args) == 0
-    (row,) = json.loads(out.read_text())["rows"]
+    (row,) = _benchmark(tmp_path, "--steps", "1", "--batch", "8", "--iters", "1", "--warmup", "1", "--input-sets",
+                        "1", "--attention", "denoise=pallas", "--kernels", "xla")["rows"]
     assert row["attention"] == "vision=xla,prefix=xla,denoise=pallas" and row["kernels"] == "xla"
     assert row["denoise_attention_launch"] == {"kv_splits": 2, "attention_warps": 4, "fold": True}
