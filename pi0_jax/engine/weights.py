@@ -74,11 +74,11 @@ def _expert_weights(attn: dict, mlp: dict, suffix: str, dtype) -> dict:
     qkv = _fused([(attn[f"q_einsum{suffix}"]["w"], "L N D H -> L D (N H)"),
                   (attn[f"kv_einsum{suffix}"]["w"], "L two K D H -> L D (two K H)")], dtype)
     gating = mlp["gating_einsum"]
-    hidden = getattr(gating, "q", gating).shape[-1]   # a QArray's storage, or the plain array
     return {
         "qkv": qkv,
         "attn_out": _rearrange(attn[f"attn_vec_einsum{suffix}"]["w"], "L N H D -> L (N H) D", dtype),
-        "gate_up": _rearrange(gating, "L two D (Fb u) -> L D (Fb two u)", dtype, u=layout.gate_up_block(hidden)),
+        "gate_up": _rearrange(gating, "L two D (Fb u) -> L D (Fb two u)", dtype,
+                              u=layout.gate_up_block(gating.shape[-1])),
         "down": _rearrange(mlp["linear"], "L F D -> L F D", dtype),
     }
 

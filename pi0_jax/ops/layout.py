@@ -78,8 +78,8 @@ def expert_weights(w: dict, cfg: GemmaConfig) -> dict:
     d, f = _round_up(cfg.width, ALIGN), _round_up(cfg.mlp_dim, ALIGN)
     gate_up = w["gate_up"]
     if f != cfg.mlp_dim:   # padded hidden units: their gate and up columns zero, in f's block pairs
-        gate_up = einops.rearrange(gate_up, "D (Fb two u) -> D two (Fb u)", two=2, u=gate_up_block(cfg.mlp_dim))
-        gate_up = einops.rearrange(_pad(gate_up, 2, f), "D two (Fb u) -> D (Fb two u)", u=gate_up_block(f))
+        gate_up = _pad(jnp.stack(split_gate_up(gate_up), axis=1), 2, f)   # (D, two, f)
+        gate_up = einops.rearrange(gate_up, "D two (Fb u) -> D (Fb two u)", u=gate_up_block(f))
     out = {
         "qkv": _pad(heads(w["qkv"], -1, cfg.head_dim), 0, d),
         "attn_out": _pad(heads(w["attn_out"], 0, cfg.head_dim), 1, d),
