@@ -11,15 +11,13 @@ head, H head dim, D width.
 
 from __future__ import annotations
 
-import math
-
 import einops
 import jax
 import jax.numpy as jnp
 
 from pi0_jax.config import GemmaConfig
 from pi0_jax.gemma import _BIG_NEG, apply_rope
-from pi0_jax.ops import attention, expert_kernels, layout, residual_norm
+from pi0_jax.ops import attention, expert_kernels, layout
 from pi0_jax.ops.formats import QArray
 from pi0_jax.ops.matmul import matmul, raw_matmul
 
@@ -32,13 +30,8 @@ def rms_norm(x, scale=None, mod=None):
     normed = x * jax.lax.rsqrt(var + 1e-6)
     if mod is None:
         return (normed * (1 + scale)).astype(dtype), None
-    s, shift, gate = _split(mod)
+    s, shift, gate = jnp.split(mod if mod.ndim == 3 else mod[:, None, :], 3, axis=-1)
     return (normed * (1 + s) + shift).astype(dtype), gate
-
-
-def _split(mod):
-    """adaRMS's (scale, shift, gate), each (B or 1, S or 1, D)."""
-    return jnp.split(mod if mod.ndim == 3 else mod[:, None, :], 3, axis=-1)
 
 
 def _eqn(w) -> str:
@@ -170,26 +163,15 @@ def _attend_kernel(cfg: GemmaConfig, q, k, v, cache_k, cache_v, prefix_mask, suf
     return einops.rearrange(y, "B (T G) (K H) -> B T (K G H)", G=g, H=hd)
 
 
-def _table(norm_weight, mod):
-    """The norm's vectors as `residual_norm.add_norm` takes them, one (1, E) row for every token; None where a mod
-    varies along the batch or the tokens (committed actions carry their own time), which the kernel does not take."""
-    if mod is None:
-        return norm_weight[None]
-    if math.prod(mod.shape[:-1]) != 1:
-        return None
-    return mod.reshape(1, mod.shape[-1])
-
-
 def suffix_layer(cfg: GemmaConfig, w, x, positions, cache_k, cache_v, prefix_mask, suffix_mask, mods=None,
-                 kv_len=None, kernel: bool = False, norm: str = "xla"):
+                 kv_len=None, kernel: bool = False):
     """One action-expert layer over the suffix, attending to [cached prefix | suffix]. Returns (x, cache_k, cache_v).
 
     cache_k/v (B,P,K,H); prefix_mask (B,S,P); suffix_mask (B,S,S); mods: None (π0) or (attn, ffw) adaRMS outputs.
     kv_len: None for XLA attention, else (B,) key lengths for the fused kernel; cache_k/v are then the suffix-first
     buffers (B,S+P,K,H) of `_attend_suffix_fused` and come back with this step's suffix keys in them, and
     suffix_mask is its head_mask (B, m, S) or None. kernel: the attention is the Pallas kernel's (`_attend_kernel`;
-    cache_k/v and the masks in its layout). norm: "pallas" runs the attention's residual add and the MLP's norm as
-    one kernel (`ops.residual_norm`) where its tables apply, "xla" as XLA's ops.
+    cache_k/v and the masks in its layout).
     """
     mod_attn, mod_ffw = mods if mods is not None else (None, None)
     h, gate = rms_norm(x, w.get("pre_attn"), mod_attn)
@@ -201,13 +183,8 @@ def suffix_layer(cfg: GemmaConfig, w, x, positions, cache_k, cache_v, prefix_mas
     else:
         y, cache_k, cache_v = _attend_suffix_fused(q, k, v, cache_k, cache_v, kv_len, suffix_mask)
     y = _mm(y, w["attn_out"])
-    table, gates = _table(w.get("pre_ffw"), mod_ffw), _table(None, mod_attn) if mods is not None else None
-    if norm == "pallas" and table is not None and (mods is None or gates is not None):
-        x, h = residual_norm.add_norm(x, y, table, gates, adaptive=mods is not None, gate_col=2 * x.shape[-1])
-        gate = None if mods is None else _split(mod_ffw)[2]
-    else:
-        x = x + (y if gate is None else y * gate)
-        h, gate = rms_norm(x, w.get("pre_ffw"), mod_ffw)
+    x = x + (y if gate is None else y * gate)
+    h, gate = rms_norm(x, w.get("pre_ffw"), mod_ffw)
     y = _mlp(h, w)
     return x + (y if gate is None else y * gate), cache_k, cache_v
 

@@ -76,14 +76,6 @@ def expert_path(kernels: str, batch: int, expert_weights, platform: str | None =
     return "pallas" if gpu_batch and unrolled and not is_quantised(expert_weights) else "xla"
 
 
-def expert_norm(kernels: str, platform: str | None = None) -> str:
-    """The XLA expert's residual add and the norm after it: "xla" or "pallas" (`ops.residual_norm`: one kernel where
-    XLA runs two) as asked; "auto" the kernel on a GPU, XLA's ops on a CPU (where the kernel runs interpreted)."""
-    if check_kernels(kernels) != "auto":
-        return kernels
-    return "pallas" if (platform or jax.default_backend()) == "gpu" else "xla"
-
-
 def vision_norm(kernels: str, images: int, platform: str | None = None) -> str:
     """SigLIP's residual adds and LayerNorms: "xla" or "pallas" (`ops.layer_norm`: one kernel where XLA runs two or
     three) as asked; "auto" the kernel on a GPU from VISION_NORM_MIN_IMAGES images per call, XLA's ops below (and
@@ -333,12 +325,10 @@ def _velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, ca
         # only π0's state row masks suffix keys (it sees no action); the action rows, and π0.5's, see them all
         suffix_mask = None if config.pi05 else suffix_mask[:, :1]
 
-    norm = expert_norm(kernels)
-
     def layer(w, x, k, v, *mod):
         m = None if mods is None else mod
         x, k, v = layers.suffix_layer(config.action_expert, w, x, positions, k, v, prefix_mask, suffix_mask, m,
-                                      kv_len, kernel=attention.denoise == "pallas", norm=norm)
+                                      kv_len, kernel=attention.denoise == "pallas")
         return (x, k, v) if kv_len is not None else (x,)
 
     per_layer = [cache.k, cache.v] if kv is None else list(kv)
