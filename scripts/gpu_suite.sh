@@ -14,6 +14,8 @@
 #   GAIN=0.5 EPISODES=100 BG=1 bash scripts/gpu_suite.sh demos slow rtc-slow cond rtc-cond expert-latency
 #                                                             # the same on demos of a slower expert, which
 #                                                             # tolerates latency (scripts/expert_latency.py)
+#   GAIN=0.5 BG=1 bash scripts/gpu_suite.sh demos train rtc-run   # a model trained from scratch on the slower
+#                                                             # expert's demos (the embedded recipe), its cells
 #
 # Needs the mujoco / mujoco-mjx wheels in .simwhl (see docs/BENCHMARKS.md); writes into $OUT (or ./out).
 set -uo pipefail
@@ -89,6 +91,8 @@ for phase in "$@"; do
     cond) finetune cond --max-delay "$MAXD" ;;   # training-time action conditioning: d ~ U{0..$MAXD} given
     slow) finetune slow ;;   # on $W/demos as they are (GAIN=0.5: a slower expert's), no conditioning
     rtc-slow) latency_cells slow roadmap_slow "${SLOW_CELLS:-sync,rtc,naive,rtc-d2}" ;;
+    rtc-run)   # the cells on the model `train` made from scratch ($W/run; GAIN=0.5: on the slower expert's demos)
+      latency_cells run roadmap_run "${RUN_CELLS:-sync,rtc,naive}" && cp "$W/run/train_log.json" "$OUT/run_log.json" ;;
     expert-latency)   # the scripted expert with its actions D steps late, at several gains (no learning involved)
       python3 scripts/expert_latency.py --out "$W/expert_latency" --delays 0,2,4,8 --gains 1.5,1.0,0.5 2>&1 |
         grep -E "^gain|^\|" && cp "$W/expert_latency/expert_latency.json" "$OUT/" ;;
