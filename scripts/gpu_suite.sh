@@ -17,7 +17,8 @@
 #   GAIN=0.5 BG=1 bash scripts/gpu_suite.sh demos train rtc-run   # a model trained from scratch on the slower
 #                                                             # expert's demos (the embedded recipe), its cells
 #
-# Needs the mujoco / mujoco-mjx wheels in .simwhl (see docs/BENCHMARKS.md); writes into $OUT (or ./out).
+# Needs the mujoco / mujoco-mjx wheels in .simwhl, or .simwhl/sim.zip of their installed files (see docs/BENCHMARKS.md;
+# the zip fits the 64 MiB carry without mujoco's experimental/ and mjx's test data); writes into $OUT (or ./out).
 set -uo pipefail
 OUT=${OUT:-out}
 W=${WORK:-runs/gpu}
@@ -35,8 +36,9 @@ if [ -n "${BG:-}" ]; then
   BG= setsid nohup bash "$0" "$@" > "$W/suite.log" 2>&1 < /dev/null &
   echo "detached: $W/suite.log"; exit 0
 fi
-python3 -c "import mujoco.mjx" 2>/dev/null ||
-  python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .simwhl/*.whl
+python3 -c "import mujoco.mjx" 2>/dev/null || [ -d /tmp/site/mujoco ] || {   # the wheels, or their files unzipped
+  ls .simwhl/*.whl >/dev/null 2>&1 && python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site \
+      .simwhl/*.whl || python3 -m zipfile -e .simwhl/sim.zip /tmp/site; }
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
 PI0="python3 -m pi0_jax.cli"
 evaluate() {   # NAME POLICY, then extra eval flags; 550 episodes on held-out initial states 0..49
