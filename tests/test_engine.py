@@ -213,8 +213,8 @@ def test_attention_and_kernel_choices():
     assert programs.AUTO_GPU.at_batch(small) == A("pallas", "cudnn", "xla") and small >= 1
     assert A.parse("vision=pallas") == A(vision="pallas")
     masked = programs.CUDNN_DENOISE_MIN_BATCH_MASKED   # π0: measured 4 faster, 3 slower
-    at = functools.partial(programs.AUTO_GPU.at_batch, suffix_mask=True, differentiable=True)
-    assert at(masked - 1).denoise == "xla" and at(masked).denoise == "cudnn" and masked > big
+    at = functools.partial(programs.AUTO_GPU.at_batch, suffix_mask=True)
+    assert at(max(programs.PALLAS_DENOISE_BATCHES_MASKED) + 1).denoise == "cudnn" and masked > big
     kernel = programs.PALLAS_DENOISE_BATCHES_MASKED   # π0: measured faster at 3-16, slower at 64
     assert {3, 4, 8, 16} <= set(kernel) and 64 not in kernel and A.parse("denoise=pallas") == A(denoise="pallas")
     assert [programs.AUTO_GPU.at_batch(b, suffix_mask=True).denoise for b in (2, 3, 16, 64)] == [
@@ -222,8 +222,11 @@ def test_attention_and_kernel_choices():
     # π0.5: measured faster at 4 and 8, slower at 16 and 64
     assert [programs.AUTO_GPU.at_batch(b).denoise for b in (2, 3, 4, 8, 16, 64)] == [
         "xla", "cudnn", "pallas", "pallas", "cudnn", "cudnn"]
-    assert all(programs.AUTO_GPU.at_batch(b, suffix_mask=True, differentiable=True).denoise != "pallas"
-               for b in range(1, 65))
+    # real-time chunking differentiates the velocity: XLA's attention at every batch (the Pallas kernel has no VJP;
+    # cuDNN's flash backward failed on a GPU at the suffix's lengths, "Unsupported sequence length Q 40, KV 171")
+    for mask in (True, False):
+        assert {programs.AUTO_GPU.at_batch(b, suffix_mask=mask, differentiable=True).denoise
+                for b in range(1, 65)} == {"xla"}
     with pytest.raises(ValueError, match="differentiates"):   # the Pallas kernel has no VJP
         programs.guided_denoise(get_config("dummy"), None, None, None, None, jnp.zeros((4, 2, 2)), None, None,
                                 num_steps=2, unroll=True, attention=A(denoise="pallas"))

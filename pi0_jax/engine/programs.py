@@ -109,12 +109,15 @@ class Attention:
 
     def at_batch(self, batch: int, suffix_mask: bool = False, differentiable: bool = False) -> Attention:
         """The concrete choice of every stage for a program of this batch size; suffix_mask: the model's suffix
-        masks some of its own keys (π0; π0.5's attends everywhere); differentiable: never the Pallas kernel (a
-        program that differentiates the velocity, `guided_denoise`)."""
+        masks some of its own keys (π0; π0.5's attends everywhere); differentiable: XLA's denoise attention (a
+        program that differentiates the velocity, `guided_denoise`: the Pallas kernel has no VJP, and cuDNN's flash
+        backward takes no sequence lengths but multiples of 64, which the suffix's rows and keys are not)."""
         if self.denoise != "auto":
             return self
+        if differentiable:
+            return dataclasses.replace(self, denoise="xla")
         kernel = PALLAS_DENOISE_BATCHES_MASKED if suffix_mask else PALLAS_DENOISE_BATCHES
-        if not differentiable and batch in kernel:
+        if batch in kernel:
             return dataclasses.replace(self, denoise="pallas")
         cudnn = batch >= (CUDNN_DENOISE_MIN_BATCH_MASKED if suffix_mask else CUDNN_DENOISE_MIN_BATCH)
         return dataclasses.replace(self, denoise="cudnn" if cudnn else "xla")
@@ -416,9 +419,10 @@ def guided_denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixC
     w = min(beta, (t² + (1 - t)²) / (t (1 - t))), = beta at t = 1. weight = 0 everywhere gives `denoise` exactly
     up to the VJP's extra arithmetic (g = 0)."""
     attention = attention.at_batch(noise.shape[0], suffix_mask=not config.pi05, differentiable=True)
-    if attention.denoise == "pallas":
-        raise ValueError("real-time chunking differentiates the velocity: its denoise attention must be 'xla' or "
-                         "'cudnn', not the Pallas kernel's; fill its cache with attention.at_batch(..., "
+    if attention.denoise == "pallas" or (attention.denoise == "cudnn" and jax.default_backend() == "gpu"):
+        raise ValueError(f"real-time chunking differentiates the velocity: its denoise attention must be 'xla', not "
+                         f"{attention.denoise!r} (the Pallas kernel has no VJP; cuDNN's flash backward takes no "
+                         "sequence lengths but multiples of 64); fill its cache with attention.at_batch(..., "
                          "differentiable=True)")
     dt = -1.0 / num_steps
     if not isinstance(num_steps, int):
