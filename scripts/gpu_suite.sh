@@ -55,7 +55,7 @@ finetune() {   # NAME, then extra train flags: $TEACHER fine-tuned on $W/demos f
 }
 latency_cells() {   # MODEL (a fine-tune in $W) RESULT CELLS: roadmap cells on it, without the cost column
   python3 scripts/roadmap_grid.py --checkpoint "$W/$1/checkpoint" --out "$W/$2" --no-timing \
-      --budget-s "${BUDGET:-500}" --cells "$3" 2>&1 | grep "^|"
+      --budget-s "${BUDGET:-500}" --cells "$3" 2>&1 | grep -E "^\||Error"   # a failed cell says why
   cp "$W/$2/roadmap.json" "$OUT/$2.json"
 }
 for phase in "$@"; do
