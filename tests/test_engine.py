@@ -199,7 +199,7 @@ def test_fused_denoise_writes_suffix_keys_in_place_of_copying_the_cache(model, m
     assert {(shape[1:3], kw.get("mask")) for shape, kw in calls} == {((rows, expert.num_kv_heads), None)}
 
 
-def test_attention_and_kernel_choices():
+def test_attention_and_kernel_choices(monkeypatch):
     from pi0_jax.engine import programs
     from pi0_jax.ops import formats
 
@@ -230,6 +230,11 @@ def test_attention_and_kernel_choices():
     with pytest.raises(ValueError, match="differentiates"):   # the Pallas kernel has no VJP
         programs.guided_denoise(get_config("dummy"), None, None, None, None, jnp.zeros((4, 2, 2)), None, None,
                                 num_steps=2, unroll=True, attention=A(denoise="pallas"))
+    with monkeypatch.context() as m:   # nor cuDNN's at these lengths, on a GPU (on a CPU it is XLA's form)
+        m.setattr(jax, "default_backend", lambda: "gpu")
+        with pytest.raises(ValueError, match="not 'cudnn'"):
+            programs.guided_denoise(get_config("dummy"), None, None, None, None, jnp.zeros((4, 2, 2)), None, None,
+                                    num_steps=2, unroll=True, attention=A.parse("cudnn"))
     assert A.parse("cudnn").at_batch(1) == A.parse("cudnn")
     for bad in ("flash", "prefix=flash", "decoder=cudnn", "prefix", "vision=auto", "prefix=pallas", "pallas"):
         with pytest.raises(ValueError, match="attention"):
