@@ -78,7 +78,8 @@ STEP_SWEEPS = {
                      "mlp geglu 128 4st": dict(mosaic_mlp=L(128, 1, 4, geglu=True))},
     # the attention's query rows a program (a 64 x 256 f32 accumulator is 128 registers a thread at 4 warps)
     "query_rows": {"default": {}, "q32": dict(q=32), "q32 w4": dict(q=32, attention_warps=4),
-                   "q16 w4": dict(q=16, attention_warps=4), "q32 w4 7 splits": dict(q=32, attention_warps=4, kv_splits=7),
+                   "q16 w4": dict(q=16, attention_warps=4),
+                   "q32 w4 7 splits": dict(q=32, attention_warps=4, kv_splits=7),
                    "q32 w4 s2": dict(q=32, attention_warps=4, attention_stages=2)},
     # the same with the next step's wgmma issued before the last one finished (`Launch.delay`)
     "mosaic_delay": {"default": {}, "mlp geglu 64 6st d1": dict(mosaic_mlp=L(64, 1, 6, geglu=True, delay=1)),

@@ -111,7 +111,7 @@ class Attention:
         """The concrete choice of every stage for a program of this batch size; suffix_mask: the model's suffix
         masks some of its own keys (π0; π0.5's attends everywhere); differentiable: XLA's denoise attention (a
         program that differentiates the velocity, `guided_denoise`: the Pallas kernel has no VJP, and cuDNN's flash
-        backward takes no sequence lengths but multiples of 64, which the suffix's rows and keys are not)."""
+        attention refused a backward pass at the suffix's sequence lengths on a GPU)."""
         if self.denoise != "auto":
             return self
         if differentiable:
@@ -421,8 +421,8 @@ def guided_denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixC
     attention = attention.at_batch(noise.shape[0], suffix_mask=not config.pi05, differentiable=True)
     if attention.denoise == "pallas" or (attention.denoise == "cudnn" and jax.default_backend() == "gpu"):
         raise ValueError(f"real-time chunking differentiates the velocity: its denoise attention must be 'xla', not "
-                         f"{attention.denoise!r} (the Pallas kernel has no VJP; cuDNN's flash backward takes no "
-                         "sequence lengths but multiples of 64); fill its cache with attention.at_batch(..., "
+                         f"{attention.denoise!r} (the Pallas kernel has no VJP; cuDNN's flash attention refuses a "
+                         "backward pass at the suffix's sequence lengths); fill its cache with attention.at_batch(..., "
                          "differentiable=True)")
     dt = -1.0 / num_steps
     if not isinstance(num_steps, int):
