@@ -99,7 +99,6 @@ STEP_SWEEPS = {
     "waves": {"default": {}, "qkv 128x4": dict(qkv=G(128, 4)), "qkv 128x2": dict(qkv=G(128, 2)),
               "qkv 256x4": dict(qkv=G(256, 4)), "qkv 64x4": dict(qkv=G(64, 4)), "out 64x8": dict(out=G(64, 8)),
               "out 128x8": dict(out=G(128, 8))},
-    "qkv4": {"default": {}, "qkv 128x4": dict(qkv=G(128, 4))},
     # the attention's key splits since its splits are merged by one Pallas kernel (session 28: XLA's merge had been
     # two fusions), and its key block
     "kv_splits": {"default": {}, "kv splits 7": dict(kv_splits=7), "kv splits 10": dict(kv_splits=10),
