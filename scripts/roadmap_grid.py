@@ -67,15 +67,23 @@ GUESSED = {"reuse": "KV-cache reuse across frames: 2-3x (one table), 1.5-2x (the
            "chunk": "action chunking, infer less often: 'reduces inference frequency', no number"}
 
 
+def _beta(text: str) -> bool:
+    return text.replace(".", "", 1).isdigit()
+
+
 def cell_spec(cell: str, args) -> dict:
-    """A cell name -> its EvalConfig fields, kind, flow steps and replan interval: KIND[-dD][-rR][@N]."""
+    """A cell name -> its EvalConfig fields, kind, flow steps and replan interval: KIND[-dD][-rR][-bBETA][@N]."""
     name, _, steps = cell.partition("@")
     kind, *opts = name.split("-")
-    own = {o[0]: o[1:] for o in opts if o[:1] in ("d", "r") and o[1:].isdigit()}
-    if len(own) != len(opts) or ("d" in own and kind not in ("naive", "rtc", "cond")):
+    own = {o[0]: o[1:] for o in opts if o[:1] in ("d", "r") and o[1:].isdigit() or o[:1] == "b" and _beta(o[1:])}
+    if (len(own) != len(opts) or ("d" in own and kind not in ("naive", "rtc", "cond"))
+            or ("b" in own and kind != "rtc")):
         raise SystemExit(f"unknown cell {cell!r}: sync, naive, rtc, cond, reuseK, auto, prune, then optionally -dD "
-                         "(naive, rtc, cond: latency D), -rR (replan every R steps), @N (N flow steps)")
+                         "(naive, rtc, cond: latency D), -rR (replan every R steps), -bBETA (rtc: guidance clip), "
+                         "@N (N flow steps)")
     spec = _cell_kind(kind, args, int(own.get("d", args.latency_steps)))
+    if kind == "rtc":
+        spec["rtc_beta"] = float(own.get("b", args.rtc_beta))
     spec["num_steps"] = int(steps) if steps else args.num_steps
     spec["replan_steps"] = int(own.get("r", args.replan_steps))
     return spec
@@ -178,7 +186,8 @@ def run_cell(name: str, spec: dict, args, ckpt: Path) -> dict:
     cfg = EvalConfig(suite=args.suite, episodes_per_task=args.episodes_per_task, batch=args.batch,
                      replan_steps=spec["replan_steps"], max_steps=args.max_steps, resolution=args.resolution,
                      seed=args.seed, videos=0, num_steps=spec["num_steps"], execution=spec["execution"],
-                     latency_steps=spec["latency_steps"], reuse_prefix=spec["reuse_prefix"])
+                     latency_steps=spec["latency_steps"], reuse_prefix=spec["reuse_prefix"],
+                     **({"rtc_beta": spec["rtc_beta"]} if "rtc_beta" in spec else {}))
     t0 = time.perf_counter()
     info = evaluate(str(ckpt), cfg, None, progress=False, policy_kwargs={"dtype": args.dtype})
     a = info["aggregated"]
@@ -211,7 +220,8 @@ def markdown(result: dict) -> str:
     base_cost = cost_per_step(base, t, result["replan_steps"]) if base else None
     for r in rows:
         cost = cost_per_step(r, t, result["replan_steps"])
-        setting = {"sync": "sync (world waits)", "naive": "naive async", "rtc": "real-time chunking",
+        setting = {"sync": "sync (world waits)", "naive": "naive async",
+                   "rtc": f"real-time chunking, β = {r.get('rtc_beta', 5.0):g}",
                    "cond": "training-time RTC",
                    "reuse": f"reuse prefix K={r['reuse_prefix']}", "auto": f"reuse {r['reuse_prefix']}",
                    "prune": f"drop layers {result['prune_layers']}"}[r["kind"]]
@@ -313,10 +323,13 @@ def main() -> int:
                    "embedded pi0_small)")
     p.add_argument("--cells", default="sync,sync@1,sync-r6@1,rtc,naive,reuse2@1,prune,reuse2,auto,reuse4",
                    help="comma list, run in this order while the budget lasts: sync, naive, rtc, cond (naive-dD, "
-                        "rtc-dD, cond-dD: latency D instead of --latency-steps), reuseK (K an integer), auto, "
-                        "prune, each optionally @N for N flow steps (default: %(default)s)")
+                        "rtc-dD, cond-dD: latency D instead of --latency-steps; rtc-bBETA: guidance clip BETA "
+                        "instead of --rtc-beta, e.g. rtc-d1-b0.5), reuseK (K an integer), auto, prune, each "
+                        "optionally @N for N flow steps (default: %(default)s)")
     p.add_argument("--latency-steps", type=int, default=4, help="D of the naive, rtc and cond cells, in 50 ms control "
                    "steps (default: %(default)s = 200 ms)")
+    p.add_argument("--rtc-beta", type=float, default=5.0, help="the rtc cells' guidance clip, the paper's β "
+                   "(default: %(default)s)")
     p.add_argument("--auto-threshold", type=float, default=0.1,
                    help="image change (mean absolute difference of 16x16 frames in [0, 1]) above which the auto "
                         "cell recomputes an environment's prefix (default: %(default)s)")

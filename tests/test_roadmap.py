@@ -8,7 +8,8 @@ on the embedded trained pi0_small (pi0_jax/sim/realtime.py, pi0_jax/prune.py).
   chunk, a different second one); naive, rtc and conditioned with D = 2 hold still, then switch at index D, then
   execute the previous chunk's committed actions while the next one is computed; rtc's and conditioned's new chunks
   start with exactly those committed actions, and rtc's guided overlap lies closer to the previous chunk than the
-  unguided (naive) sample from the same noise and observation.
+  unguided (naive) sample from the same noise and observation; with its guidance clip β = 0, rtc samples naive's
+  chunk (to f32 rounding), and `--rtc-beta` reaches the policy.
 * The same rollout through the reference sampler (pi0.sample_actions, issue 14) equals the engine's: the same noise
   gives the same actions, so the same states, success flags and episode lengths.
 * `pi0-jax eval --execution --latency-steps --reuse-prefix` end to end, with the recompute fraction of K = 2 in
@@ -48,6 +49,7 @@ VARIANTS = {
     "never": Realtime("sync", 0, "auto:1e9"),          # auto rule that never fires after the first plan
     "naive2": Realtime("naive", D),
     "rtc2": Realtime("rtc", D),
+    "rtc2b0": Realtime("rtc", D, rtc_beta=0.0),        # no guidance: naive's sample, through the guided program
     "cond2": Realtime("conditioned", D),
     "reference": None,                                 # "plain" through the reference sampler instead of the engine
 }
@@ -178,6 +180,34 @@ def test_rtc_freezes_the_committed_prefix_and_guides_the_overlap(rollout):
         return float((np.abs(c[1][:, D: h - R] - c[0][:, R + D:]).mean(axis=(0, 2)) * w).sum() / w.sum())
 
     assert err(rtc) < 0.8 * err(naive), (err(rtc), err(naive))
+    # β = 0: the guided program's update is the plain one, so its chunks are naive's after the frozen prefix
+    unguided = chunks[:, ix["rtc2b0"]]
+    np.testing.assert_allclose(unguided[1][:, D:], naive[1][:, D:], rtol=0, atol=1e-5)
+    assert np.abs(rtc[1][:, D:] - naive[1][:, D:]).max() > 1e-3
+
+
+def test_rtc_beta_reaches_the_policy(monkeypatch, tmp_path):
+    """`pi0-jax eval --rtc-beta` travels through EvalConfig into the model policy's Realtime; a negative clip is
+    refused by name."""
+    from pi0_jax.sim import evaluate as evaluate_mod
+
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def capture(spec, env, replan_steps, **kw):
+        seen["realtime"] = kw["realtime"]
+        raise Stop
+
+    monkeypatch.setattr(evaluate_mod, "make_policy", capture)
+    with pytest.raises(Stop):
+        cli.main(["eval", "--policy", str(EMBEDDED), "--suite", TASKS[0], "--episodes-per-task", "1", "--batch", "1",
+                  "--steps", "5", "--videos", "0", "--execution", "rtc", "--latency-steps", "2", "--rtc-beta", "0.5",
+                  "--output-dir", str(tmp_path), "--no-progress"])
+    assert seen["realtime"] == Realtime("rtc", 2, None, 0.5)
+    with pytest.raises(ValueError, match="rtc_beta"):
+        Realtime("rtc", 2, rtc_beta=-1.0)
 
 
 def test_conditioned_chunks_start_with_the_committed_actions(rollout):
@@ -283,12 +313,13 @@ def test_roadmap_grid_cells_and_cost():
         spec.loader.exec_module(grid)
     finally:
         sys.path.remove(str(path.parent))
-    args = SimpleNamespace(latency_steps=4, num_steps=10, replan_steps=5, auto_threshold=0.1)
+    args = SimpleNamespace(latency_steps=4, num_steps=10, replan_steps=5, auto_threshold=0.1, rtc_beta=5.0)
     assert grid.cell_spec("sync-r6@1", args) == {"kind": "sync", "execution": "sync", "latency_steps": 0,
                                                  "reuse_prefix": None, "num_steps": 1, "replan_steps": 6}
     assert grid.cell_spec("rtc-d1", args)["latency_steps"] == 1 and grid.cell_spec("rtc", args)["latency_steps"] == 4
     assert grid.cell_spec("reuse2@1", args)["reuse_prefix"] == "2"
-    for bad in ("sync-d2", "naive-x3", "reuse", "naive-d"):
+    assert grid.cell_spec("rtc", args)["rtc_beta"] == 5.0 and grid.cell_spec("rtc-d1-b0.5", args)["rtc_beta"] == 0.5
+    for bad in ("sync-d2", "naive-x3", "reuse", "naive-d", "naive-b1", "rtc-b", "rtc-b1.2.3"):
         with pytest.raises(SystemExit):
             grid.cell_spec(bad, args)
     t = {"full": {"vision": 3.74, "prefix": 5.23, "denoise_at": {"1": 2.40, "10": 12.93}}}

@@ -103,11 +103,15 @@ def add_eval_parser(subparsers) -> argparse.ArgumentParser:
                          "the usual protocol); naive = keep executing the previous chunk, switch to the new one at "
                          "its index D (an episode's first D steps hold still: zero motion, gripper open); rtc = as "
                          "naive, with the new chunk sampled by real-time chunking (first D actions frozen to the "
-                         "committed ones, the overlap guided with decaying weights, ΠGDM guidance clipped at 5); "
-                         "conditioned = as naive, the committed actions given to the model as clean inputs "
+                         "committed ones, the overlap guided with decaying weights, ΠGDM guidance clipped at "
+                         "--rtc-beta); conditioned = as naive, the committed actions given to the model as clean inputs "
                          "(training-time action conditioning: for a model trained with `pi0-jax train "
                          "--max-delay`; no extra compute). With D = 0 all four are the same policy "
                          "(default: %(default)s)")
+    rt.add_argument("--rtc-beta", type=float, default=5.0, metavar="BETA",
+                    help="rtc: the clip of the guidance weight min(BETA, (t^2 + (1 - t)^2) / (t (1 - t))) at flow "
+                         "time t, the paper's β; larger binds the new chunk harder to the committed one, 0 turns the "
+                         "guidance off (the sample is naive's) (default: %(default)s, the paper's)")
     rt.add_argument("--reuse-prefix", default=None, metavar="K|auto:THRESH",
                     help="recompute vision and the prefix KV cache only every K-th plan, otherwise denoise on the "
                          "cached prefix (K = 1: every plan, through the reuse path). auto:THRESH recomputes an "
@@ -200,7 +204,8 @@ def run(args: argparse.Namespace) -> int:
                      resolution=args.resolution or default_resolution(args.policy),
                      seed=args.seed, videos=args.videos, segment_replans=args.segment_replans,
                      num_steps=default_num_steps(args.policy) if args.num_steps is None else args.num_steps,
-                     execution=args.execution, latency_steps=args.latency_steps, reuse_prefix=args.reuse_prefix)
+                     execution=args.execution, latency_steps=args.latency_steps, reuse_prefix=args.reuse_prefix,
+                     rtc_beta=args.rtc_beta)
     kw = {"tokenizer_path": args.tokenizer, "norm_stats": args.norm_stats, "dtype": args.dtype,
           "sampler": args.sampler, "quant": args.quant, "gemm": args.gemm,
           "attention": args.attention}
@@ -214,7 +219,8 @@ def run(args: argparse.Namespace) -> int:
               + "".join(f"; {k} {v:.1f} ms" for k, v in t.get("phases", {}).items() if k.endswith("_ms")))
         r = info.get("realtime", {})
         if r.get("execution", "sync") != "sync" or r.get("latency_steps") or r.get("reuse_prefix") is not None:
-            print(f"execution {r['execution']}, latency {r['latency_steps']} steps ({r['latency_ms']:.0f} ms at 20 Hz)"
+            print(f"execution {r['execution']}" + (f" (β {r['rtc_beta']:g})" if "rtc_beta" in r else "")
+                  + f", latency {r['latency_steps']} steps ({r['latency_ms']:.0f} ms at 20 Hz)"
                   + (f", prefix recomputed at {100 * r['prefix_recompute_fraction']:.1f}% of plans"
                      if r.get("reuse_prefix") is not None and "prefix_recompute_fraction" in r else ""))
         print(f"{a['n_episodes']} episodes in {a['eval_s']:.1f} s ({a['eval_ep_s']:.2f} s/episode; setup "

@@ -65,10 +65,11 @@ class EvalConfig:
     segment_replans: int = 8
     num_steps: int = 10               # flow-matching steps of a checkpoint policy
     # Model policies in time (pi0_jax/sim/realtime.py): sync | naive | rtc | conditioned, the delay D in control
-    # steps (50 ms each), prefix reuse None | "K" | "auto:THRESH".
+    # steps (50 ms each), prefix reuse None | "K" | "auto:THRESH", rtc's guidance clip β.
     execution: str = "sync"
     latency_steps: int = 0
     reuse_prefix: str | None = None
+    rtc_beta: float = 5.0
 
 
 @struct.dataclass
@@ -159,12 +160,12 @@ def evaluate(policy_spec, cfg: EvalConfig, output_dir: str | Path | None = None,
     env = make_env(batch)
     from pi0_jax.sim.realtime import Realtime
 
-    realtime = Realtime(cfg.execution, cfg.latency_steps, cfg.reuse_prefix)
+    realtime = Realtime(cfg.execution, cfg.latency_steps, cfg.reuse_prefix, cfg.rtc_beta)
     if callable(policy_spec):
         policy = policy_spec(env)
         have = policy.info.get("realtime", Realtime().describe())
-        if {k: have.get(k) for k in ("execution", "latency_steps", "reuse_prefix")} != {
-                k: getattr(realtime, k) for k in ("execution", "latency_steps", "reuse_prefix")}:
+        keys = ("execution", "latency_steps", "reuse_prefix") + (("rtc_beta",) if cfg.execution == "rtc" else ())
+        if {k: have.get(k) for k in keys} != {k: getattr(realtime, k) for k in keys}:
             raise ValueError(f"the policy's realtime settings {have} differ from the EvalConfig's {realtime}")
     elif policy_spec in ("expert", "random"):
         if not realtime.is_default:

@@ -54,7 +54,8 @@ THUMB = 16               # side of the downsampled frames of the auto reuse rule
 @dataclasses.dataclass(frozen=True)
 class Realtime:
     """execution: sync | naive | rtc | conditioned; latency_steps: D; reuse_prefix: None (recompute every plan), "K" or
-    "auto:THRESH"; rtc_beta: the guidance weight's clip."""
+    "auto:THRESH"; rtc_beta: rtc's guidance weight's clip (the paper's β, 5 there and by default; 0: no guidance,
+    rtc's sample is naive's)."""
 
     execution: str = "sync"
     latency_steps: int = 0
@@ -66,6 +67,8 @@ class Realtime:
             raise ValueError(f"execution must be one of {EXECUTIONS}, got {self.execution!r}")
         if self.latency_steps < 0:
             raise ValueError(f"latency_steps must be >= 0, got {self.latency_steps}")
+        if not 0.0 <= self.rtc_beta < float("inf"):
+            raise ValueError(f"rtc_beta must be finite and >= 0, got {self.rtc_beta}")
         parse_reuse(self.reuse_prefix)
 
     @property
