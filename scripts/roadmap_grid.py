@@ -18,6 +18,7 @@ with Wilson 95 % intervals. Cells, run in the order given until the time budget 
            its success at 1 step, docs/RESULTS.md, so fewer steps and reuse combine)
   -dD, -rR before @N: this cell's own latency D (naive, rtc, cond; e.g. naive-d1) or replan interval R (any cell; e.g.
            sync-r8@1: plan every 8 steps, the origin notes' "action chunking to infer less often")
+  -bBETA   rtc's guidance clip instead of --rtc-beta (e.g. rtc-d1-b0.5)
 
 Cost: the full-size model's stage timings on this device (--timing-preset, random weights, batch 1, 2 cameras, a
 20-token prompt, bf16, the cells' flow steps): vision, prefix KV fill, denoise, RTC's guided denoise (a VJP per step,
@@ -27,9 +28,10 @@ XLA attention), and prefix + denoise of the preset with the same fraction of lay
 rtc and cond cost what sync costs per step (rtc: its guided denoise); what they buy is that the robot does not wait
 (D x 50 ms at 20 Hz: D = 4 is 200 ms).
 
-Writes OUT/roadmap.json (every number, the command line, the device), OUT/roadmap.md (the table, what was not run)
-and OUT/roadmap.png (success against cost per control step, the Pareto front). Cells that did not fit the budget
-are listed as not run, with the command that runs them.
+Writes OUT/roadmap.json (every number, the command line, the device), OUT/roadmap.md (the table, what was not run),
+OUT/roadmap.png (success against cost per control step, the Pareto front; not with --no-timing) and
+OUT/roadmap_delay.png (success against the delay D, a line per execution mode; where a cell has D > 0). Cells that
+did not fit the budget are listed as not run, with the command that runs them. --resume merges earlier runs' rows.
 
     python scripts/roadmap_grid.py --out $OUT                        # stops after ~6 minutes (--budget-s 330)
     python scripts/roadmap_grid.py --quick --out /tmp/roadmap_quick   # CPU smoke run: a few episodes per cell
@@ -259,15 +261,23 @@ def markdown(result: dict) -> str:
     return "\n".join(lines)
 
 
-def chart(result: dict, path: Path) -> None:
+def _pyplot():
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    return plt
+
+
+def chart(result: dict, path: Path) -> bool:
+    """Success against cost per control step, the Pareto front; False (nothing written) without a cost column."""
     t = result.get("timing") or {}
     pts = [(cost_per_step(r, t, result["replan_steps"]), r) for r in result["rows"]]
     pts = [(c, r) for c, r in pts if c is not None]
+    if not pts:
+        return False
+    plt = _pyplot()
     fig, ax = plt.subplots(figsize=(8, 5))
     base = next((r for r in result["rows"] if r["cell"] == "sync"), None)
     if base is not None:
@@ -314,6 +324,46 @@ def chart(result: dict, path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+    return True
+
+
+def delay_chart(result: dict, path: Path) -> bool:
+    """Success against the delay D (ms), one line per execution mode (rtc per β) at the baseline's flow steps and
+    replan interval, each starting at the sync baseline (every mode is the same policy at D = 0); False (nothing
+    written) where no such cell has D > 0."""
+    base = next((r for r in result["rows"] if r["cell"] == "sync"), None)
+    same = [r for r in result["rows"] if r["kind"] in ("naive", "rtc", "cond") and r["latency_steps"] > 0
+            and r["num_steps"] == result["num_steps"]
+            and r.get("replan_steps", result["replan_steps"]) == result["replan_steps"]]
+    if not same:
+        return False
+    lines: dict[str, list] = {}
+    for r in same:
+        name = {"naive": "naive", "cond": "conditioned"}.get(r["kind"]) or f"rtc, β = {r.get('rtc_beta', 5.0):g}"
+        lines.setdefault(name, []).append(r)
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(8, 5))
+    if base is not None:
+        ax.axhspan(*base["ci95"], color="tab:blue", alpha=0.08, label="sync (the world waits), 95 % interval")
+    for name, rows in sorted(lines.items(), key=lambda kv: (kv[0] != "naive", kv[0])):
+        rows = sorted(rows, key=lambda r: r["latency_ms"])
+        pts = ([(0.0, base["pc_success"], 0.0, 0.0)] if base is not None else []) + [
+            (r["latency_ms"], r["pc_success"], r["pc_success"] - r["ci95"][0], r["ci95"][1] - r["pc_success"])
+            for r in rows]
+        x, y, lo, hi = zip(*pts)
+        ax.errorbar(x, y, yerr=[lo, hi], fmt="-o" if name == "naive" else "-s", capsize=3, label=name,
+                    lw=2 if name == "naive" else 1)
+    ax.set_xlabel(f"delay D (ms; {1000 // CONTROL_HZ} ms a control step), a new plan every "
+                  f"{result['replan_steps']} steps, {result['num_steps']} flow steps")
+    ax.set_ylabel(f"success (%), {result['episodes']} episodes, 95 % Wilson")
+    ax.set_ylim(-4, 100)
+    ax.set_title(f"{result['checkpoint_model']}: success against inference delay ({result['device']})", fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return True
 
 
 def main() -> int:
@@ -353,9 +403,11 @@ def main() -> int:
                    "column (default: %(default)s; random weights)")
     p.add_argument("--timing-iters", type=int, default=20, help="timed calls per stage (default: %(default)s)")
     p.add_argument("--no-timing", action="store_true", help="skip the stage timings (no cost column)")
-    p.add_argument("--resume", type=Path, default=None, metavar="JSON",
-                   help="a previous run's roadmap.json: its timings and rows are kept, its cells are not run again "
-                        "(a second call fills the cells the first one's budget left out)")
+    p.add_argument("--resume", type=Path, nargs="+", default=None, metavar="JSON",
+                   help="previous runs' roadmap.json files (the same model and episodes, on one device kind): their "
+                        "rows are kept (a cell's first), the first timings found too, and their cells are not run "
+                        "again. A second call fills the cells the first one's budget left out; --cells '' only "
+                        "merges them into one table and chart")
     p.add_argument("--cache-dir", type=Path, default=Path.home() / ".cache/pi0_jax/xla",
                    help="persistent compilation cache (default: %(default)s)")
     p.add_argument("--quick", action="store_true",
@@ -386,14 +438,30 @@ def main() -> int:
     def save():
         (args.out / "roadmap.json").write_text(json.dumps(result, indent=2) + "\n")
 
-    if args.resume is not None:
-        prev = json.loads(args.resume.read_text())
-        result["rows"], result["timing"], result["episodes"] = prev["rows"], prev["timing"], prev["episodes"]
-        result["command"] = prev["command"] + "\n" + command
+    for i, path in enumerate(args.resume or ()):
+        prev = json.loads(path.read_text())
+        if prev["checkpoint_model"] != model.name or prev["episodes"] != (result["episodes"] or prev["episodes"]):
+            raise SystemExit(f"--resume {path}: {prev['checkpoint_model']} on {prev['episodes']} episodes, not "
+                             f"{model.name} on {result['episodes'] or 'the same number'}")
+        if i == 0:
+            result.update(device=prev["device"], checkpoint=prev["checkpoint"], command="")
+        elif prev["device"] != result["device"]:
+            raise SystemExit(f"--resume {path}: ran on {prev['device']}, the first file on {result['device']}")
+        done = {r["cell"] for r in result["rows"]}
+        result["rows"] += [r for r in prev["rows"] if r["cell"] not in done]
+        result["timing"], result["episodes"] = result["timing"] or prev["timing"], prev["episodes"]
+        result["command"] += prev["command"] + "\n"
+    if args.resume:
+        result["command"] += command
     done = {r["cell"] for r in result["rows"]}
+    specs = {c: cell_spec(c, args) for c in args.cells.split(",") if c}     # a bad name fails before any work
+    todo = {c: s for c, s in specs.items() if c not in done}
+    if todo and result["device"] != jax.devices()[0].device_kind:
+        raise SystemExit(f"the resumed rows ran on {result['device']}, this device is "
+                         f"{jax.devices()[0].device_kind}: one table, one device kind")
     if not args.no_timing and result["timing"] is None:
         t0 = time.perf_counter()
-        steps = sorted({cell_spec(c, args)["num_steps"] for c in args.cells.split(",") if c})
+        steps = sorted({s["num_steps"] for s in specs.values()})
         result["timing"] = stage_timings(args.timing_preset, args.num_steps, steps, len(drop) / model.paligemma.depth,
                                          args.timing_iters, "bfloat16" if not args.quick else "float32")
         result["timing"]["wall_s"] = time.perf_counter() - t0
@@ -401,8 +469,7 @@ def main() -> int:
         save()
     longest = 90.0
     with tempfile.TemporaryDirectory(prefix="roadmap_prune_") as tmp:
-        for name in [c for c in args.cells.split(",") if c and c not in done]:
-            spec = cell_spec(name, args)
+        for name, spec in todo.items():
             elapsed = time.perf_counter() - start
             if elapsed + longest > args.budget_s:
                 result["not_run"][name] = f"budget: {elapsed:.0f} s spent of {args.budget_s:.0f}"
@@ -423,11 +490,12 @@ def main() -> int:
     result["wall_s"] = time.perf_counter() - start
     save()
     (args.out / "roadmap.md").write_text(markdown(result))
-    if result["rows"]:
+    for name, draw in (("roadmap.png", chart), ("roadmap_delay.png", delay_chart)):
         try:
-            chart(result, args.out / "roadmap.png")
-        except ImportError as e:    # the numbers are written already; the picture needs matplotlib
-            print(f"no roadmap.png: {e}")
+            if not draw(result, args.out / name):
+                print(f"no {name}: " + ("no cost column (--no-timing)" if draw is chart else "no cell with D > 0"))
+        except ImportError as e:    # the numbers are written already; the pictures need matplotlib
+            print(f"no {name}: {e}")
     print(markdown(result))
     return 0
 

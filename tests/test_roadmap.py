@@ -298,9 +298,10 @@ def test_prune_drops_layers_and_nothing_changes_nothing(pruned, tmp_path):
         cli.main(["prune", str(EMBEDDED), str(tmp_path / "bad"), "--drop-layers", "4"])
 
 
-def test_roadmap_grid_cells_and_cost():
-    """scripts/roadmap_grid.py: KIND[-dD][-rR][@N] names parse into the eval settings they claim, and the cost per
-    control step divides by the cell's own replan interval (the 2.31x row of RESULTS.md)."""
+def test_roadmap_grid_cells_and_cost(tmp_path):
+    """scripts/roadmap_grid.py: KIND[-dD][-rR][-bBETA][@N] names parse into the eval settings they claim, the cost per
+    control step divides by the cell's own replan interval (the 2.31x row of RESULTS.md), and a chart is written
+    only where it has points (no cost chart without timings, no delay chart without a delayed cell)."""
     import importlib.util
     import sys
     from types import SimpleNamespace
@@ -328,3 +329,13 @@ def test_roadmap_grid_cells_and_cost():
     assert grid.cost_per_step(base, t, 5) == pytest.approx((3.74 + 5.23 + 12.93) / 5)
     assert grid.cost_per_step(base, t, 5) / grid.cost_per_step(fast, t, 5) == pytest.approx(2.31, abs=0.01)
     assert grid.guess_key(fast, {"replan_steps": 5}) == "chunk"
+    rows = [{"cell": "sync", "kind": "sync", "num_steps": 10, "latency_steps": 0, "latency_ms": 0.0,
+             "pc_success": 90.0, "ci95": [87.0, 92.0]},
+            {"cell": "rtc-d1-b1", "kind": "rtc", "rtc_beta": 1.0, "num_steps": 10, "latency_steps": 1,
+             "latency_ms": 50.0, "pc_success": 80.0, "ci95": [76.0, 83.0]}]
+    result = {"rows": rows[:1], "timing": None, "num_steps": 10, "replan_steps": 5, "episodes": 550,
+              "checkpoint_model": "pi0_small", "device": "cpu"}
+    assert not grid.chart(result, tmp_path / "cost.png") and not grid.delay_chart(result, tmp_path / "delay.png")
+    assert not (tmp_path / "cost.png").exists() and not (tmp_path / "delay.png").exists()
+    result["rows"] = rows
+    assert grid.delay_chart(result, tmp_path / "delay.png") and (tmp_path / "delay.png").stat().st_size > 10_000
