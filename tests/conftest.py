@@ -1,7 +1,9 @@
 """Shared fixtures. `sp_model_path`: a tiny SentencePiece model trained in well under a second, shaped like the real
 PaliGemma tokenizer where it matters (pad 0, eos 1, bos 2; identity normalisation; no dummy prefix; "\\n" a
-user-defined piece; digits split; byte fallback so any text encodes)."""
+user-defined piece; digits split; byte fallback so any text encodes). `cli_options`: a subcommand's options as its
+parser defines them (a --help test that only searched the printed text would pass on the description's mentions)."""
 
+import argparse
 import io
 
 import pytest
@@ -39,3 +41,15 @@ def sp_model_path(tmp_path_factory):
     path = tmp_path_factory.mktemp("sp") / "tokenizer.model"
     path.write_bytes(buf.getvalue())
     return path
+
+
+@pytest.fixture
+def cli_options():
+    """COMMAND -> {option string: its argparse action} of `pi0-jax COMMAND`, -h excluded."""
+    from pi0_jax import cli
+
+    def options(command: str) -> dict:
+        sub = next(a for a in cli.build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+        return {o: a for a in sub.choices[command]._actions for o in a.option_strings if o not in ("-h", "--help")}
+
+    return options

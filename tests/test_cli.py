@@ -1,7 +1,9 @@
 """The README's first quick-start command, `pi0-jax demo`: the embedded trained pi0_small evaluated in the MJX suite
 on the CPU, on a reduced episode count (one episode per task, initial state 0)."""
 
+import argparse
 import json
+import re
 
 from pi0_jax import cli
 
@@ -30,5 +32,8 @@ def test_help_lists_every_subcommand(capsys):
     except SystemExit as e:
         assert e.code == 0
     out = capsys.readouterr().out
-    for cmd in ("convert", "demo", "benchmark", "eval", "train", "distill", "quantize"):
-        assert cmd in out
+    sub = next(a for a in cli.build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    assert set(sub.choices) == {"convert", "demo", "benchmark", "quantize", "eval", "train", "distill", "prune",
+                                "serve"}
+    for cmd in sub.choices:     # its own line in --help, with its help text (the description names most of them)
+        assert re.search(rf"^ +{cmd}\s+\S", out, re.M), cmd

@@ -148,15 +148,19 @@ def test_control_loss_is_zero_for_the_teacher_itself(teacher, demos):
     assert float(loss(shifted(0))) > 1e-2
 
 
-def test_distill_help_explains_every_flag(capsys):
+def test_distill_help_explains_every_flag(capsys, cli_options):
     from pi0_jax import cli
 
     with pytest.raises(SystemExit) as e:
         cli.main(["distill", "--help"])
     assert e.value.code == 0
     out = capsys.readouterr().out
-    for flag in ("--teacher", "--demos", "--out", "--config", "--student-steps", "--teacher-steps", "--layers",
-                 "--steps", "--batch", "--lr", "--warmup", "--ema", "--no-augment", "--seed", "--log-every",
-                 "--save-every", "--resume", "--stop-at", "--max-episodes"):
+    flags = ("--teacher", "--demos", "--out", "--config", "--student-steps", "--teacher-steps", "--layers",
+             "--steps", "--batch", "--lr", "--warmup", "--ema", "--no-augment", "--seed", "--log-every",
+             "--save-every", "--resume", "--stop-at", "--max-episodes")
+    for flag in flags:
         assert flag in out
+    options = cli_options("distill")
+    assert set(flags) <= set(options), set(flags) - set(options)
+    assert all(a.help for a in options.values()), [o for o, a in options.items() if not a.help]
     assert "pi0_small_distill" in out and "dummy_distill" in out

@@ -27,7 +27,8 @@ def libero_obs():
 
 def make_ckpt(tmp_path_factory, sp_model_path, preset, **overrides):
     config = get_config(preset, **overrides)
-    params = pi0.init_params(config, jax.random.key(0))
+    # every leaf random: init_params zeroes SigLIP's head (as openpi does), so no pixel would reach the actions
+    params = pi0.random_params(config, 0)
     stats_json = tmp_path_factory.mktemp("stats") / "norm_stats.json"
     N.save_openpi_norm_stats(stats_json, {"state": STATE_STATS, "actions": ACTION_STATS})
     dst = tmp_path_factory.mktemp("ckpt") / preset
@@ -69,7 +70,9 @@ def test_pi0_matches_hand_built_reference(pi0_ckpt, pi0_policy, sp_model_path):
     raw = np.asarray(pi0.sample_actions(config, params, obs, noise[None], num_steps=10))[0]
     want = raw[:, :7] * (ACTION_STATS.std + 1e-6) + ACTION_STATS.mean
     np.testing.assert_allclose(out["actions"], want, rtol=1e-4, atol=1e-4)
-    assert np.abs(want).max() > 0  # not a degenerate all-zero model
+    assert raw.std() > 1e-2                                    # not a degenerate model ...
+    swapped = pi0_policy.infer({**libero_obs(), "observation/image": WRIST}, noise=noise)["actions"]
+    assert np.abs(swapped - out["actions"]).max() > 1e-3       # ... and the pixels reach the actions
 
 
 def test_noise_shapes_and_seeded_rng(pi0_ckpt, pi0_policy):

@@ -16,7 +16,6 @@ import sys
 import threading
 import time
 
-import jax
 import msgpack
 import numpy as np
 import pytest
@@ -103,7 +102,7 @@ class Client:
 @pytest.fixture(scope="module")
 def ckpt(tmp_path_factory, sp_model_path):
     config = get_config("dummy")
-    params = pi0.init_params(config, jax.random.key(0))
+    params = pi0.random_params(config, 0)     # every leaf random (init_params zeroes SigLIP's head: pixels unseen)
     stats = {"state": N.NormStats(mean=RNG.normal(size=8), std=RNG.uniform(0.5, 2, 8)),
              "actions": N.NormStats(mean=RNG.normal(size=7), std=RNG.uniform(0.5, 2, 7))}
     stats_json = tmp_path_factory.mktemp("stats") / "norm_stats.json"
@@ -371,16 +370,20 @@ def test_protocol_refuses_object_arrays_on_encode():
         protocol.packb({"a": np.array([object()], dtype=object)})
 
 
-def test_serve_help_explains_every_flag(capsys):
+def test_serve_help_explains_every_flag(capsys, cli_options):
     from pi0_jax import cli
 
     with pytest.raises(SystemExit) as e:
         cli.main(["serve", "--help"])
     assert e.value.code == 0
     out = capsys.readouterr().out
-    for flag in ("--host", "--port", "--num-steps", "--seed", "--max-batch", "--batch-window-ms", "--api-key",
-                 "--max-frame-mb", "--no-warmup", "--strict", "--tokenizer", "--norm-stats", "--dtype"):
+    flags = ("--host", "--port", "--num-steps", "--seed", "--max-batch", "--batch-window-ms", "--api-key",
+             "--max-frame-mb", "--no-warmup", "--strict", "--tokenizer", "--norm-stats", "--dtype")
+    for flag in flags:
         assert flag in out
+    options = cli_options("serve")
+    assert set(flags) <= set(options), set(flags) - set(options)
+    assert all(a.help for a in options.values()), [o for o, a in options.items() if not a.help]
 
 
 def test_cli_serves_and_exits_cleanly_on_sigterm(ckpt):

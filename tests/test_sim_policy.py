@@ -126,6 +126,7 @@ def test_chunked_plan_layout(n_dev, local, chunk):
     got = jax.jit(policies.chunked_plan(plan, chunk, n_dev))(2.0, x, keys)
     jax.tree.map(np.testing.assert_array_equal, got, want)
     assert max(seen) <= n_dev * (chunk or local) and (chunk is None or chunk >= local or max(seen) < b)
+    assert chunk is not None or seen == [b]                                   # no chunk: the whole batch at once
 
 
 def test_chunked_plan_matches_whole_batch(demo_ckpt):
@@ -153,7 +154,7 @@ def test_eval_cli_with_checkpoint(demo_ckpt, tmp_path):
                      "--gemm", "xla", "--attention", "vision=pallas", "--output-dir", str(out), "--no-progress"]) == 0
     info = json.loads((out / "eval_info.json").read_text())
     agg = info["aggregated"]
-    assert agg["n_episodes"] == 4 and 0.0 <= agg["pc_success"] <= 100.0
+    assert agg["n_episodes"] == 4 and len(info["per_episode"]) == 4
     assert all(e["length"] == 10 or e["success"] for e in info["per_episode"])
     assert info["config"]["policy_info"]["model"] == "dummy_pi05"
     assert info["config"]["policy_info"]["gemm"] == "xla"      # recorded; it changes nothing off a GPU

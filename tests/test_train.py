@@ -167,17 +167,21 @@ def test_max_delay_gives_the_first_actions_clean_and_leaves_them_out_of_the_loss
                - float(loss(CFG, model, params, obs, actions, mixed, t, rng))) > 1e-4
 
 
-def test_cli_help_explains_every_flag(capsys):
+def test_cli_help_explains_every_flag(capsys, cli_options):
     from pi0_jax import cli
 
     with pytest.raises(SystemExit) as e:
         cli.main(["train", "--help"])
     assert e.value.code == 0
     out = capsys.readouterr().out
-    for flag in ("--config", "--demos", "--out", "--resume", "--steps", "--batch", "--lr", "--warmup", "--ema",
-                 "--no-augment", "--seed", "--log-every", "--save-every", "--stop-at", "--max-episodes", "--init", "--horizon",
-                 "--max-delay"):
+    flags = ("--config", "--demos", "--out", "--resume", "--steps", "--batch", "--lr", "--warmup", "--ema",
+             "--no-augment", "--seed", "--log-every", "--save-every", "--stop-at", "--max-episodes", "--init",
+             "--horizon", "--max-delay")
+    for flag in flags:
         assert flag in out
+    options = cli_options("train")
+    assert set(flags) <= set(options), set(flags) - set(options)
+    assert all(a.help for a in options.values()), [o for o, a in options.items() if not a.help]
     assert "pi0_small_suite" in out
 
 
@@ -250,10 +254,24 @@ def test_augment_changes_images_within_range():
     z = augment.augment(jax.random.key(0), x, geometric=False)
     assert y.shape == x.shape and float(jnp.abs(y).max()) <= 1.0 + 1e-6
     assert float(jnp.abs(y - x).mean()) > 0.05 and float(jnp.abs(y - z).mean()) > 0.01
-    # the geometric map is the identity at zero rotation and a centred, full-size "crop": check the sampler
-    img = jnp.arange(32 * 32 * 3, dtype=jnp.float32).reshape(32, 32, 3) / (32 * 32 * 3)
-    key = jax.random.key(3)
-    out = augment.crop_resize_rotate(key, img)
-    assert out.shape == img.shape
-    # the crop keeps 95 %: the centre pixel moves by less than 5 % of the side
-    assert float(jnp.abs(out[16, 16] - img[16, 16]).max()) < 0.06
+    # the geometric map on ramps (channel 0 = the pixel centre's row, 1 = its column): bilinear sampling keeps a
+    # linear image linear, so each output channel is a plane whose slopes are the map's: CROP times a rotation
+    # by at most MAX_ROTATE_DEG (a transposed or mirrored sampler or a wrong scale fails), offset by a crop
+    # corner inside the image
+    yy, xx = np.meshgrid(np.arange(32) + 0.5, np.arange(32) + 0.5, indexing="ij")
+    img = jnp.asarray(np.stack([yy, xx, np.zeros_like(yy)], -1) / 64, jnp.float32)
+    inner = (slice(6, 26), slice(6, 26))            # away from the zero fill that rotation brings into the corners
+    basis = np.stack([yy[inner].ravel(), xx[inner].ravel(), np.ones(400)], 1)
+    angles = []
+    for seed in range(4):
+        out = np.asarray(augment.crop_resize_rotate(jax.random.key(seed), img), np.float64) * 64
+        assert out.shape == img.shape
+        (ay, ax, a0), res_a, *_ = np.linalg.lstsq(basis, out[inner][..., 0].ravel(), rcond=None)
+        (by, bx, b0), res_b, *_ = np.linalg.lstsq(basis, out[inner][..., 1].ravel(), rcond=None)
+        assert max(res_a[0], res_b[0]) < 1e-3                                  # planes: linear interpolation
+        np.testing.assert_allclose([ay, ax, np.hypot(ay, ax)], [bx, -by, augment.CROP], atol=1e-4)
+        angles.append(np.degrees(np.arctan2(by, bx)))
+        c, s, half = bx / augment.CROP, by / augment.CROP, 16.0
+        off = np.array([a0, b0]) - augment.CROP * np.array([half * (1 - c) + s * half, half * (1 - c) - s * half])
+        assert (off >= -1e-4).all() and (off <= 32 * (1 - augment.CROP) + 1e-4).all(), off
+    assert max(map(abs, angles)) <= augment.MAX_ROTATE_DEG + 1e-3 and np.ptp(angles) > 0.5
