@@ -40,7 +40,6 @@ from pathlib import Path
 import numpy as np
 
 STATE, ACTIONS = "state", "actions"
-_LEROBOT_CANONICAL = {"observation.state": STATE, "action": ACTIONS}
 
 
 class Mode(str, enum.Enum):

@@ -349,7 +349,7 @@ def check(mode, k, hidden, layers, cols, stages):
 
 def overlap(fn, calls: int = 3) -> dict:
     """From a trace: how long each kernel ran while the one before it still ran (PDL's early launch shows here)."""
-    events, threads, gpu, _ = traced(fn, calls, None)
+    events, threads, gpu, _ = traced(fn, calls)
     kernels = sorted(gpu_kernels(events, threads, gpu))
     over = [max(0.0, (ts0 + d0) - ts1) for (ts0, d0, _), (ts1, _, _) in zip(kernels, kernels[1:])]
     return {"overlap_us_per_kernel": float(np.sum(over)) / max(len(kernels), 1),

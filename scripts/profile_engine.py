@@ -53,17 +53,17 @@ def count_ops(hlo: str) -> dict:
     return {k: v for k, v in counts.items() if sum(v.values())}
 
 
-def traced(fn, calls: int, log_dir: str | None = None) -> tuple:
+def traced(fn, calls: int) -> tuple:
     """Run fn() `calls` times under jax.profiler (after one untraced call) -> (the perfetto trace's events, thread
     names by (pid, tid), the GPU processes' pids, the host-timed wall per call in s)."""
     jax.block_until_ready(fn())
-    log_dir = log_dir or tempfile.mkdtemp()
-    with jax.profiler.trace(log_dir, create_perfetto_trace=True):
-        start = time.perf_counter()
-        for _ in range(calls):
-            jax.block_until_ready(fn())
-        wall = (time.perf_counter() - start) / calls
-    events = json.load(gzip.open(glob.glob(f"{log_dir}/**/perfetto_trace.json.gz", recursive=True)[0]))
+    with tempfile.TemporaryDirectory() as log_dir:
+        with jax.profiler.trace(log_dir, create_perfetto_trace=True):
+            start = time.perf_counter()
+            for _ in range(calls):
+                jax.block_until_ready(fn())
+            wall = (time.perf_counter() - start) / calls
+        events = json.load(gzip.open(glob.glob(f"{log_dir}/**/perfetto_trace.json.gz", recursive=True)[0]))
     events = events["traceEvents"] if isinstance(events, dict) else events
     procs = {e["pid"]: e["args"]["name"] for e in events if e.get("name") == "process_name"}
     threads = {(e["pid"], e["tid"]): e["args"]["name"] for e in events if e.get("name") == "thread_name"}
@@ -78,13 +78,13 @@ def gpu_kernels(events, threads, gpu) -> list:
                   and threads.get((e["pid"], e.get("tid")), "").startswith("Stream"))
 
 
-def kernel_times(fn, calls: int = 5, log_dir: str | None = None, sequence: bool = False) -> dict:
+def kernel_times(fn, calls: int = 5, sequence: bool = False) -> dict:
     """Run fn() `calls` times under jax.profiler and sum the GPU kernels of the trace by name (numeric suffixes
     dropped: fusion.12 and fusion.40 are one row). Per call: kernels launched, their summed time, the host-timed wall
     time, busy = summed / wall (the wall holds the host's dispatch and synchronisation too), and the device's own
     span and idle time (`idle`). sequence: also the first traced call's kernels in launch order, each with its
     full name (the optimized HLO's instruction name for XLA's fusions) and duration in us."""
-    events, threads, gpu, wall = traced(fn, calls, log_dir)
+    events, threads, gpu, wall = traced(fn, calls)
     kernels = gpu_kernels(events, threads, gpu)
     short = [(ts, dur, re.sub(r"([._]\d+)+$", "", name)) for ts, dur, name in kernels]
     rows = collections.defaultdict(lambda: [0, 0.0])

@@ -72,7 +72,7 @@ def main() -> int:
         if quant not in (None, *policies.QUANT_FORMATS) and calib is None:
             calib = policies.calibration_observation(config, tok, normalizer, args.calib_samples, args.seed)
         t0 = time.perf_counter()
-        qparams = policies.quantize_for_suite(config, params, tok, normalizer, quant, calib=calib)
+        qparams = policies.quantize_for_suite(config, params, tok, normalizer, quant, seed=args.seed, calib=calib)
         quant_s = time.perf_counter() - t0
         for n in counts:
             def make(env, qparams=qparams, n=n, scheme=scheme, quant=quant):

@@ -247,19 +247,18 @@ def suffix_kv(config: Pi0Config, cache: PrefixCache) -> tuple:
 
 
 def velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, cache: PrefixCache, state, x_t, *,
-             unroll: bool, attention: Attention = Attention(), kernels: str = "xla",
-             frozen: jax.Array | None = None) -> jax.Array:
-    """v(x_t, t_step) over the cache. `sched` is `weights.precompute_schedule` output, indexed by the step number.
-    attention.denoise "cudnn" needs a cache filled with the same `attention` (its valid keys first). `frozen` (B, H)
-    bool: those actions are committed and ride at t = 0 (`sched["committed"]`), the rest at the step's time. With
-    the fused attention a single call pads the cache into `suffix_kv`'s buffers itself (one copy, as a concatenation
-    was); `denoise` makes them once and carries them instead."""
+             unroll: bool, attention: Attention = Attention()) -> jax.Array:
+    """v(x_t, t_step) over the cache, on XLA's expert (real-time chunking differentiates it). `sched` is
+    `weights.precompute_schedule` output, indexed by the step number. attention.denoise "cudnn" needs a cache
+    filled with the same `attention` (its valid keys first). With the fused attention a single call pads the cache
+    into `suffix_kv`'s buffers itself (one copy, as a concatenation was); `denoise` makes them once and carries them
+    instead."""
     kv = None
-    if fused_suffix_attention(config, attention, kernels, x_t.shape[0], weights["expert"]):
+    if fused_suffix_attention(config, attention, "xla", x_t.shape[0], weights["expert"]):
         kv = suffix_kv(config, cache)
-    fixed = step_invariants(config, weights, cache, state, x_t.shape[0], kernels, attention)
+    fixed = step_invariants(config, weights, cache, state, x_t.shape[0], "xla", attention)
     return _velocity(config, weights, sched, step, cache, fixed, x_t, kv, unroll=unroll, attention=attention,
-                     kernels=kernels, frozen=frozen)[0]
+                     kernels="xla", frozen=None)[0]
 
 
 def step_invariants(config: Pi0Config, weights: dict, cache: PrefixCache, state, batch: int, kernels: str,

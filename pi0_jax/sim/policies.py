@@ -309,14 +309,14 @@ QUANT_FORMATS = ("nvfp4", "mxfp4")     # weight-only FP4 emulation; the FP8 sche
 CALIB_SAMPLES = 64   # rendered suite observations an FP8 scheme's static scales are calibrated on
 
 
-def quantize_for_suite(config, params, tok, normalizer, quant: str | None, *, calib_samples: int | None = None,
-                       seed: int = 0, calib=None, num_steps: int = 10, timing: dict | None = None):
+def quantize_for_suite(config, params, tok, normalizer, quant: str | None, *, seed: int = 0, calib=None,
+                       num_steps: int = 10, timing: dict | None = None):
     """params in number format `quant`: None = unchanged; an FP8 scheme of `pi0_jax.quant.schemes` (real e4m3
-    GEMMs where XLA emits them) with static activation scales, amax over `calib_samples` (None: CALIB_SAMPLES)
-    rendered suite observations from initial states 50..99 (never evaluated); "nvfp4" / "mxfp4": weight emulation
-    (quantised and dequantised back) of every GEMM the FP8 scheme "all" covers. calib: a precomputed
-    `calibration_observation` (then no observations_s here). timing: a dict to receive the seconds of each part
-    (observations, the calibration's compile and run, quantising)."""
+    GEMMs where XLA emits them) with static activation scales, amax over CALIB_SAMPLES rendered suite
+    observations from initial states 50..99 (never evaluated; seed: their and the calibration's noise draws);
+    "nvfp4" / "mxfp4": weight emulation (quantised and dequantised back) of every GEMM the FP8 scheme "all"
+    covers. calib: a precomputed `calibration_observation` (then no observations_s here). timing: a dict to receive
+    the seconds of each part (observations, the calibration's compile and run, quantising)."""
     if quant is None:
         return params
     from pi0_jax.quant import schemes
@@ -328,7 +328,7 @@ def quantize_for_suite(config, params, tok, normalizer, quant: str | None, *, ca
     timing = {} if timing is None else timing
     if calib is None:
         t0 = time.perf_counter()
-        calib = calibration_observation(config, tok, normalizer, calib_samples or CALIB_SAMPLES, seed)
+        calib = calibration_observation(config, tok, normalizer, CALIB_SAMPLES, seed)
         timing["observations_s"] = time.perf_counter() - t0
     calib_timing = {}
     amax = schemes.calibrate(config, params, [calib], quant, percentile=None, num_steps=num_steps, seed=seed,

@@ -228,7 +228,6 @@ class SceneIndex:
     block_body: tuple[int, ...]
     block_geom: tuple[int, ...]
     fixture_mocap: tuple[int, ...]   # bowl, plate
-    fixture_geom: tuple[int, ...]    # the drawn disc of each fixture (its segmentation id)
     tcp_site: int
     hand_body: int
     arm_dof: tuple[int, ...]
@@ -251,7 +250,6 @@ def build(cfg: SceneConfig = SceneConfig()):
         block_body=tuple(bid(b) for b in BLOCKS),
         block_geom=tuple(gid(b) for b in BLOCKS),
         fixture_mocap=tuple(int(model.body_mocapid[bid(f)]) for f in FIXTURES),
-        fixture_geom=tuple(gid(f) for f in FIXTURES),
         tcp_site=mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, "tcp"),
         hand_body=bid("hand"),
         arm_dof=tuple(int(model.jnt_dofadr[jid(j)]) for j in ARM_JOINTS),
