@@ -37,3 +37,10 @@ def test_help_lists_every_subcommand(capsys):
                                 "serve"}
     for cmd in sub.choices:     # its own line in --help, with its help text (the description names most of them)
         assert re.search(rf"^ +{cmd}\s+\S", out, re.M), cmd
+
+
+def test_every_flag_of_every_subcommand_is_explained(cli_options):
+    sub = next(a for a in cli.build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    unexplained = [f"{cmd} {o}" for cmd in sub.choices for o, a in cli_options(cmd).items()
+                   if not a.help or a.help == argparse.SUPPRESS]
+    assert not unexplained, unexplained

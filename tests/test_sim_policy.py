@@ -1,9 +1,11 @@
 """A pi0-jax checkpoint in the simulated loop: LeRobot's tiny random π0.5 parity fixture (LeRobot normaliser, state
 written into the prompt), converted with `pi0-jax convert`, with the suite's small tokenizer.
 
-* The batched in-jit policy (policies.checkpoint_policy) gives the same action chunks as the reference host-side
-  `pi0_jax.policy.Policy.infer` on the same rendered observations and noise (camera slots, resize-with-pad,
-  normalisation, the discretised-state prompt, un-normalisation).
+* The batched in-jit policy (policies.checkpoint_policy) gives the same action chunks as the host-side
+  `pi0_jax.policy.Policy.infer` on the same rendered observations and noise. Both run one pipeline
+  (`PolicyCore`: resize-with-pad, normalisation, un-normalisation), so this checks the simulator's side of it:
+  camera slots, the batch, the discretised-state prompt built on the device against the host's tokenised one.
+  The pipeline's transforms themselves are checked against hand-written formulas in tests/test_policy.py.
 * `pi0-jax eval --policy CKPT` runs end to end and writes eval_info.json and a video (the model scores ~0 %).
 """
 

@@ -119,7 +119,9 @@ def test_dls_step_moves_along_the_twist():
 @pytest.mark.parametrize("convention,mode", [("openpi", "QUANTILES"), ("openpi", "MEAN_STD"),
                                              ("lerobot", "MEAN_STD"), ("lerobot", "QUANTILES"),
                                              ("lerobot", "MIN_MAX")])
-def test_affine_normalisation_equals_numpy_formulas(convention, mode):
+def test_affine_normalisation_equals_the_elementwise_functions(convention, mode):
+    """The device path's per-dim scale and offset (`Normalizer.affine`) against the host's elementwise normalise /
+    unnormalise (which tests/test_normalize.py checks against openpi's and LeRobot's formulas)."""
     rng = np.random.default_rng(2)
     lo, hi = rng.normal(size=7) - 2, rng.normal(size=7) + 2
     stats = nz.NormStats(mean=rng.normal(size=7), std=rng.uniform(0.1, 2, 7), q01=lo, q99=hi, min=lo, max=hi)
@@ -131,16 +133,21 @@ def test_affine_normalisation_equals_numpy_formulas(convention, mode):
                                    fn(x, stats, mode, convention), rtol=1e-5, atol=1e-5)
 
 
-def test_eval_help_explains_every_flag(capsys):
+def test_eval_help_explains_every_flag(capsys, cli_options):
     from pi0_jax import cli
 
     with pytest.raises(SystemExit) as e:
         cli.main(["eval", "--help"])
     assert e.value.code == 0
     out = capsys.readouterr().out
-    for flag in ("--policy", "--suite", "--episodes-per-task", "--batch", "--replan-steps", "--steps",
-                 "--output-dir", "--resolution", "--videos", "--seed", "--coordinator"):
+    flags = ("--policy", "--suite", "--episodes-per-task", "--batch", "--replan-steps", "--steps", "--output-dir",
+             "--resolution", "--videos", "--seed", "--coordinator", "--execution", "--latency-steps", "--rtc-beta",
+             "--reuse-prefix")
+    for flag in flags:
         assert flag in out
+    options = cli_options("eval")
+    assert set(flags) <= set(options), set(flags) - set(options)
+    assert all(a.help for a in options.values()), [o for o, a in options.items() if not a.help]
 
 
 def test_servos_hold_the_home_pose_and_objects_rest():

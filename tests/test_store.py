@@ -1,6 +1,7 @@
 """`engine.store.ProgramStore`: compiled programs on disk, keyed by what they are made from."""
 
 import json
+import os
 import subprocess
 import sys
 import textwrap
@@ -76,6 +77,20 @@ def test_the_source_digest_is_in_the_key(tmp_path, monkeypatch):
     base = s.key("f", (), args, None)
     monkeypatch.setattr(store_lib, "source_digest", lambda: "edited")
     assert s.key("f", (), args, None) != base
+
+
+def test_xla_flags_precision_and_sharding_are_in_the_key(tmp_path, monkeypatch):
+    s, args = ProgramStore(tmp_path), _args()
+    base = s.key("f", (), args, None)
+    with monkeypatch.context() as m:
+        m.setenv("XLA_FLAGS", (os.environ.get("XLA_FLAGS", "") + " --xla_dump_to=/nowhere").strip())
+        flags = s.key("f", (), args, None)
+    with jax.default_matmul_precision("highest"):
+        precision = s.key("f", (), args, None)
+    mesh = jax.sharding.Mesh(np.array(jax.devices()[:1]), ("b",))
+    sharded = jax.device_put(args, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
+    assert len({base, flags, precision, s.key("f", (), sharded, None)}) == 4
+    assert s.key("f", (), args, None) == base      # each change undone: the same key again
 
 
 def test_a_broken_entry_is_reported_removed_and_compiled_again(tmp_path):

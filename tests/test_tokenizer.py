@@ -17,7 +17,9 @@ def test_special_ids_come_from_the_model(sp_model_path):
     assert (tok.bos_id, tok.eos_id, tok.pad_id) == (2, 1, 0)
 
 
-def test_newline_is_one_token(sp):
+def test_the_fixture_has_newline_as_one_token(sp):
+    """The premise of the format tests below, as in PaliGemma's tokenizer (a property of the fixture, not of
+    pi0_jax code)."""
     assert len(sp.encode("\n")) == 1
 
 
