@@ -346,7 +346,7 @@ def run(args: argparse.Namespace) -> dict:
 
                 stats = schemes.calibrate(config, params, schemes.sample_observations(config, 4, seed=args.seed),
                                           args.quant, percentile=None, num_steps=max(args.steps))
-                params = schemes.quantize_params(config, params, args.quant, stats["amax"])
+                params = schemes.quantize_params(params, args.quant, stats["amax"])
         engine = Engine(config, params, unroll=not args.no_unroll, unroll_steps=args.unroll_steps,
                         attention=args.attention, kernels=args.kernels, gemm=args.gemm, cache_dir=cache_dir)
         for batch in args.batch:

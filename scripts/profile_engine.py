@@ -238,7 +238,7 @@ def main() -> None:
     if args.quant:
         stats = schemes.calibrate(config, params, schemes.sample_observations(config, 4, seed=0), args.quant,
                                   percentile=None, num_steps=args.steps)
-        params = schemes.quantize_params(config, params, args.quant, stats["amax"])
+        params = schemes.quantize_params(params, args.quant, stats["amax"])
     obs, noise = benchmark.make_inputs(config, args.batch, args.cameras, args.prompt_tokens, 0)
     report = {"preset": args.preset, "batch": args.batch, "steps": args.steps, "quant": args.quant,
               "env": benchmark.environment(),

@@ -104,7 +104,7 @@ def main() -> None:
     if args.fp8:
         calib = schemes.sample_observations(config, 2, seed=1, batch=2)
         amax = schemes.calibrate(config, params, calib, "vision", percentile=None)["amax"]
-        imgs["fp8"] = schemes.quantize_params(config, params, "vision", amax)["PaliGemma"]["img"]
+        imgs["fp8"] = schemes.quantize_params(params, "vision", amax)["PaliGemma"]["img"]
     variants = {}
     for fmt, img in imgs.items():
         if args.old_siglip:

@@ -72,7 +72,7 @@ CHILD = textwrap.dedent("""
     from pi0_jax.quant import schemes
     calib = schemes.sample_observations(cfg, 1, seed=1)
     amax = schemes.calibrate(cfg, params, calib, "vision", percentile=None)["amax"]
-    wq = engine_weights(cfg, schemes.quantize_params(cfg, params, "vision", amax), unroll=True)
+    wq = engine_weights(cfg, schemes.quantize_params(params, "vision", amax), unroll=True)
     print("fp8 collectives", collectives(sharded.lower(wq, images).compile().as_text()))
     np.testing.assert_allclose(sharded(wq, images), jax.jit(enc)(wq, images), rtol=1e-5, atol=1e-5)
 """)

@@ -357,7 +357,7 @@ def test_fp8_vision_quantises_only_the_mlp_in_xla_with_the_kernels():
     config = get_config("dummy", dtype="float32")
     params = benchmark.random_params(config, 0)
     calib = schemes.sample_observations(config, 1, seed=1)
-    qp = schemes.quantize_params(config, params, "vision",
+    qp = schemes.quantize_params(params, "vision",
                                  schemes.calibrate(config, params, calib, "vision", percentile=None)["amax"])
     engine = Engine(config, qp, cache_dir=False)
     images = jax.ShapeDtypeStruct((2, 1, config.image_size, config.image_size, 3), jnp.float32)

@@ -118,7 +118,7 @@ def test_calibration_is_deterministic_and_ordered(dummy):
 
 def test_quantized_checkpoint_round_trips(dummy, tmp_path):
     config, params, calib, stats = dummy
-    qp = schemes.quantize_params(config, params, "all", stats["amax"])
+    qp = schemes.quantize_params(params, "all", stats["amax"])
     assert len(schemes.quantized_paths(qp)) == 17  # 2 + 3 VLM, 7 SigLIP, 5 expert
     checkpoint.save_checkpoint(tmp_path / "q", qp, config, extra_meta={"quant": {"scheme": "all"}})
     config2, loaded = checkpoint.load_checkpoint(tmp_path / "q")
@@ -155,8 +155,8 @@ def test_engine_fp8_equals_the_reference_with_the_same_weights_and_hands_xla_fp8
     config = get_config("dummy", dtype="float32")
     params = benchmark.random_params(config, 0)
     calib = schemes.sample_observations(config, 2, seed=1)
-    qp = schemes.quantize_params(config, params, "all", schemes.calibrate(config, params, calib, "all",
-                                                                           percentile=None)["amax"])
+    qp = schemes.quantize_params(params, "all", schemes.calibrate(config, params, calib, "all",
+                                                                  percentile=None)["amax"])
     engine, noise, got, want, plain = _engine_and_reference(config, qp, params, calib[1], 2)
     assert np.linalg.norm(got - want) / np.linalg.norm(want) < 1e-5
     assert np.linalg.norm(want - plain) / np.linalg.norm(plain) > 1e-3  # FP8 is in use
@@ -203,13 +203,12 @@ def test_every_gemm_quantises_the_expert_activations_calibrated_over_the_denoise
     for k in expert:
         assert one[k].shape == (depth,) and (one[k] > 0).all() and (three[k] >= one[k] * (1 - 1e-6)).all(), k
     assert any((three[k] > one[k] * 1.01).any() for k in expert)   # the later steps were recorded
-    qp = schemes.quantize_params(config, params, "every-gemm", three)
+    qp = schemes.quantize_params(params, "every-gemm", three)
     gate_up = schemes._get(qp, ("PaliGemma", "llm", "layers", "mlp_1", "gating_einsum"))
     np.testing.assert_allclose(np.asarray(gate_up.act_scale), three["expert/gate_up"] / 448, rtol=1e-6)
 
     engine, noise, got, want, plain = _engine_and_reference(config, qp, params, calib[1], 3)
-    weights_only = np.asarray(_sample(config, schemes.quantize_params(config, params, "all", three), calib[1], noise,
-                                      3))
+    weights_only = np.asarray(_sample(config, schemes.quantize_params(params, "all", three), calib[1], noise, 3))
     assert np.linalg.norm(got - want) / np.linalg.norm(want) < 1e-5
     assert np.linalg.norm(want - weights_only) / np.linalg.norm(weights_only) > 1e-4   # activations quantised too
     assert report.cosine(want, plain) > 0.99
@@ -246,8 +245,8 @@ def test_gemm_library_per_program():
 def test_activation_schemes_need_calibration(dummy):
     config, params, _, _ = dummy
     with pytest.raises(ValueError, match="calibrate"):
-        schemes.quantize_params(config, params, "prefix-mlp", None)
-    assert schemes.quantized_paths(schemes.quantize_params(config, params, "expert-weights", None))
+        schemes.quantize_params(params, "prefix-mlp", None)
+    assert schemes.quantized_paths(schemes.quantize_params(params, "expert-weights", None))
 
 
 def test_accuracy_report_runs_on_dummy(dummy):

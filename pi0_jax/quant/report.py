@@ -51,7 +51,7 @@ class Variants:
         key = (name, method if name in sch.SCHEMES else "-")
         if key not in self.engines:
             if name in sch.SCHEMES:
-                params = sch.quantize_params(self.config, self.params, name, (self.stats or {}).get(method),
+                params = sch.quantize_params(self.params, name, (self.stats or {}).get(method),
                                              per_channel=self.per_channel)
             elif name in FP4_FORMATS:
                 params = sch.fake_quant_fp4_params(self.params, name, "all")
@@ -230,8 +230,7 @@ def main(args: argparse.Namespace) -> int:
     tok = demo_tokenizer(config)
     calib = sch.sample_observations(config, args.calib_samples, seed=args.seed + 1000, tokenizer=tok)
     stats = sch.calibrate(config, params, calib, percentile=args.percentile, num_steps=args.steps)
-    qparams = sch.quantize_params(config, params, args.scheme, stats[args.calib_method],
-                                  per_channel=not args.per_tensor)
+    qparams = sch.quantize_params(params, args.scheme, stats[args.calib_method], per_channel=not args.per_tensor)
     meta = {"quant": {"scheme": args.scheme, "calib_method": args.calib_method, "calib_samples": args.calib_samples,
                       "percentile": args.percentile, "per_channel": not args.per_tensor}}
     checkpoint.save_checkpoint(args.dst, qparams, config, assets=assets, extra_meta=meta, overwrite=args.overwrite)

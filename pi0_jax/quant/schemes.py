@@ -180,8 +180,7 @@ def calibrate(config: Pi0Config, params: dict, observations, scheme: str | None 
 
 
 # -- params transforms ----------------------------------------------------------------------------------------------
-def quantize_params(config: Pi0Config, params: dict, scheme: str, amax: dict | None, *,
-                    per_channel: bool = True) -> dict:
+def quantize_params(params: dict, scheme: str, amax: dict | None, *, per_channel: bool = True) -> dict:
     """params with the scheme's weights replaced by FP8 `QArray`s; `amax` (from `calibrate`) gives the static
     activation scales of the activation-quantised groups."""
     for group, path, contract, key in _leaves(scheme):

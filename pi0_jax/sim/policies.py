@@ -335,7 +335,7 @@ def quantize_for_suite(config, params, tok, normalizer, quant: str | None, *, se
                              timing=calib_timing)["amax"]
     timing.update({f"calibrate_{k}": v for k, v in calib_timing.items()})
     t0 = time.perf_counter()
-    params = jax.block_until_ready(schemes.quantize_params(config, params, quant, amax))
+    params = jax.block_until_ready(schemes.quantize_params(params, quant, amax))
     timing["quantize_s"] = time.perf_counter() - t0
     return params
 
