@@ -315,10 +315,15 @@ def chart(result: dict, path: Path) -> bool:
     if line:
         ax.step(*zip(*line), where="post", color="grey", alpha=0.5, label="Pareto front")
     ax.set_xlabel(f"full-size inference per control step (ms, {t.get('preset', '?')}, {result['device']})")
+    return _save(plt, fig, ax, result, path, f"success against inference cost (squares: D > 0 steps of "
+                 f"{1000 // CONTROL_HZ} ms latency)")
+
+
+def _save(plt, fig, ax, result: dict, path: Path, title: str) -> bool:
+    """The success axis, title, grid and legend both charts share; the figure written to path."""
     ax.set_ylabel(f"success (%), {result['episodes']} episodes, 95 % Wilson")
     ax.set_ylim(-4, 100)
-    ax.set_title(f"{result['checkpoint_model']}: success against inference cost (squares: D > 0 steps of "
-                 f"{1000 // CONTROL_HZ} ms latency)", fontsize=9)
+    ax.set_title(f"{result['checkpoint_model']}: {title}", fontsize=9)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
@@ -355,15 +360,7 @@ def delay_chart(result: dict, path: Path) -> bool:
                     lw=2 if name == "naive" else 1)
     ax.set_xlabel(f"delay D (ms; {1000 // CONTROL_HZ} ms a control step), a new plan every "
                   f"{result['replan_steps']} steps, {result['num_steps']} flow steps")
-    ax.set_ylabel(f"success (%), {result['episodes']} episodes, 95 % Wilson")
-    ax.set_ylim(-4, 100)
-    ax.set_title(f"{result['checkpoint_model']}: success against inference delay ({result['device']})", fontsize=9)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return True
+    return _save(plt, fig, ax, result, path, f"success against inference delay ({result['device']})")
 
 
 def main() -> int:
