@@ -104,8 +104,8 @@ def add_eval_parser(subparsers) -> argparse.ArgumentParser:
                          "its index D (an episode's first D steps hold still: zero motion, gripper open); rtc = as "
                          "naive, with the new chunk sampled by real-time chunking (first D actions frozen to the "
                          "committed ones, the overlap guided with decaying weights, ΠGDM guidance clipped at "
-                         "--rtc-beta); conditioned = as naive, the committed actions given to the model as clean inputs "
-                         "(training-time action conditioning: for a model trained with `pi0-jax train "
+                         "--rtc-beta); conditioned = as naive, the committed actions given to the model as clean "
+                         "inputs (training-time action conditioning: for a model trained with `pi0-jax train "
                          "--max-delay`; no extra compute). With D = 0 all four are the same policy "
                          "(default: %(default)s)")
     rt.add_argument("--rtc-beta", type=float, default=5.0, metavar="BETA",
