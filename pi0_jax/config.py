@@ -74,7 +74,8 @@ GEMMA_VARIANTS: dict[str, GemmaConfig] = _GemmaVariants({
     # The small model trained in the MJX suite (pi0_small): the expert at half the VLM's width, as 1024 vs 2048.
     "gemma_small": GemmaConfig(width=256, depth=4, mlp_dim=1024, num_heads=4, num_kv_heads=1, head_dim=64),
     "gemma_small_expert": GemmaConfig(width=128, depth=4, mlp_dim=512, num_heads=4, num_kv_heads=1, head_dim=64),
-    # Shallower students of flow-step distillation (pi0_jax/train/distill.py): the parent variant with `_<n>l` layers.
+    # Two-layer towers (distillation students, pruned checkpoints), as `_derived` would give them; listed so that
+    # converters/detect.py, which matches tensor shapes against the entries, recognises them.
     "gemma_small_2l": GemmaConfig(width=256, depth=2, mlp_dim=1024, num_heads=4, num_kv_heads=1, head_dim=64),
     "gemma_small_expert_2l": GemmaConfig(width=128, depth=2, mlp_dim=512, num_heads=4, num_kv_heads=1, head_dim=64),
     "dummy_2l": GemmaConfig(width=64, depth=2, mlp_dim=160, num_heads=4, num_kv_heads=1, head_dim=16),

@@ -184,7 +184,8 @@ def add_distill_parser(subparsers) -> argparse.ArgumentParser:
                    help="Euler steps of the teacher's target samples; default: the preset's (10)")
     p.add_argument("--layers", type=int, default=None, metavar="N",
                    help="transformer layers of the student (both experts), at least 2 and at most the teacher's; "
-                        "needs the `<variant>_<N>l` variants in pi0_jax/config.py; default: the teacher's depth")
+                        "its towers are the `<variant>_<N>l` variants pi0_jax/config.py derives from the teacher's; "
+                        "default: the teacher's depth")
     _add_run_flags(p)
     p.set_defaults(func=run_distill)
     return p

@@ -74,8 +74,8 @@ def student_config(teacher: Pi0Config, layers: int) -> Pi0Config:
     for field, name in names.items():
         want = dataclasses.replace(GEMMA_VARIANTS[getattr(teacher, field)], depth=layers)
         if GEMMA_VARIANTS.get(name) != want:
-            raise ValueError(f"pi0_jax/config.py has no GemmaConfig variant {name!r} = {want}: add it to "
-                             f"GEMMA_VARIANTS to distil into {layers} layers")
+            raise ValueError(f"GEMMA_VARIANTS derives no {name!r} = {want} (it derives `<entry>_<n>l` from its "
+                             f"own entries only, for 1 <= n <= depth)")
     return teacher.replace(name=f"{teacher.name}_{layers}l", **names)
 
 
