@@ -45,11 +45,18 @@ def sp_model_path(tmp_path_factory):
 
 @pytest.fixture
 def cli_options():
-    """COMMAND -> {option string: its argparse action} of `pi0-jax COMMAND`, -h excluded."""
+    """options(COMMAND, flags=()) -> {option string: its argparse action} of `pi0-jax COMMAND`, -h excluded, after
+    checking that `flags` are among them and that every option has help; `options.commands`: the subcommands."""
     from pi0_jax import cli
 
-    def options(command: str) -> dict:
-        sub = next(a for a in cli.build_parser()._actions if isinstance(a, argparse._SubParsersAction))
-        return {o: a for a in sub.choices[command]._actions for o in a.option_strings if o not in ("-h", "--help")}
+    sub = next(a for a in cli.build_parser()._actions if isinstance(a, argparse._SubParsersAction))
 
+    def options(command: str, flags=()) -> dict:
+        found = {o: a for a in sub.choices[command]._actions for o in a.option_strings if o not in ("-h", "--help")}
+        assert set(flags) <= set(found), set(flags) - set(found)
+        assert all(a.help and a.help != argparse.SUPPRESS for a in found.values()), [
+            o for o, a in found.items() if not a.help or a.help == argparse.SUPPRESS]
+        return found
+
+    options.commands = tuple(sub.choices)
     return options

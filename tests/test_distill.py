@@ -160,7 +160,5 @@ def test_distill_help_explains_every_flag(capsys, cli_options):
              "--save-every", "--resume", "--stop-at", "--max-episodes")
     for flag in flags:
         assert flag in out
-    options = cli_options("distill")
-    assert set(flags) <= set(options), set(flags) - set(options)
-    assert all(a.help for a in options.values()), [o for o, a in options.items() if not a.help]
+    cli_options("distill", flags)     # each flag defined by the parser, every option with help
     assert "pi0_small_distill" in out and "dummy_distill" in out

@@ -381,9 +381,7 @@ def test_serve_help_explains_every_flag(capsys, cli_options):
              "--max-frame-mb", "--no-warmup", "--strict", "--tokenizer", "--norm-stats", "--dtype")
     for flag in flags:
         assert flag in out
-    options = cli_options("serve")
-    assert set(flags) <= set(options), set(flags) - set(options)
-    assert all(a.help for a in options.values()), [o for o, a in options.items() if not a.help]
+    cli_options("serve", flags)     # each flag defined by the parser, every option with help
 
 
 def test_cli_serves_and_exits_cleanly_on_sigterm(ckpt):

@@ -145,9 +145,7 @@ def test_eval_help_explains_every_flag(capsys, cli_options):
              "--reuse-prefix")
     for flag in flags:
         assert flag in out
-    options = cli_options("eval")
-    assert set(flags) <= set(options), set(flags) - set(options)
-    assert all(a.help for a in options.values()), [o for o, a in options.items() if not a.help]
+    cli_options("eval", flags)     # each flag defined by the parser, every option with help
 
 
 def test_servos_hold_the_home_pose_and_objects_rest():

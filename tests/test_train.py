@@ -179,9 +179,7 @@ def test_cli_help_explains_every_flag(capsys, cli_options):
              "--horizon", "--max-delay")
     for flag in flags:
         assert flag in out
-    options = cli_options("train")
-    assert set(flags) <= set(options), set(flags) - set(options)
-    assert all(a.help for a in options.values()), [o for o, a in options.items() if not a.help]
+    cli_options("train", flags)     # each flag defined by the parser, every option with help
     assert "pi0_small_suite" in out
 
 
