@@ -148,6 +148,24 @@ def test_control_loss_is_zero_for_the_teacher_itself(teacher, demos):
     assert float(loss(shifted(0))) > 1e-2
 
 
+def test_distill_cli_passes_the_optimiser_flags(tmp_path, monkeypatch):
+    """The flags `distill` shares with `train` reach the DistillConfig that distill.distill is given (a spy: no run)."""
+    from pi0_jax import cli
+
+    seen = {}
+
+    def spy(cfg, *args, **kw):
+        seen["cfg"] = cfg
+        return {}
+
+    monkeypatch.setattr(distill, "distill", spy)
+    assert cli.main(["distill", "--config", "dummy_distill", "--teacher", str(tmp_path), "--demos", str(tmp_path),
+                     "--out", str(tmp_path), "--clip-norm", "0.5", "--weight-decay", "0", "--b2", "0.9",
+                     "--keep", "1"]) == 0
+    assert seen["cfg"] == get_distill_config("dummy_distill", clip_norm=0.5, weight_decay=0.0, b2=0.9, keep=1)
+    assert seen["cfg"] != get_distill_config("dummy_distill")
+
+
 def test_distill_help_explains_every_flag(capsys, cli_options):
     from pi0_jax import cli
 
@@ -157,7 +175,8 @@ def test_distill_help_explains_every_flag(capsys, cli_options):
     out = capsys.readouterr().out
     flags = ("--teacher", "--demos", "--out", "--config", "--student-steps", "--teacher-steps", "--layers",
              "--steps", "--batch", "--lr", "--warmup", "--ema", "--no-augment", "--seed", "--log-every",
-             "--save-every", "--resume", "--stop-at", "--max-episodes")
+             "--save-every", "--resume", "--stop-at", "--max-episodes", "--clip-norm", "--weight-decay", "--b2",
+             "--keep")
     for flag in flags:
         assert flag in out
     cli_options("distill", flags)     # each flag defined by the parser, every option with help

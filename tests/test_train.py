@@ -109,7 +109,8 @@ def _check_export_loads_as_policy(straight, demos):
 def test_init_fine_tunes_a_checkpoint_to_another_horizon(demos, tmp_path):
     """`pi0-jax train --init CKPT --horizon 12`: the run starts from CKPT's weights (with a zero learning rate and no
     EMA the export equals them; CKPT was drawn from another seed than the run's, so a fresh init would not), keeps
-    CKPT's tokenizer and norm stats, and exports a model that samples 12-action chunks."""
+    CKPT's tokenizer and norm stats, and exports a model that samples 12-action chunks. The optimiser and --keep flags
+    reach the trainer's config."""
     from pi0_jax import checkpoint as ckpt_lib
     from pi0_jax import cli
     from pi0_jax.policy import Policy
@@ -128,7 +129,8 @@ def test_init_fine_tunes_a_checkpoint_to_another_horizon(demos, tmp_path):
     out = tmp_path / "run"
     assert cli.main(["train", "--config", "dummy_smoke", "--demos", str(demos), "--out", str(out), "--init", str(ckpt),
                      "--horizon", "12", "--max-delay", "3", "--steps", "2", "--lr", "0", "--ema", "0",
-                     "--log-every", "1", "--save-every", "2", "--no-augment"]) == 0
+                     "--clip-norm", "0.5", "--weight-decay", "0", "--b2", "0.9", "--keep", "1",
+                     "--log-every", "1", "--save-every", "1", "--no-augment"]) == 0
     got_cfg, got = ckpt_lib.load_checkpoint(out / "checkpoint")
     _, want = ckpt_lib.load_checkpoint(ckpt)
     assert got_cfg.action_horizon == 12 and model.action_horizon != 12
@@ -139,6 +141,10 @@ def test_init_fine_tunes_a_checkpoint_to_another_horizon(demos, tmp_path):
                                   stats["state"].mean)
     saved = json.loads((out / "train_config.json").read_text())
     assert saved["init"] == str(ckpt.absolute()) and saved["train"]["max_delay"] == 3
+    # the optimiser flags (none at the preset's value) reach the trainer's TrainConfig; --keep 1 leaves 1 of 2 states
+    assert {k: saved["train"][k] for k in ("clip_norm", "weight_decay", "b2", "keep")} == {
+        "clip_norm": 0.5, "weight_decay": 0.0, "b2": 0.9, "keep": 1}
+    assert [p.name for p in (out / "train_state").iterdir()] == ["00000002"]
     ep = np.load(demos / "episode_000003.npz")
     result = Policy.from_checkpoint(out / "checkpoint").infer(
         {"observation/image": ep["agentview"][0], "observation/wrist_image": ep["wrist"][0],
@@ -167,6 +173,15 @@ def test_max_delay_gives_the_first_actions_clean_and_leaves_them_out_of_the_loss
                - float(loss(CFG, model, params, obs, actions, mixed, t, rng))) > 1e-4
 
 
+@pytest.mark.parametrize("flag, value", [("--clip-norm", "0"), ("--weight-decay", "-0.1"), ("--b2", "1"),
+                                         ("--keep", "0")])
+def test_cli_rejects_an_optimiser_flag_out_of_range(flag, value, tmp_path):
+    from pi0_jax import cli
+
+    with pytest.raises(ValueError, match=flag[2:].replace("-", "_")):
+        cli.main(["train", "--config", "dummy_smoke", "--demos", str(tmp_path), "--out", str(tmp_path), flag, value])
+
+
 def test_cli_help_explains_every_flag(capsys, cli_options):
     from pi0_jax import cli
 
@@ -176,7 +191,7 @@ def test_cli_help_explains_every_flag(capsys, cli_options):
     out = capsys.readouterr().out
     flags = ("--config", "--demos", "--out", "--resume", "--steps", "--batch", "--lr", "--warmup", "--ema",
              "--no-augment", "--seed", "--log-every", "--save-every", "--stop-at", "--max-episodes", "--init",
-             "--horizon", "--max-delay")
+             "--horizon", "--max-delay", "--clip-norm", "--weight-decay", "--b2", "--keep")
     for flag in flags:
         assert flag in out
     cli_options("train", flags)     # each flag defined by the parser, every option with help

@@ -16,7 +16,7 @@ The whole dataset is put on every device once (uint8 images: ~18 GB for the embe
 112 px) and each batch is gathered, normalised and augmented inside the jitted step.
 
 Writes OUT/: tokenizer.model and norm_stats.json (computed from the demos), train_state/ (orbax, every
---save-every steps), train_log.json, loss.png and, at the end, checkpoint/ (the EMA weights as a pi0-jax checkpoint
+--save-every steps, the newest --keep kept), train_log.json, loss.png and, at the end, checkpoint/ (the EMA weights as a pi0-jax checkpoint
 with its tokenizer and norm stats; `pi0-jax eval --policy OUT/checkpoint` and Policy.from_checkpoint load it).
 Every batch and noise draw comes from (seed, step), so --resume continues bit-identically.
 
@@ -59,13 +59,19 @@ def add_train_parser(subparsers) -> argparse.ArgumentParser:
                         "2025): each sample's first d ~ U{0..D} actions are given clean and left out of the loss, "
                         "so the model continues actions already committed (`pi0-jax eval --execution conditioned "
                         "--latency-steps d`); needs D < the horizon; default: the preset's (0, off)")
-    _add_run_flags(p)
+    _add_run_flags(p, PRESETS.values())
     p.set_defaults(func=run)
     return p
 
 
-def _add_run_flags(p: argparse.ArgumentParser) -> None:
-    """The optimiser, logging and run flags that `train` and `distill` share (None: the preset's)."""
+def _preset_default(presets, field: str) -> str:
+    """"default: the preset's (V)", V the value (or values) that `presets` give `field`."""
+    return f"default: the preset's ({' or '.join(f'{v!r}' for v in sorted({getattr(c, field) for c in presets}))})"
+
+
+def _add_run_flags(p: argparse.ArgumentParser, presets) -> None:
+    """The optimiser, logging and run flags that `train` and `distill` share (None: the preset's); `presets`: the
+    subcommand's TrainConfigs (the help quotes their clip_norm, weight_decay, b2 and keep)."""
     p.add_argument("--steps", type=int, default=None, metavar="N",
                    help="total optimizer steps (the cosine schedule ends here); default: the preset's")
     p.add_argument("--batch", type=int, default=None, metavar="B",
@@ -75,6 +81,15 @@ def _add_run_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ema", type=float, default=None, metavar="DECAY",
                    help="EMA decay of the exported weights; 0 disables the EMA (the raw weights are exported); "
                         "default: the preset's")
+    p.add_argument("--clip-norm", type=float, default=None, metavar="NORM",
+                   help="gradients are scaled down to this global L2 norm (over all parameters, before AdamW) "
+                        f"when above it; inf: no clipping; {_preset_default(presets, 'clip_norm')}")
+    p.add_argument("--weight-decay", type=float, default=None, metavar="WD",
+                   help="AdamW's decoupled weight decay, per unit of learning rate (each step subtracts "
+                        f"lr x WD x the weights); {_preset_default(presets, 'weight_decay')}")
+    p.add_argument("--b2", type=float, default=None,
+                   help="AdamW's per-step decay of its second-moment (squared gradient) average, in [0, 1); "
+                        f"{_preset_default(presets, 'b2')}")
     p.add_argument("--no-augment", action="store_true",
                    help="turn off the image augmentation (crop/resize/rotate on the agent view, colour jitter)")
     p.add_argument("--seed", type=int, default=None,
@@ -83,6 +98,9 @@ def _add_run_flags(p: argparse.ArgumentParser) -> None:
                    help="steps between loss fetches / log lines (the only host syncs); default: the preset's")
     p.add_argument("--save-every", type=int, default=None, metavar="N",
                    help="steps between train-state checkpoints; default: the preset's")
+    p.add_argument("--keep", type=int, default=None, metavar="N",
+                   help="train-state checkpoints kept in OUT/train_state (the newest N; older ones are deleted); "
+                        f"{_preset_default(presets, 'keep')}")
     p.add_argument("--resume", action="store_true",
                    help="continue from the newest OUT/train_state checkpoint (bit-identical to an uninterrupted run)")
     p.add_argument("--stop-at", type=int, default=None, metavar="N",
@@ -94,8 +112,10 @@ def _add_run_flags(p: argparse.ArgumentParser) -> None:
 
 def _overrides(args: argparse.Namespace) -> dict:
     over = {k: v for k, v in {"steps": args.steps, "batch_size": args.batch, "lr": args.lr,
-                              "warmup_steps": args.warmup, "seed": args.seed, "log_every": args.log_every,
-                              "save_every": args.save_every}.items() if v is not None}
+                              "warmup_steps": args.warmup, "clip_norm": args.clip_norm,
+                              "weight_decay": args.weight_decay, "b2": args.b2, "seed": args.seed,
+                              "log_every": args.log_every, "save_every": args.save_every,
+                              "keep": args.keep}.items() if v is not None}
     if args.ema is not None:
         over["ema_decay"] = args.ema or None
     if args.no_augment:
@@ -109,9 +129,9 @@ def config_from_args(args: argparse.Namespace):
     return get_train_config(args.config, **_overrides(args))
 
 
-# the schedule and the batch stream depend on these: changing them on --resume breaks the exact resume
-_RESUME_KEYS = ("model", "batch_size", "lr", "warmup_steps", "decay_lr", "seed", "augment", "ema_decay",
-                "max_delay")
+# the updates, the schedule and the batch stream depend on these: changing them on --resume breaks the exact resume
+_RESUME_KEYS = ("model", "batch_size", "lr", "warmup_steps", "decay_lr", "clip_norm", "weight_decay", "b2", "seed",
+                "augment", "ema_decay", "max_delay")
 
 
 def _warn_if_changed(out: Path, mine: dict, keys: tuple[str, ...]) -> None:
@@ -186,7 +206,7 @@ def add_distill_parser(subparsers) -> argparse.ArgumentParser:
                    help="transformer layers of the student (both experts), at least 2 and at most the teacher's; "
                         "its towers are the `<variant>_<N>l` variants pi0_jax/config.py derives from the teacher's; "
                         "default: the teacher's depth")
-    _add_run_flags(p)
+    _add_run_flags(p, [c.train for c in DISTILL_PRESETS.values()])
     p.set_defaults(func=run_distill)
     return p
 
