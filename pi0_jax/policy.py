@@ -72,8 +72,7 @@ class PolicyCore:
 
     def __init__(self, config: Pi0Config, params: dict | None, tokenizer: PaligemmaTokenizer,
                  normalizer: _norm.Normalizer, *, num_steps: int = 10, action_dims: int | None = None,
-                 sampler: str = "engine", unroll: bool = True, kernels: str = "auto", attention: str = "auto",
-                 gemm: str = "auto"):
+                 sampler: str = "engine", kernels: str = "auto", attention: str = "auto", gemm: str = "auto"):
         if tokenizer.max_len != config.max_token_len:
             raise ValueError(f"tokenizer max_len {tokenizer.max_len} != config.max_token_len {config.max_token_len}")
         if sampler not in SAMPLERS:
@@ -83,7 +82,8 @@ class PolicyCore:
         if not 0 < action_dims <= config.action_dim:
             raise ValueError(f"action_dims must be in [1, {config.action_dim}], got {action_dims}")
         self.config, self.tokenizer, self.normalizer = config, tokenizer, normalizer
-        self.num_steps, self.action_dims, self.sampler, self.unroll = int(num_steps), int(action_dims), sampler, unroll
+        self.num_steps, self.action_dims, self.sampler = int(num_steps), int(action_dims), sampler
+        self.unroll = True   # the engine's layers unrolled (per-layer weight buffers; the Pallas kernels need them)
         # the engine's expert layers ("xla" ops, the fused Pallas kernels of pi0_jax.ops, or "auto": by batch size)
         # and each stage's attention (`programs.Attention.parse`)
         self.kernels, self.attention = programs.check_kernels(kernels), programs.Attention.parse(
@@ -98,7 +98,7 @@ class PolicyCore:
             self.model = None
         elif sampler == "engine":
             self._sched_params = weights_lib.schedule_params(config, params)
-            self.model = {"weights": engine_weights(config, params, unroll=unroll, kernels=kernels),
+            self.model = {"weights": engine_weights(config, params, unroll=self.unroll, kernels=kernels),
                           "sched": jax.jit(weights_lib.precompute_schedule, static_argnums=(0, 2))(
                               config, self._sched_params, self.num_steps)}
         else:

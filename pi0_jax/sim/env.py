@@ -51,8 +51,7 @@ class Env:
     """A batch-agnostic environment over the tasks `task_names` (one compiled model serves them all)."""
 
     def __init__(self, task_names, render_cfg: RenderConfig = RenderConfig(),
-                 scene_cfg: scene.SceneConfig = scene.SceneConfig(), num_init_states: int = tasks.NUM_INIT_STATES,
-                 max_steps: int | None = None):
+                 num_init_states: int = tasks.NUM_INIT_STATES, max_steps: int | None = None):
         import mujoco
 
         mjx = import_mjx()
@@ -63,8 +62,8 @@ class Env:
         # per-task step limits (LIBERO's), or one override for every task
         self.max_steps = (self.table.max_steps if max_steps is None
                           else np.full(len(self.tasks), max_steps, np.int32))
-        self.render_cfg, self.scene_cfg = render_cfg, scene_cfg
-        self.mj_model, self.index = scene.build(scene_cfg)
+        self.render_cfg, self.scene_cfg = render_cfg, scene.SceneConfig()
+        self.mj_model, self.index = scene.build(self.scene_cfg)
         # on this process's first device: under jax.distributed, jax.devices()[0] may belong to another host
         device = jax.local_devices()[0]
         self.model = mjx.put_model(self.mj_model, device=device)
