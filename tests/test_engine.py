@@ -127,15 +127,13 @@ def test_committed_actions_match_reference_and_come_back_exactly(model):
     np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-5)
 
 
-@pytest.mark.parametrize("attention", ["cudnn", "vision=cudnn", "prefix=cudnn", "denoise=cudnn", "denoise=auto",
-                                       "prefix=pallas"])
+@pytest.mark.parametrize("attention", ["cudnn", "vision=cudnn", "prefix=cudnn", "denoise=cudnn", "denoise=auto"])
 def test_fused_attention_matches_reference_with_holes_in_the_prefix(model, attention, monkeypatch):
     """The fused attention (cuDNN on a GPU; here its XLA form, the same code path) masks by lengths, so the prefix
     fill moves each element's valid tokens to the front. Element 1's last camera is masked (a hole mid-prefix) and
     the prompts are padded to different lengths: without the move the lengths would cut valid keys. "denoise=auto"
     is the fused kernel from CUDNN_DENOISE_MIN_BATCH on: lowered to this test's batch of 2, the prefix fill must see
-    it too (the move). π0's suffix masks its state row, which then runs beside the kernel as XLA's attention.
-    "prefix=pallas": the Pallas prefix kernel (`ops.prefix_attention`, interpreted) masks by the same lengths."""
+    it too (the move). π0's suffix masks its state row, which then runs beside the kernel as XLA's attention."""
     from pi0_jax.engine import programs
 
     monkeypatch.setattr(programs, "CUDNN_DENOISE_MIN_BATCH", 2)
@@ -151,7 +149,7 @@ def test_fused_attention_matches_reference_with_holes_in_the_prefix(model, atten
     mask = np.asarray(cache.mask)
     resolved = programs.Attention.parse(attention).at_batch(2, suffix_mask=not config.pi05)
     moved = (np.diff(mask.astype(np.int8), axis=1) <= 0).all()  # valid keys first: each row one run from the front
-    assert moved == (resolved.prefix != "xla" or resolved.denoise == "cudnn")
+    assert moved == ("cudnn" in (resolved.prefix, resolved.denoise))
     assert mask.sum(1).tolist() == [3 * 256 + 13, 2 * 256 + 21]
 
 
@@ -238,7 +236,7 @@ def test_attention_and_kernel_choices(monkeypatch):
             programs.guided_denoise(get_config("dummy"), None, None, None, None, jnp.zeros((4, 2, 2)), None, None,
                                     num_steps=2, unroll=True, attention=A.parse("cudnn"))
     assert A.parse("cudnn").at_batch(1) == A.parse("cudnn")
-    for bad in ("flash", "prefix=flash", "decoder=cudnn", "prefix", "vision=auto", "prefix=auto", "pallas"):
+    for bad in ("flash", "prefix=flash", "decoder=cudnn", "prefix", "vision=auto", "prefix=pallas", "pallas"):
         with pytest.raises(ValueError, match="attention"):
             A.parse(bad)
     layers = [{"qkv": jnp.zeros((4, 4))}]

@@ -242,28 +242,6 @@ def test_vision_attention_kernel_matches_xla(head_dim):
         va.attention(qkv[: images * 8], images=images, num_heads=heads)
 
 
-def test_prefix_attention_kernel_matches_xla():
-    """The prefix fill's attention kernel: each element attends its first kv_len keys. Lengths mid-block (45), on a
-    block edge (32), past no key block but the first (5) and zero (every key masked: no NaN); one split and three
-    (the last past an element's keys: weight 0). f32 against XLA's masked attention; bf16 within its rounding."""
-    from pi0_jax.ops import attention, prefix_attention as pa
-
-    b, r, s, hd = 4, 48, 64, 32
-    q, k, v = (_rand(i, b * n, hd).reshape(b, n, hd) for i, n in ((1, r), (2, s), (3, s)))
-    kv_len = jnp.array([45, 32, 5, 0], jnp.int32)
-    ref = attention.fused(q[:, :, None], k[:, :, None], v[:, :, None], scale=1.0, kv_len=kv_len)[:, :, 0]
-    for blocks in (pa.Blocks(), pa.Blocks(q=16, kv=16), pa.Blocks(q=16, kv=16, splits=3)):
-        got = pa.attention(q, k, v, kv_len, blocks=blocks)
-        np.testing.assert_allclose(got[:3], ref[:3], **TOL)
-        assert np.isfinite(np.asarray(got)).all()   # kv_len 0: the uniform average of the first block's values
-    low = pa.attention(*(a.astype(jnp.bfloat16) for a in (q, k, v)), kv_len).astype(jnp.float32)
-    assert float(jnp.linalg.norm(low[:3] - ref[:3]) / jnp.linalg.norm(ref[:3])) < 1e-2
-    with pytest.raises(ValueError, match="kv_len"):
-        pa.attention(q, k, v, kv_len[:2])
-    with pytest.raises(ValueError, match="divisible by 16"):
-        pa.attention(q[:, :40], k, v, kv_len)
-
-
 @pytest.mark.parametrize("width", [40, 1152])
 def test_layer_norm_kernel_matches_xla(width):
     """SigLIP's LayerNorm kernel, alone and with the residual add (a Dense's product and bias) before it, against the

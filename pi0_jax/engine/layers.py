@@ -17,7 +17,7 @@ import jax.numpy as jnp
 
 from pi0_jax.config import GemmaConfig
 from pi0_jax.gemma import _BIG_NEG, apply_rope
-from pi0_jax.ops import attention, expert_kernels, layout, pallas_base, prefix_attention
+from pi0_jax.ops import attention, expert_kernels, layout
 from pi0_jax.ops.formats import QArray
 from pi0_jax.ops.matmul import matmul, raw_matmul
 
@@ -92,34 +92,17 @@ def _attend_fused(q, keys, values, kv_len):
     return einops.rearrange(out, "B (T G) K H -> B T (K G H)", G=g)
 
 
-def _attend_prefix_kernel(q, keys, values, kv_len):
-    """`_attend_fused` on the Pallas kernel (`ops.prefix_attention`): one kv head, its query heads folded into rows.
-    Keys are zero-padded to a multiple of 16 (the kernel's smallest block) where they are not (π0.5's 968)."""
-    b, t, kh, g, hd = q.shape
-    if kh != 1:
-        raise ValueError(f"the Pallas prefix attention takes one kv head (Gemma 2B's), got {kh}")
-    pad = -keys.shape[1] % pallas_base.ALIGN
-    keys, values = (jnp.pad(a[:, :, 0], ((0, 0), (0, pad), (0, 0))) for a in (keys, values))
-    out = prefix_attention.attention(q.reshape(b, t * g, hd), keys, values, kv_len)
-    return out.reshape(b, t, g * hd)
-
-
-def prefix_layer(cfg: GemmaConfig, w, x, positions, mask, kv_len=None, keys: int | None = None,
-                 kernel: bool = False):
+def prefix_layer(cfg: GemmaConfig, w, x, positions, mask, kv_len=None, keys: int | None = None):
     """One VLM layer over the prefix. x (B,P,D); mask (B,P,P). Returns (x, k, v) with k, v (B,P,K,H) post-RoPE.
     kv_len: None for XLA attention under `mask`, else (B,) lengths for the fused kernel (the valid tokens are then
-    each element's first kv_len, see `programs.fill_prefix_cache`): cuDNN's, or with `kernel` the Pallas one
-    (`ops.prefix_attention`). keys: with kv_len, k and v are zero-padded to this many keys first (the Pallas
-    expert's cache length) and returned so; the fused kernel reads them padded, cut off by kv_len, so the cache
-    needs no copy of its own."""
+    each element's first kv_len, see `programs.fill_prefix_cache`). keys: with kv_len, k and v are zero-padded to
+    this many keys first (the Pallas expert's cache length) and returned so; the fused kernel reads them padded,
+    cut off by kv_len, so the cache needs no copy of its own."""
     h, _ = rms_norm(x, w["pre_attn"])
     q, k, v = _qkv(h, w["qkv"], cfg, positions)
     if keys is not None and kv_len is not None:
         k, v = (jnp.pad(a, ((0, 0), (0, keys - a.shape[1]), (0, 0), (0, 0))) for a in (k, v))
-    if kv_len is None:
-        y = _attend(q, [k], [v], [mask], x.dtype)
-    else:
-        y = (_attend_prefix_kernel if kernel else _attend_fused)(q, k, v, kv_len)
+    y = _attend(q, [k], [v], [mask], x.dtype) if kv_len is None else _attend_fused(q, k, v, kv_len)
     x = x + _mm(y, w["attn_out"])
     h, _ = rms_norm(x, w["pre_ffw"])
     return x + _mlp(h, w), k, v

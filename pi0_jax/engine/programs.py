@@ -103,7 +103,7 @@ class Attention:
 
     def __post_init__(self):
         for stage, value in dataclasses.asdict(self).items():
-            extra = {"vision": ("pallas",), "prefix": ("pallas",), "denoise": ("pallas", "auto")}.get(stage, ())
+            extra = {"vision": ("pallas",), "denoise": ("pallas", "auto")}.get(stage, ())
             if value not in ("xla", "cudnn", *extra):
                 raise ValueError(f"attention for {stage} must be one of {('xla', 'cudnn', *extra)}, got {value!r}")
 
@@ -196,17 +196,17 @@ def fill_prefix_cache(config: Pi0Config, weights: dict, image_tokens, image_mask
     mask = jnp.concatenate([jnp.repeat(image_masks.T, n_img, axis=1), token_mask], axis=1)
     positions = jnp.cumsum(mask, axis=1) - 1
     kv_len = None
-    if attention.prefix in ("cudnn", "pallas") or attention.denoise == "cudnn":
+    if "cudnn" in (attention.prefix, attention.denoise):
         order = jnp.argsort(~mask, axis=1, stable=True)
         x = jnp.take_along_axis(x, order[..., None], axis=1)
         positions, mask = (jnp.take_along_axis(a, order, axis=1) for a in (positions, mask))
-        if attention.prefix != "xla":
+        if attention.prefix == "cudnn":
             kv_len = jnp.sum(mask, axis=1, dtype=jnp.int32)
     attn_mask = mask[:, None, :] & mask[:, :, None]
     kernel = kernel_cache(kernels, attention, x.shape[0], weights.get("expert"))
     keys = layout.cache_len(x.shape[1]) if kernel else None   # each layer writes its cache padded
     layer = functools.partial(layers.prefix_layer, config.paligemma, positions=positions, mask=attn_mask,
-                              kv_len=kv_len, keys=keys, kernel=attention.prefix == "pallas")
+                              kv_len=kv_len, keys=keys)
     _, (k, v) = layers.run_layers(layer, weights["vlm"], x, unroll=unroll)
     if kernel:  # once per call: no step pads
         head_dim = config.paligemma.head_dim
