@@ -36,7 +36,7 @@ from pi0_jax.pi0 import random_params
 from pi0_jax.config import IMAGE_KEYS, PRESETS, Pi0Config, get_config
 from pi0_jax.engine import Engine
 from pi0_jax.engine.programs import KERNELS, attention_spec, vision_norm
-from pi0_jax.ops import expert_kernels
+from pi0_jax.ops import expert_kernels, pallas_base
 from pi0_jax.ops.matmul import GEMMS
 from pi0_jax.quant.schemes import SCHEMES
 
@@ -159,7 +159,7 @@ def environment() -> dict:
     return {"device": getattr(dev, "device_kind", str(dev)), "platform": dev.platform, "jax": jax.__version__,
             "flax": flax.__version__, "python": platform.python_version(),
             "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-            "commit": _git_commit(), "xla_flags": os.environ.get("XLA_FLAGS", "")}
+            "commit": _git_commit(), "xla_flags": os.environ.get("XLA_FLAGS", ""), "pallas_triton": pallas_base.TRITON}
 
 
 def _git_commit() -> str | None:

@@ -199,6 +199,48 @@ def test_fused_denoise_writes_suffix_keys_in_place_of_copying_the_cache(model, m
     assert {(shape[1:3], kw.get("mask")) for shape, kw in calls} == {((rows, expert.num_kv_heads), None)}
 
 
+def test_choices_on_a_jax_without_pallas_triton(monkeypatch):
+    """JAX 0.11 deprecated Pallas's Triton backend, which most of the kernels run on. On a jax without it the package
+    imports (a process whose jax has no `jax.experimental.pallas.triton`), the "auto" choices run XLA's and cuDNN's
+    kernels on a GPU, and a kernel asked for by name raises before it is lowered. With it, the deprecation warning
+    that every lowering raises is filtered once a kernel is called on a GPU, and only that warning."""
+    import warnings
+
+    from pi0_jax.engine import programs
+    from pi0_jax.ops import pallas_base, vision_attention
+
+    code = ("import sys; sys.modules['jax.experimental.pallas.triton'] = None\n"
+            "import pi0_jax.benchmark, pi0_jax.engine, pi0_jax.policy\n"
+            "from pi0_jax.ops import pallas_base\n"
+            "assert not pallas_base.TRITON\n"
+            "print(pi0_jax.engine.programs.Attention.parse('auto', platform='gpu'))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "vision=cudnn,prefix=cudnn,denoise=auto"
+
+    layers = [{"qkv": jnp.zeros((4, 4))}]
+    assert pallas_base.TRITON and programs.expert_path("auto", 1, layers, platform="gpu") == "pallas"
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    with warnings.catch_warnings():
+        pallas_base._quiet_deprecation.cache_clear()
+        pallas_base.call(lambda o_ref: None, grid=(1,), out_shape=jax.ShapeDtypeStruct((16,), jnp.float32),
+                         name="probe", num_warps=4, num_stages=2)
+        with warnings.catch_warnings(record=True) as seen:
+            warnings.simplefilter("always", UserWarning)
+            warnings.warn("The Pallas Triton backend is deprecated and will be removed", DeprecationWarning)
+            warnings.warn("The Pallas Triton backend is deprecated", UserWarning)   # another category: kept
+        assert [w.category for w in seen] == [UserWarning]
+    pallas_base._quiet_deprecation.cache_clear()
+
+    monkeypatch.setattr(pallas_base, "TRITON", False)
+    auto = programs.Attention.parse("auto", platform="gpu")
+    assert auto.vision == "cudnn" and auto.prefix == programs.AUTO_GPU.prefix
+    assert {auto.at_batch(b, suffix_mask=m).denoise for b in range(1, 65) for m in (True, False)} == {"xla", "cudnn"}
+    assert programs.expert_path("auto", 1, layers, platform="gpu") == "xla"
+    assert programs.vision_norm("auto", 192, platform="gpu") == "xla"
+    with pytest.raises(RuntimeError, match="'vision_attention' runs on Pallas's Triton backend"):
+        vision_attention.attention(jnp.zeros((32, 48)), images=1, num_heads=1)
+
+
 def test_attention_and_kernel_choices(monkeypatch):
     from pi0_jax.engine import programs
     from pi0_jax.ops import formats

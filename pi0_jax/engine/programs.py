@@ -20,7 +20,7 @@ import jax.numpy as jnp
 from pi0_jax import pi0
 from pi0_jax.config import Pi0Config
 from pi0_jax.engine import layers, vision
-from pi0_jax.ops import expert_kernels, layout
+from pi0_jax.ops import expert_kernels, layout, pallas_base
 from pi0_jax.ops import matmul as quant
 
 # The batch sizes at which kernels="auto" runs the expert's Pallas kernels on a GPU: measured faster than XLA at
@@ -63,8 +63,8 @@ def is_quantised(tree) -> bool:
 
 def expert_path(kernels: str, batch: int, expert_weights, platform: str | None = None) -> str:
     """The action expert's path for one program: "xla" or "pallas" as asked; "auto" picks the faster at this batch
-    on this platform: the Pallas kernels on a GPU up to PALLAS_MAX_BATCH (with unrolled, unquantised layers),
-    else XLA (on a CPU the kernels run interpreted)."""
+    on this platform: the Pallas kernels on a GPU up to PALLAS_MAX_BATCH (with unrolled, unquantised layers, on a
+    jax with Pallas's Triton backend: `pallas_base.TRITON`), else XLA (on a CPU the kernels run interpreted)."""
     if check_kernels(kernels) != "auto":
         return kernels
     if expert_weights is None:
@@ -72,17 +72,17 @@ def expert_path(kernels: str, batch: int, expert_weights, platform: str | None =
                          "'pallas' (e.g. `Engine.kernels_for(batch)`)")
     platform = platform or jax.default_backend()
     unrolled = isinstance(expert_weights, (list, tuple))
-    gpu_batch = platform == "gpu" and batch <= PALLAS_MAX_BATCH
+    gpu_batch = platform == "gpu" and batch <= PALLAS_MAX_BATCH and pallas_base.TRITON
     return "pallas" if gpu_batch and unrolled and not is_quantised(expert_weights) else "xla"
 
 
 def vision_norm(kernels: str, images: int, platform: str | None = None) -> str:
     """SigLIP's residual adds and LayerNorms: "xla" or "pallas" (`ops.layer_norm`: one kernel where XLA runs two or
     three) as asked; "auto" the kernel on a GPU from VISION_NORM_MIN_IMAGES images per call, XLA's ops below (and
-    on a CPU, where the kernel runs interpreted)."""
+    on a CPU, where the kernel runs interpreted, and on a jax without Pallas's Triton backend)."""
     if check_kernels(kernels) != "auto":
         return kernels
-    gpu = (platform or jax.default_backend()) == "gpu"
+    gpu = (platform or jax.default_backend()) == "gpu" and pallas_base.TRITON
     return "pallas" if gpu and images >= VISION_NORM_MIN_IMAGES else "xla"
 
 
@@ -117,19 +117,22 @@ class Attention:
         if differentiable:
             return dataclasses.replace(self, denoise="xla")
         kernel = PALLAS_DENOISE_BATCHES_MASKED if suffix_mask else PALLAS_DENOISE_BATCHES
-        if batch in kernel:
+        if batch in kernel and pallas_base.TRITON:
             return dataclasses.replace(self, denoise="pallas")
         cudnn = batch >= (CUDNN_DENOISE_MIN_BATCH_MASKED if suffix_mask else CUDNN_DENOISE_MIN_BATCH)
         return dataclasses.replace(self, denoise="cudnn" if cudnn else "xla")
 
     @classmethod
     def parse(cls, spec, platform: str | None = None, dtype: str = "bfloat16") -> Attention:
-        """"xla" | "cudnn" (every stage) | "auto" (`AUTO_GPU` on a GPU for bfloat16 models, else "xla": cuDNN's
-        flash kernel takes no float32) | "vision=cudnn,prefix=xla" (unnamed stages "xla") | an Attention."""
+        """"xla" | "cudnn" (every stage) | "auto" (`AUTO_GPU` on a GPU for bfloat16 models, with cuDNN's vision
+        attention on a jax without Pallas's Triton backend; else "xla": cuDNN's flash kernel takes no float32) |
+        "vision=cudnn,prefix=xla" (unnamed stages "xla") | an Attention."""
         if isinstance(spec, cls):
             return spec
         if spec == "auto":
-            return AUTO_GPU if (platform or jax.default_backend()) == "gpu" and dtype == "bfloat16" else cls()
+            if (platform or jax.default_backend()) != "gpu" or dtype != "bfloat16":
+                return cls()
+            return AUTO_GPU if pallas_base.TRITON else dataclasses.replace(AUTO_GPU, vision="cudnn")
         if spec in ("xla", "cudnn"):
             return cls(spec, spec, spec)
         fields = {f.name for f in dataclasses.fields(cls)}

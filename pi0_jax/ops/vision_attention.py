@@ -36,12 +36,11 @@ import jax.numpy as jnp
 import numpy as np
 from jax.experimental import pallas as pl
 from jax.experimental.custom_partitioning import custom_partitioning
-from jax.experimental.pallas import triton as plgpu
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from pi0_jax.ops.formats import E4M3, E4M3_MAX
-from pi0_jax.ops.pallas_base import ALIGN, call, dot, fit
+from pi0_jax.ops.pallas_base import ALIGN, call, dot, fit, plgpu
 
 NEG = float(np.finfo(np.float32).min)  # the running max before any key (no key is masked here)
 
