@@ -16,8 +16,9 @@ The whole dataset is put on every device once (uint8 images: ~18 GB for the embe
 112 px) and each batch is gathered, normalised and augmented inside the jitted step.
 
 Writes OUT/: tokenizer.model and norm_stats.json (computed from the demos), train_state/ (orbax, every
---save-every steps, the newest --keep kept), train_log.json, loss.png and, at the end, checkpoint/ (the EMA weights as a pi0-jax checkpoint
-with its tokenizer and norm stats; `pi0-jax eval --policy OUT/checkpoint` and Policy.from_checkpoint load it).
+--save-every steps, the newest --keep kept), train_log.json, loss.png and, at the end, checkpoint/ (the EMA weights
+as a pi0-jax checkpoint with its tokenizer and norm stats; `pi0-jax eval --policy OUT/checkpoint` and
+Policy.from_checkpoint load it).
 Every batch and noise draw comes from (seed, step), so --resume continues bit-identically.
 
 Pipeline of the demo model (see pi0_jax/train/__init__.py and scripts/gpu_suite.sh):
