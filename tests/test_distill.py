@@ -160,9 +160,10 @@ def test_distill_cli_passes_the_optimiser_flags(tmp_path, monkeypatch):
 
     monkeypatch.setattr(distill, "distill", spy)
     assert cli.main(["distill", "--config", "dummy_distill", "--teacher", str(tmp_path), "--demos", str(tmp_path),
-                     "--out", str(tmp_path), "--clip-norm", "0.5", "--weight-decay", "0", "--b2", "0.9",
-                     "--keep", "1"]) == 0
-    assert seen["cfg"] == get_distill_config("dummy_distill", clip_norm=0.5, weight_decay=0.0, b2=0.9, keep=1)
+                     "--out", str(tmp_path), "--decay-lr", "0", "--clip-norm", "0.5", "--weight-decay", "0",
+                     "--b2", "0.9", "--keep", "1"]) == 0
+    assert seen["cfg"] == get_distill_config("dummy_distill", decay_lr=0.0, clip_norm=0.5, weight_decay=0.0, b2=0.9,
+                                             keep=1)
     assert seen["cfg"] != get_distill_config("dummy_distill")
 
 
@@ -175,8 +176,8 @@ def test_distill_help_explains_every_flag(capsys, cli_options):
     out = capsys.readouterr().out
     flags = ("--teacher", "--demos", "--out", "--config", "--student-steps", "--teacher-steps", "--layers",
              "--steps", "--batch", "--lr", "--warmup", "--ema", "--no-augment", "--seed", "--log-every",
-             "--save-every", "--resume", "--stop-at", "--max-episodes", "--clip-norm", "--weight-decay", "--b2",
-             "--keep")
+             "--save-every", "--resume", "--stop-at", "--max-episodes", "--decay-lr", "--clip-norm",
+             "--weight-decay", "--b2", "--keep")
     for flag in flags:
         assert flag in out
     cli_options("distill", flags)     # each flag defined by the parser, every option with help

@@ -129,7 +129,7 @@ def test_init_fine_tunes_a_checkpoint_to_another_horizon(demos, tmp_path):
     out = tmp_path / "run"
     assert cli.main(["train", "--config", "dummy_smoke", "--demos", str(demos), "--out", str(out), "--init", str(ckpt),
                      "--horizon", "12", "--max-delay", "3", "--steps", "2", "--lr", "0", "--ema", "0",
-                     "--clip-norm", "0.5", "--weight-decay", "0", "--b2", "0.9", "--keep", "1",
+                     "--decay-lr", "0", "--clip-norm", "0.5", "--weight-decay", "0", "--b2", "0.9", "--keep", "1",
                      "--log-every", "1", "--save-every", "1", "--no-augment"]) == 0
     got_cfg, got = ckpt_lib.load_checkpoint(out / "checkpoint")
     _, want = ckpt_lib.load_checkpoint(ckpt)
@@ -142,8 +142,8 @@ def test_init_fine_tunes_a_checkpoint_to_another_horizon(demos, tmp_path):
     saved = json.loads((out / "train_config.json").read_text())
     assert saved["init"] == str(ckpt.absolute()) and saved["train"]["max_delay"] == 3
     # the optimiser flags (none at the preset's value) reach the trainer's TrainConfig; --keep 1 leaves 1 of 2 states
-    assert {k: saved["train"][k] for k in ("clip_norm", "weight_decay", "b2", "keep")} == {
-        "clip_norm": 0.5, "weight_decay": 0.0, "b2": 0.9, "keep": 1}
+    assert {k: saved["train"][k] for k in ("decay_lr", "clip_norm", "weight_decay", "b2", "keep")} == {
+        "decay_lr": 0.0, "clip_norm": 0.5, "weight_decay": 0.0, "b2": 0.9, "keep": 1}
     assert [p.name for p in (out / "train_state").iterdir()] == ["00000002"]
     ep = np.load(demos / "episode_000003.npz")
     result = Policy.from_checkpoint(out / "checkpoint").infer(
@@ -174,7 +174,7 @@ def test_max_delay_gives_the_first_actions_clean_and_leaves_them_out_of_the_loss
 
 
 @pytest.mark.parametrize("flag, value", [("--clip-norm", "0"), ("--weight-decay", "-0.1"), ("--b2", "1"),
-                                         ("--keep", "0")])
+                                         ("--keep", "0"), ("--lr", "-1"), ("--decay-lr", "-1")])
 def test_cli_rejects_an_optimiser_flag_out_of_range(flag, value, tmp_path):
     from pi0_jax import cli
 
@@ -191,7 +191,7 @@ def test_cli_help_explains_every_flag(capsys, cli_options):
     out = capsys.readouterr().out
     flags = ("--config", "--demos", "--out", "--resume", "--steps", "--batch", "--lr", "--warmup", "--ema",
              "--no-augment", "--seed", "--log-every", "--save-every", "--stop-at", "--max-episodes", "--init",
-             "--horizon", "--max-delay", "--clip-norm", "--weight-decay", "--b2", "--keep")
+             "--horizon", "--max-delay", "--decay-lr", "--clip-norm", "--weight-decay", "--b2", "--keep")
     for flag in flags:
         assert flag in out
     cli_options("train", flags)     # each flag defined by the parser, every option with help

@@ -79,6 +79,9 @@ def _add_run_flags(p: argparse.ArgumentParser, presets) -> None:
                    help="global batch size, a multiple of the local device count; default: the preset's")
     p.add_argument("--lr", type=float, default=None, help="peak learning rate; default: the preset's")
     p.add_argument("--warmup", type=int, default=None, metavar="N", help="linear warm-up steps; default: the preset's")
+    p.add_argument("--decay-lr", type=float, default=None, metavar="LR",
+                   help="the learning rate the cosine schedule ends at, at --steps (openpi's decay_lr; --lr for a "
+                        f"constant rate after the warm-up); {_preset_default(presets, 'decay_lr')}")
     p.add_argument("--ema", type=float, default=None, metavar="DECAY",
                    help="EMA decay of the exported weights; 0 disables the EMA (the raw weights are exported); "
                         "default: the preset's")
@@ -113,7 +116,7 @@ def _add_run_flags(p: argparse.ArgumentParser, presets) -> None:
 
 def _overrides(args: argparse.Namespace) -> dict:
     over = {k: v for k, v in {"steps": args.steps, "batch_size": args.batch, "lr": args.lr,
-                              "warmup_steps": args.warmup, "clip_norm": args.clip_norm,
+                              "warmup_steps": args.warmup, "decay_lr": args.decay_lr, "clip_norm": args.clip_norm,
                               "weight_decay": args.weight_decay, "b2": args.b2, "seed": args.seed,
                               "log_every": args.log_every, "save_every": args.save_every,
                               "keep": args.keep}.items() if v is not None}

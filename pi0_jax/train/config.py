@@ -39,6 +39,9 @@ class TrainConfig:
                 raise ValueError(f"{f} must be positive, got {getattr(self, f)}")
         if self.max_delay < 0:
             raise ValueError(f"max_delay must be >= 0, got {self.max_delay}")
+        for f in ("lr", "decay_lr"):
+            if not getattr(self, f) >= 0:
+                raise ValueError(f"{f} must be >= 0, got {getattr(self, f)}")
         if not self.clip_norm > 0:
             raise ValueError(f"clip_norm must be positive (inf: no clipping), got {self.clip_norm}")
         if not self.weight_decay >= 0:
