@@ -270,6 +270,10 @@ def test_eval_cli_latency_execution_reuse(tmp_path, capsys):
         cli.main(["eval", "--policy", str(EMBEDDED), "--suite", TASKS[0], "--episodes-per-task", "1", "--batch",
                   "1", "--steps", "5", "--videos", "0", "--execution", "naive", "--latency-steps", "6",
                   "--no-progress"])
+    for flags, field in ((["--latency-steps", "-1"], "latency_steps"), (["--rtc-beta", "-1"], "rtc_beta"),
+                         (["--reuse-prefix", "auto:x"], "auto:x")):   # out of range: a line, no traceback
+        with pytest.raises(SystemExit, match=f"pi0-jax eval: .*{field}"):
+            cli.main(["eval", "--policy", str(tmp_path / "not_loaded"), "--execution", "rtc", *flags])
 
 
 def test_prune_drops_layers_and_nothing_changes_nothing(pruned, tmp_path):

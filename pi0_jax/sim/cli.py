@@ -193,6 +193,12 @@ def run(args: argparse.Namespace) -> int:
         jax.distributed.initialize(args.coordinator, num_processes=args.num_processes, process_id=args.process_id)
 
     from pi0_jax.sim.evaluate import EvalConfig, evaluate, format_table
+    from pi0_jax.sim.realtime import Realtime
+
+    try:   # the execution flags, checked before anything loads
+        Realtime(args.execution, args.latency_steps, args.reuse_prefix, args.rtc_beta)
+    except ValueError as e:
+        raise SystemExit(f"pi0-jax eval: {e}") from None
 
     if not args.no_compile_cache:
         from pi0_jax.engine import enable_compilation_cache

@@ -103,9 +103,12 @@ def parse_reuse(spec: str | None) -> tuple[int, float | None]:
         return 1, None
     spec = str(spec)
     if spec.startswith("auto:"):
-        thresh = float(spec.removeprefix("auto:"))
+        try:
+            thresh = float(spec.removeprefix("auto:"))
+        except ValueError:
+            thresh = float("nan")
         if not thresh >= 0:
-            raise ValueError(f"reuse threshold must be >= 0, got {spec!r}")
+            raise ValueError(f"--reuse-prefix auto:THRESH needs a number THRESH >= 0, got {spec!r}")
         return 0, thresh
     if not spec.isdigit() or int(spec) < 1:
         raise ValueError(f"--reuse-prefix must be a positive integer K or auto:THRESH, got {spec!r}")

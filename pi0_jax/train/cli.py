@@ -152,9 +152,12 @@ def _warn_if_changed(out: Path, mine: dict, keys: tuple[str, ...]) -> None:
 def run(args: argparse.Namespace) -> int:
     from pi0_jax.train.trainer import train
 
-    cfg = config_from_args(args)
-    if args.max_delay is not None:
-        cfg = cfg.replace(max_delay=args.max_delay)
+    try:
+        cfg = config_from_args(args)
+        if args.max_delay is not None:
+            cfg = cfg.replace(max_delay=args.max_delay)
+    except ValueError as e:   # a flag out of range: TrainConfig names the field
+        raise SystemExit(f"pi0-jax train: {e}") from None
     if args.horizon is not None and args.horizon < 1:
         raise SystemExit(f"--horizon must be positive, got {args.horizon}")
     init = args.init and str(args.init.absolute())
@@ -221,7 +224,10 @@ def run_distill(args: argparse.Namespace) -> int:
 
     over = {k: v for k, v in {"student_steps": args.student_steps, "teacher_steps": args.teacher_steps,
                               "layers": args.layers}.items() if v is not None}
-    cfg = get_distill_config(args.config, **over, **_overrides(args))
+    try:
+        cfg = get_distill_config(args.config, **over, **_overrides(args))
+    except ValueError as e:   # a flag out of range: the config names the field
+        raise SystemExit(f"pi0-jax distill: {e}") from None
     if args.resume:
         _warn_if_changed(args.out, {**cfg.to_json(), "teacher": str(args.teacher.absolute())},
                          ("student_steps", "teacher_steps", "layers", "teacher"))
