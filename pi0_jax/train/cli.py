@@ -72,7 +72,7 @@ def _preset_default(presets, field: str) -> str:
 
 def _add_run_flags(p: argparse.ArgumentParser, presets) -> None:
     """The optimiser, logging and run flags that `train` and `distill` share (None: the preset's); `presets`: the
-    subcommand's TrainConfigs (the help quotes their clip_norm, weight_decay, b2 and keep)."""
+    subcommand's TrainConfigs (the help quotes their decay_lr, clip_norm, weight_decay, b2 and keep)."""
     p.add_argument("--steps", type=int, default=None, metavar="N",
                    help="total optimizer steps (the cosine schedule ends here); default: the preset's")
     p.add_argument("--batch", type=int, default=None, metavar="B",
