@@ -70,6 +70,8 @@ class PolicyCore:
     pytrees passed to every program as arguments, never baked in as constants.
     """
 
+    unroll = True   # the engine's layers unrolled (per-layer weight buffers; the Pallas kernels need them)
+
     def __init__(self, config: Pi0Config, params: dict | None, tokenizer: PaligemmaTokenizer,
                  normalizer: _norm.Normalizer, *, num_steps: int = 10, action_dims: int | None = None,
                  sampler: str = "engine", kernels: str = "auto", attention: str = "auto", gemm: str = "auto"):
@@ -83,7 +85,6 @@ class PolicyCore:
             raise ValueError(f"action_dims must be in [1, {config.action_dim}], got {action_dims}")
         self.config, self.tokenizer, self.normalizer = config, tokenizer, normalizer
         self.num_steps, self.action_dims, self.sampler = int(num_steps), int(action_dims), sampler
-        self.unroll = True   # the engine's layers unrolled (per-layer weight buffers; the Pallas kernels need them)
         # the engine's expert layers ("xla" ops, the fused Pallas kernels of pi0_jax.ops, or "auto": by batch size)
         # and each stage's attention (`programs.Attention.parse`)
         self.kernels, self.attention = programs.check_kernels(kernels), programs.Attention.parse(
