@@ -81,6 +81,16 @@ STEP_SWEEPS = {
                    "q16 w4": dict(q=16, attention_warps=4),
                    "q32 w4 7 splits": dict(q=32, attention_warps=4, kv_splits=7),
                    "q32 w4 s2": dict(q=32, attention_warps=4, attention_stages=2)},
+    # the attention's key splits on Mosaic GPU (`ops.mosaic_attention`), the merge as XLA's ops, and the expert with no
+    # Triton kernel (`ek.TRITON_FREE`); the Mosaic attention also at 7 prefix splits (2 blocks a CTA; 3 would not fit
+    # its shared memory at head_dim 256)
+    "mosaic_attention": {"default": {}, "mosaic attention": dict(mosaic_attention=True),
+                         "xla merge": dict(xla_merge=True),
+                         "mosaic attention, xla merge": dict(mosaic_attention=True, xla_merge=True),
+                         "mosaic attention 7 splits": dict(mosaic_attention=True, kv_splits=7),
+                         "triton-free": {f.name: getattr(ek.TRITON_FREE, f.name)
+                                         for f in dataclasses.fields(ek.Blocks)
+                                         if getattr(ek.TRITON_FREE, f.name) != getattr(ek.Blocks(), f.name)}},
     # the same with the next step's wgmma issued before the last one finished (`Launch.delay`)
     "mosaic_delay": {"default": {}, "mlp geglu 64 6st d1": dict(mosaic_mlp=L(64, 1, 6, geglu=True, delay=1)),
                      "mlp geglu 64 8st d1": dict(mosaic_mlp=L(64, 1, 8, geglu=True, delay=1)),
@@ -371,7 +381,7 @@ def step_sweep(config, args, out) -> ek.Blocks:
     res = out["step_sweep"] = {"model": config.name, "rounds": []}
 
     def timed(variants: dict) -> dict:
-        calls, kernels = {}, {}
+        calls, kernels, outs = {}, {}, {}
         for name, fields in list(variants.items()):
             set_blocks(dataclasses.replace(base, **fields))
             try:
@@ -382,9 +392,12 @@ def step_sweep(config, args, out) -> ek.Blocks:
                 variants = {k: v for k, v in variants.items() if k != name}
                 continue
             kernels[name] = step_ops(den)["kernels_per_step"]
+            outs[name] = np.asarray(jax.block_until_ready(calls[name]()), np.float32)
         set_blocks(base)
         ms = interleaved_ms(calls, args.iters)
+        ref = outs["default"]
         rows = [{"variant": n, "denoise_10_ms": ms[n], "vs_default": ms[n] / ms["default"],
+                 "rel_l2_vs_default": float(np.linalg.norm(outs[n] - ref) / np.linalg.norm(ref)),
                  "kernels_per_step": kernels[n], "fields": {k: dataclasses.asdict(v) if dataclasses.is_dataclass(v)
                                                             else v for k, v in variants[n].items()}}
                 for n in variants]
@@ -398,7 +411,7 @@ def step_sweep(config, args, out) -> ek.Blocks:
             traced = (f"  {r['trace']['kernel_ms']:.2f} ms in kernels, {r['trace']['busy']:.0%} busy"
                       if "trace" in r else "")
             print(f"  {r['variant']:28s} {r['denoise_10_ms']:7.3f} ms  {r['vs_default']:.3f}  "
-                  f"{r['kernels_per_step']} kernels/step{traced}", flush=True)
+                  f"{r['kernels_per_step']} kernels/step  rel L2 {r['rel_l2_vs_default']:.1e}{traced}", flush=True)
         return {r["variant"]: r for r in rows}
 
     first = timed(singles)

@@ -47,7 +47,7 @@ from jax.experimental import pallas as pl
 from jax.experimental.custom_partitioning import custom_partitioning
 from jax.sharding import NamedSharding, PartitionSpec as P
 
-from pi0_jax.ops import layout, mosaic_gemm, pallas_base
+from pi0_jax.ops import layout, mosaic_attention, mosaic_gemm, pallas_base
 from pi0_jax.ops.mosaic_gemm import Launch
 from pi0_jax.ops.pallas_base import ALIGN, dot, fit
 
@@ -97,6 +97,10 @@ class Blocks:
     mosaic_mlp: Launch | None = Launch(64, 1, 6, geglu=True)
     mosaic_out: Launch | None = None
     mosaic_down: Launch | None = None
+    # the attention's key splits as `ops.mosaic_attention` (TMA, wgmma) where it applies, and their merge as XLA's ops
+    # instead of the Pallas merge kernel: with the four Mosaic GEMMs, an expert that needs no Triton (`TRITON_FREE`)
+    mosaic_attention: bool = False
+    xla_merge: bool = False
 
     @classmethod
     def from_dict(cls, d: dict) -> "Blocks":
@@ -114,6 +118,13 @@ def blocks_at(batch: int, blocks: Blocks = Blocks()) -> Blocks:
     level at B = 16 and 0.8 % slower at B = 4: "Query heads folded into the kernel's rows", session 32)."""
     return dataclasses.replace(blocks, kv_splits=max(1, round(blocks.kv_splits / batch)), attention_warps=4,
                                fold=batch >= 8)
+
+
+# An expert with no Triton kernel: every GEMM on Mosaic GPU at its fastest launch alone (docs/BENCHMARKS.md, "A Mosaic
+# GPU GEMM"), the attention on `ops.mosaic_attention`, the splits' merge as XLA's ops (bf16 on Hopper: elsewhere a
+# GEMM falls back to the Triton kernel)
+TRITON_FREE = Blocks(mosaic_qkv=Launch(64, 2, 6), mosaic_out=Launch(64, 8, 4), mosaic_down=Launch(64, 8, 4),
+                     mosaic_attention=True, xla_merge=True)
 
 
 def _call(kernel, grid, out_shape, name: str, num_warps: int, num_stages: int):
@@ -321,14 +332,25 @@ def _attention(q, kv, cache_k, cache_v, prefix_mask, suffix_mask, batch, num_hea
     bq, bkv = fit(blocks.q, sq), fit(blocks.kv, pp)
     splits = max(1, min(blocks.kv_splits, pp // bkv))
     per_split = -(-(pp // bkv) // splits)
-    kernel = functools.partial(_attention_kernel, m=m, bq=bq, bkv=bkv, sq=sq, sk=sk, pp=pp, hd=hd,
-                               num_heads=num_heads, num_kv_heads=num_kv_heads, splits=splits, per_split=per_split,
-                               kv_cols=kv_cols)
-    out = (jax.ShapeDtypeStruct(((splits + 1) * m, num_heads * hd), q.dtype),
-           jax.ShapeDtypeStruct(((splits + 1) * m, num_heads), jnp.float32))
-    o, lse = _call(kernel, (batch, num_heads, sq // bq, splits + 1), out, "expert_attention",
-                   blocks.attention_warps, blocks.attention_stages)(q, kv, cache_k, cache_v, prefix_mask, suffix_mask)
-    return merge(o, lse, parts=splits + 1, num_heads=num_heads)
+    if blocks.mosaic_attention and mosaic_attention.applies(q.dtype, head_dim=hd, query_rows=sq, suffix_keys=sk,
+                                                            prefix_keys=pp):
+        o, lse = mosaic_attention.attention(q, kv, cache_k, cache_v, prefix_mask,
+                                            mosaic_attention.suffix_ends(suffix_mask), batch=batch,
+                                            num_heads=num_heads, num_kv_heads=num_kv_heads, kv_cols=kv_cols, sk=sk,
+                                            splits=blocks.kv_splits)
+    else:
+        kernel = functools.partial(_attention_kernel, m=m, bq=bq, bkv=bkv, sq=sq, sk=sk, pp=pp, hd=hd,
+                                   num_heads=num_heads, num_kv_heads=num_kv_heads, splits=splits,
+                                   per_split=per_split, kv_cols=kv_cols)
+        out = (jax.ShapeDtypeStruct(((splits + 1) * m, num_heads * hd), q.dtype),
+               jax.ShapeDtypeStruct(((splits + 1) * m, num_heads), jnp.float32))
+        o, lse = _call(kernel, (batch, num_heads, sq // bq, splits + 1), out, "expert_attention",
+                       blocks.attention_warps, blocks.attention_stages)(q, kv, cache_k, cache_v, prefix_mask,
+                                                                        suffix_mask)
+    parts = o.shape[0] // m
+    if blocks.xla_merge or not pallas_base.TRITON:
+        return merge_xla(o, lse, parts=parts, num_heads=num_heads)
+    return merge(o, lse, parts=parts, num_heads=num_heads)
 
 
 @functools.partial(custom_partitioning, static_argnums=(6, 7, 8, 9, 10))
@@ -363,11 +385,14 @@ _partitioned.def_partition(partition=_partition, infer_sharding_from_operands=_i
                            need_replication_factors=("c", "f", "e", "p", "s", "d"))
 
 
-def _merge_kernel(o_ref, lse_ref, out_ref, *, m, bm, bd, hd, parts):
+def _merge_kernel(o_ref, lse_ref, out_ref, *, m, bm, bd, hd, parts, by_head):
     """Program (i, n, c): rows block i, head n, columns block c of the head: the splits' outputs weighted by
-    exp(lse_s - max_s lse_s), in f32, over their sum."""
+    exp(lse_s - max_s lse_s), in f32, over their sum. by_head: lse is (parts, N, M), else (parts M, N)."""
     i, n, c = pl.program_id(0), pl.program_id(1), pl.program_id(2)
-    lse = [lse_ref[pl.ds(s * m + i * bm, bm), pl.ds(n, 1)] for s in range(parts)]
+    if by_head:
+        lse = [lse_ref[s, n, pl.ds(i * bm, bm)][:, None] for s in range(parts)]
+    else:
+        lse = [lse_ref[pl.ds(s * m + i * bm, bm), pl.ds(n, 1)] for s in range(parts)]
     top = functools.reduce(jnp.maximum, lse)
     weights = [jnp.exp(x - top) for x in lse]
     cols = pl.ds(n * hd + c * bd, bd)
@@ -376,14 +401,24 @@ def _merge_kernel(o_ref, lse_ref, out_ref, *, m, bm, bd, hd, parts):
 
 
 def merge(o, lse, *, parts: int, num_heads: int, rows: int = 16, cols: int = 64):
-    """The key splits' softmaxes as one: o (parts * M, N * hd) normalised per split, lse (parts * M, N) f32 ->
-    (M, N * hd) = sum_s exp(lse_s - top) o_s / sum_s exp(lse_s - top), top = max_s lse_s, in f32 (in the splits'
-    order). One kernel of many small programs (rows x cols of one head): XLA made it two (the max apart)."""
+    """The key splits' softmaxes as one: o (parts * M, N * hd) normalised per split, lse (parts * M, N) f32 (or
+    (parts, N, M): `mosaic_attention`'s) -> (M, N * hd) = sum_s exp(lse_s - top) o_s / sum_s exp(lse_s - top),
+    top = max_s lse_s, in f32 (in the splits' order). One kernel of many small programs (rows x cols of one head):
+    XLA made it two (the max apart)."""
     m, hd = o.shape[0] // parts, o.shape[1] // num_heads
     bm, bd = fit(rows, m), fit(cols, hd)
-    kernel = functools.partial(_merge_kernel, m=m, bm=bm, bd=bd, hd=hd, parts=parts)
+    kernel = functools.partial(_merge_kernel, m=m, bm=bm, bd=bd, hd=hd, parts=parts, by_head=lse.ndim == 3)
     out = jax.ShapeDtypeStruct((m, num_heads * hd), o.dtype)
     return _call(kernel, (m // bm, num_heads, hd // bd), out, "expert_attention_merge", 4, 1)(o, lse)
+
+
+def merge_xla(o, lse, *, parts: int, num_heads: int):
+    """`merge` as XLA's ops (no Pallas kernel), the same sums in f32."""
+    m, hd = o.shape[0] // parts, o.shape[1] // num_heads
+    lse = lse.reshape(parts, num_heads, m).transpose(0, 2, 1) if lse.ndim == 3 else lse.reshape(parts, m, num_heads)
+    weights = jnp.exp(lse - jnp.max(lse, axis=0))[..., None]   # (parts, M, N, 1)
+    acc = jnp.sum(weights * o.reshape(parts, m, num_heads, hd).astype(jnp.float32), axis=0)
+    return (acc / jnp.sum(weights, axis=0)).reshape(m, num_heads * hd).astype(o.dtype)
 
 
 # -- GEMM + (gated) residual, norm + gate/up GEMM + GeGLU --------------------------------------------------------------

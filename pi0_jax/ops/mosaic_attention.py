@@ -1,0 +1,209 @@
+"""The denoise step's split-key attention as one Pallas Mosaic GPU kernel (Hopper: TMA, wgmma), the form of
+`expert_kernels.attention` that needs no Triton.
+
+A CTA takes one head's block of 64 query rows and one split of the keys: `per_split` blocks of the cached prefix
+(all brought by TMA at once, while q arrives) or the suffix's own keys (the last split). QK^T and PV run on wgmma, the
+online softmax on the accumulator in registers. It writes the split's normalised output in the dtype and its
+log-sum-exp in f32, as the Triton kernel does; `expert_kernels.merge` (or `merge_xla`) makes them one.
+
+Masks, in the layout the accumulator's rows and columns take: the prefix mask as the element's int32 row of keys
+(one TMA-loaded vector a block), and the suffix mask as each query row's count of visible suffix keys: π0's and
+π0.5's block-causal suffix masks show a row a prefix of the suffix (`suffix_ends`), so an iota and one compare make
+the tile (no 2-D mask load).
+
+Numerics as the Triton kernel: f32 logits (q comes scaled), the same big-negative fill, p rounded to the dtype for
+PV, l summed in f32 from unrounded p, the split's output rounded once. On a CPU the kernel runs in Mosaic GPU's
+interpreter (tests). Axis legend: M rows (B Sq), N query heads, K kv heads, P prefix keys, S splits.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.experimental.pallas as pl
+import jax.experimental.pallas.mosaic_gpu as plgpu
+import jax.numpy as jnp
+from jax import lax
+
+from pi0_jax.ops.mosaic_gemm import _interpret
+
+BLOCK = 64   # query rows and keys a block: one warpgroup's wgmma rows, and the kernels' prefix key padding
+SMEM_BYTES = 220 * 1024   # a Hopper CTA's shared memory (227 KB), less the masks' and barriers'
+BIG_NEG = -2.3819763e38  # expert_kernels.BIG_NEG (a test checks they agree)
+
+
+def applies(dtype, *, head_dim: int, query_rows: int, suffix_keys: int, prefix_keys: int) -> bool:
+    """Whether the kernel takes this attention: every dimension in whole 64-blocks, and bf16 on a Hopper GPU (any
+    float in the CPU interpreter)."""
+    tiles = all(d % BLOCK == 0 for d in (head_dim, query_rows, suffix_keys, prefix_keys)) and head_dim <= 256
+    if jax.default_backend() == "cpu":
+        return tiles
+    hopper = jax.default_backend() == "gpu" and getattr(jax.devices()[0], "compute_capability", "") == "9.0"
+    return tiles and hopper and jnp.dtype(dtype) == jnp.bfloat16
+
+
+def suffix_ends(suffix_mask):
+    """(M, Sp) int32 row -> suffix key mask -> (M,) int32: each row's count of visible suffix keys (the kernel's
+    form; exact for masks whose rows are prefixes of the keys, which π0's and π0.5's are)."""
+    sp = suffix_mask.shape[1]
+    return jnp.max(jnp.where(suffix_mask != 0, jnp.arange(1, sp + 1, dtype=jnp.int32), 0), axis=1)
+
+
+# jax 0.10's Mosaic GPU interpreter (CI's, on Python 3.11) takes no transposed shared-memory operand, so there QK^T
+# is the same product as a dot of the loaded tiles; jax 0.11's interpreter runs the kernel's wgmma
+def _old_interpreter() -> bool:
+    return jax.default_backend() == "cpu" and jax.__version_info__ < (0, 11)
+
+
+def _in_layout(x, layout):
+    """x in the register layout the accumulator's rows or columns take. A cast, the identity on values: jax 0.10's
+    CPU interpreter has no rule for it, so the interpreter goes without."""
+    return x if jax.default_backend() == "cpu" else plgpu.layout_cast(x, layout)
+
+
+def _iota(shape, dim):
+    """An int32 iota along dim in the accumulator's layout (a plain iota in the CPU interpreter, as `_in_layout`)."""
+    if jax.default_backend() == "cpu":
+        return lax.broadcasted_iota(jnp.int32, shape, dim)
+    return plgpu.broadcasted_iota(jnp.int32, shape, dim, layout=plgpu.Layout.WGMMA)
+
+
+def _transforms(minor, dt):
+    size = jnp.dtype(dt).itemsize
+    swizzle = plgpu.find_swizzle(minor * size * 8)
+    return plgpu.TilingTransform((8, swizzle // size)), plgpu.SwizzleTransform(swizzle)
+
+
+@functools.lru_cache(maxsize=None)
+def _call(m: int, sq: int, sk: int, pp: int, hd: int, batch: int, num_heads: int, num_kv_heads: int,
+          kv_cols: tuple, splits: int, per_split: int, dtype):
+    bq = bkv = BLOCK
+    blocks = pp // bkv
+    group = num_heads // num_kv_heads
+    tiles = _transforms(hd, dtype)
+
+    def kernel(q_gmem, kv_gmem, ck_gmem, cv_gmem, pmask_gmem, ends_gmem, o_gmem, lse_gmem,
+               q_smem, k_smem, v_smem, p_smem, pmask_smem, ends_smem, lse_smem, q_bar, kv_bar):
+        hq, s, b = lax.axis_index("h"), lax.axis_index("s"), lax.axis_index("b")
+        n, qi = lax.div(hq, sq // bq), lax.rem(hq, sq // bq)
+        kh = lax.div(n, group)
+        rows = b * sq + qi * bq
+        plgpu.copy_gmem_to_smem(q_gmem.at[pl.ds(rows, bq), pl.ds(n * hd, hd)], q_smem, q_bar)
+        plgpu.copy_gmem_to_smem(ends_gmem.at[pl.ds(rows, bq)], ends_smem, q_bar)
+
+        def logits(slot):
+            if _old_interpreter():
+                return lax.dot_general(q_smem[...], k_smem[slot][...], (((1,), (1,)), ((), ())),
+                                       preferred_element_type=jnp.float32)
+
+            def qk(acc_ref):
+                plgpu.wgmma(acc_ref, q_smem, k_smem[slot].transpose((1, 0)))
+                return acc_ref[...]
+            return pl.run_scoped(qk, plgpu.ACC((bq, bkv), jnp.float32))
+
+        def softmax(masks):
+            """The split's blocks' logits (one per slot, all in registers), their max per row taken first (no online
+            rescaling), p, l, and PV into one accumulator -> (o normalised, in f32; log-sum-exp)."""
+            xs = [jnp.where(valid, logits(t), BIG_NEG) for t, valid in enumerate(masks)]
+            mx = functools.reduce(jnp.maximum, [x.max(axis=1) for x in xs])
+            ps = [jnp.exp(x - lax.broadcast_in_dim(mx, x.shape, [0])) for x in xs]
+            l = functools.reduce(jnp.add, [p.sum(axis=1) for p in ps])
+
+            for t, p in enumerate(ps):   # wgmma's A from shared memory (Mosaic's interpreter takes no other)
+                p_smem[t] = p.astype(dtype)
+            plgpu.commit_smem()
+
+            def pv(acc_ref):
+                for t in range(len(ps)):
+                    plgpu.wgmma(acc_ref, p_smem.at[t], v_smem.at[t])
+                return acc_ref[...]
+            o = pl.run_scoped(pv, plgpu.ACC((bq, hd), jnp.float32))
+            return o / lax.broadcast_in_dim(l, o.shape, [0]), mx + jnp.log(l)
+
+        def write(o, lse):
+            q_smem[...] = o.astype(dtype)
+            lse_smem[...] = lse
+            plgpu.commit_smem()
+            plgpu.copy_smem_to_gmem(q_smem, o_gmem.at[pl.ds(s * m + rows, bq), pl.ds(n * hd, hd)])
+            plgpu.copy_smem_to_gmem(lse_smem, lse_gmem.at[s, n, pl.ds(rows, bq)])
+            plgpu.wait_smem_to_gmem(0)
+
+        @pl.when(s < splits)
+        def _prefix():
+            for t in range(per_split):   # every block's TMA issued before the first wgmma
+                tc = jnp.minimum(s * per_split + t, blocks - 1)   # a block past the cache reads the last one, masked
+                keys = pl.ds(b * pp + tc * bkv, bkv)
+                plgpu.copy_gmem_to_smem(ck_gmem.at[keys, pl.ds(kh * hd, hd)], k_smem[t], kv_bar.at[t])
+                plgpu.copy_gmem_to_smem(cv_gmem.at[keys, pl.ds(kh * hd, hd)], v_smem.at[t], kv_bar.at[t])
+                plgpu.copy_gmem_to_smem(pmask_gmem.at[b, pl.ds(tc * bkv, bkv)], pmask_smem.at[t], kv_bar.at[t])
+            plgpu.barrier_wait(q_bar)
+            masks = []
+            for t in range(per_split):
+                plgpu.barrier_wait(kv_bar.at[t])
+                key_ok = _in_layout(pmask_smem[t], plgpu.Layout.WGMMA.reduce(0)) != 0
+                key_ok = key_ok & (s * per_split + t < blocks)
+                masks.append(lax.broadcast_in_dim(key_ok, (bq, bkv), [1]))
+            write(*softmax(masks))
+
+        @pl.when(s == splits)
+        def _suffix():
+            suffix = pl.ds(b * sk, sk)
+            k_col, v_col = kv_cols[0] + kh * hd, kv_cols[1] + kh * hd
+            plgpu.copy_gmem_to_smem(kv_gmem.at[suffix, pl.ds(k_col, hd)], k_smem[0], kv_bar.at[0])
+            plgpu.copy_gmem_to_smem(kv_gmem.at[suffix, pl.ds(v_col, hd)], v_smem.at[0], kv_bar.at[0])
+            # the slot's barrier counts three copies (a prefix block's keys, values and mask)
+            plgpu.copy_gmem_to_smem(pmask_gmem.at[b, pl.ds(0, bkv)], pmask_smem.at[0], kv_bar.at[0])
+            plgpu.barrier_wait(q_bar)
+            plgpu.barrier_wait(kv_bar.at[0])
+            ends = _in_layout(ends_smem[...], plgpu.Layout.WGMMA.reduce(1))
+            key = _iota((bq, bkv), 1)
+            write(*softmax([key < lax.broadcast_in_dim(ends, (bq, bkv), [0])]))
+
+    slots = max(per_split, 1)
+    scratch = dict(
+        q_smem=plgpu.SMEM((bq, hd), dtype, transforms=tiles),
+        k_smem=[plgpu.SMEM((bkv, hd), dtype, transforms=tiles) for _ in range(slots)],   # one ref a slot: the 0.10
+        # interpreter cannot transpose an indexed ref
+        v_smem=plgpu.SMEM((slots, bkv, hd), dtype, transforms=tiles),
+        p_smem=plgpu.SMEM((slots, bq, bkv), dtype, transforms=_transforms(bkv, dtype)),
+        pmask_smem=plgpu.SMEM((slots, bkv), jnp.int32),
+        ends_smem=plgpu.SMEM((bq,), jnp.int32),
+        lse_smem=plgpu.SMEM((bq,), jnp.float32),
+        q_bar=plgpu.Barrier(num_arrivals=2),
+        kv_bar=plgpu.Barrier(num_arrivals=3, num_barriers=slots))
+
+    def entry(*refs):
+        pl.run_scoped(lambda **scoped: kernel(*refs, **scoped), **scratch, collective_axes="wg")
+
+    parts = splits + 1
+    out = (jax.ShapeDtypeStruct((parts * m, num_heads * hd), dtype),
+           jax.ShapeDtypeStruct((parts, num_heads, m), jnp.float32))
+    on_cpu = jax.default_backend() == "cpu"
+    return plgpu.kernel(entry, out_type=out, grid=(num_heads * (sq // bq), parts, batch), grid_names=("h", "s", "b"),
+                        num_threads=1, thread_name="wg",
+                        kernel_name="expert_attention_mosaic",
+                        compiler_params=plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup),
+                        **({"interpret": _interpret()} if on_cpu else {}))
+
+
+def attention(q, kv, cache_k, cache_v, prefix_mask, ends, *, batch: int, num_heads: int, num_kv_heads: int,
+              kv_cols: tuple, sk: int, splits: int):
+    """The split-key softmaxes of `expert_kernels.attention`'s kernel: q (M, >= N hd) query rows (an element's M / B
+    rows), kv (B sk, .) holding the suffix's keys and values at kv_cols[0] and [1] (+ the kv head's offset), cache_k /
+    cache_v (B P, K hd), prefix_mask (B, P) int32, ends (M,) int32 (`suffix_ends`) -> (o ((S + 1) M, N hd) in the
+    dtype, normalised per split; lse (S + 1, N, M) f32). Splits: the prefix's 64-key blocks in `splits` runs (the
+    last may lie past the cache, masked), then the suffix's keys."""
+    m = q.shape[0]
+    hd = (kv_cols[1] - kv_cols[0]) // num_kv_heads
+    pp = prefix_mask.shape[1]
+    blocks = pp // BLOCK
+    splits = max(1, min(splits, blocks))
+    per_split = -(-blocks // splits)
+    size = jnp.dtype(q.dtype).itemsize * (BLOCK * hd + per_split * BLOCK * (2 * hd + BLOCK))
+    if size > SMEM_BYTES:
+        raise ValueError(f"{per_split} key blocks of {BLOCK} a CTA at head_dim {hd} take {size} bytes of shared "
+                         f"memory, over {SMEM_BYTES}: ask for more splits")
+    call = _call(m, m // batch, sk, pp, hd, batch, num_heads, num_kv_heads, tuple(kv_cols), splits, per_split,
+                 jnp.dtype(q.dtype))
+    return call(q, kv, cache_k, cache_v, prefix_mask, ends)

@@ -1,0 +1,128 @@
+"""The denoise attention's key splits on Mosaic GPU (`pi0_jax.ops.mosaic_attention`, Mosaic GPU's interpreter on CPU)
+equal XLA's attention, merged by the Pallas merge kernel or by XLA's ops, with a masked camera, padded prompts and
+π0's and π0.5's suffix masks; also through the XLA expert's call with a kv head's query heads folded into rows. The
+kernel takes whole 64-blocks, so these shapes are their own: two heads of 64 (one kv head), 40 suffix tokens (64
+rows), a 100-key prefix (padded to 128, two blocks). f32: the kernel and XLA differ only in summation order."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from pi0_jax import gemma, pi0
+from pi0_jax.config import GemmaConfig
+from pi0_jax.engine import layers
+from pi0_jax.ops import expert_kernels as ek
+from pi0_jax.ops import layout, mosaic_attention
+
+TOL = {"rtol": 1e-5, "atol": 1e-5}
+CFG = GemmaConfig(width=128, depth=1, mlp_dim=256, num_heads=2, num_kv_heads=1, head_dim=64)
+B, S, P = 2, 40, 100
+
+
+def _rand(key, *shape):
+    return jax.random.normal(jax.random.key(key), shape, jnp.float32)
+
+
+def _inputs(pi05: bool):
+    n, kh, h = CFG.num_heads, CFG.num_kv_heads, CFG.head_dim
+    q = _rand(0, B, S, kh, n // kh, h)
+    k, v = _rand(1, B, S, kh, h), _rand(2, B, S, kh, h)
+    ck, cv = _rand(3, B, P, kh, h), _rand(4, B, P, kh, h)
+    idx = np.arange(P)   # element 0: keys 40-79 masked (a camera) and a short prompt; element 1: a longer prompt
+    pmask = jnp.asarray(np.stack([(idx < 40) | ((idx >= 80) & (idx < 90)), idx < 97]))
+    ar = [True, True] + [False] * (S - 2) if not pi05 else [True] + [False] * (S - 1)
+    smask = jnp.broadcast_to(pi0.make_attn_mask(jnp.ones((1, S), bool), jnp.asarray(ar)), (B, S, S))
+    want = layers._attend(q, [ck, k], [cv, v], [jnp.broadcast_to(pmask[:, None], (B, S, P)), smask], jnp.float32)
+    return (q, k, v, ck, cv, pmask, smask), want
+
+
+def _kernel_attention(q, k, v, ck, cv, pmask, smask, blocks):
+    sp, h = layout.suffix_rows(S), CFG.head_dim
+    qkv = jnp.concatenate([q.reshape(B, S, -1), k.reshape(B, S, -1), v.reshape(B, S, -1)], axis=-1)
+    qkv = layout.rows(layout.heads(qkv, -1, h), sp)
+    ck, cv = (layout.cache_kv(c, h) for c in (ck, cv))
+    smask = jnp.pad(smask, ((0, 0), (0, sp - S), (0, sp - S))).reshape(B * sp, sp).astype(jnp.int32)
+    out = ek.attention(qkv, ck.reshape(-1, ck.shape[2] * ck.shape[3]), cv.reshape(-1, cv.shape[2] * cv.shape[3]),
+                       layout.cache_mask(pmask).astype(jnp.int32), smask, batch=B, num_heads=CFG.num_heads,
+                       num_kv_heads=CFG.num_kv_heads, blocks=blocks)
+    return layout.unheads(out.reshape(B, sp, -1)[:, :S], h)
+
+
+def test_constants_are_the_models():
+    assert mosaic_attention.BIG_NEG == ek.BIG_NEG == gemma._BIG_NEG
+    assert mosaic_attention.BLOCK == layout.KEY_PAD
+
+
+def test_suffix_ends():
+    """A row's visible suffix keys as a count: π0's state row sees 1, its action rows all 40, padded rows none."""
+    sp = layout.suffix_rows(S)
+    smask = jnp.pad(_inputs(False)[0][-1], ((0, 0), (0, sp - S), (0, sp - S))).reshape(B * sp, sp)
+    ends = mosaic_attention.suffix_ends(smask.astype(jnp.int32))
+    np.testing.assert_array_equal(ends[:sp], [1] + [S] * (S - 1) + [0] * (sp - S))
+    np.testing.assert_array_equal(jnp.arange(sp)[None] < ends[:, None], smask)   # the mask is exactly its prefix
+
+
+@pytest.mark.parametrize("pi05", [False, True])
+def test_mosaic_attention_matches_xla(pi05):
+    args, want = _inputs(pi05)
+    # 2 key blocks: one split of both; two splits of one (element 0's first block is half masked)
+    for splits in (1, 2):
+        for xla_merge in (False, True):
+            blocks = ek.Blocks(mosaic_attention=True, xla_merge=xla_merge, kv_splits=splits)
+            np.testing.assert_allclose(_kernel_attention(*args, blocks), want, **TOL)
+    # the masks matter: the camera unmasked, or π0.5's suffix mask for π0, changes the result
+    blocks = ek.Blocks(mosaic_attention=True)
+    q, k, v, ck, cv, pmask, smask = args
+    wrong = _kernel_attention(q, k, v, ck, cv, pmask.at[0, 40:80].set(True), smask, blocks)
+    assert not np.allclose(wrong, want, **TOL)
+    if not pi05:
+        other = _inputs(True)[0][-1]
+        assert not np.allclose(_kernel_attention(q, k, v, ck, cv, pmask, other, blocks), want, **TOL)
+
+
+def test_kernel_splits_equal_the_triton_kernels(monkeypatch):
+    """The Mosaic kernel's per-split outputs and log-sum-exps are the Triton kernel's (lse in its own layout)."""
+    (q, k, v, ck, cv, pmask, smask), _ = _inputs(False)
+    sp, h = layout.suffix_rows(S), CFG.head_dim
+    qkv = jnp.concatenate([q.reshape(B, S, -1), k.reshape(B, S, -1), v.reshape(B, S, -1)], axis=-1)
+    qkv = layout.rows(layout.heads(qkv, -1, h), sp)
+    ck, cv = (layout.cache_kv(c, h).reshape(B * 128, -1) for c in (ck, cv))
+    smask = jnp.pad(smask, ((0, 0), (0, sp - S), (0, sp - S))).reshape(B * sp, sp).astype(jnp.int32)
+    monkeypatch.setattr(ek, "merge_xla", lambda o, lse, **kw: (o, lse))   # the splits themselves
+    (o_t, lse_t), (o_m, lse_m) = (
+        ek._attention(qkv, qkv, ck, cv, layout.cache_mask(pmask).astype(jnp.int32), smask, B, CFG.num_heads,
+                      CFG.num_kv_heads, (2 * h, 3 * h), ek.Blocks(mosaic_attention=mosaic, xla_merge=True, kv_splits=2))
+        for mosaic in (False, True))
+    assert o_t.shape == o_m.shape == (3 * B * sp, 2 * h) and lse_m.shape == (3, CFG.num_heads, B * sp)
+    rows = np.concatenate([np.arange(S), sp + np.arange(S)])   # each element's real rows
+    o_t, o_m = (np.asarray(o).reshape(3, B * sp, -1)[:, rows] for o in (o_t, o_m))
+    np.testing.assert_allclose(o_m, o_t, **TOL)
+    lse_t = np.asarray(lse_t).reshape(3, B * sp, -1).transpose(0, 2, 1)[:, :, rows]
+    np.testing.assert_allclose(np.asarray(lse_m)[:, :, rows], lse_t, **TOL)
+
+
+@pytest.mark.parametrize("pi05", [False, True])
+def test_xla_experts_call_folds_query_heads_on_the_mosaic_kernel(pi05, monkeypatch):
+    """`layers._attend_kernel` with a kv head's 2 query heads folded into its rows (80 an element, padded to 128)."""
+    (q, k, v, ck, cv, pmask, smask), want = _inputs(pi05)
+    blocks = ek.Blocks(q=64, kv=64, kv_splits=2, fold=True, mosaic_attention=True)
+    monkeypatch.setattr(ek, "blocks_at", lambda batch: blocks)
+    ck, cv = (layout.cache_kv(c, CFG.head_dim) for c in (ck, cv))
+    tables = layers.pallas_tables(CFG, jnp.zeros((B, S), jnp.int32), layout.cache_mask(pmask), smask, blocks)
+    got = layers._attend_kernel(CFG, q, k, v, ck, cv, *tables[2:])
+    np.testing.assert_allclose(got, want.reshape(got.shape), **TOL)
+
+
+def test_applies_and_shared_memory():
+    shapes = dict(head_dim=64, query_rows=64, suffix_keys=64, prefix_keys=128)
+    assert mosaic_attention.applies(jnp.float32, **shapes)
+    for name in shapes:   # every dimension in whole blocks
+        assert not mosaic_attention.applies(jnp.float32, **{**shapes, name: 48})
+    # head_dim 256 with three 64-key blocks a CTA does not fit a Hopper CTA's shared memory
+    q = jax.ShapeDtypeStruct((64, 4 * 256), jnp.bfloat16)
+    cache = jax.ShapeDtypeStruct((192, 256), jnp.bfloat16)
+    with pytest.raises(ValueError, match="shared memory"):
+        mosaic_attention.attention(q, q, cache, cache, jax.ShapeDtypeStruct((1, 192), jnp.int32),
+                                   jax.ShapeDtypeStruct((64,), jnp.int32), batch=1, num_heads=2, num_kv_heads=1,
+                                   kv_cols=(512, 768), sk=64, splits=1)
