@@ -207,6 +207,7 @@ def test_choices_on_a_jax_without_pallas_triton(monkeypatch):
     import warnings
 
     from pi0_jax.engine import programs
+    from pi0_jax.ops import expert_kernels as ek
     from pi0_jax.ops import pallas_base, vision_attention
 
     code = ("import sys; sys.modules['jax.experimental.pallas.triton'] = None\n"
@@ -217,7 +218,7 @@ def test_choices_on_a_jax_without_pallas_triton(monkeypatch):
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "vision=cudnn,prefix=cudnn,denoise=auto"
 
-    layers = [{"qkv": jnp.zeros((4, 4))}]
+    layers = [{k: jnp.zeros((4, 4)) for k in ("qkv", "attn_out", "gate_up", "down")}]
     assert pallas_base.TRITON and programs.expert_path("auto", 1, layers, platform="gpu") == "pallas"
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
     with warnings.catch_warnings():
@@ -235,7 +236,16 @@ def test_choices_on_a_jax_without_pallas_triton(monkeypatch):
     auto = programs.Attention.parse("auto", platform="gpu")
     assert auto.vision == "cudnn" and auto.prefix == programs.AUTO_GPU.prefix
     assert {auto.at_batch(b, suffix_mask=m).denoise for b in range(1, 65) for m in (True, False)} == {"xla", "cudnn"}
-    assert programs.expert_path("auto", 1, layers, platform="gpu") == "xla"
+    assert programs.expert_path("auto", 1, layers, platform="gpu") == "xla"   # f32: no Mosaic GPU kernel takes it
+    # bf16 on a Hopper GPU: the Pallas expert on its Mosaic GPU kernels alone (`expert_kernels.TRITON_FREE`)
+    bf16 = [{k: v.astype(jnp.bfloat16) for k, v in layers[0].items()}]
+    for hopper in (True, False):
+        monkeypatch.setattr(programs.mosaic_gemm, "hopper", lambda hopper=hopper: hopper)
+        assert programs.expert_path("auto", 1, bf16, platform="gpu") == ("pallas" if hopper else "xla")
+        assert programs.expert_path("auto", programs.PALLAS_MAX_BATCH + 1, bf16, platform="gpu") == "xla"
+    assert ek.default_blocks() == ek.TRITON_FREE
+    assert all(getattr(ek.TRITON_FREE, f"mosaic_{g}") for g in ("qkv", "mlp", "out", "down", "attention"))
+    assert ek.TRITON_FREE.xla_merge
     assert programs.vision_norm("auto", 192, platform="gpu") == "xla"
     with pytest.raises(RuntimeError, match="'vision_attention' runs on Pallas's Triton backend"):
         vision_attention.attention(jnp.zeros((32, 48)), images=1, num_heads=1)

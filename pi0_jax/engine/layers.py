@@ -228,7 +228,7 @@ def pallas_tables(cfg: GemmaConfig, positions, prefix_mask, suffix_mask, blocks=
 
 
 def suffix_layers_pallas(cfg: GemmaConfig, weights, x, positions, cache_k, cache_v, prefix_mask, suffix_mask,
-                         mods=None, blocks: expert_kernels.Blocks = expert_kernels.Blocks(), tables=None):
+                         mods=None, blocks: expert_kernels.Blocks | None = None, tables=None):
     """All action-expert layers as Pallas kernels (`pi0_jax.ops`): per layer four split-K GEMMs and the attention,
     each followed by one XLA fusion (norm, RoPE, GeGLU, residuals, the split merges); the same function as
     `suffix_layer` applied layer by layer.
@@ -237,8 +237,10 @@ def suffix_layers_pallas(cfg: GemmaConfig, weights, x, positions, cache_k, cache
     XLA makes free at full size, where nothing is padded); cache_k/v: per layer (B, Pp, K, 2hp)
     and prefix_mask (B, Pp) in kernel layout (`ops.layout.cache_kv`); x (B, S, D); positions (B, S); suffix_mask
     (B, S, S); mods: None (π0) or a step's π0.5 adaRMS outputs (attn, ffw), (L, 3D) each; tables: `pallas_tables`
-    of these, made once per call by the caller (None: made here). Returns x (B, S, D).
+    of these, made once per call by the caller (None: made here); blocks: the kernels' launch (None: this jax's,
+    `expert_kernels.default_blocks`). Returns x (B, S, D).
     """
+    blocks = expert_kernels.default_blocks() if blocks is None else blocks
     b, s, d = x.shape
     sp = layout.suffix_rows(s)
     rows = layout.rows(x, sp)

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 from pi0_jax import pi0
 from pi0_jax.config import Pi0Config
 from pi0_jax.engine import layers, vision
-from pi0_jax.ops import expert_kernels, layout, pallas_base
+from pi0_jax.ops import expert_kernels, layout, mosaic_gemm, pallas_base
 from pi0_jax.ops import matmul as quant
 
 # The batch sizes at which kernels="auto" runs the expert's Pallas kernels on a GPU: measured faster than XLA at
@@ -63,8 +63,9 @@ def is_quantised(tree) -> bool:
 
 def expert_path(kernels: str, batch: int, expert_weights, platform: str | None = None) -> str:
     """The action expert's path for one program: "xla" or "pallas" as asked; "auto" picks the faster at this batch
-    on this platform: the Pallas kernels on a GPU up to PALLAS_MAX_BATCH (with unrolled, unquantised layers, on a
-    jax with Pallas's Triton backend: `pallas_base.TRITON`), else XLA (on a CPU the kernels run interpreted)."""
+    on this platform: the Pallas kernels on a GPU up to PALLAS_MAX_BATCH (with unrolled, unquantised layers; on a
+    jax without Pallas's Triton backend, `pallas_base.TRITON`, only where all of them run on Mosaic GPU,
+    `expert_kernels.TRITON_FREE`: bf16 on Hopper), else XLA (on a CPU the kernels run interpreted)."""
     if check_kernels(kernels) != "auto":
         return kernels
     if expert_weights is None:
@@ -72,7 +73,10 @@ def expert_path(kernels: str, batch: int, expert_weights, platform: str | None =
                          "'pallas' (e.g. `Engine.kernels_for(batch)`)")
     platform = platform or jax.default_backend()
     unrolled = isinstance(expert_weights, (list, tuple))
-    gpu_batch = platform == "gpu" and batch <= PALLAS_MAX_BATCH and pallas_base.TRITON
+    gpu_batch = platform == "gpu" and batch <= PALLAS_MAX_BATCH
+    if gpu_batch and not pallas_base.TRITON:
+        bf16 = all(expert_weights[0][k].dtype == jnp.bfloat16 for k in ("qkv", "attn_out", "gate_up", "down"))
+        gpu_batch = bf16 and mosaic_gemm.hopper()
     return "pallas" if gpu_batch and unrolled and not is_quantised(expert_weights) else "xla"
 
 

@@ -127,6 +127,11 @@ TRITON_FREE = Blocks(mosaic_qkv=Launch(64, 2, 6), mosaic_out=Launch(64, 8, 4), m
                      mosaic_attention=True, xla_merge=True)
 
 
+def default_blocks() -> Blocks:
+    """The Pallas expert's launch on this jax: `Blocks()`, or `TRITON_FREE` on a jax without Pallas's Triton backend."""
+    return Blocks() if pallas_base.TRITON else TRITON_FREE
+
+
 def _call(kernel, grid, out_shape, name: str, num_warps: int, num_stages: int):
     return pallas_base.call(kernel, grid=grid, out_shape=out_shape, name=name, num_warps=num_warps,
                             num_stages=num_stages)

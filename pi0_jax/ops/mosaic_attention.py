@@ -26,7 +26,7 @@ import jax.experimental.pallas.mosaic_gpu as plgpu
 import jax.numpy as jnp
 from jax import lax
 
-from pi0_jax.ops.mosaic_gemm import _interpret
+from pi0_jax.ops.mosaic_gemm import _interpret, hopper
 
 BLOCK = 64   # query rows and keys a block: one warpgroup's wgmma rows, and the kernels' prefix key padding
 SMEM_BYTES = 220 * 1024   # a Hopper CTA's shared memory (227 KB), less the masks' and barriers'
@@ -39,8 +39,7 @@ def applies(dtype, *, head_dim: int, query_rows: int, suffix_keys: int, prefix_k
     tiles = all(d % BLOCK == 0 for d in (head_dim, query_rows, suffix_keys, prefix_keys)) and head_dim <= 256
     if jax.default_backend() == "cpu":
         return tiles
-    hopper = jax.default_backend() == "gpu" and getattr(jax.devices()[0], "compute_capability", "") == "9.0"
-    return tiles and hopper and jnp.dtype(dtype) == jnp.bfloat16
+    return tiles and hopper() and jnp.dtype(dtype) == jnp.bfloat16
 
 
 def suffix_ends(suffix_mask):

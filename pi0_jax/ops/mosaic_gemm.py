@@ -74,6 +74,11 @@ def _interpret():
     return params()
 
 
+def hopper() -> bool:
+    """Whether the default device is a Hopper GPU (wgmma and TMA as these kernels use them)."""
+    return jax.default_backend() == "gpu" and getattr(jax.devices()[0], "compute_capability", "") == "9.0"
+
+
 def applies(x, w, launch: Launch) -> bool:
     """Whether this kernel takes x @ w: bf16 on a Hopper GPU (or any float on the CPU interpreter), K splitting into
     steps of `launch.tk` rows (more than `delay` of them), N into column blocks (geglu: `cols` is one block pair of the
@@ -87,8 +92,7 @@ def applies(x, w, launch: Launch) -> bool:
     tiles = tiles and k // (launch.splits * launch.tk) > launch.delay   # the pipeline is no deeper than its steps
     if jax.default_backend() == "cpu":
         return tiles
-    hopper = jax.default_backend() == "gpu" and getattr(jax.devices()[0], "compute_capability", "") == "9.0"
-    return tiles and hopper and launch.cols % 64 == 0 and x.dtype == w.dtype == jnp.bfloat16
+    return tiles and hopper() and launch.cols % 64 == 0 and x.dtype == w.dtype == jnp.bfloat16
 
 
 def _padded(x):
