@@ -236,6 +236,10 @@ def test_choices_on_a_jax_without_pallas_triton(monkeypatch):
     auto = programs.Attention.parse("auto", platform="gpu")
     assert auto.vision == "cudnn" and auto.prefix == programs.AUTO_GPU.prefix
     assert {auto.at_batch(b, suffix_mask=m).denoise for b in range(1, 65) for m in (True, False)} == {"xla", "cudnn"}
+    monkeypatch.setattr(programs.mosaic_gemm, "hopper", lambda: True)   # the kernel attention on Mosaic GPU
+    for m, batches in ((True, programs.PALLAS_DENOISE_BATCHES_MASKED), (False, programs.PALLAS_DENOISE_BATCHES)):
+        assert {b for b in range(1, 65) if auto.at_batch(b, suffix_mask=m).denoise == "pallas"} == set(batches)
+    monkeypatch.setattr(programs.mosaic_gemm, "hopper", lambda: False)
     assert programs.expert_path("auto", 1, layers, platform="gpu") == "xla"   # f32: no Mosaic GPU kernel takes it
     # bf16 on a Hopper GPU: the Pallas expert on its Mosaic GPU kernels alone (`expert_kernels.TRITON_FREE`)
     bf16 = [{k: v.astype(jnp.bfloat16) for k, v in layers[0].items()}]

@@ -115,13 +115,15 @@ class Attention:
         """The concrete choice of every stage for a program of this batch size; suffix_mask: the model's suffix
         masks some of its own keys (π0; π0.5's attends everywhere); differentiable: XLA's denoise attention (a
         program that differentiates the velocity, `guided_denoise`: the Pallas kernel has no VJP, and cuDNN's flash
-        attention refused a backward pass at the suffix's sequence lengths on a GPU)."""
+        attention refused a backward pass at the suffix's sequence lengths on a GPU). On a jax without Pallas's
+        Triton backend "pallas" is the kernel on Mosaic GPU (`expert_kernels.TRITON_FREE`: Hopper; "auto" is bf16
+        only), and elsewhere cuDNN's or XLA's."""
         if self.denoise != "auto":
             return self
         if differentiable:
             return dataclasses.replace(self, denoise="xla")
         kernel = PALLAS_DENOISE_BATCHES_MASKED if suffix_mask else PALLAS_DENOISE_BATCHES
-        if batch in kernel and pallas_base.TRITON:
+        if batch in kernel and (pallas_base.TRITON or mosaic_gemm.hopper()):   # without Triton on Mosaic GPU
             return dataclasses.replace(self, denoise="pallas")
         cudnn = batch >= (CUDNN_DENOISE_MIN_BATCH_MASKED if suffix_mask else CUDNN_DENOISE_MIN_BATCH)
         return dataclasses.replace(self, denoise="cudnn" if cudnn else "xla")

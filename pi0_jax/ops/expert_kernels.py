@@ -109,14 +109,15 @@ class Blocks:
                       for k, v in d.items()})
 
 
-def blocks_at(batch: int, blocks: Blocks = Blocks()) -> Blocks:
+def blocks_at(batch: int, blocks: Blocks | None = None) -> Blocks:
     """The XLA expert's launch of the attention kernel at this batch (`engine.layers._attend_kernel`): the key splits
     shared out over the elements, whose (element, head) programs fill the GPU themselves, so the merge reads fewer
     split outputs; 4 warps a program (the 10-step denoise 5.5-9 % faster than with 8 at B = 4, 8 and 16 on an H100,
     level at B = 1: docs/BENCHMARKS.md, "The Pallas attention in the XLA expert"); from B = 8 a kv head's query
     heads folded into its rows (π0's 10-step denoise 1.1-2 % and π0.5's 3.5 % faster at B = 8 on an H200, π0's
-    level at B = 16 and 0.8 % slower at B = 4: "Query heads folded into the kernel's rows", session 32)."""
-    return dataclasses.replace(blocks, kv_splits=max(1, round(blocks.kv_splits / batch)), attention_warps=4,
+    level at B = 16 and 0.8 % slower at B = 4: "Query heads folded into the kernel's rows", session 32). blocks: the
+    base launch (None: this jax's, `default_blocks`)."""
+    return dataclasses.replace(default_blocks() if blocks is None else blocks, kv_splits=max(1, round(blocks.kv_splits / batch)), attention_warps=4,
                                fold=batch >= 8)
 
 

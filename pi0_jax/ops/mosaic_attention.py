@@ -42,6 +42,12 @@ def applies(dtype, *, head_dim: int, query_rows: int, suffix_keys: int, prefix_k
     return tiles and hopper() and jnp.dtype(dtype) == jnp.bfloat16
 
 
+def max_blocks_per_split(head_dim: int, dtype) -> int:
+    """The prefix key blocks a CTA holds at once in shared memory (q, and each block's keys, values and p)."""
+    size = jnp.dtype(dtype).itemsize
+    return (SMEM_BYTES // size - BLOCK * head_dim) // (BLOCK * (2 * head_dim + BLOCK))
+
+
 def suffix_ends(suffix_mask):
     """(M, Sp) int32 row -> suffix key mask -> (M,) int32: each row's count of visible suffix keys (the kernel's
     form; exact for masks whose rows are prefixes of the keys, which π0's and π0.5's are)."""
@@ -192,17 +198,17 @@ def attention(q, kv, cache_k, cache_v, prefix_mask, ends, *, batch: int, num_hea
     rows), kv (B sk, .) holding the suffix's keys and values at kv_cols[0] and [1] (+ the kv head's offset), cache_k /
     cache_v (B P, K hd), prefix_mask (B, P) int32, ends (M,) int32 (`suffix_ends`) -> (o ((S + 1) M, N hd) in the
     dtype, normalised per split; lse (S + 1, N, M) f32). Splits: the prefix's 64-key blocks in `splits` runs (the
-    last may lie past the cache, masked), then the suffix's keys."""
+    last may lie past the cache, masked; more runs where a run's blocks would not fit a CTA's shared memory,
+    `max_blocks_per_split`), then the suffix's keys."""
     m = q.shape[0]
     hd = (kv_cols[1] - kv_cols[0]) // num_kv_heads
     pp = prefix_mask.shape[1]
     blocks = pp // BLOCK
-    splits = max(1, min(splits, blocks))
+    fit = max_blocks_per_split(hd, q.dtype)
+    if fit < 1:
+        raise ValueError(f"one key block of {BLOCK} at head_dim {hd} does not fit a CTA's shared memory")
+    splits = max(1, min(blocks, max(splits, -(-blocks // fit))))   # more splits where a CTA's blocks would not fit
     per_split = -(-blocks // splits)
-    size = jnp.dtype(q.dtype).itemsize * (BLOCK * hd + per_split * BLOCK * (2 * hd + BLOCK))
-    if size > SMEM_BYTES:
-        raise ValueError(f"{per_split} key blocks of {BLOCK} a CTA at head_dim {hd} take {size} bytes of shared "
-                         f"memory, over {SMEM_BYTES}: ask for more splits")
     call = _call(m, m // batch, sk, pp, hd, batch, num_heads, num_kv_heads, tuple(kv_cols), splits, per_split,
                  jnp.dtype(q.dtype))
     return call(q, kv, cache_k, cache_v, prefix_mask, ends)
