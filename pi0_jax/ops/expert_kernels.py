@@ -117,7 +117,8 @@ def blocks_at(batch: int, blocks: Blocks | None = None) -> Blocks:
     heads folded into its rows (π0's 10-step denoise 1.1-2 % and π0.5's 3.5 % faster at B = 8 on an H200, π0's
     level at B = 16 and 0.8 % slower at B = 4: "Query heads folded into the kernel's rows", session 32). blocks: the
     base launch (None: this jax's, `default_blocks`)."""
-    return dataclasses.replace(default_blocks() if blocks is None else blocks, kv_splits=max(1, round(blocks.kv_splits / batch)), attention_warps=4,
+    blocks = default_blocks() if blocks is None else blocks
+    return dataclasses.replace(blocks, kv_splits=max(1, round(blocks.kv_splits / batch)), attention_warps=4,
                                fold=batch >= 8)
 
 
