@@ -10,14 +10,16 @@ GPU sat idle between kernels.
     python scripts/profile_engine.py --preset pi0_base --attention xla --attention auto --time --trace-stages \
         --out profile.json        # two engines on the same weights: counts, stage times, per-kernel traces
 
-Variants are the product of --attention, --kernels, --gemm, --vision-norm and --triton; with --time they are timed
-round-robin (one call of each per round, the order reversed every other round), so drift over the run hits all alike.
+Variants are the product of --attention, --kernels, --gemm, --vision-norm, --triton and --blocks; with --time they
+are timed round-robin (one call of each per round, the order reversed every other round), so drift over the run hits
+all alike.
 """
 
 from __future__ import annotations
 
 import argparse
 import collections
+import dataclasses
 import glob
 import gzip
 import itertools
@@ -33,7 +35,7 @@ import numpy as np
 from pi0_jax import benchmark
 from pi0_jax.config import get_config
 from pi0_jax.engine import Engine, programs
-from pi0_jax.ops import matmul, pallas_base
+from pi0_jax.ops import expert_kernels, matmul, pallas_base
 from pi0_jax.quant import schemes
 
 
@@ -220,6 +222,9 @@ def main() -> None:
                    help="off: trace the variant's programs as on a jax without Pallas's Triton backend "
                         "(`pallas_base.TRITON` False: the \"auto\" choices without it); repeat it to compare "
                         "(default: on)")
+    p.add_argument("--blocks", action="append", default=None,
+                   help="JSON of `expert_kernels.Blocks` fields over this jax's default launch of the expert's "
+                        "kernels (e.g. '{\"mosaic_attention\": true}'); repeat it to compare (default: {})")
     p.add_argument("--time", action="store_true",
                    help="median ms of each stage program (and the fused one), round-robin over the variants (every "
                         "engine is kept until the end: mind device memory)")
@@ -249,11 +254,13 @@ def main() -> None:
               "variants": []}
     outputs, timed = {}, []
     vision_norm = programs.vision_norm
-    has_triton = pallas_base.TRITON
-    for attention, kernels, gemm, norm, triton in itertools.product(
+    has_triton, default_blocks = pallas_base.TRITON, expert_kernels.default_blocks
+    for attention, kernels, gemm, norm, triton, blocks in itertools.product(
             args.attention or ["auto"], args.kernels or ["auto"], args.gemm or ["auto"], args.vision_norm or ["auto"],
-            args.triton or ["on"]):
+            args.triton or ["on"], args.blocks or ["{}"]):
         pallas_base.TRITON = has_triton and triton == "on"   # until this variant's programs are traced
+        expert_kernels.default_blocks = lambda fields=json.loads(blocks): dataclasses.replace(default_blocks(),
+                                                                                                **fields)
         # the programs are traced below, inside this variant: its LayerNorm choice holds for all of them
         programs.vision_norm = vision_norm if norm == "auto" else (lambda kernels, images, platform=None, n=norm: n)
         engine = Engine(config, params, unroll=not args.no_unroll, unroll_steps=args.unroll_steps,
@@ -261,11 +268,11 @@ def main() -> None:
         cameras, bucket = engine.plan(obs)
         packed = engine.pack(obs, cameras, bucket)
         var = {"attention": str(engine.attention), "kernels": engine.kernels_for(args.batch), "gemm": gemm,
-               "triton": pallas_base.TRITON,
+               "triton": pallas_base.TRITON, "blocks": json.loads(blocks),
                "vision_norm": programs.vision_norm(kernels, args.batch * len(cameras)),
                "counts": {}, "median_ms": {}, "trace": {}}
         print(f"== attention {var['attention']}, kernels {var['kernels']}, gemm {gemm}, vision norm "
-              f"{var['vision_norm']}, triton {triton}", flush=True)
+              f"{var['vision_norm']}, triton {triton}, blocks {blocks}", flush=True)
         for stage in ("encode_images", "fill_prefix_cache", "denoise", "prefix_denoise", "infer"):
             exe = engine.executable(stage, args.batch, args.steps, cameras, bucket)
             counts = var["counts"][stage] = count_ops(exe.as_text())
@@ -277,8 +284,8 @@ def main() -> None:
                 if comp.startswith("ENTRY") or c["fusion"] + c["custom-call"] > 20:
                     print(f"   {stage:18s} {comp[:50]:50s} {json.dumps(c)}", flush=True)
         calls = stage_calls(engine, args.batch, args.steps, cameras, bucket, packed, noise)
-        outputs[f"{var['attention']} {kernels} {gemm} {norm} triton-{triton}"] = np.asarray(calls["infer"](),
-                                                                                          np.float64)
+        outputs[f"{var['attention']} {kernels} {gemm} {norm} triton-{triton} {blocks}"] = np.asarray(
+            calls["infer"](), np.float64)
         jax.block_until_ready(calls["call"]())   # the call's two programs are compiled here, under this variant
         timed.append((var, calls))
         for stage, fn in calls.items():
@@ -303,7 +310,7 @@ def main() -> None:
                     jax.block_until_ready(fn())
         del engine
     programs.vision_norm = vision_norm
-    pallas_base.TRITON = has_triton
+    pallas_base.TRITON, expert_kernels.default_blocks = has_triton, default_blocks
     if args.time:   # round-robin: one call of each variant's stage per round, so drift hits all variants alike;
         # the order flips every round: a program timed right after another runs 1-3 % slower (docs/BENCHMARKS.md)
         times = [{stage: [] for stage in calls} for _, calls in timed]
@@ -320,7 +327,8 @@ def main() -> None:
             var["p10_p90_ms"] = {k: [float(np.percentile(v, q)) for q in (10, 90)] for k, v in per_stage.items()}
             medians = json.dumps({k: round(v, 3) for k, v in var["median_ms"].items()})
             print(f"== {var['attention']}, kernels {var['kernels']}, gemm {var['gemm']}, vision norm "
-                  f"{var['vision_norm']}, triton {var['triton']}: median ms {medians}", flush=True)
+                  f"{var['vision_norm']}, triton {var['triton']}, blocks {var['blocks']}: median ms {medians}",
+                  flush=True)
     first = next(iter(outputs.values()))
     report["rel_l2_vs_first"] = {k: float(np.linalg.norm(v - first) / np.linalg.norm(first)) for k, v in outputs.items()}
     print("actions, relative L2 against the first variant:", json.dumps(report["rel_l2_vs_first"]), flush=True)
