@@ -121,6 +121,7 @@ def test_applies_and_shared_memory():
     assert mosaic_attention.applies(jnp.float32, **shapes)
     for name in shapes:   # every dimension in whole blocks
         assert not mosaic_attention.applies(jnp.float32, **{**shapes, name: 48})
+    assert not mosaic_attention.applies(jnp.float32, **{**shapes, "suffix_keys": 128})   # the suffix is one block
     # at head_dim 256 a CTA holds at most two 64-key blocks in shared memory: one split of 3 blocks becomes two
     assert mosaic_attention.max_blocks_per_split(256, jnp.bfloat16) == 2
     assert mosaic_attention.max_blocks_per_split(64, jnp.float32) >= 4

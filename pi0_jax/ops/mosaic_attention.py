@@ -2,9 +2,10 @@
 `expert_kernels.attention` that needs no Triton.
 
 A CTA takes one head's block of 64 query rows and one split of the keys: `per_split` blocks of the cached prefix
-(all brought by TMA at once, while q arrives) or the suffix's own keys (the last split). QK^T and PV run on wgmma, the
-online softmax on the accumulator in registers. It writes the split's normalised output in the dtype and its
-log-sum-exp in f32, as the Triton kernel does; `expert_kernels.merge` (or `merge_xla`) makes them one.
+(all brought by TMA at once, while q arrives) or the suffix's own 64 keys (the last split). QK^T and PV run on wgmma,
+the softmax on the accumulator in registers (the max over the split's blocks first, so nothing is rescaled). It
+writes the split's normalised output in the dtype and its log-sum-exp in f32, as the Triton kernel does;
+`expert_kernels.merge` (or `merge_xla`) makes them one.
 
 Masks, in the layout the accumulator's rows and columns take: the prefix mask as the element's int32 row of keys
 (one TMA-loaded vector a block), and the suffix mask as each query row's count of visible suffix keys: π0's and
@@ -34,9 +35,11 @@ BIG_NEG = -2.3819763e38  # expert_kernels.BIG_NEG (a test checks they agree)
 
 
 def applies(dtype, *, head_dim: int, query_rows: int, suffix_keys: int, prefix_keys: int) -> bool:
-    """Whether the kernel takes this attention: every dimension in whole 64-blocks, and bf16 on a Hopper GPU (any
-    float in the CPU interpreter)."""
-    tiles = all(d % BLOCK == 0 for d in (head_dim, query_rows, suffix_keys, prefix_keys)) and head_dim <= 256
+    """Whether the kernel takes this attention: head_dim, query rows and prefix keys in whole 64-blocks, the suffix
+    one block (π0's 51 tokens and π0.5's 50 pad to 64), and bf16 on a Hopper GPU (any float in the CPU
+    interpreter)."""
+    tiles = all(d % BLOCK == 0 for d in (head_dim, query_rows, prefix_keys)) and suffix_keys == BLOCK
+    tiles = tiles and head_dim <= 256
     if jax.default_backend() == "cpu":
         return tiles
     return tiles and hopper() and jnp.dtype(dtype) == jnp.bfloat16
