@@ -132,3 +132,31 @@ def test_applies_and_shared_memory():
                             q, q, cache, cache, jax.ShapeDtypeStruct((1, 192), jnp.int32),
                             jax.ShapeDtypeStruct((64,), jnp.int32))
     assert lse.shape == (3, 2, 64) and o.shape == (3 * 64, 512)   # two prefix splits and the suffix's
+
+
+@pytest.mark.parametrize("pi05", [False, True])
+def test_expert_without_triton_equals_xla(pi05, monkeypatch):
+    """The Pallas expert on Mosaic GPU kernels alone (`ek.TRITON_FREE`'s form, at launches this expert tiles), as on a
+    jax without Pallas's Triton backend: no Triton kernel is called, the merge is XLA's, and the layers equal XLA's."""
+    from pi0_jax.ops import pallas_base
+    from pi0_jax.ops.mosaic_gemm import Launch
+
+    d, f, n, kh, h = CFG.width, CFG.mlp_dim, CFG.num_heads, CFG.num_kv_heads, CFG.head_dim
+    w = {"qkv": _rand(10, d, (n + 2 * kh) * h) * d**-0.5, "attn_out": _rand(11, n * h, d) * 0.1,
+         "gate_up": _rand(12, d, 2 * f) * d**-0.5, "down": _rand(13, f, d) * f**-0.5}
+    mods = (_rand(14, 1, 3 * d) * 0.3, _rand(15, 1, 3 * d) * 0.3) if pi05 else None
+    if not pi05:
+        w.update(pre_attn=_rand(16, d) * 0.2, pre_ffw=_rand(17, d) * 0.2)
+    (_, _, _, ck, cv, pmask, smask), _ = _inputs(pi05)
+    x, positions = _rand(18, B, S, d), 100 + jnp.arange(S)[None].repeat(B, 0)
+    want, _, _ = layers.suffix_layer(CFG, w, x, positions, ck, cv, jnp.broadcast_to(pmask[:, None], (B, S, P)), smask,
+                                     mods)
+    blocks = ek.Blocks(mosaic_qkv=Launch(64, 2, 2), mosaic_mlp=Launch(64, 1, 3, geglu=True),
+                       mosaic_out=Launch(64, 2, 1, 2), mosaic_down=Launch(128, 4, 1), mosaic_attention=True)
+    assert ek.TRITON_FREE.mosaic_attention and ek.TRITON_FREE.xla_merge
+    monkeypatch.setattr(pallas_base, "TRITON", False)   # the merge then runs as XLA's ops
+    monkeypatch.setattr(pallas_base, "call", lambda *a, **kw: pytest.fail(f"a Triton kernel: {kw.get('name')}"))
+    cache_k, cache_v = ([layout.cache_kv(c, h)] for c in (ck, cv))
+    got = layers.suffix_layers_pallas(CFG, [w], x, positions, cache_k, cache_v, layout.cache_mask(pmask), smask, mods,
+                                      blocks=blocks)
+    np.testing.assert_allclose(got, want, **TOL)
