@@ -95,16 +95,29 @@ def _attention_inputs(pi05):
     return q, k, v, ck, cv, _prefix_mask(), _suffix_mask(pi05)
 
 
-def _pallas_attention(q, k, v, ck, cv, pmask, smask, splits=4):
-    sp, h = layout.suffix_rows(S), CFG.head_dim
-    qkv = jnp.concatenate([q.reshape(B, S, -1), k.reshape(B, S, -1), v.reshape(B, S, -1)], axis=-1)
-    qkv = layout.rows(layout.heads(qkv, -1, h), sp)
+def kernel_operands(cfg, q, k, v, ck, cv, pmask, smask) -> tuple:
+    """The attention kernel's operands from the XLA path's q (B,S,K,G,H), k, v (B,S,K,H), caches (B,P,K,H), prefix
+    mask (B,P) and suffix mask (B,S,S): (qkv rows, cache_k, cache_v, prefix mask, suffix mask), as
+    `engine.layers.suffix_layers_pallas` lays them out."""
+    b, s = q.shape[:2]
+    sp, h = layout.suffix_rows(s), cfg.head_dim
+    qkv = jnp.concatenate([q.reshape(b, s, -1), k.reshape(b, s, -1), v.reshape(b, s, -1)], axis=-1)
     ck, cv = (layout.cache_kv(c, h) for c in (ck, cv))
-    smask = jnp.pad(smask, ((0, 0), (0, sp - S), (0, sp - S))).reshape(B * sp, sp).astype(jnp.int32)
-    out = ek.attention(qkv, ck.reshape(-1, ck.shape[2] * ck.shape[3]), cv.reshape(-1, cv.shape[2] * cv.shape[3]),
-                       layout.cache_mask(pmask).astype(jnp.int32), smask, batch=B, num_heads=CFG.num_heads,
-                       num_kv_heads=CFG.num_kv_heads, blocks=Blocks(kv=32, kv_splits=splits))
-    return layout.unheads(out.reshape(B, sp, -1)[:, :S], h)
+    smask = jnp.pad(smask, ((0, 0), (0, sp - s), (0, sp - s))).reshape(b * sp, sp).astype(jnp.int32)
+    return (layout.rows(layout.heads(qkv, -1, h), sp), ck.reshape(-1, ck.shape[2] * ck.shape[3]),
+            cv.reshape(-1, cv.shape[2] * cv.shape[3]), layout.cache_mask(pmask).astype(jnp.int32), smask)
+
+
+def kernel_attention(cfg, q, k, v, ck, cv, pmask, smask, blocks):
+    """`ek.attention` on these inputs (`kernel_operands`) -> (B, S, N H), as the XLA path returns it."""
+    b, s = q.shape[:2]
+    out = ek.attention(*kernel_operands(cfg, q, k, v, ck, cv, pmask, smask), batch=b, num_heads=cfg.num_heads,
+                       num_kv_heads=cfg.num_kv_heads, blocks=blocks)
+    return layout.unheads(out.reshape(b, layout.suffix_rows(s), -1)[:, :s], cfg.head_dim)
+
+
+def _pallas_attention(q, k, v, ck, cv, pmask, smask, splits=4):
+    return kernel_attention(CFG, q, k, v, ck, cv, pmask, smask, Blocks(kv=32, kv_splits=splits))
 
 
 @pytest.mark.parametrize("pi05", [False, True])

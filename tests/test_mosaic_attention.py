@@ -16,6 +16,7 @@ from pi0_jax.config import GemmaConfig
 from pi0_jax.engine import layers
 from pi0_jax.ops import expert_kernels as ek
 from pi0_jax.ops import layout, mosaic_attention
+from test_kernels import kernel_attention, kernel_operands
 
 TOL = {"rtol": 1e-5, "atol": 1e-5}
 CFG = GemmaConfig(width=128, depth=1, mlp_dim=256, num_heads=2, num_kv_heads=1, head_dim=64)
@@ -40,15 +41,7 @@ def _inputs(pi05: bool):
 
 
 def _kernel_attention(q, k, v, ck, cv, pmask, smask, blocks):
-    sp, h = layout.suffix_rows(S), CFG.head_dim
-    qkv = jnp.concatenate([q.reshape(B, S, -1), k.reshape(B, S, -1), v.reshape(B, S, -1)], axis=-1)
-    qkv = layout.rows(layout.heads(qkv, -1, h), sp)
-    ck, cv = (layout.cache_kv(c, h) for c in (ck, cv))
-    smask = jnp.pad(smask, ((0, 0), (0, sp - S), (0, sp - S))).reshape(B * sp, sp).astype(jnp.int32)
-    out = ek.attention(qkv, ck.reshape(-1, ck.shape[2] * ck.shape[3]), cv.reshape(-1, cv.shape[2] * cv.shape[3]),
-                       layout.cache_mask(pmask).astype(jnp.int32), smask, batch=B, num_heads=CFG.num_heads,
-                       num_kv_heads=CFG.num_kv_heads, blocks=blocks)
-    return layout.unheads(out.reshape(B, sp, -1)[:, :S], h)
+    return kernel_attention(CFG, q, k, v, ck, cv, pmask, smask, blocks)
 
 
 def test_constants_are_the_models():
@@ -85,16 +78,12 @@ def test_mosaic_attention_matches_xla(pi05):
 
 def test_kernel_splits_equal_the_triton_kernels(monkeypatch):
     """The Mosaic kernel's per-split outputs and log-sum-exps are the Triton kernel's (lse in its own layout)."""
-    (q, k, v, ck, cv, pmask, smask), _ = _inputs(False)
+    qkv, ck, cv, pmask, smask = kernel_operands(CFG, *_inputs(False)[0])
     sp, h = layout.suffix_rows(S), CFG.head_dim
-    qkv = jnp.concatenate([q.reshape(B, S, -1), k.reshape(B, S, -1), v.reshape(B, S, -1)], axis=-1)
-    qkv = layout.rows(layout.heads(qkv, -1, h), sp)
-    ck, cv = (layout.cache_kv(c, h).reshape(B * 128, -1) for c in (ck, cv))
-    smask = jnp.pad(smask, ((0, 0), (0, sp - S), (0, sp - S))).reshape(B * sp, sp).astype(jnp.int32)
     monkeypatch.setattr(ek, "merge_xla", lambda o, lse, **kw: (o, lse))   # the splits themselves
     (o_t, lse_t), (o_m, lse_m) = (
-        ek._attention(qkv, qkv, ck, cv, layout.cache_mask(pmask).astype(jnp.int32), smask, B, CFG.num_heads,
-                      CFG.num_kv_heads, (2 * h, 3 * h), ek.Blocks(mosaic_attention=mosaic, xla_merge=True, kv_splits=2))
+        ek._attention(qkv, qkv, ck, cv, pmask, smask, B, CFG.num_heads, CFG.num_kv_heads, (2 * h, 3 * h),
+                      ek.Blocks(mosaic_attention=mosaic, xla_merge=True, kv_splits=2))
         for mosaic in (False, True))
     assert o_t.shape == o_m.shape == (3 * B * sp, 2 * h) and lse_m.shape == (3, CFG.num_heads, B * sp)
     rows = np.concatenate([np.arange(S), sp + np.arange(S)])   # each element's real rows
