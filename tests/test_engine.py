@@ -247,6 +247,7 @@ def test_choices_on_a_jax_without_pallas_triton(monkeypatch):
         monkeypatch.setattr(programs.mosaic_gemm, "hopper", lambda hopper=hopper: hopper)
         assert programs.expert_path("auto", 1, bf16, platform="gpu") == ("pallas" if hopper else "xla")
         assert programs.expert_path("auto", programs.PALLAS_MAX_BATCH + 1, bf16, platform="gpu") == "xla"
+        assert programs.expert_path("auto", 1, bf16[0], platform="gpu") == "xla"   # stacked (scanned) layers
     assert ek.default_blocks() == ek.TRITON_FREE
     assert all(getattr(ek.TRITON_FREE, f"mosaic_{g}") for g in ("qkv", "mlp", "out", "down", "attention"))
     assert ek.TRITON_FREE.xla_merge

@@ -73,11 +73,11 @@ def expert_path(kernels: str, batch: int, expert_weights, platform: str | None =
                          "'pallas' (e.g. `Engine.kernels_for(batch)`)")
     platform = platform or jax.default_backend()
     unrolled = isinstance(expert_weights, (list, tuple))
-    gpu_batch = platform == "gpu" and batch <= PALLAS_MAX_BATCH
-    if gpu_batch and not pallas_base.TRITON:
+    pallas = platform == "gpu" and batch <= PALLAS_MAX_BATCH and unrolled and not is_quantised(expert_weights)
+    if pallas and not pallas_base.TRITON:
         bf16 = all(expert_weights[0][k].dtype == jnp.bfloat16 for k in ("qkv", "attn_out", "gate_up", "down"))
-        gpu_batch = bf16 and mosaic_gemm.hopper()
-    return "pallas" if gpu_batch and unrolled and not is_quantised(expert_weights) else "xla"
+        pallas = bf16 and mosaic_gemm.hopper()
+    return "pallas" if pallas else "xla"
 
 
 def vision_norm(kernels: str, images: int, platform: str | None = None) -> str:
