@@ -189,8 +189,7 @@ def _call(m: int, sq: int, sk: int, pp: int, hd: int, batch: int, num_heads: int
            jax.ShapeDtypeStruct((parts, num_heads, m), jnp.float32))
     on_cpu = jax.default_backend() == "cpu"
     return plgpu.kernel(entry, out_type=out, grid=(num_heads * (sq // bq), parts, batch), grid_names=("h", "s", "b"),
-                        num_threads=1, thread_name="wg",
-                        kernel_name="expert_attention_mosaic",
+                        num_threads=1, thread_name="wg", kernel_name="expert_attention_mosaic",
                         compiler_params=plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup),
                         **({"interpret": _interpret()} if on_cpu else {}))
 
