@@ -40,8 +40,7 @@ def _inputs(pi05: bool):
     return (q, k, v, ck, cv, pmask, smask), want
 
 
-def _kernel_attention(q, k, v, ck, cv, pmask, smask, blocks):
-    return kernel_attention(CFG, q, k, v, ck, cv, pmask, smask, blocks)
+_kernel_attention = functools.partial(kernel_attention, CFG)
 
 
 def test_constants_are_the_models():

@@ -27,7 +27,7 @@ import jax.experimental.pallas.mosaic_gpu as plgpu
 import jax.numpy as jnp
 from jax import lax
 
-from pi0_jax.ops.mosaic_gemm import _interpret, hopper
+from pi0_jax.ops.mosaic_gemm import _interpret, hopper, transforms
 
 BLOCK = 64   # query rows and keys a block: one warpgroup's wgmma rows, and the kernels' prefix key padding
 SMEM_BYTES = 220 * 1024   # a Hopper CTA's shared memory (227 KB), less the masks' and barriers'
@@ -77,19 +77,13 @@ def _iota(shape, dim):
     return plgpu.broadcasted_iota(jnp.int32, shape, dim, layout=plgpu.Layout.WGMMA)
 
 
-def _transforms(minor, dt):
-    size = jnp.dtype(dt).itemsize
-    swizzle = plgpu.find_swizzle(minor * size * 8)
-    return plgpu.TilingTransform((8, swizzle // size)), plgpu.SwizzleTransform(swizzle)
-
-
 @functools.lru_cache(maxsize=None)
 def _call(m: int, sq: int, sk: int, pp: int, hd: int, batch: int, num_heads: int, num_kv_heads: int,
           kv_cols: tuple, splits: int, per_split: int, dtype):
     bq = bkv = BLOCK
     blocks = pp // bkv
     group = num_heads // num_kv_heads
-    tiles = _transforms(hd, dtype)
+    tiles = transforms(hd, dtype)
 
     def kernel(q_gmem, kv_gmem, ck_gmem, cv_gmem, pmask_gmem, ends_gmem, o_gmem, lse_gmem,
                q_smem, k_smem, v_smem, p_smem, pmask_smem, ends_smem, lse_smem, q_bar, kv_bar):
@@ -174,7 +168,7 @@ def _call(m: int, sq: int, sk: int, pp: int, hd: int, batch: int, num_heads: int
         k_smem=[plgpu.SMEM((bkv, hd), dtype, transforms=tiles) for _ in range(slots)],   # one ref a slot: the 0.10
         # interpreter cannot transpose an indexed ref
         v_smem=plgpu.SMEM((slots, bkv, hd), dtype, transforms=tiles),
-        p_smem=plgpu.SMEM((slots, bq, bkv), dtype, transforms=_transforms(bkv, dtype)),
+        p_smem=plgpu.SMEM((slots, bq, bkv), dtype, transforms=transforms(bkv, dtype)),
         pmask_smem=plgpu.SMEM((slots, bkv), jnp.int32),
         ends_smem=plgpu.SMEM((bq,), jnp.int32),
         lse_smem=plgpu.SMEM((bq,), jnp.float32),

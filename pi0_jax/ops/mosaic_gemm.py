@@ -95,6 +95,13 @@ def applies(x, w, launch: Launch) -> bool:
     return tiles and hopper() and launch.cols % 64 == 0 and x.dtype == w.dtype == jnp.bfloat16
 
 
+def transforms(minor: int, dt) -> tuple:
+    """A shared-memory tile's TMA layout: tiles of 8 rows, swizzled by the row's bytes (at most 128)."""
+    size = jnp.dtype(dt).itemsize
+    swizzle = plgpu.find_swizzle(minor * size * 8)
+    return plgpu.TilingTransform((8, swizzle // size)), plgpu.SwizzleTransform(swizzle)
+
+
 def _padded(x):
     m = x.shape[0]
     mp = -(-m // ROWS) * ROWS
@@ -131,11 +138,6 @@ def _call(m: int, k: int, n: int, dtype, launch: Launch, name: str):
     chunk, cta_n = k // splits, cols * wgs
     out_cols = cols // 2 if pair else cols   # a warpgroup's output columns (geglu: the block's units)
     out_dtype = dtype if splits == 1 else jnp.float32
-
-    def transforms(minor, dt):   # TMA tiles of 8 rows, swizzled by the row's bytes (at most 128)
-        size = jnp.dtype(dt).itemsize
-        swizzle = plgpu.find_swizzle(minor * size * 8)
-        return plgpu.TilingTransform((8, swizzle // size)), plgpu.SwizzleTransform(swizzle)
 
     def pipeline(body, context):
         spec = functools.partial(plgpu.BlockSpec, memory_space=plgpu.SMEM, delay_release=launch.delay)
