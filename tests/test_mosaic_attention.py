@@ -58,13 +58,18 @@ def test_suffix_ends():
 
 
 @pytest.mark.parametrize("pi05", [False, True])
-def test_mosaic_attention_matches_xla(pi05):
+def test_mosaic_attention_matches_xla(pi05, monkeypatch):
     args, want = _inputs(pi05)
-    # 2 key blocks: one split of both; two splits of one (element 0's first block is half masked)
-    for splits in (1, 2):
-        for xla_merge in (False, True):
-            blocks = ek.Blocks(mosaic_attention=True, xla_merge=xla_merge, kv_splits=splits)
-            np.testing.assert_allclose(_kernel_attention(*args, blocks), want, **TOL)
+    # 3 key blocks (2 of the prefix, the suffix's): one run of all three, two runs of two (the second's last block lies
+    # past the keys, masked), three runs of one (element 0's first block is half masked); through a ring of as many
+    # slots as fit (3 here) and of 2 (the first slot refilled with the third block)
+    for ring in (None, 2):
+        if ring:
+            monkeypatch.setattr(mosaic_attention, "max_slots", lambda *a: ring)
+        for splits in (0, 1, 2):
+            for xla_merge in (False, True):
+                blocks = ek.Blocks(mosaic_attention=True, xla_merge=xla_merge, kv_splits=splits)
+                np.testing.assert_allclose(_kernel_attention(*args, blocks), want, **TOL)
     # the masks matter: the camera unmasked, or π0.5's suffix mask for π0, changes the result
     blocks = ek.Blocks(mosaic_attention=True)
     q, k, v, ck, cv, pmask, smask = args
@@ -110,16 +115,16 @@ def test_applies_and_shared_memory():
     for name in shapes:   # every dimension in whole blocks
         assert not mosaic_attention.applies(jnp.float32, **{**shapes, name: 48})
     assert not mosaic_attention.applies(jnp.float32, **{**shapes, "suffix_keys": 128})   # the suffix is one block
-    # at head_dim 256 a CTA holds at most two 64-key blocks in shared memory: one split of 3 blocks becomes two
-    assert mosaic_attention.max_blocks_per_split(256, jnp.bfloat16) == 2
-    assert mosaic_attention.max_blocks_per_split(64, jnp.float32) >= 4
+    # at head_dim 256 a CTA holds two 64-key blocks in shared memory beside q and p
+    assert mosaic_attention.max_slots(256, jnp.bfloat16) == 2
+    assert mosaic_attention.max_slots(64, jnp.float32) >= 4
     q = jax.ShapeDtypeStruct((64, 4 * 256), jnp.bfloat16)
     cache = jax.ShapeDtypeStruct((192, 256), jnp.bfloat16)
-    o, lse = jax.eval_shape(functools.partial(mosaic_attention.attention, batch=1, num_heads=2, num_kv_heads=1,
-                                              kv_cols=(512, 768), sk=64, splits=1),
-                            q, q, cache, cache, jax.ShapeDtypeStruct((1, 192), jnp.int32),
-                            jax.ShapeDtypeStruct((64,), jnp.int32))
-    assert lse.shape == (3, 2, 64) and o.shape == (3 * 64, 512)   # two prefix splits and the suffix's
+    shapes = (q, q, cache, cache, jax.ShapeDtypeStruct((1, 192), jnp.int32), jax.ShapeDtypeStruct((64,), jnp.int32))
+    for splits, parts in ((1, 1), (2, 2), (3, 2), (4, 4), (9, 4)):   # 4 key blocks: 3 of the prefix, the suffix
+        o, lse = jax.eval_shape(functools.partial(mosaic_attention.attention, batch=1, num_heads=2, num_kv_heads=1,
+                                                  kv_cols=(512, 768), sk=64, splits=splits), *shapes)
+        assert lse.shape == (parts, 2, 64) and o.shape == (parts * 64, 512)
 
 
 @pytest.mark.parametrize("pi05", [False, True])

@@ -344,7 +344,7 @@ def _attention(q, kv, cache_k, cache_v, prefix_mask, suffix_mask, batch, num_hea
         o, lse = mosaic_attention.attention(q, kv, cache_k, cache_v, prefix_mask,
                                             mosaic_attention.suffix_ends(suffix_mask), batch=batch,
                                             num_heads=num_heads, num_kv_heads=num_kv_heads, kv_cols=kv_cols, sk=sk,
-                                            splits=blocks.kv_splits)
+                                            splits=blocks.kv_splits + 1)   # the Triton kernel's parts
     else:
         kernel = functools.partial(_attention_kernel, m=m, bq=bq, bkv=bkv, sq=sq, sk=sk, pp=pp, hd=hd,
                                    num_heads=num_heads, num_kv_heads=num_kv_heads, splits=splits,

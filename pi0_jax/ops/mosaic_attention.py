@@ -1,11 +1,12 @@
 """The denoise step's split-key attention as one Pallas Mosaic GPU kernel (Hopper: TMA, wgmma), the form of
 `expert_kernels.attention` that needs no Triton.
 
-A CTA takes one head's block of 64 query rows and one split of the keys: `per_split` blocks of the cached prefix
-(all brought by TMA at once, while q arrives) or the suffix's own 64 keys (the last split). QK^T and PV run on wgmma,
-the softmax on the accumulator in registers (the max over the split's blocks first, so nothing is rescaled). It
-writes the split's normalised output in the dtype and its log-sum-exp in f32, as the Triton kernel does;
-`expert_kernels.merge` (or `merge_xla`) makes them one.
+A CTA takes one head's block of 64 query rows and one split of the keys: a run of consecutive 64-key blocks, the
+cached prefix's and then the suffix's own 64 keys (the last block of the last split). TMA brings each block into a
+ring of shared-memory slots, the next ones in flight while one is computed. QK^T and PV run on wgmma, the softmax on
+the accumulator in registers, online across the run's blocks (each block's row maximum taken first, what came
+before rescaled to it). It writes the split's normalised output in the dtype and its log-sum-exp in f32, as the
+Triton kernel does; `expert_kernels.merge` (or `merge_xla`) makes them one.
 
 Masks, in the layout the accumulator's rows and columns take: the prefix mask as the element's int32 row of keys
 (one TMA-loaded vector a block), and the suffix mask as each query row's count of visible suffix keys: π0's and
@@ -45,10 +46,10 @@ def applies(dtype, *, head_dim: int, query_rows: int, suffix_keys: int, prefix_k
     return tiles and hopper() and jnp.dtype(dtype) == jnp.bfloat16
 
 
-def max_blocks_per_split(head_dim: int, dtype) -> int:
-    """The prefix key blocks a CTA holds at once in shared memory (q, and each block's keys, values and p)."""
+def max_slots(head_dim: int, dtype) -> int:
+    """Key blocks a CTA holds at once in shared memory (each block's keys and values; q and p once)."""
     size = jnp.dtype(dtype).itemsize
-    return (SMEM_BYTES // size - BLOCK * head_dim) // (BLOCK * (2 * head_dim + BLOCK))
+    return (SMEM_BYTES // size - BLOCK * head_dim - BLOCK * BLOCK) // (2 * BLOCK * head_dim)
 
 
 def suffix_ends(suffix_mask):
@@ -79,9 +80,9 @@ def _iota(shape, dim):
 
 @functools.lru_cache(maxsize=None)
 def _call(m: int, sq: int, sk: int, pp: int, hd: int, batch: int, num_heads: int, num_kv_heads: int,
-          kv_cols: tuple, splits: int, per_split: int, dtype):
+          kv_cols: tuple, parts: int, per_split: int, slots: int, dtype):
     bq = bkv = BLOCK
-    blocks = pp // bkv
+    blocks = pp // bkv   # the prefix's; key block `blocks` is the suffix's
     group = num_heads // num_kv_heads
     tiles = transforms(hd, dtype)
 
@@ -94,6 +95,26 @@ def _call(m: int, sq: int, sk: int, pp: int, hd: int, batch: int, num_heads: int
         plgpu.copy_gmem_to_smem(q_gmem.at[pl.ds(rows, bq), pl.ds(n * hd, hd)], q_smem, q_bar)
         plgpu.copy_gmem_to_smem(ends_gmem.at[pl.ds(rows, bq)], ends_smem, q_bar)
 
+        def load(t):
+            """Key block j = s per_split + t into slot t % slots: a prefix block, the suffix's keys (j = blocks), or
+            past them (the suffix's again, masked). The slot's barrier counts three copies (keys, values, mask)."""
+            slot, j = t % slots, s * per_split + t
+            tc = jnp.minimum(j, blocks - 1)
+
+            @pl.when(j < blocks)
+            def _prefix():
+                keys = pl.ds(b * pp + tc * bkv, bkv)
+                plgpu.copy_gmem_to_smem(ck_gmem.at[keys, pl.ds(kh * hd, hd)], k_smem[slot], kv_bar.at[slot])
+                plgpu.copy_gmem_to_smem(cv_gmem.at[keys, pl.ds(kh * hd, hd)], v_smem.at[slot], kv_bar.at[slot])
+
+            @pl.when(j >= blocks)
+            def _suffix():
+                suffix = pl.ds(b * sk, sk)
+                k_col, v_col = kv_cols[0] + kh * hd, kv_cols[1] + kh * hd
+                plgpu.copy_gmem_to_smem(kv_gmem.at[suffix, pl.ds(k_col, hd)], k_smem[slot], kv_bar.at[slot])
+                plgpu.copy_gmem_to_smem(kv_gmem.at[suffix, pl.ds(v_col, hd)], v_smem.at[slot], kv_bar.at[slot])
+            plgpu.copy_gmem_to_smem(pmask_gmem.at[b, pl.ds(tc * bkv, bkv)], pmask_smem.at[slot], kv_bar.at[slot])
+
         def logits(slot):
             if _old_interpreter():
                 return lax.dot_general(q_smem[...], k_smem[slot][...], (((1,), (1,)), ((), ())),
@@ -104,71 +125,53 @@ def _call(m: int, sq: int, sk: int, pp: int, hd: int, batch: int, num_heads: int
                 return acc_ref[...]
             return pl.run_scoped(qk, plgpu.ACC((bq, bkv), jnp.float32))
 
-        def softmax(masks):
-            """The split's blocks' logits (one per slot, all in registers), their max per row taken first (no online
-            rescaling), p, l, and PV into one accumulator -> (o normalised, in f32; log-sum-exp)."""
-            xs = [jnp.where(valid, logits(t), BIG_NEG) for t, valid in enumerate(masks)]
-            mx = functools.reduce(jnp.maximum, [x.max(axis=1) for x in xs])
-            ps = [jnp.exp(x - lax.broadcast_in_dim(mx, x.shape, [0])) for x in xs]
-            l = functools.reduce(jnp.add, [p.sum(axis=1) for p in ps])
-
-            for t, p in enumerate(ps):   # wgmma's A from shared memory (Mosaic's interpreter takes no other)
-                p_smem[t] = p.astype(dtype)
+        def pv(p, slot):
+            p_smem[...] = p.astype(dtype)   # wgmma's A from shared memory (Mosaic's interpreter takes no other)
             plgpu.commit_smem()
 
-            def pv(acc_ref):
-                for t in range(len(ps)):
-                    plgpu.wgmma(acc_ref, p_smem.at[t], v_smem.at[t])
+            def product(acc_ref):
+                plgpu.wgmma(acc_ref, p_smem, v_smem.at[slot])
                 return acc_ref[...]
-            o = pl.run_scoped(pv, plgpu.ACC((bq, hd), jnp.float32))
-            return o / lax.broadcast_in_dim(l, o.shape, [0]), mx + jnp.log(l)
+            return pl.run_scoped(product, plgpu.ACC((bq, hd), jnp.float32))
 
-        def write(o, lse):
-            q_smem[...] = o.astype(dtype)
-            lse_smem[...] = lse
-            plgpu.commit_smem()
-            plgpu.copy_smem_to_gmem(q_smem, o_gmem.at[pl.ds(s * m + rows, bq), pl.ds(n * hd, hd)])
-            plgpu.copy_smem_to_gmem(lse_smem, lse_gmem.at[s, n, pl.ds(rows, bq)])
-            plgpu.wait_smem_to_gmem(0)
+        for t in range(min(slots, per_split)):   # the ring's first blocks in flight while q arrives
+            load(t)
+        plgpu.barrier_wait(q_bar)
+        ends = _in_layout(ends_smem[...], plgpu.Layout.WGMMA.reduce(1))
+        suffix_ok = _iota((bq, bkv), 1) < lax.broadcast_in_dim(ends, (bq, bkv), [0])
+        acc = mx = l = None
+        for t in range(per_split):
+            slot, j = t % slots, s * per_split + t
+            plgpu.barrier_wait(kv_bar.at[slot])
+            key_ok = (_in_layout(pmask_smem[slot], plgpu.Layout.WGMMA.reduce(0)) != 0) & (j < blocks)
+            valid = lax.broadcast_in_dim(key_ok, (bq, bkv), [1]) | (suffix_ok & (j == blocks))
+            x = jnp.where(valid, logits(slot), BIG_NEG)
+            top = x.max(axis=1) if mx is None else jnp.maximum(mx, x.max(axis=1))
+            p = jnp.exp(x - lax.broadcast_in_dim(top, x.shape, [0]))
+            o = pv(p, slot)
+            if mx is None:
+                acc, l = o, p.sum(axis=1)
+            else:   # the online softmax: what came before, rescaled to the new row maximum
+                alpha = jnp.exp(mx - top)
+                acc = acc * lax.broadcast_in_dim(alpha, acc.shape, [0]) + o
+                l = l * alpha + p.sum(axis=1)
+            mx = top
+            if t + slots < per_split:   # the slot's wgmmas are done (their results read): refill it
+                load(t + slots)
 
-        @pl.when(s < splits)
-        def _prefix():
-            for t in range(per_split):   # every block's TMA issued before the first wgmma
-                tc = jnp.minimum(s * per_split + t, blocks - 1)   # a block past the cache reads the last one, masked
-                keys = pl.ds(b * pp + tc * bkv, bkv)
-                plgpu.copy_gmem_to_smem(ck_gmem.at[keys, pl.ds(kh * hd, hd)], k_smem[t], kv_bar.at[t])
-                plgpu.copy_gmem_to_smem(cv_gmem.at[keys, pl.ds(kh * hd, hd)], v_smem.at[t], kv_bar.at[t])
-                plgpu.copy_gmem_to_smem(pmask_gmem.at[b, pl.ds(tc * bkv, bkv)], pmask_smem.at[t], kv_bar.at[t])
-            plgpu.barrier_wait(q_bar)
-            masks = []
-            for t in range(per_split):
-                plgpu.barrier_wait(kv_bar.at[t])
-                key_ok = _in_layout(pmask_smem[t], plgpu.Layout.WGMMA.reduce(0)) != 0
-                key_ok = key_ok & (s * per_split + t < blocks)
-                masks.append(lax.broadcast_in_dim(key_ok, (bq, bkv), [1]))
-            write(*softmax(masks))
+        q_smem[...] = (acc / lax.broadcast_in_dim(l, acc.shape, [0])).astype(dtype)
+        lse_smem[...] = mx + jnp.log(l)
+        plgpu.commit_smem()
+        plgpu.copy_smem_to_gmem(q_smem, o_gmem.at[pl.ds(s * m + rows, bq), pl.ds(n * hd, hd)])
+        plgpu.copy_smem_to_gmem(lse_smem, lse_gmem.at[s, n, pl.ds(rows, bq)])
+        plgpu.wait_smem_to_gmem(0)
 
-        @pl.when(s == splits)
-        def _suffix():
-            suffix = pl.ds(b * sk, sk)
-            k_col, v_col = kv_cols[0] + kh * hd, kv_cols[1] + kh * hd
-            plgpu.copy_gmem_to_smem(kv_gmem.at[suffix, pl.ds(k_col, hd)], k_smem[0], kv_bar.at[0])
-            plgpu.copy_gmem_to_smem(kv_gmem.at[suffix, pl.ds(v_col, hd)], v_smem.at[0], kv_bar.at[0])
-            # the slot's barrier counts three copies (a prefix block's keys, values and mask)
-            plgpu.copy_gmem_to_smem(pmask_gmem.at[b, pl.ds(0, bkv)], pmask_smem.at[0], kv_bar.at[0])
-            plgpu.barrier_wait(q_bar)
-            plgpu.barrier_wait(kv_bar.at[0])
-            ends = _in_layout(ends_smem[...], plgpu.Layout.WGMMA.reduce(1))
-            key = _iota((bq, bkv), 1)
-            write(*softmax([key < lax.broadcast_in_dim(ends, (bq, bkv), [0])]))
-
-    slots = max(per_split, 1)
     scratch = dict(
         q_smem=plgpu.SMEM((bq, hd), dtype, transforms=tiles),
         k_smem=[plgpu.SMEM((bkv, hd), dtype, transforms=tiles) for _ in range(slots)],   # one ref a slot: the 0.10
         # interpreter cannot transpose an indexed ref
         v_smem=plgpu.SMEM((slots, bkv, hd), dtype, transforms=tiles),
-        p_smem=plgpu.SMEM((slots, bq, bkv), dtype, transforms=transforms(bkv, dtype)),
+        p_smem=plgpu.SMEM((bq, bkv), dtype, transforms=transforms(bkv, dtype)),
         pmask_smem=plgpu.SMEM((slots, bkv), jnp.int32),
         ends_smem=plgpu.SMEM((bq,), jnp.int32),
         lse_smem=plgpu.SMEM((bq,), jnp.float32),
@@ -178,7 +181,6 @@ def _call(m: int, sq: int, sk: int, pp: int, hd: int, batch: int, num_heads: int
     def entry(*refs):
         pl.run_scoped(lambda **scoped: kernel(*refs, **scoped), **scratch, collective_axes="wg")
 
-    parts = splits + 1
     out = (jax.ShapeDtypeStruct((parts * m, num_heads * hd), dtype),
            jax.ShapeDtypeStruct((parts, num_heads, m), jnp.float32))
     on_cpu = jax.default_backend() == "cpu"
@@ -189,22 +191,23 @@ def _call(m: int, sq: int, sk: int, pp: int, hd: int, batch: int, num_heads: int
 
 
 def attention(q, kv, cache_k, cache_v, prefix_mask, ends, *, batch: int, num_heads: int, num_kv_heads: int,
-              kv_cols: tuple, sk: int, splits: int):
+              kv_cols: tuple, sk: int, splits: int, slots: int | None = None):
     """The split-key softmaxes of `expert_kernels.attention`'s kernel: q (M, >= N hd) query rows (an element's M / B
     rows), kv (B sk, .) holding the suffix's keys and values at kv_cols[0] and [1] (+ the kv head's offset), cache_k /
-    cache_v (B P, K hd), prefix_mask (B, P) int32, ends (M,) int32 (`suffix_ends`) -> (o ((S + 1) M, N hd) in the
-    dtype, normalised per split; lse (S + 1, N, M) f32). Splits: the prefix's 64-key blocks in `splits` runs (the
-    last may lie past the cache, masked; more runs where a run's blocks would not fit a CTA's shared memory,
-    `max_blocks_per_split`), then the suffix's keys."""
+    cache_v (B P, K hd), prefix_mask (B, P) int32, ends (M,) int32 (`suffix_ends`) -> (o (S M, N hd) in the dtype,
+    normalised per split; lse (S, N, M) f32). The key blocks, the prefix's 64-key blocks and then the suffix's, run
+    in `splits` runs of equal length (fewer where a run would be empty), each through a ring of `slots` blocks in
+    shared memory (None: as many as fit, `max_slots`)."""
     m = q.shape[0]
     hd = (kv_cols[1] - kv_cols[0]) // num_kv_heads
     pp = prefix_mask.shape[1]
-    blocks = pp // BLOCK
-    fit = max_blocks_per_split(hd, q.dtype)
+    total = pp // BLOCK + 1
+    fit = max_slots(hd, q.dtype)
     if fit < 1:
         raise ValueError(f"one key block of {BLOCK} at head_dim {hd} does not fit a CTA's shared memory")
-    splits = max(1, min(blocks, max(splits, -(-blocks // fit))))   # more splits where a CTA's blocks would not fit
-    per_split = -(-blocks // splits)
-    call = _call(m, m // batch, sk, pp, hd, batch, num_heads, num_kv_heads, tuple(kv_cols), splits, per_split,
-                 jnp.dtype(q.dtype))
+    per_split = -(-total // max(1, min(splits, total)))
+    parts = -(-total // per_split)
+    slots = min(per_split, fit if slots is None else max(1, min(slots, fit)))
+    call = _call(m, m // batch, sk, pp, hd, batch, num_heads, num_kv_heads, tuple(kv_cols), parts, per_split,
+                 slots, jnp.dtype(q.dtype))
     return call(q, kv, cache_k, cache_v, prefix_mask, ends)
