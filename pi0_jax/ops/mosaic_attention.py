@@ -125,14 +125,22 @@ def _call(m: int, sq: int, sk: int, pp: int, hd: int, batch: int, num_heads: int
                 return acc_ref[...]
             return pl.run_scoped(qk, plgpu.ACC((bq, bkv), jnp.float32))
 
-        def pv(p, slot):
+        def pv(p, slot, acc):
+            """acc + p V (acc None: p V). On a GPU the wgmma accumulates into acc's own registers (a second 64 x 256
+            f32 result beside it spills); Mosaic's interpreter runs no wgmma into a given accumulator, so there it is
+            a fresh product added."""
             p_smem[...] = p.astype(dtype)   # wgmma's A from shared memory (Mosaic's interpreter takes no other)
             plgpu.commit_smem()
+            if _old_interpreter():
+                o = jnp.dot(p_smem[...], v_smem[slot], preferred_element_type=jnp.float32)
+                return o if acc is None else acc + o
 
             def product(acc_ref):
                 plgpu.wgmma(acc_ref, p_smem, v_smem.at[slot])
-                return acc_ref[...]
-            return pl.run_scoped(product, plgpu.ACC((bq, hd), jnp.float32))
+            if acc is not None and jax.default_backend() != "cpu":
+                return pl.run_state(product)(plgpu.ACC.init(acc))
+            o = pl.run_scoped(lambda acc_ref: (product(acc_ref), acc_ref[...])[1], plgpu.ACC((bq, hd), jnp.float32))
+            return o if acc is None else acc + o
 
         for t in range(min(slots, per_split)):   # the ring's first blocks in flight while q arrives
             load(t)
@@ -148,12 +156,11 @@ def _call(m: int, sq: int, sk: int, pp: int, hd: int, batch: int, num_heads: int
             x = jnp.where(valid, logits(slot), BIG_NEG)
             top = x.max(axis=1) if mx is None else jnp.maximum(mx, x.max(axis=1))
             p = jnp.exp(x - lax.broadcast_in_dim(top, x.shape, [0]))
-            o = pv(p, slot)
             if mx is None:
-                acc, l = o, p.sum(axis=1)
+                acc, l = pv(p, slot, None), p.sum(axis=1)
             else:   # the online softmax: what came before, rescaled to the new row maximum
                 alpha = jnp.exp(mx - top)
-                acc = acc * lax.broadcast_in_dim(alpha, acc.shape, [0]) + o
+                acc = pv(p, slot, acc * lax.broadcast_in_dim(alpha, acc.shape, [0]))
                 l = l * alpha + p.sum(axis=1)
             mx = top
             if t + slots < per_split:   # the slot's wgmmas are done (their results read): refill it
