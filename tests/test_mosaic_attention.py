@@ -127,6 +127,22 @@ def test_applies_and_shared_memory():
         assert lse.shape == (parts, 2, 64) and o.shape == (parts * 64, 512)
 
 
+def test_blocks_at_a_batch_keeps_short_splits_on_the_mosaic_kernel():
+    """The XLA expert's attention launch: the Triton kernel's splits shared out over the batch, the Mosaic kernel's
+    half the base launch's at any batch (π0's 13 prefix blocks and the suffix's: 7 parts of 2 blocks)."""
+    assert ek.blocks_at(8, ek.Blocks()).kv_splits == 2 and ek.blocks_at(1, ek.Blocks()).kv_splits == 13
+    for batch in (1, 3, 8, 16):
+        at = ek.blocks_at(batch, ek.TRITON_FREE)
+        assert at.kv_splits == 6 and at.fold == (batch >= 8)
+    splits = ek.blocks_at(8, ek.TRITON_FREE).kv_splits + 1   # as `ek._attention` passes it
+    shape = functools.partial(jax.ShapeDtypeStruct, dtype=jnp.bfloat16)
+    args = (shape((8 * 448, 256)), shape((8 * 64, 512)), shape((8 * 832, 256)), shape((8 * 832, 256)),
+            jax.ShapeDtypeStruct((8, 832), jnp.int32), jax.ShapeDtypeStruct((8 * 448,), jnp.int32))
+    _, lse = jax.eval_shape(functools.partial(mosaic_attention.attention, batch=8, num_heads=1, num_kv_heads=1,
+                                              kv_cols=(0, 256), sk=64, splits=splits), *args)
+    assert lse.shape == (7, 1, 8 * 448)
+
+
 @pytest.mark.parametrize("pi05", [False, True])
 def test_expert_without_triton_equals_xla(pi05, monkeypatch):
     """The Pallas expert on Mosaic GPU kernels alone (`ek.TRITON_FREE`'s form, at launches this expert tiles), as on a

@@ -115,11 +115,13 @@ def blocks_at(batch: int, blocks: Blocks | None = None) -> Blocks:
     split outputs; 4 warps a program (the 10-step denoise 5.5-9 % faster than with 8 at B = 4, 8 and 16 on an H100,
     level at B = 1: docs/BENCHMARKS.md, "The Pallas attention in the XLA expert"); from B = 8 a kv head's query
     heads folded into its rows (π0's 10-step denoise 1.1-2 % and π0.5's 3.5 % faster at B = 8 on an H200, π0's
-    level at B = 16 and 0.8 % slower at B = 4: "Query heads folded into the kernel's rows", session 32). blocks: the
-    base launch (None: this jax's, `default_blocks`)."""
+    level at B = 16 and 0.8 % slower at B = 4: "Query heads folded into the kernel's rows", session 32). The Mosaic
+    kernel instead keeps half the base launch's splits at any batch (π0: two key blocks a CTA), as its ring of two
+    slots runs long splits slowly (π0's denoise at B = 8 without Triton 17.70 ms against 18.87 with the Triton
+    kernel's 3 parts: "The Mosaic attention with a pipelined key run", session 37). blocks: the base launch (None: this jax's, `default_blocks`)."""
     blocks = default_blocks() if blocks is None else blocks
-    return dataclasses.replace(blocks, kv_splits=max(1, round(blocks.kv_splits / batch)), attention_warps=4,
-                               fold=batch >= 8)
+    splits = blocks.kv_splits // 2 if blocks.mosaic_attention else round(blocks.kv_splits / batch)
+    return dataclasses.replace(blocks, kv_splits=max(1, splits), attention_warps=4, fold=batch >= 8)
 
 
 # An expert with no Triton kernel: every GEMM on Mosaic GPU at its fastest launch alone (docs/BENCHMARKS.md, "A Mosaic
