@@ -137,9 +137,13 @@ def _call(m: int, sq: int, sk: int, pp: int, hd: int, batch: int, num_heads: int
 
             def product(acc_ref):
                 plgpu.wgmma(acc_ref, p_smem, v_smem.at[slot])
+
+            def fresh(acc_ref):
+                product(acc_ref)
+                return acc_ref[...]
             if acc is not None and jax.default_backend() != "cpu":
                 return pl.run_state(product)(plgpu.ACC.init(acc))
-            o = pl.run_scoped(lambda acc_ref: (product(acc_ref), acc_ref[...])[1], plgpu.ACC((bq, hd), jnp.float32))
+            o = pl.run_scoped(fresh, plgpu.ACC((bq, hd), jnp.float32))
             return o if acc is None else acc + o
 
         for t in range(min(slots, per_split)):   # the ring's first blocks in flight while q arrives
