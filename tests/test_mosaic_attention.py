@@ -120,10 +120,10 @@ def test_applies_and_shared_memory():
     assert mosaic_attention.max_slots(64, jnp.float32) >= 4
     q = jax.ShapeDtypeStruct((64, 4 * 256), jnp.bfloat16)
     cache = jax.ShapeDtypeStruct((192, 256), jnp.bfloat16)
-    shapes = (q, q, cache, cache, jax.ShapeDtypeStruct((1, 192), jnp.int32), jax.ShapeDtypeStruct((64,), jnp.int32))
+    operands = (q, q, cache, cache, jax.ShapeDtypeStruct((1, 192), jnp.int32), jax.ShapeDtypeStruct((64,), jnp.int32))
     for splits, parts in ((1, 1), (2, 2), (3, 2), (4, 4), (9, 4)):   # 4 key blocks: 3 of the prefix, the suffix
         o, lse = jax.eval_shape(functools.partial(mosaic_attention.attention, batch=1, num_heads=2, num_kv_heads=1,
-                                                  kv_cols=(512, 768), sk=64, splits=splits), *shapes)
+                                                  kv_cols=(512, 768), sk=64, splits=splits), *operands)
         assert lse.shape == (parts, 2, 64) and o.shape == (parts * 64, 512)
 
 

@@ -118,7 +118,8 @@ def blocks_at(batch: int, blocks: Blocks | None = None) -> Blocks:
     level at B = 16 and 0.8 % slower at B = 4: "Query heads folded into the kernel's rows", session 32). The Mosaic
     kernel instead keeps half the base launch's splits at any batch (π0: two key blocks a CTA), as its ring of two
     slots runs long splits slowly (π0's denoise at B = 8 without Triton 17.70 ms against 18.87 with the Triton
-    kernel's 3 parts: "The Mosaic attention with a pipelined key run", session 37). blocks: the base launch (None: this jax's, `default_blocks`)."""
+    kernel's 3 parts: "The Mosaic attention with a pipelined key run", session 37). blocks: the base launch (None:
+    this jax's, `default_blocks`)."""
     blocks = default_blocks() if blocks is None else blocks
     splits = blocks.kv_splits // 2 if blocks.mosaic_attention else round(blocks.kv_splits / batch)
     return dataclasses.replace(blocks, kv_splits=max(1, splits), attention_warps=4, fold=batch >= 8)

@@ -202,13 +202,13 @@ def _call(m: int, sq: int, sk: int, pp: int, hd: int, batch: int, num_heads: int
 
 
 def attention(q, kv, cache_k, cache_v, prefix_mask, ends, *, batch: int, num_heads: int, num_kv_heads: int,
-              kv_cols: tuple, sk: int, splits: int, slots: int | None = None):
+              kv_cols: tuple, sk: int, splits: int):
     """The split-key softmaxes of `expert_kernels.attention`'s kernel: q (M, >= N hd) query rows (an element's M / B
     rows), kv (B sk, .) holding the suffix's keys and values at kv_cols[0] and [1] (+ the kv head's offset), cache_k /
     cache_v (B P, K hd), prefix_mask (B, P) int32, ends (M,) int32 (`suffix_ends`) -> (o (S M, N hd) in the dtype,
     normalised per split; lse (S, N, M) f32). The key blocks, the prefix's 64-key blocks and then the suffix's, run
-    in `splits` runs of equal length (fewer where a run would be empty), each through a ring of `slots` blocks in
-    shared memory (None: as many as fit, `max_slots`)."""
+    in `splits` runs of equal length (fewer where a run would be empty), each through a ring of as many blocks as
+    fit a CTA's shared memory (`max_slots`)."""
     m = q.shape[0]
     hd = (kv_cols[1] - kv_cols[0]) // num_kv_heads
     pp = prefix_mask.shape[1]
@@ -218,7 +218,6 @@ def attention(q, kv, cache_k, cache_v, prefix_mask, ends, *, batch: int, num_hea
         raise ValueError(f"one key block of {BLOCK} at head_dim {hd} does not fit a CTA's shared memory")
     per_split = -(-total // max(1, min(splits, total)))
     parts = -(-total // per_split)
-    slots = min(per_split, fit if slots is None else max(1, min(slots, fit)))
     call = _call(m, m // batch, sk, pp, hd, batch, num_heads, num_kv_heads, tuple(kv_cols), parts, per_split,
-                 slots, jnp.dtype(q.dtype))
+                 min(per_split, fit), jnp.dtype(q.dtype))
     return call(q, kv, cache_k, cache_v, prefix_mask, ends)
