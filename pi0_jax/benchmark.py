@@ -18,6 +18,7 @@ import argparse
 import dataclasses
 import datetime
 import functools
+import hashlib
 import json
 import os
 import platform
@@ -159,17 +160,32 @@ def environment() -> dict:
     return {"device": getattr(dev, "device_kind", str(dev)), "platform": dev.platform, "jax": jax.__version__,
             "flax": flax.__version__, "python": platform.python_version(),
             "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-            "commit": _git_commit(), "xla_flags": os.environ.get("XLA_FLAGS", ""), "pallas_triton": pallas_base.TRITON}
+            "commit": _git_commit(), "source": source_digest(), "xla_flags": os.environ.get("XLA_FLAGS", ""),
+            "pallas_triton": pallas_base.TRITON}
 
 
 def _git_commit() -> str | None:
-    if os.environ.get("PI0_JAX_COMMIT"):  # a copied tree without .git (e.g. a remote GPU machine)
+    """PI0_JAX_COMMIT if set (a copied tree without .git, e.g. a remote GPU machine), else `git describe --always
+    --dirty`: HEAD's short hash, "-dirty" where tracked files differ from it (a copy whose .git is older than its
+    files says so, rather than naming a commit it is not)."""
+    if os.environ.get("PI0_JAX_COMMIT"):
         return os.environ["PI0_JAX_COMMIT"]
     try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+        return subprocess.run(["git", "describe", "--always", "--dirty"], capture_output=True, text=True,
                               cwd=Path(__file__).parent, check=True).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         return None
+
+
+def source_digest(root: Path | None = None) -> str:
+    """The first 12 hex digits of a SHA-256 over the package's Python sources (paths and contents, sorted): the code
+    a result came from, comparable with `python -c "from pi0_jax.benchmark import source_digest as d; print(d())"`
+    at any checkout, with or without git. root: the package directory (None: this one)."""
+    root = Path(__file__).parent if root is None else Path(root)
+    digest = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        digest.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
+    return digest.hexdigest()[:12]
 
 
 def bench_engine(engine: Engine, args, batch: int) -> list[dict]:

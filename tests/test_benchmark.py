@@ -2,7 +2,7 @@
 
 import json
 
-from pi0_jax import cli
+from pi0_jax import benchmark, cli
 
 
 def _benchmark(tmp_path, *args) -> dict:
@@ -29,6 +29,7 @@ def test_benchmark_dummy_writes_every_stage(tmp_path):
     assert results["peers"][0]["impl"].startswith("reference")
     assert results["peers"][0]["engine_vs_reference"]["rel_l2"] < 1e-2  # bf16, different matmul grouping
     assert results["env"]["device"] and results["env"]["kernels"] == results["env"]["attention"] == "auto"
+    assert results["env"]["source"] == benchmark.source_digest() and results["env"]["commit"]
     assert list(results["compile"]["bfloat16"]["cold_compile_s_call"]) == ["B1_S2"]
     assert (tmp_path / "bench.png").stat().st_size > 1000
 
@@ -39,3 +40,19 @@ def test_benchmark_names_the_denoise_attention_kernels_launch(tmp_path):
                         "1", "--attention", "denoise=pallas", "--kernels", "xla")["rows"]
     assert row["attention"] == "vision=xla,prefix=xla,denoise=pallas" and row["kernels"] == "xla"
     assert row["denoise_attention_launch"] == {"kv_splits": 2, "attention_warps": 4, "fold": True}
+
+
+def test_source_digest_names_the_code(tmp_path):
+    """The same sources give the same digest wherever they lie; a changed byte or a renamed file changes it."""
+    for name in ("a", "b"):
+        (tmp_path / name / "ops").mkdir(parents=True)
+        (tmp_path / name / "m.py").write_text("x = 1\n")
+        (tmp_path / name / "ops" / "k.py").write_text("y = 2\n")
+        (tmp_path / name / "notes.txt").write_text(name)   # not a source
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert benchmark.source_digest(a) == benchmark.source_digest(b) != benchmark.source_digest()
+    (b / "ops" / "k.py").write_text("y = 3\n")
+    assert benchmark.source_digest(a) != benchmark.source_digest(b)
+    (b / "ops" / "k.py").write_text("y = 2\n")
+    (b / "ops" / "k.py").rename(b / "ops" / "j.py")
+    assert benchmark.source_digest(a) != benchmark.source_digest(b)
