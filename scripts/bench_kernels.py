@@ -82,8 +82,8 @@ STEP_SWEEPS = {
                    "q32 w4 7 splits": dict(q=32, attention_warps=4, kv_splits=7),
                    "q32 w4 s2": dict(q=32, attention_warps=4, attention_stages=2)},
     # the attention's key splits on Mosaic GPU (`ops.mosaic_attention`), the merge as XLA's ops, and the expert with no
-    # Triton kernel (`ek.TRITON_FREE`); the Mosaic attention also at 7 prefix splits (2 blocks a CTA; 3 would not fit
-    # its shared memory at head_dim 256)
+    # Triton kernel (`ek.TRITON_FREE`); the Mosaic attention also at 7 prefix splits (2 key blocks a CTA through its
+    # ring of shared-memory slots)
     "mosaic_attention": {"default": {}, "mosaic attention": dict(mosaic_attention=True),
                          "xla merge": dict(xla_merge=True),
                          "mosaic attention, xla merge": dict(mosaic_attention=True, xla_merge=True),

@@ -339,9 +339,6 @@ def attention(qkv, cache_k, cache_v, prefix_mask, suffix_mask, *, batch: int, nu
 def _attention(q, kv, cache_k, cache_v, prefix_mask, suffix_mask, batch, num_heads, num_kv_heads, kv_cols, blocks):
     (m, sk), hd = suffix_mask.shape, (kv_cols[1] - kv_cols[0]) // num_kv_heads
     sq, pp = m // batch, prefix_mask.shape[1]
-    bq, bkv = fit(blocks.q, sq), fit(blocks.kv, pp)
-    splits = max(1, min(blocks.kv_splits, pp // bkv))
-    per_split = -(-(pp // bkv) // splits)
     if blocks.mosaic_attention and mosaic_attention.applies(q.dtype, head_dim=hd, query_rows=sq, suffix_keys=sk,
                                                             prefix_keys=pp):
         o, lse = mosaic_attention.attention(q, kv, cache_k, cache_v, prefix_mask,
@@ -349,6 +346,9 @@ def _attention(q, kv, cache_k, cache_v, prefix_mask, suffix_mask, batch, num_hea
                                             num_heads=num_heads, num_kv_heads=num_kv_heads, kv_cols=kv_cols, sk=sk,
                                             splits=blocks.kv_splits + 1)   # the Triton kernel's parts
     else:
+        bq, bkv = fit(blocks.q, sq), fit(blocks.kv, pp)
+        splits = max(1, min(blocks.kv_splits, pp // bkv))
+        per_split = -(-(pp // bkv) // splits)
         kernel = functools.partial(_attention_kernel, m=m, bq=bq, bkv=bkv, sq=sq, sk=sk, pp=pp, hd=hd,
                                    num_heads=num_heads, num_kv_heads=num_kv_heads, splits=splits,
                                    per_split=per_split, kv_cols=kv_cols)
