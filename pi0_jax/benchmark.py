@@ -36,6 +36,7 @@ from pi0_jax import pi0
 from pi0_jax.pi0 import random_params
 from pi0_jax.config import IMAGE_KEYS, PRESETS, Pi0Config, get_config
 from pi0_jax.engine import Engine
+from pi0_jax.engine.runtime import OVERLAPS
 from pi0_jax.engine.programs import KERNELS, attention_spec, vision_norm
 from pi0_jax.ops import expert_kernels, pallas_base
 from pi0_jax.ops.matmul import GEMMS
@@ -93,6 +94,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "epilogues; faster in the vision tower, slower in the prefix and denoise), or auto (cublas in "
                         "the vision program, xla in the others); programs with FP8 weights always get cublas; the "
                         "reference always runs XLA's defaults (default: %(default)s)")
+    p.add_argument("--overlap", choices=OVERLAPS, default="auto",
+                   help="the first denoise step beside the prefix fill in the call's second program (peeled out of "
+                        "the loop, the program's command buffers in XLA's CONCURRENT mode): on, off, or auto (on a "
+                        "GPU where the expert runs its Pallas kernels, batch 1 and 2); each row records it "
+                        "(default: %(default)s)")
     p.add_argument("--reference", action="store_true",
                    help="also time the reference model (pi0_jax.pi0.sample_actions: openpi's structure, layers "
                         "scanned, one jit) at each batch for the largest step count")
@@ -211,6 +217,7 @@ def bench_engine(engine: Engine, args, batch: int) -> list[dict]:
                "kernels": engine.kernels_for(batch), "vision_norm": vision_norm(engine.kernels, batch * len(cameras)),
                "gemm": engine.gemm, "gemm_library": {s: engine.gemm_library(s) for s in ("encode_images",
                                                                                           "prefix_denoise")},
+               "overlap": engine.overlaps(batch),
                "vision": t_vis, "prefix": t_pre, "denoise": t_den,
                "denoise_per_step_ms": t_den["median_ms"] / steps}
         if row["kernels"] == "xla" and "denoise=pallas" in row["attention"]:   # the XLA expert on the kernel attention
@@ -261,7 +268,7 @@ from pi0_jax.engine.programs import attention_spec
 cfg = get_config(sys.argv[1], dtype=sys.argv[2])
 params = benchmark.random_params(cfg, 0)
 engine = Engine(cfg, params, unroll=sys.argv[4] == "1", kernels=sys.argv[8], attention=sys.argv[9],
-                gemm=sys.argv[10], cache_dir=sys.argv[3])
+                gemm=sys.argv[10], overlap=sys.argv[11], cache_dir=sys.argv[3])
 obs, noise = benchmark.make_inputs(cfg, 1, int(sys.argv[5]), int(sys.argv[6]), 0)
 start = time.perf_counter()
 engine.call_programs(1, int(sys.argv[7]), *engine.plan(obs))
@@ -273,7 +280,7 @@ print(json.dumps({"warm_compile_s": time.perf_counter() - start, "process_s": ti
 def measure_warm_start(config: Pi0Config, args, cache_dir: Path, steps: int) -> dict:
     out = subprocess.run([sys.executable, "-c", _WARM_CHILD, config.name, config.dtype, str(cache_dir),
                           "0" if args.no_unroll else "1", str(args.cameras), str(args.prompt_tokens), str(steps),
-                          args.kernels, args.attention, args.gemm],
+                          args.kernels, args.attention, args.gemm, args.overlap],
                          capture_output=True, text=True, check=True).stdout
     return json.loads(out.strip().splitlines()[-1])
 
@@ -342,7 +349,7 @@ def chart(results: dict, path: Path) -> None:
 def run(args: argparse.Namespace) -> dict:
     cache_dir = args.cache_dir or Path(tempfile.mkdtemp(prefix="pi0-jax-xla-"))
     results = {"preset": args.preset, "env": {**environment(), "kernels": args.kernels, "attention": args.attention,
-                                               "gemm": args.gemm,
+                                               "gemm": args.gemm, "overlap": args.overlap,
                                                "expert_blocks": dataclasses.asdict(expert_kernels.Blocks())},
                "rows": [], "peers": [],
                "compile": {},
@@ -364,7 +371,8 @@ def run(args: argparse.Namespace) -> dict:
                                           args.quant, percentile=None, num_steps=max(args.steps))
                 params = schemes.quantize_params(params, args.quant, stats["amax"])
         engine = Engine(config, params, unroll=not args.no_unroll, unroll_steps=args.unroll_steps,
-                        attention=args.attention, kernels=args.kernels, gemm=args.gemm, cache_dir=cache_dir)
+                        attention=args.attention, kernels=args.kernels, gemm=args.gemm, overlap=args.overlap,
+                        cache_dir=cache_dir)
         for batch in args.batch:
             results["rows"] += bench_engine(engine, args, batch)
             if args.reference:

@@ -309,6 +309,44 @@ def test_attention_and_kernel_choices(monkeypatch):
         programs.expert_path("triton", 1, layers)
 
 
+def test_the_first_step_beside_the_prefix_is_the_same_call(model, monkeypatch):
+    """overlap: the call's second program runs its first denoise step outside the loop (so its layer i waits for
+    the cache's layer i alone) in XLA's CONCURRENT command-buffer mode: the same actions bit for bit, one loop trip
+    fewer; "auto" only on a GPU where the expert runs its Pallas kernels."""
+    import re
+
+    from pi0_jax.engine import runtime
+
+    config, params = model
+    obs = make_obs(config)
+    noise = jax.random.normal(jax.random.key(4), (2, config.action_horizon, config.action_dim))
+    got, trips, options = {}, {}, {}
+
+    def compile(self, stage, parts, fn, args, opts=None):   # records each program's compiler options
+        options[stage] = opts
+        return jax.jit(fn).lower(*args).compile(opts)
+
+    monkeypatch.setattr(runtime.ProgramStore, "compile", compile)
+    for overlap in ("on", "off"):
+        engine = Engine(config, params, cache_dir=False, overlap=overlap)
+        got[overlap] = np.asarray(engine.sample_actions(obs, noise, 3))
+        hlo = engine.executable("prefix_denoise", 2, 3, *engine.plan(obs)).as_text()
+        trips[overlap] = re.findall(r'known_trip_count":\{"n":"(\d+)"', hlo)
+        assert engine.overlaps(2) == (overlap == "on")
+        assert (options.pop("prefix_denoise") or {}).get("xla_gpu_command_buffer_scheduling_mode") == (
+            "CONCURRENT" if overlap == "on" else None)
+        assert "xla_gpu_command_buffer_scheduling_mode" not in (options.pop("encode_images") or {})
+    np.testing.assert_array_equal(got["on"], got["off"])
+    assert trips == {"on": ["2"], "off": ["3"]}
+    engine = Engine(config, params, cache_dir=False)
+    assert not engine.overlaps(1)                           # auto: a CPU runs XLA's expert
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    monkeypatch.setattr(engine, "kernels_for", lambda batch: "pallas" if batch <= 2 else "xla")
+    assert engine.overlaps(1) and engine.overlaps(2) and not engine.overlaps(8)
+    with pytest.raises(ValueError, match="overlap must be"):
+        Engine(config, params, cache_dir=False, overlap="yes")
+
+
 def test_gemm_library_per_program():
     """gemm="auto": cuBLAS for the program that runs the vision tower alone, XLA's choice for the others; FP8
     weights always cuBLAS; off a GPU always XLA's ops."""

@@ -364,11 +364,13 @@ def _by_layer(x, unroll):
 
 def denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixCache, state, noise, *, num_steps: int,
             unroll: bool, unroll_steps: bool, attention: Attention = Attention(), kernels: str = "xla",
-            committed: jax.Array | None = None, num_committed: jax.Array | None = None) -> jax.Array:
+            committed: jax.Array | None = None, num_committed: jax.Array | None = None,
+            peel_first: bool = False) -> jax.Array:
     """num_steps Euler steps from noise (t = 1) to actions (t = 0): a fixed trip count for a Python int, a while
     loop for a traced int32 (then `sched` must hold at least num_steps entries). With `committed` (B, H, action_dim)
     and `num_committed` d (B,): actions i < d are given, clean at every step and returned as given (training-time
-    action conditioning, as `pi0.sample_actions`)."""
+    action conditioning, as `pi0.sample_actions`). peel_first: the first step outside the loop, in the program's
+    own sequence, where its layer i depends on the cache's layer i alone (not on the whole prefix fill)."""
     dt = -1.0 / num_steps
     if not isinstance(num_steps, int):
         dt, unroll_steps = jnp.asarray(dt, jnp.float32), None   # f32 as the reference's traced dt
@@ -390,17 +392,20 @@ def denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixCache, s
         x_next = x_t + dt * v  # dt * v in v's dtype, then promoted to f32: as the reference
         return (x_next if frozen is None else jnp.where(frozen[..., None], x_t, x_next)), kv
 
-    return jax.lax.fori_loop(0, num_steps, step, (x, kv), unroll=unroll_steps)[0]
+    carry, first = (x, kv), 0
+    if peel_first and isinstance(num_steps, int) and num_steps > 0:
+        carry, first = step(0, carry), 1
+    return jax.lax.fori_loop(first, num_steps, step, carry, unroll=unroll_steps)[0]
 
 
 def prefix_denoise(config: Pi0Config, weights: dict, sched: dict, image_tokens, image_masks, tokens, token_mask,
                    state, noise, *, num_steps: int, unroll: bool, unroll_steps: bool,
-                   attention: Attention = Attention(), kernels: str = "xla") -> jax.Array:
+                   attention: Attention = Attention(), kernels: str = "xla", peel_first: bool = False) -> jax.Array:
     """The prefix cache from `encode_images`' tokens, then the denoise loop: a call's second program."""
     cache = fill_prefix_cache(config, weights, image_tokens, image_masks, tokens, token_mask, unroll=unroll,
                               kernels=kernels, attention=attention)
     return denoise(config, weights, sched, cache, state, noise, num_steps=num_steps, unroll=unroll,
-                   unroll_steps=unroll_steps, attention=attention, kernels=kernels)
+                   unroll_steps=unroll_steps, attention=attention, kernels=kernels, peel_first=peel_first)
 
 
 def infer(config: Pi0Config, weights: dict, sched: dict, images, image_masks, tokens, token_mask, state, noise, *,

@@ -9,6 +9,7 @@ A call (`sample_actions`) is two programs, dispatched one after the other with n
 the vision tower, then the prefix fill and the denoise loop. Each takes only its own weights (`STAGE_WEIGHTS`): the
 host pays about 1.2-1.7 µs per buffer a call takes before its first kernel runs, and the second program's dispatch
 runs while the GPU runs the first. And the vision program gets its own GEMM library (`matmul.compiler_options`).
+At batch 1 and 2 on a GPU the second program runs its first denoise step beside the prefix fill (`Engine.overlaps`).
 On an H200, π0 at B = 1 in a loop of calls: 16.1 ms against 17.2 ms for the one fused program (`infer`, kept for
 comparison and for callers that embed the pipeline in a larger program); docs/BENCHMARKS.md, "The call as two
 programs", which also gives a round-robin where it was slower.
@@ -40,6 +41,9 @@ STAGE_WEIGHTS = {"encode_images": ("img",), "fill_prefix_cache": ("embedding", "
                  "prefix_denoise": ("embedding", "vlm", "expert", "top", "final_norm_1"),
                  "infer": ("img", "embedding", "vlm", "expert", "top", "final_norm_1")}
 STAGES = tuple(STAGE_WEIGHTS)
+OVERLAPS = ("auto", "on", "off")
+# XLA's command buffers run their kernels by buffer dependencies, not in the scheduler's order (its default, "LHS")
+CONCURRENT = {"xla_gpu_command_buffer_scheduling_mode": "CONCURRENT"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -120,15 +124,20 @@ class Engine:
     (`programs.vision_norm`: "auto" is the kernel on a GPU from 24 images a call); gemm: the library of XLA's GEMMs on a
     GPU (`pi0_jax.ops.matmul.compiler_options`: "auto", cuBLAS in the vision program and XLA's autotuned choice in
     the others; "xla" or "cublas" in every program); cache_dir: where compiled programs are kept (`store`, beside
-    XLA's persistent cache; None: $PI0_JAX_CACHE_DIR or ~/.cache/pi0_jax/xla, False: nothing kept).
+    XLA's persistent cache; None: $PI0_JAX_CACHE_DIR or ~/.cache/pi0_jax/xla, False: nothing kept); overlap: the
+    first denoise step beside the prefix fill in the call's second program (`overlaps`: "auto" on a GPU where the
+    expert runs its Pallas kernels, "on", "off").
     """
 
     def __init__(self, config: Pi0Config, params: dict, *, unroll: bool = True, unroll_steps: bool = False,
                  attention: str | programs.Attention = "auto", kernels: str = "auto",
-                 gemm: str = "auto", cache_dir: str | os.PathLike | None | bool = None):
+                 gemm: str = "auto", cache_dir: str | os.PathLike | None | bool = None, overlap: str = "auto"):
         self.attention = programs.Attention.parse(attention, dtype=config.dtype)
         self.kernels = programs.check_kernels(kernels)
         self.gemm = matmul.check_gemm(gemm)
+        if overlap not in OVERLAPS:
+            raise ValueError(f"overlap must be one of {OVERLAPS}, got {overlap!r}")
+        self.overlap = overlap
         if cache_dir is not False:
             self.cache_dir = enable_compilation_cache(None if cache_dir in (None, True) else cache_dir)
         self.store = ProgramStore(self.cache_dir / "programs" if cache_dir is not False else None)
@@ -156,6 +165,17 @@ class Engine:
         """The expert's path at this batch size: "xla" or "pallas" (`programs.expert_path`)."""
         return programs.expert_path(self.kernels, batch, self.weights["expert"])
 
+    def overlaps(self, batch: int) -> bool:
+        """Whether the call's second program (`prefix_denoise`) at this batch runs its first denoise step beside the
+        prefix fill: the step peeled out of the loop (its layer i then waits for the cache's layer i alone) and the
+        program's command buffers in XLA's CONCURRENT mode, so its kernels run in the prefix's gaps. "auto": on a
+        GPU where the expert runs its Pallas kernels (B <= 2), the latency-bound step beside the prefix's GEMMs.
+        On an H200 at B = 1 the call is 1.7-2.3 % faster; at B = 8 and 64 level, and at B = 64 the program takes
+        4.5 GB more scratch (docs/BENCHMARKS.md, "The first denoise step beside the prefix fill")."""
+        if self.overlap != "auto":
+            return self.overlap == "on"
+        return jax.default_backend() == "gpu" and self.kernels_for(batch) == "pallas"
+
     def executable(self, stage: str, batch: int, num_steps: int, cameras: Sequence[str], prompt_len: int) -> Program:
         """The compiled program for a stage and static shape (compiled on first use, then kept). Call it with the
         engine's weights: `Program` passes on only the stage's own."""
@@ -165,9 +185,11 @@ class Engine:
             weights = self.stage_weights(stage)
             fn, args = self._stage(stage, _shapes(weights), batch, num_steps, cameras, prompt_len)
             options = matmul.compiler_options(weights, self.gemm, vision_tower=stage == "encode_images")
+            if stage == "prefix_denoise" and self.overlaps(batch):
+                options = {**(options or {}), **CONCURRENT}
             # everything the traced program depends on besides its arguments and options
             parts = (key, repr(self.config), self.unroll, self.unroll_steps, repr(self.attention), self.kernels,
-                     self.gemm)
+                     self.gemm, self.overlap)
             self._executables[key] = Program(self.store.compile(stage, parts, fn, args, options), tuple(weights))
             self.compile_seconds[key] = time.perf_counter() - start
         return self._executables[key]
@@ -222,7 +244,7 @@ class Engine:
             fn = functools.partial(programs.denoise, cfg, **denoise_kw)
             return fn, (w, sched, cache, state, noise)
         if stage == "prefix_denoise":
-            fn = functools.partial(programs.prefix_denoise, cfg, **denoise_kw)
+            fn = functools.partial(programs.prefix_denoise, cfg, **denoise_kw, peel_first=self.overlaps(batch))
             return fn, (w, sched, image_tokens, image_masks, tokens, token_mask, state, noise)
         fn = functools.partial(programs.infer, cfg, **denoise_kw)
         return fn, (w, sched, images, image_masks, tokens, token_mask, state, noise)

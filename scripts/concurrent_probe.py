@@ -1,0 +1,97 @@
+"""Can the first denoise step run beside the prefix fill? Its layer i reads only the cache's layer i, but inside the
+denoise loop it waits for the whole prefix. Here the first step is peeled out of the loop (`programs.denoise`'s
+`peel_first`), and XLA's command buffers run their kernels by buffer dependencies instead of one after another
+(`xla_gpu_command_buffer_scheduling_mode=CONCURRENT`; XLA's default, LHS, keeps the scheduler's order). Variants,
+timed round-robin in one process as the whole call (the vision program, then prefix + denoise):
+
+  engine            the engine's call (`Engine.sample_packed`)
+  concurrent        both programs in CONCURRENT mode
+  peel              the first step peeled, default mode
+  peel_concurrent   peeled and CONCURRENT
+  peel_concurrent_act  the same, the vision program in the default mode
+  loop_graph        the denoise loop inside the command buffer too (WHILE, CONDITIONAL: a device-side loop)
+  loop_unrolled     the same, its known trip count unrolled in the graph (`xla_gpu_command_buffer_unroll_loops`)
+
+Each variant's kernels from a profiler trace: with kernels running side by side, their summed time exceeds the
+device's span.
+
+    python scripts/concurrent_probe.py --preset pi0_base --prompt-tokens 20 --iters 40 --out concurrent.json \
+        [--variants loop_graph,loop_unrolled]
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import numpy as np
+
+# scripts/ is on the path when this runs as a script
+from profile_engine import kernel_times, probe_arguments, probe_engine, round_robin, write_json
+
+from pi0_jax.engine.runtime import Program, _shapes
+from pi0_jax.ops import matmul
+
+CONCURRENT = {"xla_gpu_command_buffer_scheduling_mode": "CONCURRENT"}
+# XLA's default command types on jax 0.11.2, and a device-side loop
+LOOP = {"xla_gpu_enable_command_buffer": "FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,DYNAMIC_SLICE_FUSION,WHILE,CONDITIONAL"}
+# variant: (vision program's extra options or None for the engine's, prefix + denoise's options, peel_first)
+VARIANTS = {"concurrent": (CONCURRENT, CONCURRENT, False), "peel": (None, {}, True),
+            "peel_concurrent": (CONCURRENT, CONCURRENT, True), "peel_concurrent_act": (None, CONCURRENT, True),
+            "loop_graph": (None, LOOP, False),
+            "loop_unrolled": (None, {**LOOP, "xla_gpu_command_buffer_unroll_loops": True}, False)}
+
+
+def main() -> None:
+    p = probe_arguments(__doc__, 40, "the variants' times and kernels")
+    p.add_argument("--variants", default="concurrent,peel,peel_concurrent",
+                   help=f"comma-separated, of {', '.join(VARIANTS)} (default: %(default)s)")
+    args = p.parse_args()
+    config, engine, noise, cameras, bucket, packed = probe_engine(args)
+    images, image_masks, tokens, token_mask, state = packed
+    vision, act = engine.call_programs(args.batch, args.steps, cameras, bucket)
+    sched = engine.schedule(args.steps)
+
+    def compile_stage(stage, extra, **kw):
+        weights = engine.stage_weights(stage)
+        fn, shapes = engine._stage(stage, _shapes(weights), args.batch, args.steps, cameras, bucket)
+        if kw:
+            fn = functools.partial(fn, **kw)
+        opts = {**(matmul.compiler_options(weights, engine.gemm, vision_tower=stage == "encode_images") or {}),
+                **extra}
+        return Program(jax.jit(fn).lower(*shapes).compile(compiler_options=opts), tuple(weights))
+
+    variants = {}
+    for name in args.variants.split(","):
+        vision_opts, opts, peel = VARIANTS[name]
+        variants[name] = (vision if vision_opts is None else compile_stage("encode_images", vision_opts),
+                          compile_stage("prefix_denoise", opts, **({"peel_first": True} if peel else {})))
+    w = engine.weights
+
+    def call(pair):
+        v, a = pair
+        return a(w, sched, v(w, images), image_masks, tokens, token_mask, state, noise)
+
+    want = np.asarray(call((vision, act)), np.float32)
+    temp = {"engine": act.compiled.memory_analysis().temp_size_in_bytes,
+            **{name: a.compiled.memory_analysis().temp_size_in_bytes for name, (_, a) in variants.items()}}
+    report = {"max_abs_vs_engine": {name: float(np.max(np.abs(np.asarray(call(p), np.float32) - want)))
+                                    for name, p in variants.items()},
+              "prefix_denoise_temp_bytes": temp}
+    calls = {"engine": lambda: engine.sample_packed(packed, noise, args.steps, cameras, bucket),
+             **{name: functools.partial(call, p) for name, p in variants.items()}}
+    times = round_robin(calls, args.iters)
+    report["call_ms"] = {k: {"median": float(np.median(v)), "p10": float(np.percentile(v, 10))}
+                         for k, v in times.items()}
+    report["kernels"] = {}
+    for name, fn in calls.items():
+        kt = kernel_times(fn, calls=5)
+        report["kernels"][name] = {**{k: kt[k] for k in ("kernels_per_call", "kernel_ms", "span_ms", "idle_ms",
+                                                         "wall_ms")}, "idle_before": kt["idle_before"][:6]}
+    for k, v in report.items():
+        print(k, v, flush=True)
+    write_json(args.out, report)
+
+
+if __name__ == "__main__":
+    main()
