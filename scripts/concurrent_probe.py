@@ -4,7 +4,7 @@ denoise loop it waits for the whole prefix. Here the first step is peeled out of
 (`xla_gpu_command_buffer_scheduling_mode=CONCURRENT`; XLA's default, LHS, keeps the scheduler's order). Variants,
 timed round-robin in one process as the whole call (the vision program, then prefix + denoise):
 
-  engine            the engine's call (`Engine.sample_packed`)
+  engine            the engine's call (`Engine.sample_packed`), with `overlap="off"` (the default before it)
   concurrent        both programs in CONCURRENT mode
   peel              the first step peeled, default mode
   peel_concurrent   peeled and CONCURRENT
@@ -47,7 +47,7 @@ def main() -> None:
     p.add_argument("--variants", default="concurrent,peel,peel_concurrent",
                    help=f"comma-separated, of {', '.join(VARIANTS)} (default: %(default)s)")
     args = p.parse_args()
-    config, engine, noise, cameras, bucket, packed = probe_engine(args)
+    config, engine, noise, cameras, bucket, packed = probe_engine(args, overlap="off")
     images, image_masks, tokens, token_mask, state = packed
     vision, act = engine.call_programs(args.batch, args.steps, cameras, bucket)
     sched = engine.schedule(args.steps)

@@ -150,10 +150,10 @@ def write_json(path: Path | None, report: dict) -> None:
         path.write_text(json.dumps(report, indent=2))
 
 
-def probe_engine(args) -> tuple:
+def probe_engine(args, **engine_options) -> tuple:
     """(config, engine, noise, cameras, prompt bucket, packed inputs) for the probes' flags."""
     config = get_config(args.preset)
-    engine = Engine(config, benchmark.random_params(config, 0), cache_dir=False)
+    engine = Engine(config, benchmark.random_params(config, 0), cache_dir=False, **engine_options)
     obs, noise = benchmark.make_inputs(config, args.batch, 3, args.prompt_tokens, 0)
     cameras, bucket = engine.plan(obs)
     return config, engine, noise, cameras, bucket, engine.pack(obs, cameras, bucket)
