@@ -36,8 +36,7 @@ from pi0_jax import pi0
 from pi0_jax.pi0 import random_params
 from pi0_jax.config import IMAGE_KEYS, PRESETS, Pi0Config, get_config
 from pi0_jax.engine import Engine
-from pi0_jax.engine.runtime import OVERLAPS
-from pi0_jax.engine.programs import KERNELS, attention_spec, vision_norm
+from pi0_jax.engine.programs import KERNELS, OVERLAPS, attention_spec, vision_norm
 from pi0_jax.ops import expert_kernels, pallas_base
 from pi0_jax.ops.matmul import GEMMS
 from pi0_jax.quant.schemes import SCHEMES

@@ -74,7 +74,8 @@ class PolicyCore:
 
     def __init__(self, config: Pi0Config, params: dict | None, tokenizer: PaligemmaTokenizer,
                  normalizer: _norm.Normalizer, *, num_steps: int = 10, action_dims: int | None = None,
-                 sampler: str = "engine", kernels: str = "auto", attention: str = "auto", gemm: str = "auto"):
+                 sampler: str = "engine", kernels: str = "auto", attention: str = "auto", gemm: str = "auto",
+                 overlap: str = "auto"):
         if tokenizer.max_len != config.max_token_len:
             raise ValueError(f"tokenizer max_len {tokenizer.max_len} != config.max_token_len {config.max_token_len}")
         if sampler not in SAMPLERS:
@@ -90,6 +91,7 @@ class PolicyCore:
         self.kernels, self.attention = programs.check_kernels(kernels), programs.Attention.parse(
             attention, dtype=config.dtype)
         self.gemm = matmul.check_gemm(gemm)   # XLA's GEMM library on a GPU (`pi0_jax.ops.matmul.compiler_options`)
+        self.overlap = programs.check_overlap(overlap)   # the first denoise step beside the prefix fill, in `act`
         self.slots = IMAGE_KEYS[: config.num_cameras]
         # The state's dims as the stats know them (None: no stats, so only <= action_dim can be checked).
         self.state_dim = normalizer.dim(_norm.STATE)
@@ -214,14 +216,15 @@ class PolicyCore:
                                       kernels=self.kernels, attention=self.attention)
 
     def act(self, model, norm, image_tokens, image_masks, tokens, token_mask, state, noise, *,
-            num_steps=None) -> jax.Array:
-        """The engine sampler's other half of `program`: `encode`'s tokens -> un-normalised actions."""
+            num_steps=None, peel_first: bool = False) -> jax.Array:
+        """The engine sampler's other half of `program`: `encode`'s tokens -> un-normalised actions. peel_first:
+        the first denoise step outside the loop (`programs.first_step_overlap`)."""
         num_steps = self.num_steps if num_steps is None else num_steps
         actions = programs.prefix_denoise(self.config, model["weights"], self._schedule(model, num_steps),
                                           image_tokens, image_masks, tokens, token_mask,
                                           self.normalize_state(norm, state), noise.astype(jnp.float32),
                                           num_steps=num_steps, unroll=self.unroll, unroll_steps=False,
-                                          kernels=self.kernels, attention=self.attention)
+                                          kernels=self.kernels, attention=self.attention, peel_first=peel_first)
         return self._actions(norm, actions)
 
     def _actions(self, norm, actions: jax.Array) -> jax.Array:
@@ -235,7 +238,8 @@ class Policy:
     strict: unknown observation keys are an error (False: ignored). optional_cameras: camera slots that may be
     missing (masked, as LIBERO's absent right wrist); default `observation.DEFAULT_OPTIONAL_CAMERAS`. max_batch: the
     largest batch one device call takes (`infer_batch` and the server split larger ones). kernels, attention: the
-    engine's paths (`pi0_jax.engine.Engine`); the defaults pick the faster on this device for each batch size.
+    engine's paths (`pi0_jax.engine.Engine`), and overlap its first denoise step beside the prefix fill; the
+    defaults pick the faster on this device for each batch size.
     cache_dir: where compiled programs are kept (`engine.store`, beside XLA's persistent cache; None: the default
     directory, False: nothing kept).
     """
@@ -245,13 +249,13 @@ class Policy:
                  action_dims: int | None = None, seed: int = 0, default_prompt: str | None = None,
                  sampler: str = "engine", strict: bool = True, optional_cameras: Sequence[str] | None = None,
                  ignore_keys: Sequence[str] = (), max_batch: int = 8, kernels: str = "auto",
-                 attention: str = "auto", cache_dir: str | os.PathLike | None | bool = None):
+                 attention: str = "auto", cache_dir: str | os.PathLike | None | bool = None, overlap: str = "auto"):
         root = None   # the compiled programs on disk (`engine.store`), beside XLA's cache
         if cache_dir is not False:
             root = enable_compilation_cache(None if cache_dir in (None, True) else cache_dir) / "programs"
         self.store = ProgramStore(root)
         self.core = PolicyCore(config, params, tokenizer, normalizer, num_steps=num_steps, action_dims=action_dims,
-                               sampler=sampler, kernels=kernels, attention=attention)
+                               sampler=sampler, kernels=kernels, attention=attention, overlap=overlap)
         self.validator = Validator(self.core, camera_map=camera_map, default_prompt=default_prompt, strict=strict,
                                    optional_cameras=DEFAULT_OPTIONAL_CAMERAS if optional_cameras is None
                                    else optional_cameras, ignore_keys=ignore_keys)
@@ -384,7 +388,7 @@ class Policy:
         core = self.core
         # everything the traced programs depend on besides their arguments and compiler options
         parts = (repr(core.config), core.sampler, core.num_steps, core.action_dims, core.unroll, core.kernels,
-                 repr(core.attention), core.gemm, cameras)
+                 repr(core.attention), core.gemm, core.overlap, cameras)
 
         def compile_(name, fn, args, options):
             return self.store.compile(f"policy_{name}", parts, fn, args, options)
@@ -401,7 +405,12 @@ class Policy:
         encode = compile_("encode", core.encode, (vision, images),
                           matmul.compiler_options(vision, core.gemm, vision_tower=True))
         tokens = jax.eval_shape(core.encode, vision, images)
-        act = compile_("act", core.act, (rest, self._norm, tokens, *spec[1:]), matmul.compiler_options(rest, core.gemm))
+        options = matmul.compiler_options(rest, core.gemm)
+        peel = programs.first_step_overlap(core.overlap, core.kernels, spec[-1].shape[0], rest["weights"]["expert"])
+        if peel:
+            options = {**(options or {}), **programs.CONCURRENT}
+        act = compile_("act", functools.partial(core.act, peel_first=peel), (rest, self._norm, tokens, *spec[1:]),
+                       options)
 
         def call(norm, images, *args):
             return act(rest, norm, encode(vision, images), *args)
@@ -431,7 +440,7 @@ class Policy:
         return {"name": cfg.name, "pi05": cfg.pi05, "action_horizon": cfg.action_horizon,
                 "action_dims": self.action_dims, "num_steps": self.num_steps, "dtype": cfg.dtype,
                 "normalization": self.normalizer.convention.value, "sampler": self.core.sampler,
-                "kernels": self.core.kernels, "attention": str(self.core.attention),
+                "kernels": self.core.kernels, "attention": str(self.core.attention), "overlap": self.core.overlap,
                 "image_size": cfg.image_size, "state_dim": self.core.state_dim, "max_batch": self.batch_buckets[-1],
                 **self.validator.describe()}
 

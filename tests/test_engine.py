@@ -338,11 +338,14 @@ def test_the_first_step_beside_the_prefix_is_the_same_call(model, monkeypatch):
         assert "xla_gpu_command_buffer_scheduling_mode" not in (options.pop("encode_images") or {})
     np.testing.assert_array_equal(got["on"], got["off"])
     assert trips == {"on": ["2"], "off": ["3"]}
-    engine = Engine(config, params, cache_dir=False)
-    assert not engine.overlaps(1)                           # auto: a CPU runs XLA's expert
-    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
-    monkeypatch.setattr(engine, "kernels_for", lambda batch: "pallas" if batch <= 2 else "xla")
-    assert engine.overlaps(1) and engine.overlaps(2) and not engine.overlaps(8)
+    from pi0_jax.engine import programs
+
+    assert not Engine(config, params, cache_dir=False).overlaps(1)   # auto: a CPU runs XLA's expert
+    layers = [{"qkv": jnp.zeros((4, 4))}]
+    gpu = functools.partial(programs.first_step_overlap, platform="gpu")
+    assert gpu("auto", "auto", 1, layers) and gpu("auto", "auto", 2, layers)   # the Pallas expert's batches
+    assert not gpu("auto", "auto", 8, layers) and not gpu("auto", "xla", 1, layers)
+    assert gpu("on", "xla", 64, layers) and not gpu("off", "auto", 1, layers)
     with pytest.raises(ValueError, match="overlap must be"):
         Engine(config, params, cache_dir=False, overlap="yes")
 

@@ -126,6 +126,36 @@ def test_two_programs_equal_the_pipeline_as_one(pi0_ckpt, pi0_policy):
     np.testing.assert_allclose(got, np.asarray(one)[0], rtol=1e-6, atol=1e-6)
 
 
+def test_the_first_step_beside_the_prefix_in_the_policy(pi0_ckpt, pi0_policy, monkeypatch):
+    """overlap="on": `Policy`'s second program peels its first denoise step out of the loop and compiles in XLA's
+    CONCURRENT mode, as the engine's call (`programs.first_step_overlap`); the actions are the same bit for bit."""
+    import re
+
+    from pi0_jax.engine.store import ProgramStore
+
+    compiled = {}
+
+    def compile(self, name, parts, fn, args, options=None):
+        compiled[name] = (options, jax.jit(fn).lower(*args).compile(options))
+        return compiled[name][1]
+
+    monkeypatch.setattr(ProgramStore, "compile", compile)
+    noise = RNG.normal(size=(pi0_ckpt[1].action_horizon, pi0_ckpt[1].action_dim)).astype(np.float32)
+    got = {}
+    for overlap in ("on", "off"):
+        got[overlap] = Policy.from_checkpoint(pi0_ckpt[0], cache_dir=False, overlap=overlap).infer(
+            libero_obs(), noise=noise)["actions"]
+        options, act = compiled.pop("policy_act")
+        trips = re.findall(r'known_trip_count":\{"n":"(\d+)"', act.as_text())
+        assert trips == (["9"] if overlap == "on" else ["10"])
+        assert (options or {}).get("xla_gpu_command_buffer_scheduling_mode") == (
+            "CONCURRENT" if overlap == "on" else None)
+    np.testing.assert_array_equal(got["on"], got["off"])
+    assert pi0_policy.core.overlap == "auto"
+    with pytest.raises(ValueError, match="overlap must be"):
+        Policy.from_checkpoint(pi0_ckpt[0], cache_dir=False, overlap="always")
+
+
 def test_engine_equals_reference_sampler_bf16(pi0_ckpt):
     _, config, _ = pi0_ckpt
     eng = Policy.from_checkpoint(pi0_ckpt[0], dtype="bfloat16", cache_dir=False)

@@ -424,9 +424,11 @@ def test_serve_cli_passes_the_kernel_path_to_the_policy():
     parser = argparse.ArgumentParser()
     serve_cli.add_serve_parser(parser.add_subparsers())
     defaults = serve_cli._policy_kwargs(parser.parse_args(["serve"]))
-    assert defaults["kernels"] == "auto" and defaults["attention"] == "auto"
-    given = serve_cli._policy_kwargs(parser.parse_args(["serve", "--kernels", "pallas", "--attention", "prefix=cudnn"]))
-    assert given["kernels"] == "pallas" and given["attention"] == "prefix=cudnn"
-    for bad in (["--kernels", "triton"], ["--attention", "flash"], ["--attention", "decoder=cudnn"]):
+    assert defaults["kernels"] == "auto" and defaults["attention"] == "auto" and defaults["overlap"] == "auto"
+    given = serve_cli._policy_kwargs(parser.parse_args(["serve", "--kernels", "pallas", "--attention", "prefix=cudnn",
+                                                        "--overlap", "off"]))
+    assert given["kernels"] == "pallas" and given["attention"] == "prefix=cudnn" and given["overlap"] == "off"
+    for bad in (["--kernels", "triton"], ["--attention", "flash"], ["--attention", "decoder=cudnn"],
+                ["--overlap", "yes"]):
         with pytest.raises(SystemExit):
             parser.parse_args(["serve", *bad])

@@ -48,12 +48,23 @@ KERNELS = ("auto", "xla", "pallas")
 # SigLIP's LayerNorm kernel measured 3 % faster on the tower at 24 and 192 images, and no faster at 3 (H100, XLA's
 # GEMMs; docs/BENCHMARKS.md, "SigLIP's LayerNorm as a kernel"): "auto" takes it where it was measured faster
 VISION_NORM_MIN_IMAGES = 24
+OVERLAPS = ("auto", "on", "off")
+# The call's second program with its first denoise step beside the prefix fill (`first_step_overlap`) compiles with
+# this: XLA's command buffers then run each kernel once the kernels whose buffers it reads are done, not in the
+# scheduler's one order (XLA's default, "LHS")
+CONCURRENT = {"xla_gpu_command_buffer_scheduling_mode": "CONCURRENT"}
 
 
 def check_kernels(kernels: str) -> str:
     if kernels not in KERNELS:
         raise ValueError(f"kernels must be one of {KERNELS}, got {kernels!r}")
     return kernels
+
+
+def check_overlap(overlap: str) -> str:
+    if overlap not in OVERLAPS:
+        raise ValueError(f"overlap must be one of {OVERLAPS}, got {overlap!r}")
+    return overlap
 
 
 def is_quantised(tree) -> bool:
@@ -78,6 +89,19 @@ def expert_path(kernels: str, batch: int, expert_weights, platform: str | None =
         bf16 = all(expert_weights[0][k].dtype == jnp.bfloat16 for k in ("qkv", "attn_out", "gate_up", "down"))
         pallas = bf16 and mosaic_gemm.hopper()
     return "pallas" if pallas else "xla"
+
+
+def first_step_overlap(overlap: str, kernels: str, batch: int, expert_weights, platform: str | None = None) -> bool:
+    """Whether the call's second program (`prefix_denoise`) runs its first denoise step beside the prefix fill: the
+    step peeled out of the loop (`peel_first`; its layer i then waits for the cache's layer i alone), the program
+    compiled with `CONCURRENT`, so the latency-bound step's kernels run in the compute-bound prefix's gaps. "on" /
+    "off" as asked; "auto" where the expert runs its Pallas kernels on a GPU (B <= 2, `expert_path`). On an H200 at
+    B = 1 the call is 2.4 % (π0) and 3.5 % (π0.5) faster, at B = 2, 8 and 64 level, and at B = 64 the program takes
+    4.5 GB more scratch (docs/BENCHMARKS.md, "The first denoise step beside the prefix fill")."""
+    if check_overlap(overlap) != "auto":
+        return overlap == "on"
+    platform = platform or jax.default_backend()
+    return platform == "gpu" and expert_path(kernels, batch, expert_weights, platform) == "pallas"
 
 
 def vision_norm(kernels: str, images: int, platform: str | None = None) -> str:

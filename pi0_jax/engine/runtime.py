@@ -41,9 +41,6 @@ STAGE_WEIGHTS = {"encode_images": ("img",), "fill_prefix_cache": ("embedding", "
                  "prefix_denoise": ("embedding", "vlm", "expert", "top", "final_norm_1"),
                  "infer": ("img", "embedding", "vlm", "expert", "top", "final_norm_1")}
 STAGES = tuple(STAGE_WEIGHTS)
-OVERLAPS = ("auto", "on", "off")
-# XLA's command buffers run their kernels by buffer dependencies, not in the scheduler's order (its default, "LHS")
-CONCURRENT = {"xla_gpu_command_buffer_scheduling_mode": "CONCURRENT"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -135,9 +132,7 @@ class Engine:
         self.attention = programs.Attention.parse(attention, dtype=config.dtype)
         self.kernels = programs.check_kernels(kernels)
         self.gemm = matmul.check_gemm(gemm)
-        if overlap not in OVERLAPS:
-            raise ValueError(f"overlap must be one of {OVERLAPS}, got {overlap!r}")
-        self.overlap = overlap
+        self.overlap = programs.check_overlap(overlap)
         if cache_dir is not False:
             self.cache_dir = enable_compilation_cache(None if cache_dir in (None, True) else cache_dir)
         self.store = ProgramStore(self.cache_dir / "programs" if cache_dir is not False else None)
@@ -166,15 +161,9 @@ class Engine:
         return programs.expert_path(self.kernels, batch, self.weights["expert"])
 
     def overlaps(self, batch: int) -> bool:
-        """Whether the call's second program (`prefix_denoise`) at this batch runs its first denoise step beside the
-        prefix fill: the step peeled out of the loop (its layer i then waits for the cache's layer i alone) and the
-        program's command buffers in XLA's CONCURRENT mode, so its kernels run in the prefix's gaps. "auto": on a
-        GPU where the expert runs its Pallas kernels (B <= 2), the latency-bound step beside the prefix's GEMMs.
-        On an H200 at B = 1 the call is 1.7-2.3 % faster; at B = 8 and 64 level, and at B = 64 the program takes
-        4.5 GB more scratch (docs/BENCHMARKS.md, "The first denoise step beside the prefix fill")."""
-        if self.overlap != "auto":
-            return self.overlap == "on"
-        return jax.default_backend() == "gpu" and self.kernels_for(batch) == "pallas"
+        """Whether the call's second program at this batch runs its first denoise step beside the prefix fill
+        (`programs.first_step_overlap`)."""
+        return programs.first_step_overlap(self.overlap, self.kernels, batch, self.weights["expert"])
 
     def executable(self, stage: str, batch: int, num_steps: int, cameras: Sequence[str], prompt_len: int) -> Program:
         """The compiled program for a stage and static shape (compiled on first use, then kept). Call it with the
@@ -186,7 +175,7 @@ class Engine:
             fn, args = self._stage(stage, _shapes(weights), batch, num_steps, cameras, prompt_len)
             options = matmul.compiler_options(weights, self.gemm, vision_tower=stage == "encode_images")
             if stage == "prefix_denoise" and self.overlaps(batch):
-                options = {**(options or {}), **CONCURRENT}
+                options = {**(options or {}), **programs.CONCURRENT}
             # everything the traced program depends on besides its arguments and options
             parts = (key, repr(self.config), self.unroll, self.unroll_steps, repr(self.attention), self.kernels,
                      self.gemm, self.overlap)

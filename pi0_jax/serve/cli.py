@@ -81,6 +81,11 @@ def add_serve_parser(subparsers) -> None:
                           "on a GPU, XLA on a CPU), or per stage, e.g. vision=pallas,prefix=cudnn,denoise=xla "
                           "(vision may be pallas: a kernel that reads q, k, v in place; denoise may be pallas: the "
                           "action expert's split-key kernel) (default: %(default)s)")
+    pol.add_argument("--overlap", choices=("auto", "on", "off"), default="auto",
+                     help="the first denoise step beside the prefix fill (peeled out of the step loop, the program's "
+                          "command buffers in XLA's CONCURRENT mode): on, off, or auto (on a GPU where the expert "
+                          "runs its Pallas kernels, batch 1 and 2; on an H200 a batch-1 call 2-4 %% faster, "
+                          "docs/BENCHMARKS.md). Default: %(default)s")
     pol.add_argument("--tokenizer", type=Path, default=None, metavar="FILE",
                      help="PaliGemma SentencePiece model (default: CHECKPOINT/tokenizer.model, then "
                           "CHECKPOINT/assets/tokenizer.model)")
@@ -110,7 +115,7 @@ def _policy_kwargs(args: argparse.Namespace) -> dict:
     import jax
 
     kwargs = {"num_steps": args.num_steps, "seed": args.seed, "max_batch": args.max_batch, "kernels": args.kernels,
-              "attention": args.attention,
+              "attention": args.attention, "overlap": args.overlap,
               "dtype": args.dtype if args.dtype or jax.default_backend() != "cpu" else "float32"}
     optional = {"tokenizer_path": args.tokenizer, "norm_stats": args.norm_stats, "strict": args.strict}
     return {**kwargs, **{k: v for k, v in optional.items() if v is not None}}
