@@ -67,6 +67,9 @@ def main() -> int:
     p.add_argument("--batch", type=int, default=8, help="also time infer_batch of this many (default: 8; 0: skip)")
     p.add_argument("--iters", type=int, default=50, help="timed calls per measurement (default: %(default)s)")
     p.add_argument("--warmup", type=int, default=3, help="untimed calls first (default: %(default)s)")
+    p.add_argument("--overlap", choices=("auto", "on", "off"), default="auto",
+                   help="the first denoise step beside the prefix fill, in the policy and the engine alike "
+                        "(`programs.first_step_overlap`; default: %(default)s)")
     p.add_argument("--out", type=Path, default=Path("policy_bench.json"), help="JSON results (default: %(default)s)")
     args = p.parse_args()
 
@@ -84,7 +87,7 @@ def main() -> int:
     tokenizer = PaligemmaTokenizer(find_tokenizer(EMBEDDED), config.max_token_len)
     cameras = min(args.cameras, config.num_cameras)
     policy = Policy(config, params, tokenizer, normalizer, num_steps=args.steps, cache_dir=False,
-                    max_batch=max(args.batch, 1))
+                    max_batch=max(args.batch, 1), overlap=args.overlap)
     obs = observations(policy, 4, cameras)
     prepared = policy.prepare(obs[0])
     t0 = time.perf_counter()
@@ -92,7 +95,7 @@ def main() -> int:
     warmup_s = time.perf_counter() - t0
 
     # the engine alone on the same inputs, device-resident (Policy's transforms done once, outside the clock)
-    engine = Engine(config, params, cache_dir=False)
+    engine = Engine(config, params, cache_dir=False, overlap=args.overlap)
     ref_obs = policy.make_observation(obs[0])
     cams, bucket = engine.plan(ref_obs)
     packed = engine.pack(ref_obs, cams, bucket)
@@ -117,6 +120,7 @@ def main() -> int:
                                                   args.warmup)
     env = benchmark.environment()
     result = {"model": name, "dtype": args.dtype, "steps": args.steps, "cameras": cameras,
+              "overlap": {"policy": policy.metadata["overlap"], "at_batch_1": engine.overlaps(1)},
               "prompt_bucket": bucket, "env": env, "warmup_s": warmup_s, "rows": rows,
               "overhead_ms": policy_t["median_ms"] - engine_t["median_ms"],
               "policy_vs_engine_rel_l2": rel, "args": {k: str(v) for k, v in vars(args).items()}}
