@@ -11,6 +11,9 @@ timed round-robin in one process as the whole call (the vision program, then pre
   peel_concurrent_act  the same, the vision program in the default mode
   loop_graph        the denoise loop inside the command buffer too (WHILE, CONDITIONAL: a device-side loop)
   loop_unrolled     the same, its known trip count unrolled in the graph (`xla_gpu_command_buffer_unroll_loops`)
+  split_vision      peel_concurrent_act, and the vision program's cameras as separate chains in CONCURRENT mode (each
+                    camera's 256 tokens a tower of its own, so one camera's small kernels can run beside another's
+                    GEMMs; the batched tower runs M = 768 GEMMs on under one wave of CTAs)
 
 Each variant's kernels from a profiler trace: with kernels running side by side, their summed time exceeds the
 device's span.
@@ -24,22 +27,25 @@ from __future__ import annotations
 import functools
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 # scripts/ is on the path when this runs as a script
 from profile_engine import kernel_times, probe_arguments, probe_engine, round_robin, write_json
 
+from pi0_jax.engine.programs import CONCURRENT
 from pi0_jax.engine.runtime import Program, _shapes
 from pi0_jax.ops import matmul
 
-CONCURRENT = {"xla_gpu_command_buffer_scheduling_mode": "CONCURRENT"}
 # XLA's default command types on jax 0.11.2, and a device-side loop
 LOOP = {"xla_gpu_enable_command_buffer": "FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,DYNAMIC_SLICE_FUSION,WHILE,CONDITIONAL"}
-# variant: (vision program's extra options or None for the engine's, prefix + denoise's options, peel_first)
-VARIANTS = {"concurrent": (CONCURRENT, CONCURRENT, False), "peel": (None, {}, True),
-            "peel_concurrent": (CONCURRENT, CONCURRENT, True), "peel_concurrent_act": (None, CONCURRENT, True),
-            "loop_graph": (None, LOOP, False),
-            "loop_unrolled": (None, {**LOOP, "xla_gpu_command_buffer_unroll_loops": True}, False)}
+# variant: (vision program's extra options or None for the engine's, prefix + denoise's options, peel_first,
+# the vision program's cameras as separate chains)
+VARIANTS = {"concurrent": (CONCURRENT, CONCURRENT, False, False), "peel": (None, {}, True, False),
+            "peel_concurrent": (CONCURRENT, CONCURRENT, True, False),
+            "peel_concurrent_act": (None, CONCURRENT, True, False), "loop_graph": (None, LOOP, False, False),
+            "loop_unrolled": (None, {**LOOP, "xla_gpu_command_buffer_unroll_loops": True}, False, False),
+            "split_vision": (CONCURRENT, CONCURRENT, True, True)}
 
 
 def main() -> None:
@@ -52,19 +58,24 @@ def main() -> None:
     vision, act = engine.call_programs(args.batch, args.steps, cameras, bucket)
     sched = engine.schedule(args.steps)
 
-    def compile_stage(stage, extra, **kw):
+    def compile_stage(stage, extra, split=False, **kw):
         weights = engine.stage_weights(stage)
         fn, shapes = engine._stage(stage, _shapes(weights), args.batch, args.steps, cameras, bucket)
         if kw:
             fn = functools.partial(fn, **kw)
+        if split:
+            tower = fn
+
+            def fn(w, im):   # (C, B, ...) images -> each camera's tokens from a tower of its own, camera-major
+                return jnp.concatenate([tower(w, im[i:i + 1]) for i in range(im.shape[0])], axis=1)
         opts = {**(matmul.compiler_options(weights, engine.gemm, vision_tower=stage == "encode_images") or {}),
                 **extra}
         return Program(jax.jit(fn).lower(*shapes).compile(compiler_options=opts), tuple(weights))
 
     variants = {}
     for name in args.variants.split(","):
-        vision_opts, opts, peel = VARIANTS[name]
-        variants[name] = (vision if vision_opts is None else compile_stage("encode_images", vision_opts),
+        vision_opts, opts, peel, split = VARIANTS[name]
+        variants[name] = (vision if vision_opts is None else compile_stage("encode_images", vision_opts, split),
                           compile_stage("prefix_denoise", opts, **({"peel_first": True} if peel else {})))
     w = engine.weights
 
