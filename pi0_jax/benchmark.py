@@ -96,7 +96,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--overlap", choices=OVERLAPS, default="auto",
                    help="the first denoise step beside the prefix fill in the call's second program (peeled out of "
                         "the loop, the program's command buffers in XLA's CONCURRENT mode): on, off, or auto (on a "
-                        "GPU where the expert runs its Pallas kernels, batch 1 and 2); each row records it "
+                        "GPU where the expert runs its Pallas kernels, at batch 1); each row records it "
                         "(default: %(default)s)")
     p.add_argument("--reference", action="store_true",
                    help="also time the reference model (pi0_jax.pi0.sample_actions: openpi's structure, layers "

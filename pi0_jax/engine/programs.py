@@ -49,6 +49,10 @@ KERNELS = ("auto", "xla", "pallas")
 # GEMMs; docs/BENCHMARKS.md, "SigLIP's LayerNorm as a kernel"): "auto" takes it where it was measured faster
 VISION_NORM_MIN_IMAGES = 24
 OVERLAPS = ("auto", "on", "off")
+# The first denoise step beside the prefix fill (`first_step_overlap`): "auto" up to this batch. On H200s the call
+# was 1.4-2.4 % faster at B = 1 for π0 (five machines) and 2.3-3.5 % for π0.5, and level at B = 2 (-0.4 %), 8 and 64,
+# where it costs compile time and scratch memory for nothing (docs/BENCHMARKS.md)
+OVERLAP_MAX_BATCH = 1
 # The call's second program with its first denoise step beside the prefix fill (`first_step_overlap`) compiles with
 # this: XLA's command buffers then run each kernel once the kernels whose buffers it reads are done, not in the
 # scheduler's one order (XLA's default, "LHS")
@@ -95,13 +99,14 @@ def first_step_overlap(overlap: str, kernels: str, batch: int, expert_weights, p
     """Whether the call's second program (`prefix_denoise`) runs its first denoise step beside the prefix fill: the
     step peeled out of the loop (`peel_first`; its layer i then waits for the cache's layer i alone), the program
     compiled with `CONCURRENT`, so the latency-bound step's kernels run in the compute-bound prefix's gaps. "on" /
-    "off" as asked; "auto" where the expert runs its Pallas kernels on a GPU (B <= 2, `expert_path`). On an H200 at
-    B = 1 the call is 2.4 % (π0) and 3.5 % (π0.5) faster, at B = 2, 8 and 64 level, and at B = 64 the program takes
-    4.5 GB more scratch (docs/BENCHMARKS.md, "The first denoise step beside the prefix fill")."""
+    "off" as asked; "auto" up to OVERLAP_MAX_BATCH where the expert runs its Pallas kernels on a GPU (`expert_path`).
+    On an H200 at B = 1 the call is 2.4 % (π0) and 3.5 % (π0.5) faster; at B = 2, 8 and 64 level, and at B = 64 the
+    program takes 4.5 GB more scratch (docs/BENCHMARKS.md, "The first denoise step beside the prefix fill")."""
     if check_overlap(overlap) != "auto":
         return overlap == "on"
     platform = platform or jax.default_backend()
-    return platform == "gpu" and expert_path(kernels, batch, expert_weights, platform) == "pallas"
+    return (platform == "gpu" and batch <= OVERLAP_MAX_BATCH
+            and expert_path(kernels, batch, expert_weights, platform) == "pallas")
 
 
 def vision_norm(kernels: str, images: int, platform: str | None = None) -> str:

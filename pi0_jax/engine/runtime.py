@@ -9,7 +9,7 @@ A call (`sample_actions`) is two programs, dispatched one after the other with n
 the vision tower, then the prefix fill and the denoise loop. Each takes only its own weights (`STAGE_WEIGHTS`): the
 host pays about 1.2-1.7 µs per buffer a call takes before its first kernel runs, and the second program's dispatch
 runs while the GPU runs the first. And the vision program gets its own GEMM library (`matmul.compiler_options`).
-At batch 1 and 2 on a GPU the second program runs its first denoise step beside the prefix fill (`Engine.overlaps`).
+At batch 1 on a GPU the second program runs its first denoise step beside the prefix fill (`Engine.overlaps`).
 On an H200, π0 at B = 1 in a loop of calls: 16.1 ms against 17.2 ms for the one fused program (`infer`, kept for
 comparison and for callers that embed the pipeline in a larger program); docs/BENCHMARKS.md, "The call as two
 programs", which also gives a round-robin where it was slower.

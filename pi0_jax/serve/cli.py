@@ -84,7 +84,7 @@ def add_serve_parser(subparsers) -> None:
     pol.add_argument("--overlap", choices=("auto", "on", "off"), default="auto",
                      help="the first denoise step beside the prefix fill (peeled out of the step loop, the program's "
                           "command buffers in XLA's CONCURRENT mode): on, off, or auto (on a GPU where the expert "
-                          "runs its Pallas kernels, batch 1 and 2; on an H200 a batch-1 call 2-3.5 %% faster, "
+                          "runs its Pallas kernels, at batch 1; on an H200 such a call 2-3.5 %% faster, "
                           "docs/BENCHMARKS.md). Default: %(default)s")
     pol.add_argument("--tokenizer", type=Path, default=None, metavar="FILE",
                      help="PaliGemma SentencePiece model (default: CHECKPOINT/tokenizer.model, then "
