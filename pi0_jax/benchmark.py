@@ -301,7 +301,7 @@ TABLE_HEADER = ("| dtype | batch | steps | total ms | Hz | vision ms | prefix KV
 
 def markdown(results: dict) -> str:
     lines = [f"{results['env']['device']} · {results['preset']} · kernels {results['env'].get('kernels', 'xla')} · "
-             f"attention {results['env'].get('attention', 'xla')} · "
+             f"attention {results['env'].get('attention', 'xla')} · overlap {results['env'].get('overlap', 'off')} · "
              f"{results['env']['date']} · commit {results['env']['commit']}", "", TABLE_HEADER]
     lines += [_row_line(r) for r in results["rows"]]
     one = [_one_program_line(r) for r in results["rows"] if "one_program" in r]
