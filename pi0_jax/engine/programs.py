@@ -49,8 +49,8 @@ KERNELS = ("auto", "xla", "pallas")
 # GEMMs; docs/BENCHMARKS.md, "SigLIP's LayerNorm as a kernel"): "auto" takes it where it was measured faster
 VISION_NORM_MIN_IMAGES = 24
 OVERLAPS = ("auto", "on", "off")
-# The first denoise step beside the prefix fill (`first_step_overlap`): "auto" up to this batch. On H200s the call
-# was 1.4-2.4 % faster at B = 1 for π0 (five machines) and 2.3-3.5 % for π0.5, and level at B = 2 (-0.4 %), 8 and 64,
+# The first denoise step beside the prefix fill (`first_step_overlap`): "auto" up to this batch. On H200s π0's call
+# was 1.0-2.4 % faster at B = 1 (six machines) and π0.5's 2.3-3.5 % (two), and level at B = 2 (-0.4 %), 8 and 64,
 # where it costs compile time and scratch memory for nothing (docs/BENCHMARKS.md)
 OVERLAP_MAX_BATCH = 1
 # The call's second program with its first denoise step beside the prefix fill (`first_step_overlap`) compiles with
