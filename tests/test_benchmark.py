@@ -26,6 +26,7 @@ def test_benchmark_dummy_writes_every_stage(tmp_path):
         assert row["kernels"] == "xla" and row["attention"] == "vision=xla,prefix=xla,denoise=xla"  # auto, CPU
         assert row["gemm"] == "auto" and set(row["gemm_library"].values()) == {"xla"}
         assert "denoise_attention_launch" not in row   # only where the XLA expert runs the kernel attention
+        assert row["overlap"] is False   # auto: only on a GPU
     assert results["peers"][0]["impl"].startswith("reference")
     assert results["peers"][0]["engine_vs_reference"]["rel_l2"] < 1e-2  # bf16, different matmul grouping
     assert results["env"]["device"] and results["env"]["kernels"] == results["env"]["attention"] == "auto"
@@ -35,10 +36,13 @@ def test_benchmark_dummy_writes_every_stage(tmp_path):
 
 
 def test_benchmark_names_the_denoise_attention_kernels_launch(tmp_path):
-    """The XLA expert on the Pallas attention (interpreted here) at B = 8: the row records its launch, folded."""
-    (row,) = _benchmark(tmp_path, "--steps", "1", "--batch", "8", "--iters", "1", "--warmup", "1", "--input-sets",
-                        "1", "--attention", "denoise=pallas", "--kernels", "xla")["rows"]
+    """The XLA expert on the Pallas attention (interpreted here) at B = 8: the row records its launch, folded; and
+    the first step beside the prefix fill, asked for (a one-step call peels its only step)."""
+    results = _benchmark(tmp_path, "--steps", "1", "--batch", "8", "--iters", "1", "--warmup", "1", "--input-sets",
+                         "1", "--attention", "denoise=pallas", "--kernels", "xla", "--overlap", "on")
+    (row,) = results["rows"]
     assert row["attention"] == "vision=xla,prefix=xla,denoise=pallas" and row["kernels"] == "xla"
+    assert row["overlap"] is True and results["env"]["overlap"] == "on" and row["total"]["median_ms"] > 0
     assert row["denoise_attention_launch"] == {"kv_splits": 2, "attention_warps": 4, "fold": True}
 
 
