@@ -312,10 +312,10 @@ def test_attention_and_kernel_choices(monkeypatch):
 def test_the_first_step_beside_the_prefix_is_the_same_call(model, monkeypatch):
     """overlap: the call's second program runs its first denoise step outside the loop (so its layer i waits for
     the cache's layer i alone) in XLA's CONCURRENT command-buffer mode: the same actions bit for bit, one loop trip
-    fewer; "auto" only on a GPU where the expert runs its Pallas kernels."""
+    fewer; "auto" only at batch 1 on a GPU where the expert runs its Pallas kernels."""
     import re
 
-    from pi0_jax.engine import runtime
+    from pi0_jax.engine import programs, runtime
 
     config, params = model
     obs = make_obs(config)
@@ -338,8 +338,6 @@ def test_the_first_step_beside_the_prefix_is_the_same_call(model, monkeypatch):
         assert "xla_gpu_command_buffer_scheduling_mode" not in (options.pop("encode_images") or {})
     np.testing.assert_array_equal(got["on"], got["off"])
     assert trips == {"on": ["2"], "off": ["3"]}
-    from pi0_jax.engine import programs
-
     assert not Engine(config, params, cache_dir=False).overlaps(1)   # auto: a CPU runs XLA's expert
     layers = [{"qkv": jnp.zeros((4, 4))}]
     gpu = functools.partial(programs.first_step_overlap, platform="gpu")
