@@ -19,7 +19,11 @@ Each variant's kernels from a profiler trace: with kernels running side by side,
 device's span.
 
     python scripts/concurrent_probe.py --preset pi0_base --prompt-tokens 20 --iters 40 --out concurrent.json \
-        [--variants loop_graph,loop_unrolled]
+        [--variants loop_graph,loop_unrolled] [--check-calls 500]
+
+--check-calls N also compares each variant's actions with the engine's on N calls of fresh noise, dispatched back to
+back and read only at the end (a race between kernels that CONCURRENT mode runs side by side would show as a
+difference in some call, where one comparison could miss it).
 """
 
 from __future__ import annotations
@@ -52,6 +56,8 @@ def main() -> None:
     p = probe_arguments(__doc__, 40, "the variants' times and kernels")
     p.add_argument("--variants", default="concurrent,peel,peel_concurrent",
                    help=f"comma-separated, of {', '.join(VARIANTS)} (default: %(default)s)")
+    p.add_argument("--check-calls", type=int, default=0,
+                   help="also compare each variant's actions with the engine's on this many calls of fresh noise")
     args = p.parse_args()
     config, engine, noise, cameras, bucket, packed = probe_engine(args, overlap="off")
     images, image_masks, tokens, token_mask, state = packed
@@ -89,6 +95,14 @@ def main() -> None:
     report = {"max_abs_vs_engine": {name: float(np.max(np.abs(np.asarray(call(p), np.float32) - want)))
                                     for name, p in variants.items()},
               "prefix_denoise_temp_bytes": temp}
+    if args.check_calls:
+        keys = jax.random.split(jax.random.key(1), args.check_calls)
+        noises = [jax.random.normal(k, noise.shape, noise.dtype) for k in keys]
+        wants = [engine.sample_packed(packed, n, args.steps, cameras, bucket) for n in noises]
+        report["check"] = {"calls": args.check_calls}
+        for name, (v, a) in variants.items():
+            outs = [a(w, sched, v(w, images), image_masks, tokens, token_mask, state, n) for n in noises]
+            report["check"][name] = max(float(jnp.max(jnp.abs(o - x))) for o, x in zip(outs, wants))
     calls = {"engine": lambda: engine.sample_packed(packed, noise, args.steps, cameras, bucket),
              **{name: functools.partial(call, p) for name, p in variants.items()}}
     times = round_robin(calls, args.iters)
