@@ -18,7 +18,6 @@ import argparse
 import dataclasses
 import datetime
 import functools
-import hashlib
 import json
 import os
 import platform
@@ -35,7 +34,7 @@ import numpy as np
 from pi0_jax import pi0
 from pi0_jax.pi0 import random_params
 from pi0_jax.config import IMAGE_KEYS, PRESETS, Pi0Config, get_config
-from pi0_jax.engine import Engine
+from pi0_jax.engine import Engine, store
 from pi0_jax.engine.programs import KERNELS, OVERLAPS, attention_spec, vision_norm
 from pi0_jax.ops import expert_kernels, pallas_base
 from pi0_jax.ops.matmul import GEMMS
@@ -183,14 +182,10 @@ def _git_commit() -> str | None:
 
 
 def source_digest(root: Path | None = None) -> str:
-    """The first 12 hex digits of a SHA-256 over the package's Python sources (paths and contents, sorted): the code
-    a result came from, comparable with `python -c "from pi0_jax.benchmark import source_digest as d; print(d())"`
-    at any checkout, with or without git. root: the package directory (None: this one)."""
-    root = Path(__file__).parent if root is None else Path(root)
-    digest = hashlib.sha256()
-    for path in sorted(root.rglob("*.py")):
-        digest.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
-    return digest.hexdigest()[:12]
+    """The first 12 hex digits of the program store's digest of the package's Python sources (`store.tree_digest`):
+    the code a result came from, comparable with `python -c "from pi0_jax.benchmark import source_digest as d;
+    print(d())"` at any checkout, with or without git. root: the package directory (None: this one)."""
+    return (store.source_digest() if root is None else store.tree_digest(root))[:12]
 
 
 def bench_engine(engine: Engine, args, batch: int) -> list[dict]:

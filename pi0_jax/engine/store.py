@@ -42,14 +42,18 @@ FORMAT = 1  # bump when the entry layout changes
 PLATFORMS = ("gpu",)  # where stored executables are used (the module doc says why not on a CPU)
 
 
-@functools.lru_cache(maxsize=1)
-def source_digest() -> str:
-    """sha256 over this package's Python source (relative paths and contents, sorted)."""
-    root = Path(__file__).resolve().parents[1]
+def tree_digest(root: Path) -> str:
+    """sha256 over the Python sources under root (relative paths and contents, sorted)."""
     h = hashlib.sha256()
-    for path in sorted(root.rglob("*.py")):
+    for path in sorted(Path(root).rglob("*.py")):
         h.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes() + b"\0")
     return h.hexdigest()
+
+
+@functools.lru_cache(maxsize=1)
+def source_digest() -> str:
+    """`tree_digest` of this package's source."""
+    return tree_digest(Path(__file__).resolve().parents[1])
 
 
 def _environment() -> tuple:
