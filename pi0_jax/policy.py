@@ -405,12 +405,9 @@ class Policy:
         encode = compile_("encode", core.encode, (vision, images),
                           matmul.compiler_options(vision, core.gemm, vision_tower=True))
         tokens = jax.eval_shape(core.encode, vision, images)
-        options = matmul.compiler_options(rest, core.gemm)
         peel = programs.first_step_overlap(core.overlap, core.kernels, spec[-1].shape[0], rest["weights"]["expert"])
-        if peel:
-            options = {**(options or {}), **programs.CONCURRENT}
         act = compile_("act", functools.partial(core.act, peel_first=peel), (rest, self._norm, tokens, *spec[1:]),
-                       options)
+                       programs.overlap_options(matmul.compiler_options(rest, core.gemm), peel))
 
         def call(norm, images, *args):
             return act(rest, norm, encode(vision, images), *args)

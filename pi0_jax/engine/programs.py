@@ -109,6 +109,11 @@ def first_step_overlap(overlap: str, kernels: str, batch: int, expert_weights, p
             and expert_path(kernels, batch, expert_weights, platform) == "pallas")
 
 
+def overlap_options(options: dict | None, overlap: bool) -> dict | None:
+    """A call's second program's compiler options: `options`, with `CONCURRENT` where it overlaps its first step."""
+    return {**(options or {}), **CONCURRENT} if overlap else options
+
+
 def vision_norm(kernels: str, images: int, platform: str | None = None) -> str:
     """SigLIP's residual adds and LayerNorms: "xla" or "pallas" (`ops.layer_norm`: one kernel where XLA runs two or
     three) as asked; "auto" the kernel on a GPU from VISION_NORM_MIN_IMAGES images per call, XLA's ops below (and

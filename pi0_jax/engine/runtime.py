@@ -122,8 +122,8 @@ class Engine:
     GPU (`pi0_jax.ops.matmul.compiler_options`: "auto", cuBLAS in the vision program and XLA's autotuned choice in
     the others; "xla" or "cublas" in every program); cache_dir: where compiled programs are kept (`store`, beside
     XLA's persistent cache; None: $PI0_JAX_CACHE_DIR or ~/.cache/pi0_jax/xla, False: nothing kept); overlap: the
-    first denoise step beside the prefix fill in the call's second program (`overlaps`: "auto" on a GPU where the
-    expert runs its Pallas kernels, "on", "off").
+    first denoise step beside the prefix fill in the call's second program (`overlaps`: "auto" at batch 1 on a GPU
+    where the expert runs its Pallas kernels, "on", "off").
     """
 
     def __init__(self, config: Pi0Config, params: dict, *, unroll: bool = True, unroll_steps: bool = False,
@@ -173,9 +173,9 @@ class Engine:
             start = time.perf_counter()
             weights = self.stage_weights(stage)
             fn, args = self._stage(stage, _shapes(weights), batch, num_steps, cameras, prompt_len)
-            options = matmul.compiler_options(weights, self.gemm, vision_tower=stage == "encode_images")
-            if stage == "prefix_denoise" and self.overlaps(batch):
-                options = {**(options or {}), **programs.CONCURRENT}
+            options = programs.overlap_options(
+                matmul.compiler_options(weights, self.gemm, vision_tower=stage == "encode_images"),
+                stage == "prefix_denoise" and self.overlaps(batch))
             # everything the traced program depends on besides its arguments and options
             parts = (key, repr(self.config), self.unroll, self.unroll_steps, repr(self.attention), self.kernels,
                      self.gemm, self.overlap)
