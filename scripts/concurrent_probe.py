@@ -23,7 +23,9 @@ device's span.
 
 --check-calls N also compares each variant's actions with the engine's on N calls of fresh noise, dispatched back to
 back and read only at the end (a race between kernels that CONCURRENT mode runs side by side would show as a
-difference in some call, where one comparison could miss it).
+difference in some call, where one comparison could miss it), then runs each variant N times on the first call's
+input: `max_abs` and `min_abs` over the calls, `calls_differing`, and `repeat_max_abs` (0 where every repeat equals
+the first, as a program without a race gives).
 """
 
 from __future__ import annotations
@@ -102,7 +104,12 @@ def main() -> None:
         report["check"] = {"calls": args.check_calls}
         for name, (v, a) in variants.items():
             outs = [a(w, sched, v(w, images), image_masks, tokens, token_mask, state, n) for n in noises]
-            report["check"][name] = max(float(jnp.max(jnp.abs(o - x))) for o, x in zip(outs, wants))
+            diffs = [float(jnp.max(jnp.abs(o - x))) for o, x in zip(outs, wants)]
+            again = [a(w, sched, v(w, images), image_masks, tokens, token_mask, state, noises[0])
+                     for _ in range(args.check_calls)]   # one input repeated: a race shows as outputs that differ
+            report["check"][name] = {"max_abs": max(diffs), "min_abs": min(diffs),
+                                     "calls_differing": sum(d > 0 for d in diffs),
+                                     "repeat_max_abs": max(float(jnp.max(jnp.abs(o - again[0]))) for o in again)}
     calls = {"engine": lambda: engine.sample_packed(packed, noise, args.steps, cameras, bucket),
              **{name: functools.partial(call, p) for name, p in variants.items()}}
     times = round_robin(calls, args.iters)
