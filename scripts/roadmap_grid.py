@@ -116,7 +116,7 @@ def stage_timings(preset: str, num_steps: int, other_steps: list[int], drop_frac
     (RTC, num_steps), and prefix + denoise with round(depth * drop_fraction) layers dropped (random weights)."""
     from pi0_jax.benchmark import make_inputs, time_calls
     from pi0_jax.config import get_config
-    from pi0_jax.engine import Engine, programs
+    from pi0_jax.engine import Engine, guidance
     from pi0_jax.pi0 import random_params
 
     def engine_stages(config, guided: bool, extra_steps=()) -> dict:
@@ -144,7 +144,7 @@ def stage_timings(preset: str, num_steps: int, other_steps: list[int], drop_frac
         if guided:
             h, a = config.action_horizon, config.action_dim
             weight = jnp.broadcast_to(jnp.linspace(1.0, 0.0, h)[None, :, None], (1, h, a))
-            fn = jax.jit(lambda c, s, n, y: programs.guided_denoise(config, w, sched, c, s, n, y, weight,
+            fn = jax.jit(lambda c, s, n, y: guidance.guided_denoise(config, w, sched, c, s, n, y, weight,
                                                                     num_steps=num_steps, unroll=True,
                                                                     attention=engine.attention))
             out["guided_denoise"] = time_calls(lambda c, p, n: fn(c, p[4], n, n), args, iters, 2)["median_ms"]

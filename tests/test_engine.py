@@ -257,7 +257,7 @@ def test_choices_on_a_jax_without_pallas_triton(monkeypatch):
 
 
 def test_attention_and_kernel_choices(monkeypatch):
-    from pi0_jax.engine import programs
+    from pi0_jax.engine import guidance, programs
     from pi0_jax.ops import formats
 
     A = programs.Attention
@@ -285,12 +285,12 @@ def test_attention_and_kernel_choices(monkeypatch):
         assert {programs.AUTO_GPU.at_batch(b, suffix_mask=mask, differentiable=True).denoise
                 for b in range(1, 65)} == {"xla"}
     with pytest.raises(ValueError, match="differentiates"):   # the Pallas kernel has no VJP
-        programs.guided_denoise(get_config("dummy"), None, None, None, None, jnp.zeros((4, 2, 2)), None, None,
+        guidance.guided_denoise(get_config("dummy"), None, None, None, None, jnp.zeros((4, 2, 2)), None, None,
                                 num_steps=2, unroll=True, attention=A(denoise="pallas"))
     with monkeypatch.context() as m:   # nor cuDNN's at these lengths, on a GPU (on a CPU it is XLA's form)
         m.setattr(jax, "default_backend", lambda: "gpu")
         with pytest.raises(ValueError, match="not 'cudnn'"):
-            programs.guided_denoise(get_config("dummy"), None, None, None, None, jnp.zeros((4, 2, 2)), None, None,
+            guidance.guided_denoise(get_config("dummy"), None, None, None, None, jnp.zeros((4, 2, 2)), None, None,
                                     num_steps=2, unroll=True, attention=A.parse("cudnn"))
     assert A.parse("cudnn").at_batch(1) == A.parse("cudnn")
     for bad in ("flash", "prefix=flash", "decoder=cudnn", "prefix", "vision=auto", "prefix=pallas", "pallas"):
@@ -346,6 +346,40 @@ def test_the_first_step_beside_the_prefix_is_the_same_call(model, monkeypatch):
     assert gpu("on", "xla", 64, layers) and not gpu("off", "auto", 1, layers)
     with pytest.raises(ValueError, match="overlap must be"):
         Engine(config, params, cache_dir=False, overlap="yes")
+
+
+@pytest.mark.parametrize("attention", ["xla", "denoise=cudnn"])
+def test_the_state_token_runs_once_a_call(attention, monkeypatch):
+    """π0's state token attends to the prefix and to itself alone, so on the XLA expert it runs through the expert
+    once a call (its keys and values after the prefix, or in the fused attention's first suffix slot) and each step
+    runs the action rows alone: the same actions as with the state's row in every step, in float32; π0.5 (state in
+    the prompt), the Pallas expert and the Pallas attention keep their layout."""
+    from pi0_jax.engine import programs
+
+    config = get_config("dummy")
+    params = randomize(pi0.param_shapes(config))
+    obs = make_obs(config)
+    noise = jax.random.normal(jax.random.key(5), (2, config.action_horizon, config.action_dim))
+    got, rows = {}, {}
+    for once in (True, False):
+        with monkeypatch.context() as m:
+            if not once:
+                m.setattr(programs, "cached_state", lambda *a, **k: False)
+            engine = Engine(config, params, cache_dir=False, attention=attention)
+            got[once] = np.asarray(engine.sample_actions(obs, noise, 3))
+            e = config.action_expert
+            kv = [jnp.zeros((2, 5, e.num_kv_heads, e.head_dim))] * e.depth
+            cache = programs.PrefixCache(kv, kv, jnp.ones((2, 5), bool))
+            fixed = programs.step_invariants(config, engine.weights, cache, jnp.zeros((2, config.action_dim)), 2,
+                                             "xla", programs.Attention.parse(attention), unroll=True)
+            rows[once] = fixed["positions"].shape[1], fixed["state_kv"] is not None
+    np.testing.assert_allclose(got[True], got[False], rtol=1e-5, atol=1e-5)
+    assert rows == {True: (config.action_horizon, True), False: (config.action_horizon + 1, False)}
+    A = programs.Attention
+    assert programs.cached_state(config, A(), "xla", 2, None)
+    assert not programs.cached_state(get_config("dummy_pi05"), A(), "xla", 2, None)
+    assert not programs.cached_state(config, A(), "pallas", 1, None)
+    assert not programs.cached_state(config, A(denoise="pallas"), "xla", 8, None)
 
 
 def test_gemm_library_per_program():

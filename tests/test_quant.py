@@ -222,8 +222,9 @@ def test_every_gemm_quantises_the_expert_activations_calibrated_over_the_denoise
         spec((len(cameras), 1), bool), spec((1, bucket), jnp.int32), spec((1, bucket), bool),
         spec((1, config.action_dim), jnp.float32), noise)
     dots = [line for line in fused.as_text().splitlines() if "dot_general" in line and "f8E4M3FN" in line]
-    # vision (4 per block + the head) and prefix (the last layer: K/V only) as above; the expert's loop: 4 per layer
-    assert len(dots) == 4 * config.siglip.depth + 1 + depth + 3 * (depth - 1) + 4 * depth
+    # vision (4 per block + the head) and prefix (the last layer: K/V only) as above; π0's state token once a call
+    # through the expert (as the prefix: its keys and values are all that is read); the expert's loop: 4 per layer
+    assert len(dots) == 4 * config.siglip.depth + 1 + 2 * (depth + 3 * (depth - 1)) + 4 * depth
 
 
 def test_gemm_library_per_program():

@@ -148,10 +148,10 @@ class Attention:
     def at_batch(self, batch: int, suffix_mask: bool = False, differentiable: bool = False) -> Attention:
         """The concrete choice of every stage for a program of this batch size; suffix_mask: the model's suffix
         masks some of its own keys (π0; π0.5's attends everywhere); differentiable: XLA's denoise attention (a
-        program that differentiates the velocity, `guided_denoise`: the Pallas kernel has no VJP, and cuDNN's flash
-        attention refused a backward pass at the suffix's sequence lengths on a GPU). On a jax without Pallas's
-        Triton backend "pallas" is the kernel on Mosaic GPU (`expert_kernels.TRITON_FREE`: Hopper; "auto" is bf16
-        only), and elsewhere cuDNN's or XLA's."""
+        program that differentiates the velocity, `guidance.guided_denoise`: the Pallas kernel has no VJP, and
+        cuDNN's flash attention refused a backward pass at the suffix's sequence lengths on a GPU). On a jax without
+        Pallas's Triton backend "pallas" is the kernel on Mosaic GPU (`expert_kernels.TRITON_FREE`: Hopper; "auto" is
+        bf16 only), and elsewhere cuDNN's or XLA's."""
         if self.denoise != "auto":
             return self
         if differentiable:
@@ -276,39 +276,68 @@ def fused_suffix_attention(config: Pi0Config, attention: Attention, kernels: str
     return fused and expert_path(kernels, batch, expert_weights) != "pallas"
 
 
-def suffix_kv(config: Pi0Config, cache: PrefixCache) -> tuple:
+def suffix_kv(config: Pi0Config, cache: PrefixCache, state_kv: tuple | None = None) -> tuple:
     """The fused attention's keys and values, per layer [S suffix slots | prefix cache] (B, S + P, K, H): made once
     per call, and each step writes its suffix keys into the slots. As a loop carry that is in place; concatenating
     [suffix | cache] copied the whole cache every layer and step (13.4 of 72 ms of π0.5's denoise at B = 64, H200).
-    Per layer tuples when unrolled, (L, ...) stacked when scanned, as the cache."""
+    Per layer tuples when unrolled, (L, ...) stacked when scanned, as the cache. state_kv: π0's state keys and
+    values (`cached_state`), written into slot 0 here, so that the steps fill slots 1 to S - 1."""
     def slots(c):
         pad = [(0, 0)] * c.ndim
         pad[-3] = (config.suffix_len, 0)
         return jnp.pad(c, pad)
 
-    return tuple(jax.tree.map(slots, c) for c in (cache.k, cache.v))
+    bufs = tuple(jax.tree.map(slots, c) for c in (cache.k, cache.v))
+    if state_kv is None:
+        return bufs
+    return tuple(jax.tree.map(lambda b, s: b.at[..., :1, :, :].set(s.astype(b.dtype)), buf, kv)
+                 for buf, kv in zip(bufs, state_kv))
 
 
-def velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, cache: PrefixCache, state, x_t, *,
-             unroll: bool, attention: Attention = Attention()) -> jax.Array:
-    """v(x_t, t_step) over the cache, on XLA's expert (real-time chunking differentiates it). `sched` is
-    `weights.precompute_schedule` output, indexed by the step number. attention.denoise "cudnn" needs a cache
-    filled with the same `attention` (its valid keys first). With the fused attention a single call pads the cache
-    into `suffix_kv`'s buffers itself (one copy, as a concatenation was); `denoise` makes them once and carries them
-    instead."""
-    kv = None
-    if fused_suffix_attention(config, attention, "xla", x_t.shape[0], weights["expert"]):
-        kv = suffix_kv(config, cache)
-    fixed = step_invariants(config, weights, cache, state, x_t.shape[0], "xla", attention)
-    return _velocity(config, weights, sched, step, cache, fixed, x_t, kv, unroll=unroll, attention=attention,
-                     kernels="xla", frozen=None)[0]
+def cached_state(config: Pi0Config, attention: Attention, kernels: str, batch: int, expert_weights) -> bool:
+    """Whether π0's state token runs through the expert once a call, before the denoise loop, instead of as a row of
+    every step. Its row attends to the prefix and to itself alone (a causal block of its own, spec §5.4), so its keys
+    and values at every layer depend on neither the noisy actions nor the flow time; the steps then run the action
+    rows alone, unmasked, as π0.5's. On the XLA expert with XLA's or the fused attention: the Pallas expert and the
+    Pallas attention lay their tables out for the row. `attention` resolved or not."""
+    if config.pi05 or expert_path(kernels, batch, expert_weights) != "xla":
+        return False
+    return attention.at_batch(batch, suffix_mask=True).denoise in ("xla", "cudnn")
+
+
+def _state_kv(config: Pi0Config, weights: dict, cache: PrefixCache, state_token, position, *, unroll: bool):
+    """π0's state token (B, D) at `position` (B, 1) through the expert's layers over the cache: its keys and values
+    at each layer, (B, 1, K, H) per layer as the cache's own."""
+    x = state_token[:, None, :].astype(jnp.dtype(config.dtype))
+    own = jnp.ones((x.shape[0], 1, 1), bool)
+
+    def layer(w, x, k, v):
+        return layers.suffix_layer(config.action_expert, w, x, position, k, v, cache.mask[:, None, :], own)
+
+    _, (k, v) = layers.run_layers(layer, weights["expert"], x, [cache.k, cache.v], unroll=unroll)
+    return k, v
+
+
+def step_cache(config: Pi0Config, cache: PrefixCache, fixed: dict, fused: bool) -> tuple[PrefixCache, tuple | None]:
+    """(cache, kv): what the steps attend to besides their own rows. fused: `suffix_kv`'s buffers, with π0's state in
+    slot 0 when it ran once a call (`fixed["state_kv"]`); else the prefix cache, with the state's keys after it."""
+    state_kv = fixed["state_kv"]
+    if fused:
+        return cache, suffix_kv(config, cache, state_kv)
+    if state_kv is None:
+        return cache, None
+    k, v = (jax.tree.map(lambda c, s: jnp.concatenate([c, s.astype(c.dtype)], axis=-3), c, s)
+            for c, s in zip((cache.k, cache.v), state_kv))
+    return PrefixCache(k=k, v=v, mask=jnp.pad(cache.mask, ((0, 0), (0, 1)), constant_values=True)), None
 
 
 def step_invariants(config: Pi0Config, weights: dict, cache: PrefixCache, state, batch: int, kernels: str,
-                    attention: Attention) -> dict:
+                    attention: Attention, *, unroll: bool) -> dict:
     """What every denoise step of one call computes alike, made once before the loop rather than in each step:
-    "state" π0's state token (B, D) in f32 (π0.5: None), "positions" (B, S), "suffix_mask" (B, S, S), "tables"
-    `layers.pallas_tables` for a cache in the kernels' layout (`kernel_cache`), else None."""
+    "state" π0's state token (B, D) in f32 (π0.5: None), "state_kv" its keys and values per layer where it runs once
+    a call (`cached_state`; else None), "positions" (B, S) and "suffix_mask" (B, S, S) of the rows a step runs (S
+    without the state's row where it ran once), "tables" `layers.pallas_tables` for a cache in the kernels' layout
+    (`kernel_cache`), else None."""
     ar_state = [] if config.pi05 else [True]   # π0's state token: a causal block of its own before the actions
     s = len(ar_state) + config.action_horizon
     ar = jnp.asarray(ar_state + [True] + [False] * (config.action_horizon - 1))
@@ -320,13 +349,19 @@ def step_invariants(config: Pi0Config, weights: dict, cache: PrefixCache, state,
         tables = layers.pallas_tables(config.action_expert, positions, cache.mask, suffix_mask,
                                       expert_kernels.blocks_at(batch) if xla_expert else None)
     state_token = None if config.pi05 else _dense(weights["top"]["state_proj"], state)
-    return {"state": state_token, "positions": positions, "suffix_mask": suffix_mask, "tables": tables}
+    state_kv = None
+    if cached_state(config, attention, kernels, batch, weights["expert"]):
+        state_kv = _state_kv(config, weights, cache, state_token, positions[:, :1], unroll=unroll)
+        positions, suffix_mask = positions[:, 1:], suffix_mask[:, 1:, 1:]
+    return {"state": state_token, "state_kv": state_kv, "positions": positions, "suffix_mask": suffix_mask,
+            "tables": tables}
 
 
-def _velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, cache: PrefixCache, fixed: dict, x_t,
-              kv, *, unroll: bool, attention: Attention, kernels: str, frozen: jax.Array | None) -> tuple:
-    """`velocity` -> (v, kv): kv, the suffix-first buffers of `suffix_kv` (exactly when `fused_suffix_attention`,
-    else None), comes back with this step's suffix keys written in. fixed: `step_invariants`."""
+def step_velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, cache: PrefixCache, fixed: dict,
+                  x_t, kv, *, unroll: bool, attention: Attention, kernels: str, frozen: jax.Array | None) -> tuple:
+    """One denoise step's velocity v(x_t, t_step) -> (v, kv). cache, kv: `step_cache`'s; kv, the suffix-first
+    buffers of `suffix_kv` (exactly when `fused_suffix_attention`, else None), comes back with this step's suffix keys
+    written in. fixed: `step_invariants`. frozen (B, H) or None: committed actions, at flow time 0."""
     dtype = jnp.dtype(config.dtype)
     top, b = weights["top"], x_t.shape[0]
     attention = attention.at_batch(b, suffix_mask=not config.pi05)
@@ -345,7 +380,9 @@ def _velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, ca
     else:
         w_in = top["action_time_mlp_in"]["kernel"]
         h = action_tokens @ w_in[: config.action_expert.width].astype(jnp.float32) + at_step("time_in")
-        x = jnp.concatenate([fixed["state"][:, None, :], _dense(top["action_time_mlp_out"], jax.nn.swish(h))], axis=1)
+        x = _dense(top["action_time_mlp_out"], jax.nn.swish(h))
+        if fixed["state_kv"] is None:
+            x = jnp.concatenate([fixed["state"][:, None, :], x], axis=1)
         mods = None
     x = x.astype(dtype)
     s = x.shape[1]
@@ -365,15 +402,16 @@ def _velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, ca
         prefix_mask, suffix_mask = fixed["tables"][2:]
     else:
         prefix_mask = jnp.broadcast_to(cache.mask[:, None, :], (b, s, cache.mask.shape[1]))
+    slot = config.suffix_len - s   # 1 where π0's state ran once a call and holds the suffix's first slot
     if attention.denoise == "cudnn":
-        kv_len = (s + jnp.sum(cache.mask, axis=-1)).astype(jnp.int32)
+        kv_len = (config.suffix_len + jnp.sum(cache.mask, axis=-1)).astype(jnp.int32)
         # only π0's state row masks suffix keys (it sees no action); the action rows, and π0.5's, see them all
-        suffix_mask = None if config.pi05 else suffix_mask[:, :1]
+        suffix_mask = None if config.pi05 or slot else suffix_mask[:, :1]
 
     def layer(w, x, k, v, *mod):
         m = None if mods is None else mod
         x, k, v = layers.suffix_layer(config.action_expert, w, x, positions, k, v, prefix_mask, suffix_mask, m,
-                                      kv_len, kernel=attention.denoise == "pallas")
+                                      kv_len, kernel=attention.denoise == "pallas", slot=slot)
         return (x, k, v) if kv_len is not None else (x,)
 
     per_layer = [cache.k, cache.v] if kv is None else list(kv)
@@ -414,15 +452,14 @@ def denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixCache, s
         frozen = pi0.committed_mask(config.action_horizon, num_committed)
         x = jnp.where(frozen[..., None], committed.astype(jnp.float32), x)
 
-    kv = None
-    if fused_suffix_attention(config, attention, kernels, x.shape[0], weights["expert"]):
-        kv = suffix_kv(config, cache)
-    fixed = step_invariants(config, weights, cache, state, x.shape[0], kernels, attention)
+    fixed = step_invariants(config, weights, cache, state, x.shape[0], kernels, attention, unroll=unroll)
+    fused = fused_suffix_attention(config, attention, kernels, x.shape[0], weights["expert"])
+    cache, kv = step_cache(config, cache, fixed, fused)
 
     def step(i, carry):   # the suffix-first buffers ride in the carry, so each step fills their slots in place
         x_t, kv = carry
-        v, kv = _velocity(config, weights, sched, i, cache, fixed, x_t, kv, unroll=unroll, attention=attention,
-                          kernels=kernels, frozen=frozen)
+        v, kv = step_velocity(config, weights, sched, i, cache, fixed, x_t, kv, unroll=unroll, attention=attention,
+                              kernels=kernels, frozen=frozen)
         x_next = x_t + dt * v  # dt * v in v's dtype, then promoted to f32: as the reference
         return (x_next if frozen is None else jnp.where(frozen[..., None], x_t, x_next)), kv
 
@@ -451,42 +488,3 @@ def infer(config: Pi0Config, weights: dict, sched: dict, images, image_masks, to
     return prefix_denoise(config, weights, sched, image_tokens, image_masks, tokens, token_mask, state, noise,
                           num_steps=num_steps, unroll=unroll, unroll_steps=unroll_steps, attention=attention,
                           kernels=kernels)
-
-
-def guided_denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixCache, state, noise, target,
-                   weight, *, num_steps: int, beta: float = 5.0, unroll: bool,
-                   attention: Attention = Attention()) -> jax.Array:
-    """Real-time chunking (Black, Galliker, Levine 2025, arXiv 2506.07339): `denoise` with ΠGDM-style inpainting
-    guidance towards `target` (B, H, action_dim), weighted per action and dim by `weight` (B, H, action_dim) in
-    [0, 1] (1: frozen, 0: free), in normalised model space.
-
-    Time runs as openpi's (t = 1 noise, t = 0 data), so the denoised estimate is x̂ = x_t - t v(x_t) and the paper's
-    update A += (1/n)(v_π + w g), with v_π = -v in its τ = 1 - t, becomes x += dt (v - w g), where
-    g = [(target - x̂) * weight]ᵀ ∂x̂/∂x_t (one vector-Jacobian product through `velocity`) and
-    w = min(beta, (t² + (1 - t)²) / (t (1 - t))), = beta at t = 1. weight = 0 everywhere gives `denoise` exactly
-    up to the VJP's extra arithmetic (g = 0)."""
-    attention = attention.at_batch(noise.shape[0], suffix_mask=not config.pi05, differentiable=True)
-    if attention.denoise == "pallas" or (attention.denoise == "cudnn" and jax.default_backend() == "gpu"):
-        raise ValueError(f"real-time chunking differentiates the velocity: its denoise attention must be 'xla', not "
-                         f"{attention.denoise!r} (the Pallas kernel has no VJP; cuDNN's flash attention refuses a "
-                         "backward pass at the suffix's sequence lengths); fill its cache with attention.at_batch(..., "
-                         "differentiable=True)")
-    dt = -1.0 / num_steps
-    if not isinstance(num_steps, int):
-        dt = jnp.asarray(dt, jnp.float32)
-    target, weight = target.astype(jnp.float32), weight.astype(jnp.float32)
-
-    def step(i, x_t):
-        t = 1.0 + i.astype(jnp.float32) * dt    # f32 as the schedule's step_times, to rounding
-
-        def denoised(x):
-            v = velocity(config, weights, sched, i, cache, state, x, unroll=unroll, attention=attention)
-            v = v.astype(jnp.float32)
-            return x - t * v, v
-
-        x_hat, vjp, v = jax.vjp(denoised, x_t, has_aux=True)
-        (g,) = vjp((target - x_hat) * weight)
-        w = jnp.minimum(beta, (t * t + (1.0 - t) ** 2) / jnp.maximum(t * (1.0 - t), 1e-12))
-        return x_t + dt * (v - w * g)
-
-    return jax.lax.fori_loop(0, num_steps, step, noise.astype(jnp.float32))

@@ -11,7 +11,7 @@ is 50 ms at the suite's 20 Hz, so D = 4 is 200 ms). Chunk index i is the action 
   rtc    as naive, but the new chunk is sampled with real-time chunking (Black, Galliker, Levine 2025): its first D
          actions are frozen to the committed prev[r : r+D], the overlap after them (indices D .. H-r-1, where the
          previous chunk still has actions) is guided with exponentially decaying weights, and the rest is free
-         (`engine.programs.guided_denoise`, ΠGDM guidance clipped at beta). The frozen actions are written into the
+         (`engine.guidance.guided_denoise`, ΠGDM guidance clipped at beta). The frozen actions are written into the
          returned chunk exactly; they are never executed from it (they lie in the past when it arrives).
   conditioned  as naive, with training-time action conditioning (Black, Ren, Equi, Levine 2025, arXiv 2512.05964):
          the committed prev[r : r+D] enter the new chunk's first D actions as clean inputs (flow time 0) and the
@@ -153,7 +153,7 @@ def make_model_callbacks(core, rt: Realtime, replan_steps: int, inputs, cameras,
     """(init, plan, act, stats) of a model policy under `rt`, on the engine's programs (`core`: a PolicyCore with
     the engine sampler; `inputs(norm, obs, es)` -> (images, image_masks, tokens, token_mask, raw padded state);
     `bucket` the prompt length `inputs` returns)."""
-    from pi0_jax.engine import programs
+    from pi0_jax.engine import guidance, programs
 
     if core.sampler != "engine" or core.kernels == "pallas":
         raise ValueError("--execution / --latency-steps / --reuse-prefix run on the engine sampler with XLA "
@@ -223,7 +223,7 @@ def make_model_callbacks(core, rt: Realtime, replan_steps: int, inputs, cameras,
             target = jnp.concatenate([ps["raw"][:, r:], jnp.zeros_like(ps["raw"][:, :r])], axis=1)
             weight = (jnp.asarray(rtc_weights(horizon, d, r))[None, :, None]
                       * (jnp.arange(adim) < dims)[None, None, :] * ps["fresh"][:, None, None])
-            raw = programs.guided_denoise(cfg, model["weights"], sched, cache, state, noise, target, weight,
+            raw = guidance.guided_denoise(cfg, model["weights"], sched, cache, state, noise, target, weight,
                                           num_steps=num_steps, beta=rt.rtc_beta, unroll=core.unroll,
                                           attention=attention(noise.shape[0]))
             frozen = (jnp.arange(horizon) < d)[None, :, None] & ps["fresh"][:, None, None]
