@@ -348,33 +348,38 @@ def test_the_first_step_beside_the_prefix_is_the_same_call(model, monkeypatch):
         Engine(config, params, cache_dir=False, overlap="yes")
 
 
-@pytest.mark.parametrize("attention", ["xla", "denoise=cudnn"])
-def test_the_state_token_runs_once_a_call(attention, monkeypatch):
+def test_the_state_token_runs_once_a_call(monkeypatch):
     """π0's state token attends to the prefix and to itself alone, so on the XLA expert it runs through the expert
     once a call (its keys and values after the prefix, or in the fused attention's first suffix slot) and each step
-    runs the action rows alone: the same actions as with the state's row in every step, in float32; π0.5 (state in
-    the prompt), the Pallas expert and the Pallas attention keep their layout."""
+    runs the action rows alone: the same actions as with the state's row in every step, in float32, with XLA's and
+    with the fused attention; π0.5 (state in the prompt), the Pallas expert and the Pallas attention keep their
+    layout."""
     from pi0_jax.engine import programs
 
     config = get_config("dummy")
     params = randomize(pi0.param_shapes(config))
     obs = make_obs(config)
     noise = jax.random.normal(jax.random.key(5), (2, config.action_horizon, config.action_dim))
+    e = config.action_expert
+    kv = [jnp.zeros((2, 5, e.num_kv_heads, e.head_dim))] * e.depth
+    cache = programs.PrefixCache(kv, kv, jnp.ones((2, 5), bool))
     got, rows = {}, {}
-    for once in (True, False):
+    for once, attention in ((True, "xla"), (True, "denoise=cudnn"), (False, "xla")):
         with monkeypatch.context() as m:
             if not once:
                 m.setattr(programs, "cached_state", lambda *a, **k: False)
             engine = Engine(config, params, cache_dir=False, attention=attention)
-            got[once] = np.asarray(engine.sample_actions(obs, noise, 3))
-            e = config.action_expert
-            kv = [jnp.zeros((2, 5, e.num_kv_heads, e.head_dim))] * e.depth
-            cache = programs.PrefixCache(kv, kv, jnp.ones((2, 5), bool))
+            got[once, attention] = np.asarray(engine.sample_actions(obs, noise, 3))
             fixed = programs.step_invariants(config, engine.weights, cache, jnp.zeros((2, config.action_dim)), 2,
                                              "xla", programs.Attention.parse(attention), unroll=True)
-            rows[once] = fixed["positions"].shape[1], fixed["state_kv"] is not None
-    np.testing.assert_allclose(got[True], got[False], rtol=1e-5, atol=1e-5)
-    assert rows == {True: (config.action_horizon, True), False: (config.action_horizon + 1, False)}
+            rows[once, attention] = fixed["positions"].shape[1], fixed["state_kv"] is not None
+            if not once:   # the fused attention has no suffix mask: it needs the state out of the steps
+                with pytest.raises(ValueError, match="cached_state"):
+                    Engine(config, params, cache_dir=False, attention="denoise=cudnn").sample_actions(obs, noise, 3)
+    for attention in ("xla", "denoise=cudnn"):
+        np.testing.assert_allclose(got[True, attention], got[False, "xla"], rtol=1e-5, atol=1e-5)
+    h = config.action_horizon
+    assert rows == {(True, "xla"): (h, True), (True, "denoise=cudnn"): (h, True), (False, "xla"): (h + 1, False)}
     A = programs.Attention
     assert programs.cached_state(config, A(), "xla", 2, None)
     assert not programs.cached_state(get_config("dummy_pi05"), A(), "xla", 2, None)

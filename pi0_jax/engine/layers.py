@@ -108,25 +108,17 @@ def prefix_layer(cfg: GemmaConfig, w, x, positions, mask, kv_len=None, keys: int
     return x + _mlp(h, w), k, v
 
 
-def _attend_suffix_fused(q, k, v, buf_k, buf_v, kv_len, head_mask, slot: int = 0):
+def _attend_suffix_fused(q, k, v, buf_k, buf_v, kv_len, slot: int = 0):
     """Fused attention over keys [suffix | prefix]: putting the suffix first makes every element's invalid prefix
     tokens a tail, cut off by `kv_len` = S + valid prefix tokens (the valid prefix must be a run from the front).
     buf_k / buf_v (B, S + P, K, H): the prefix cache behind S slots (`programs.suffix_kv`); this step's k / v are
     written into the slots from `slot` on (in place when the buffers are a loop carry: a concatenation would copy the
-    cache; slot 1 where π0's state keys, made once a call, hold slot 0).
-    head_mask None, or (B, m, S): the first m query rows' view of the suffix keys (π0's state token sees no action);
-    the other rows see every suffix key. Those run in the fused kernel without a mask; the m masked rows run as XLA's
-    attention beside it (a mask in cuDNN's kernel measured slower than XLA's whole attention at π0 B = 8). Returns
-    the output and the filled buffers."""
+    cache; slot 1 where π0's state keys, made once a call, hold slot 0). Every query row sees every key up to
+    kv_len: no suffix mask (π0's state row, which sees no action, is not a row of the step here). Returns the output
+    and the filled buffers."""
     keys = jax.lax.dynamic_update_slice_in_dim(buf_k, k.astype(buf_k.dtype), slot, axis=1)
     values = jax.lax.dynamic_update_slice_in_dim(buf_v, v.astype(buf_v.dtype), slot, axis=1)
-    if head_mask is None:
-        return _attend_fused(q, keys, values, kv_len), keys, values
-    m, s = head_mask.shape[1:]
-    prefix = jnp.arange(s, keys.shape[1]) < kv_len[:, None]
-    mask = jnp.concatenate([head_mask, jnp.broadcast_to(prefix[:, None], (q.shape[0], m, prefix.shape[1]))], axis=2)
-    head = _attend(q[:, :m], [keys], [values], [mask], q.dtype)
-    return jnp.concatenate([head, _attend_fused(q[:, m:], keys, values, kv_len)], axis=1), keys, values
+    return _attend_fused(q, keys, values, kv_len), keys, values
 
 
 def query_rows(cfg: GemmaConfig, s: int, blocks: expert_kernels.Blocks) -> int:
@@ -172,8 +164,8 @@ def suffix_layer(cfg: GemmaConfig, w, x, positions, cache_k, cache_v, prefix_mas
     With XLA's attention k, v are the suffix's own keys and values (B,S,K,H). kv_len: None for XLA attention, else
     (B,) key lengths for the fused kernel; cache_k/v are then the suffix-first buffers (B,S'+P,K,H) of
     `_attend_suffix_fused`, k, v come back as those buffers with this step's suffix keys in them from `slot` on, and
-    suffix_mask is its head_mask (B, m, S) or None. kernel: the attention is the Pallas kernel's (`_attend_kernel`;
-    cache_k/v and the masks in its layout, returned as given).
+    suffix_mask is unused (every row sees every suffix key). kernel: the attention is the Pallas kernel's
+    (`_attend_kernel`; cache_k/v and the masks in its layout, returned as given).
     """
     mod_attn, mod_ffw = mods if mods is not None else (None, None)
     h, gate = rms_norm(x, w.get("pre_attn"), mod_attn)
@@ -184,7 +176,7 @@ def suffix_layer(cfg: GemmaConfig, w, x, positions, cache_k, cache_v, prefix_mas
     elif kv_len is None:
         y = _attend(q, [cache_k, k], [cache_v, v], [prefix_mask, suffix_mask], x.dtype)
     else:
-        y, k, v = _attend_suffix_fused(q, k, v, cache_k, cache_v, kv_len, suffix_mask, slot)
+        y, k, v = _attend_suffix_fused(q, k, v, cache_k, cache_v, kv_len, slot)
     y = _mm(y, w["attn_out"])
     x = x + (y if gate is None else y * gate)
     h, gate = rms_norm(x, w.get("pre_ffw"), mod_ffw)

@@ -31,8 +31,9 @@ PALLAS_MAX_BATCH = 2
 # The batch from which the denoise step's attention="auto" is cuDNN's fused kernel on a GPU (H200, docs/BENCHMARKS.md),
 # below it XLA's ops (at B <= PALLAS_MAX_BATCH the Pallas expert, which has its own attention). π0.5: its denoise loop
 # 7 % faster at B = 3 with a kv head's 8 query heads folded into its rows, 8-14 % at B = 4-64 before that fold (which
-# took a further 3 % off at B = 8, 13 % at B = 64). π0 (a masked suffix: its state row runs as XLA's attention beside
-# the kernel): 9 % slower at B = 3, 4, 9 and 37 % faster at B = 4, 8 and 64.
+# took a further 3 % off at B = 8, 13 % at B = 64). π0 (a masked suffix: its state row then ran as XLA's attention
+# beside the kernel, before `cached_state` took it out of the steps): 9 % slower at B = 3, 4, 9 and 37 % faster at
+# B = 4, 8 and 64.
 CUDNN_DENOISE_MIN_BATCH = 3
 CUDNN_DENOISE_MIN_BATCH_MASKED = 4
 # The batches at which the denoise attention="auto" is the Pallas split-key kernel in the XLA expert's layers, at
@@ -403,10 +404,10 @@ def step_velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array
     else:
         prefix_mask = jnp.broadcast_to(cache.mask[:, None, :], (b, s, cache.mask.shape[1]))
     slot = config.suffix_len - s   # 1 where π0's state ran once a call and holds the suffix's first slot
-    if attention.denoise == "cudnn":
+    if attention.denoise == "cudnn":   # no suffix mask: the action rows, and π0.5's, see every suffix key
+        if not (config.pi05 or slot):
+            raise ValueError("the fused denoise attention takes π0's state token once a call (`cached_state`)")
         kv_len = (config.suffix_len + jnp.sum(cache.mask, axis=-1)).astype(jnp.int32)
-        # only π0's state row masks suffix keys (it sees no action); the action rows, and π0.5's, see them all
-        suffix_mask = None if config.pi05 or slot else suffix_mask[:, :1]
 
     def layer(w, x, k, v, *mod):
         m = None if mods is None else mod
