@@ -1,5 +1,5 @@
-"""Real-time chunking's programs: the action expert's velocity as a differentiable function of the noisy actions,
-and the denoise loop guided towards committed actions by it (`pi0_jax.sim.realtime`'s "rtc" execution)."""
+"""Real-time chunking's program: the denoise loop guided towards committed actions through the vector-Jacobian product
+of the action expert's velocity (`pi0_jax.sim.realtime`'s "rtc" execution)."""
 
 from __future__ import annotations
 
@@ -11,20 +11,6 @@ from pi0_jax.engine import programs
 from pi0_jax.engine.programs import Attention, PrefixCache
 
 
-def velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, cache: PrefixCache, state, x_t, *,
-             unroll: bool, attention: Attention = Attention()) -> jax.Array:
-    """v(x_t, t_step) over the cache, on XLA's expert (real-time chunking differentiates it). `sched` is
-    `weights.precompute_schedule` output, indexed by the step number. attention.denoise "cudnn" needs a cache
-    filled with the same `attention` (its valid keys first). With the fused attention a single call pads the cache
-    into `programs.suffix_kv`'s buffers itself (one copy, as a concatenation was); `programs.denoise` makes them once
-    and carries them instead."""
-    fixed = programs.step_invariants(config, weights, cache, state, x_t.shape[0], "xla", attention, unroll=unroll)
-    fused = programs.fused_suffix_attention(config, attention, "xla", x_t.shape[0], weights["expert"])
-    cache, kv = programs.step_cache(config, cache, fixed, fused)
-    return programs.step_velocity(config, weights, sched, step, cache, fixed, x_t, kv, unroll=unroll,
-                                  attention=attention, kernels="xla", frozen=None)[0]
-
-
 def guided_denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixCache, state, noise, target,
                    weight, *, num_steps: int, beta: float = 5.0, unroll: bool,
                    attention: Attention = Attention()) -> jax.Array:
@@ -34,7 +20,7 @@ def guided_denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixC
 
     Time runs as openpi's (t = 1 noise, t = 0 data), so the denoised estimate is x̂ = x_t - t v(x_t) and the paper's
     update A += (1/n)(v_π + w g), with v_π = -v in its τ = 1 - t, becomes x += dt (v - w g), where
-    g = [(target - x̂) * weight]ᵀ ∂x̂/∂x_t (one vector-Jacobian product through `velocity`) and
+    g = [(target - x̂) * weight]ᵀ ∂x̂/∂x_t (one vector-Jacobian product through the velocity) and
     w = min(beta, (t² + (1 - t)²) / (t (1 - t))), = beta at t = 1. weight = 0 everywhere gives `denoise` exactly
     up to the VJP's extra arithmetic (g = 0)."""
     attention = attention.at_batch(noise.shape[0], suffix_mask=not config.pi05, differentiable=True)
@@ -47,12 +33,17 @@ def guided_denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixC
     if not isinstance(num_steps, int):
         dt = jnp.asarray(dt, jnp.float32)
     target, weight = target.astype(jnp.float32), weight.astype(jnp.float32)
+    b = noise.shape[0]   # what every step reads alike, made once before the loop, as `programs.denoise` does
+    fixed = programs.step_invariants(config, weights, cache, state, b, "xla", attention, unroll=unroll)
+    fused = programs.fused_suffix_attention(config, attention, "xla", b, weights["expert"])
+    cache, kv = programs.step_cache(config, cache, fixed, fused)
 
     def step(i, x_t):
         t = 1.0 + i.astype(jnp.float32) * dt    # f32 as the schedule's step_times, to rounding
 
-        def denoised(x):
-            v = velocity(config, weights, sched, i, cache, state, x, unroll=unroll, attention=attention)
+        def denoised(x):   # v(x_t, t_step) over the cache, on XLA's expert: differentiated by the VJP below
+            v = programs.step_velocity(config, weights, sched, i, cache, fixed, x, kv, unroll=unroll,
+                                       attention=attention, kernels="xla", frozen=None)[0]
             v = v.astype(jnp.float32)
             return x - t * v, v
 
