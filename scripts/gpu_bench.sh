@@ -42,11 +42,16 @@ PY
     hlo_pi05) python3 scripts/profile_engine.py --preset pi05_base --steps 10 --out "$OUT/hlo_pi05.json" ;;
     profile_pi05_b64) python3 scripts/profile_engine.py --preset pi05_base --batch 64 --prompt-tokens 20 --steps 10 \
                --time --iters 10 --trace-stages --out "$OUT/profile_pi05_b64.json" ;;
-    ab_pi05|ab_pi0) for b in 64 8; do for tree in "$PWD" "$PWD/.old_tree"; do   # this tree against .old_tree,
+    ab_pi05|ab_pi0) for b in ${AB_BATCHES:-64 8}; do for tree in "$PWD" "$PWD/.old_tree"; do   # this tree against .old_tree,
                  echo "== B=$b $tree"                         # carried: `git archive REV pi0_jax | tar -x -C .old_tree`
                  PYTHONPATH=/tmp/site:$tree python3 scripts/profile_engine.py --preset ${phase#ab_}_base --batch $b \
                    --steps 10 --time --iters 10 --out "$OUT/${phase}_$(basename "$tree")_b$b.json" | grep "median"
                  done; done ;;
+    pi0_denoise_attn) for b in ${ATTN_BATCHES:-3 4 8 16}; do   # π0's denoise attention by batch, one process each
+                 python3 scripts/profile_engine.py --preset pi0_base --batch $b --prompt-tokens 48 --steps 10 --time \
+                   --iters 10 --attention vision=pallas,prefix=cudnn,denoise=pallas \
+                   --attention vision=pallas,prefix=cudnn,denoise=cudnn --attention vision=pallas,prefix=cudnn,denoise=xla \
+                   --out "$OUT/pi0_denoise_attn_b$b.json" | grep -E "median|relative"; done ;;
     geglu_probe) python3 scripts/geglu_probe.py --rows 8192,51200,143616 --iters 15 --out "$OUT/geglu_probe.json" ;;
     pi0_b3_attn) python3 scripts/profile_engine.py --preset pi0_base --batch 3 --prompt-tokens 48 --time --iters 20 \
                --attention vision=cudnn,prefix=cudnn,denoise=xla --attention vision=cudnn,prefix=cudnn,denoise=cudnn \
