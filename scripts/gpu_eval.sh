@@ -20,7 +20,7 @@
 #   EXTRA="--gemm cublas" TAG=_cublas bash scripts/gpu_eval.sh pi05-1   # pi05-1 with cuBLAS for every GEMM
 #   POLICY=preset:dummy PER_TASK=1 EXTRA="--steps 10" bash scripts/gpu_eval.sh pi05-1   # CPU smoke run
 #
-# Needs the mujoco / mujoco-mjx wheels in .simwhl (carried); writes OUT/<phase>.json (the eval_info, per_episode
+# Needs the mujoco / mujoco-mjx wheels in .simwhl, or .simwhl/sim.zip of their installed files (carried); writes OUT/<phase>.json (the eval_info, per_episode
 # kept) and prints each run's summary line.
 set -uo pipefail
 OUT=${OUT:-out}
@@ -28,8 +28,9 @@ W=${WORK:-runs/gpu_eval}
 POLICY=${POLICY:-preset:pi05_libero}
 PER_TASK=${PER_TASK:-24}        # π0.5 episodes per task and per device: 11 tasks x 24 = 264
 mkdir -p "$OUT" "$W"
-python3 -c "import mujoco.mjx" 2>/dev/null ||
-  python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .simwhl/*.whl
+python3 -c "import mujoco.mjx" 2>/dev/null || [ -d /tmp/site/mujoco ] || {   # the wheels, or their files unzipped
+  ls .simwhl/*.whl >/dev/null 2>&1 && python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site \
+      .simwhl/*.whl || python3 -m zipfile -e .simwhl/sim.zip /tmp/site; }
 export PYTHONPATH=/tmp/site:${TREE:-$PWD} PYTHONUNBUFFERED=1
 [ -n "${DET:-}" ] && export XLA_FLAGS="--xla_gpu_deterministic_ops=true ${XLA_FLAGS:-}"
 nvidia-smi -L; date -u
