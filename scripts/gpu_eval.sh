@@ -20,8 +20,8 @@
 #   EXTRA="--gemm cublas" TAG=_cublas bash scripts/gpu_eval.sh pi05-1   # pi05-1 with cuBLAS for every GEMM
 #   POLICY=preset:dummy PER_TASK=1 EXTRA="--steps 10" bash scripts/gpu_eval.sh pi05-1   # CPU smoke run
 #
-# Needs the mujoco / mujoco-mjx wheels in .simwhl, or .simwhl/sim.zip of their installed files (carried); writes OUT/<phase>.json (the eval_info, per_episode
-# kept) and prints each run's summary line.
+# Needs the mujoco / mujoco-mjx wheels in .simwhl, or .simwhl/sim.zip of their installed files (carried); writes
+# OUT/<phase>.json (the eval_info, per_episode kept) and prints each run's summary line.
 set -uo pipefail
 OUT=${OUT:-out}
 W=${WORK:-runs/gpu_eval}
