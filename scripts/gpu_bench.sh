@@ -67,6 +67,13 @@ PY
                  tail -6 "$OUT/pi05_denoise_$a.log"; done ;;
     pi0_fp8) python3 -m pi0_jax.cli benchmark --preset pi0_base --steps 10 --batch 1,8 --fused-steps 10 --iters 20 \
                --quant prefix-vision --out "$OUT/pi0_fp8.json" > "$OUT/pi0_fp8.log" 2>&1; tail -8 "$OUT/pi0_fp8.log" ;;
+    fp8_table) for q in none every-gemm; do   # bf16 and FP8 at B = 1, 8, 64, one process each; then prefix-all at B = 1
+                 timeout -k 10 230 python3 -m pi0_jax.cli benchmark --preset pi0_base --steps 10 --batch 1,8,64 \
+                   --fused-steps 10 --iters 20 $([ $q = none ] || echo --quant $q) --out "$OUT/fp8_table_pi0_$q.json" \
+                   > "$OUT/fp8_table_pi0_$q.log" 2>&1; grep -E "^\|" "$OUT/fp8_table_pi0_$q.log" | tail -4; done
+               timeout -k 10 110 python3 -m pi0_jax.cli benchmark --preset pi0_base --steps 10 --batch 1 --fused-steps 10 \
+                 --iters 30 --quant prefix-all --reference --out "$OUT/fp8_table_pi0_prefix-all.json" \
+                 > "$OUT/fp8_table_pi0_prefix-all.log" 2>&1; grep -E "^\||reference" "$OUT/fp8_table_pi0_prefix-all.log" | tail -4 ;;
     pi05_b1) python3 -m pi0_jax.cli benchmark --preset pi05_base --steps 1,10 --batch 1 --reference --warm-start \
                --compare lerobot --iters 50 --out "$OUT/pi05_b1.json" ;;
     pi05_scan) python3 -m pi0_jax.cli benchmark --preset pi05_base --steps 10 --batch 1 --no-unroll --iters 30 \
