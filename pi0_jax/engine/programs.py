@@ -31,16 +31,15 @@ PALLAS_MAX_BATCH = 2
 # The batch from which the denoise step's attention="auto" is cuDNN's fused kernel on a GPU (H200, docs/BENCHMARKS.md),
 # below it XLA's ops (at B <= PALLAS_MAX_BATCH the Pallas expert, which has its own attention). π0.5: its denoise loop
 # 7 % faster at B = 3 with a kv head's 8 query heads folded into its rows, 8-14 % at B = 4-64 before that fold (which
-# took a further 3 % off at B = 8, 13 % at B = 64). π0 (a masked suffix: its state row then ran as XLA's attention
-# beside the kernel, before `cached_state` took it out of the steps): 9 % slower at B = 3, 4, 9 and 37 % faster at
-# B = 4, 8 and 64.
+# took a further 3 % off at B = 8, 13 % at B = 64). π0, its state token once a call (`cached_state`): 16 % faster at
+# B = 3, 28 % at B = 8 (it was 9 % slower at B = 3 while the state row ran as XLA's attention beside the kernel).
 CUDNN_DENOISE_MIN_BATCH = 3
-CUDNN_DENOISE_MIN_BATCH_MASKED = 4
 # The batches at which the denoise attention="auto" is the Pallas split-key kernel in the XLA expert's layers, at
-# `expert_kernels.blocks_at`'s launch (docs/BENCHMARKS.md, "The Pallas attention in the XLA expert"). π0 (its state
-# row needs no XLA attention beside cuDNN's): the 10-step denoise 25 % faster than XLA's attention at B = 3, 28 / 19 /
-# 9 % faster than cuDNN's at B = 4 / 8 / 16 with 8 warps (H200s), 4 warps 6-9 % faster again (H100), 18 % slower at
-# B = 64. π0.5: with 4 warps 19 / 6.5 % faster than cuDNN's at B = 4 / 8, 5 % slower at B = 16 (H100).
+# `expert_kernels.blocks_at`'s launch (docs/BENCHMARKS.md, "The Pallas attention in the XLA expert"). π0 (the kernel
+# runs its state row in every step): the 10-step denoise 25 % faster than XLA's attention at B = 3, 28 / 19 / 9 %
+# faster than cuDNN's at B = 4 / 8 / 16 with 8 warps (H200s), 4 warps 6-9 % faster again (H100), 18 % slower at
+# B = 64; against cuDNN's with the state once a call, 22 / 18 / 8 % faster at B = 3 / 8 / 16 (H200s, session 40).
+# π0.5: with 4 warps 19 / 6.5 % faster than cuDNN's at B = 4 / 8, 5 % slower at B = 16 (H100).
 PALLAS_DENOISE_BATCHES_MASKED = range(3, 17)
 PALLAS_DENOISE_BATCHES = range(4, 9)
 
@@ -132,9 +131,9 @@ class Attention:
     fill puts each element's valid tokens first). Vision's may also be "pallas" (`ops.vision_attention`: q, k and v
     read in place from the fused GEMM's output). The denoise step's may also be "pallas" (the XLA expert's layers
     with the Pallas expert's split-key attention, `ops.expert_kernels.attention`, over a cache in its layout; not
-    differentiable) or "auto": "cudnn" from CUDNN_DENOISE_MIN_BATCH on (π0: CUDNN_DENOISE_MIN_BATCH_MASKED), else
-    "xla", but "pallas" at PALLAS_DENOISE_BATCHES (π0: PALLAS_DENOISE_BATCHES_MASKED) (`at_batch` resolves it; the
-    programs do). It is unused by the Pallas expert, which has its own."""
+    differentiable) or "auto": "cudnn" from CUDNN_DENOISE_MIN_BATCH on, else "xla", but "pallas" at
+    PALLAS_DENOISE_BATCHES (π0: PALLAS_DENOISE_BATCHES_MASKED) (`at_batch` resolves it; the programs do). It is
+    unused by the Pallas expert, which has its own."""
 
     vision: str = "xla"
     prefix: str = "xla"
@@ -160,8 +159,7 @@ class Attention:
         kernel = PALLAS_DENOISE_BATCHES_MASKED if suffix_mask else PALLAS_DENOISE_BATCHES
         if batch in kernel and (pallas_base.TRITON or mosaic_gemm.hopper()):   # without Triton on Mosaic GPU
             return dataclasses.replace(self, denoise="pallas")
-        cudnn = batch >= (CUDNN_DENOISE_MIN_BATCH_MASKED if suffix_mask else CUDNN_DENOISE_MIN_BATCH)
-        return dataclasses.replace(self, denoise="cudnn" if cudnn else "xla")
+        return dataclasses.replace(self, denoise="cudnn" if batch >= CUDNN_DENOISE_MIN_BATCH else "xla")
 
     @classmethod
     def parse(cls, spec, platform: str | None = None, dtype: str = "bfloat16") -> Attention:
