@@ -42,15 +42,17 @@ PY
     hlo_pi05) python3 scripts/profile_engine.py --preset pi05_base --steps 10 --out "$OUT/hlo_pi05.json" ;;
     profile_pi05_b64) python3 scripts/profile_engine.py --preset pi05_base --batch 64 --prompt-tokens 20 --steps 10 \
                --time --iters 10 --trace-stages --out "$OUT/profile_pi05_b64.json" ;;
-    ab_pi05|ab_pi0) for b in ${AB_BATCHES:-64 8}; do for tree in "$PWD" "$PWD/.old_tree"; do   # this tree against .old_tree,
-                 echo "== B=$b $tree"                         # carried: `git archive REV pi0_jax | tar -x -C .old_tree`
+    ab_pi05|ab_pi0) for b in ${AB_BATCHES:-64 8}; do   # this tree against .old_tree, carried:
+                 for tree in "$PWD" "$PWD/.old_tree"; do   # `git archive REV pi0_jax | tar -x -C .old_tree`
+                 echo "== B=$b $tree"
                  PYTHONPATH=/tmp/site:$tree python3 scripts/profile_engine.py --preset ${phase#ab_}_base --batch $b \
                    --steps 10 --time --iters 10 --out "$OUT/${phase}_$(basename "$tree")_b$b.json" | grep "median"
                  done; done ;;
     pi0_denoise_attn) for b in ${ATTN_BATCHES:-3 4 8 16}; do   # π0's denoise attention by batch, one process each
                  python3 scripts/profile_engine.py --preset pi0_base --batch $b --prompt-tokens 48 --steps 10 --time \
                    --iters 10 --attention vision=pallas,prefix=cudnn,denoise=pallas \
-                   --attention vision=pallas,prefix=cudnn,denoise=cudnn --attention vision=pallas,prefix=cudnn,denoise=xla \
+                   --attention vision=pallas,prefix=cudnn,denoise=cudnn \
+                   --attention vision=pallas,prefix=cudnn,denoise=xla \
                    --out "$OUT/pi0_denoise_attn_b$b.json" | grep -E "median|relative"; done ;;
     geglu_probe) python3 scripts/geglu_probe.py --rows 8192,51200,143616 --iters 15 --out "$OUT/geglu_probe.json" ;;
     pi0_b3_attn) python3 scripts/profile_engine.py --preset pi0_base --batch 3 --prompt-tokens 48 --time --iters 20 \
@@ -67,13 +69,14 @@ PY
                  tail -6 "$OUT/pi05_denoise_$a.log"; done ;;
     pi0_fp8) python3 -m pi0_jax.cli benchmark --preset pi0_base --steps 10 --batch 1,8 --fused-steps 10 --iters 20 \
                --quant prefix-vision --out "$OUT/pi0_fp8.json" > "$OUT/pi0_fp8.log" 2>&1; tail -8 "$OUT/pi0_fp8.log" ;;
-    fp8_table) for q in none every-gemm; do   # bf16 and FP8 at B = 1, 8, 64, one process each; then prefix-all at B = 1
+    fp8_table) for q in none every-gemm; do   # bf16 and FP8 at B = 1, 8, 64, one process each; prefix-all at B = 1
                  timeout -k 10 230 python3 -m pi0_jax.cli benchmark --preset pi0_base --steps 10 --batch 1,8,64 \
                    --fused-steps 10 --iters 20 $([ $q = none ] || echo --quant $q) --out "$OUT/fp8_table_pi0_$q.json" \
                    > "$OUT/fp8_table_pi0_$q.log" 2>&1; grep -E "^\|" "$OUT/fp8_table_pi0_$q.log" | tail -4; done
-               timeout -k 10 110 python3 -m pi0_jax.cli benchmark --preset pi0_base --steps 10 --batch 1 --fused-steps 10 \
-                 --iters 30 --quant prefix-all --reference --out "$OUT/fp8_table_pi0_prefix-all.json" \
-                 > "$OUT/fp8_table_pi0_prefix-all.log" 2>&1; grep -E "^\||reference" "$OUT/fp8_table_pi0_prefix-all.log" | tail -4 ;;
+               timeout -k 10 110 python3 -m pi0_jax.cli benchmark --preset pi0_base --steps 10 --batch 1 \
+                 --fused-steps 10 --iters 30 --quant prefix-all --reference --out "$OUT/fp8_table_pi0_prefix-all.json" \
+                 > "$OUT/fp8_table_pi0_prefix-all.log" 2>&1
+               grep -E "^\||reference" "$OUT/fp8_table_pi0_prefix-all.log" | tail -4 ;;
     pi05_b1) python3 -m pi0_jax.cli benchmark --preset pi05_base --steps 1,10 --batch 1 --reference --warm-start \
                --compare lerobot --iters 50 --out "$OUT/pi05_b1.json" ;;
     pi05_scan) python3 -m pi0_jax.cli benchmark --preset pi05_base --steps 10 --batch 1 --no-unroll --iters 30 \

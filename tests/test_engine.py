@@ -235,6 +235,8 @@ def test_choices_on_a_jax_without_pallas_triton(monkeypatch):
     auto = programs.Attention.parse("auto", platform="gpu")
     assert auto.vision == "cudnn" and auto.prefix == programs.AUTO_GPU.prefix
     assert {auto.at_batch(b, suffix_mask=m).denoise for b in range(1, 65) for m in (True, False)} == {"xla", "cudnn"}
+    for m in (True, False):   # π0 (its state token once a call) as π0.5: cuDNN's measured faster than XLA's from B = 3
+        assert [auto.at_batch(b, suffix_mask=m).denoise for b in (2, 3)] == ["xla", "cudnn"]
     monkeypatch.setattr(programs.mosaic_gemm, "hopper", lambda: True)   # the kernel attention on Mosaic GPU
     for m, batches in ((True, programs.PALLAS_DENOISE_BATCHES_MASKED), (False, programs.PALLAS_DENOISE_BATCHES)):
         assert {b for b in range(1, 65) if auto.at_batch(b, suffix_mask=m).denoise == "pallas"} == set(batches)
