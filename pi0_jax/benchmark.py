@@ -36,7 +36,7 @@ from pi0_jax.pi0 import random_params
 from pi0_jax.config import IMAGE_KEYS, PRESETS, Pi0Config, get_config
 from pi0_jax.engine import Engine, store
 from pi0_jax.engine.programs import KERNELS, OVERLAPS, attention_spec, vision_norm
-from pi0_jax.ops import expert_kernels, pallas_base
+from pi0_jax.ops import expert_kernels, formats, pallas_base
 from pi0_jax.ops.matmul import GEMMS
 from pi0_jax.quant.schemes import SCHEMES
 
@@ -67,8 +67,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="at those steps also time the call as one fused program (the pipeline as the simulator "
                         "embeds it), for comparison")
     p.add_argument("--quant", default=None, choices=sorted(SCHEMES),
-                   help="FP8 scheme applied to the random weights (calibrated on synthetic observations); a "
-                        "quantised --checkpoint is used as stored. prefix-vision: FP8 x FP8 GEMMs in the prefix "
+                   help="FP8 scheme applied to the weights (random, or --checkpoint's; calibrated on synthetic "
+                        "observations); a quantised --checkpoint is used as stored, without --quant. prefix-vision: FP8 x FP8 GEMMs in the prefix "
                         "and SigLIP, for large batches; every-gemm: the action expert's too (calibrated over the "
                         "denoise loop), for hundreds of samples")
     p.add_argument("--no-unroll", action="store_true", help="scan over layers instead of unrolling them")
@@ -297,7 +297,8 @@ TABLE_HEADER = ("| dtype | batch | steps | total ms | Hz | vision ms | prefix KV
 def markdown(results: dict) -> str:
     lines = [f"{results['env']['device']} · {results['preset']} · kernels {results['env'].get('kernels', 'xla')} · "
              f"attention {results['env'].get('attention', 'xla')} · overlap {results['env'].get('overlap', 'off')} · "
-             f"{results['env']['date']} · commit {results['env']['commit']}", "", TABLE_HEADER]
+             f"quant {results['env'].get('quant', 'none')} · {results['env']['date']} · commit "
+             f"{results['env']['commit']}", "", TABLE_HEADER]
     lines += [_row_line(r) for r in results["rows"]]
     one = [_one_program_line(r) for r in results["rows"] if "one_program" in r]
     lines += [""] + one if one else []   # below the table, not a row of it
@@ -340,15 +341,31 @@ def chart(results: dict, path: Path) -> None:
     fig.savefig(path, dpi=110)
 
 
+def quant_label(args: argparse.Namespace) -> str:
+    """The FP8 / FP4 scheme the benchmarked weights carry: --quant's, a quantised checkpoint's recorded scheme
+    ("stored" where it records none), or "none". Raises where --quant names a scheme for a quantised checkpoint."""
+    stored = None
+    if args.checkpoint is not None:
+        from pi0_jax import checkpoint
+
+        meta = checkpoint.read_meta(args.checkpoint)
+        stored = meta["quant"].get("scheme", "stored") if "quant" in meta else None
+    if args.quant and stored:
+        raise ValueError(f"--checkpoint {args.checkpoint} is already quantised ({stored}): drop --quant {args.quant}")
+    return args.quant or stored or "none"
+
+
 def run(args: argparse.Namespace) -> dict:
+    quant = quant_label(args)
     cache_dir = args.cache_dir or Path(tempfile.mkdtemp(prefix="pi0-jax-xla-"))
     results = {"preset": args.preset, "env": {**environment(), "kernels": args.kernels, "attention": args.attention,
-                                               "gemm": args.gemm, "overlap": args.overlap,
+                                               "gemm": args.gemm, "overlap": args.overlap, "quant": quant,
                                                "expert_blocks": dataclasses.asdict(expert_kernels.Blocks())},
                "rows": [], "peers": [],
                "compile": {},
                "args": {k: str(v) for k, v in vars(args).items() if k != "func"}}
-    print(f"{results['env']['device']} · jax {jax.__version__}\n\n{TABLE_HEADER}", flush=True)
+    print(f"{results['env']['device']} · jax {jax.__version__} · quant {results['env']['quant']}\n\n{TABLE_HEADER}",
+          flush=True)
     for dtype in args.dtype.split(","):
         if args.checkpoint is not None:
             from pi0_jax import checkpoint
@@ -358,17 +375,18 @@ def run(args: argparse.Namespace) -> dict:
         else:
             config = get_config(args.preset, dtype=dtype)
             params = random_params(config, args.seed)
-            if args.quant:
-                from pi0_jax.quant import schemes
+        if args.quant:
+            from pi0_jax.quant import schemes
 
-                stats = schemes.calibrate(config, params, schemes.sample_observations(config, 4, seed=args.seed),
-                                          args.quant, percentile=None, num_steps=max(args.steps))
-                params = schemes.quantize_params(params, args.quant, stats["amax"])
+            stats = schemes.calibrate(config, params, schemes.sample_observations(config, 4, seed=args.seed),
+                                      args.quant, percentile=None, num_steps=max(args.steps))
+            params = schemes.quantize_params(params, args.quant, stats["amax"])
         engine = Engine(config, params, unroll=not args.no_unroll, unroll_steps=args.unroll_steps,
                         attention=args.attention, kernels=args.kernels, gemm=args.gemm, overlap=args.overlap,
                         cache_dir=cache_dir)
+        quantised = len(formats.quantized_paths(params))   # the weights in an FP8 / FP4 format: what --quant did
         for batch in args.batch:
-            results["rows"] += bench_engine(engine, args, batch)
+            results["rows"] += [{**r, "quantised_leaves": quantised} for r in bench_engine(engine, args, batch)]
             if args.reference:
                 ref = bench_reference(engine, params, args, batch, max(args.steps))
                 mine = next(r for r in results["rows"] if (r["dtype"], r["batch"], r["steps"]) ==

@@ -2,6 +2,8 @@
 
 import json
 
+import pytest
+
 from pi0_jax import benchmark, cli
 
 
@@ -26,11 +28,11 @@ def test_benchmark_dummy_writes_every_stage(tmp_path):
         assert row["kernels"] == "xla" and row["attention"] == "vision=xla,prefix=xla,denoise=xla"  # auto, CPU
         assert row["gemm"] == "auto" and set(row["gemm_library"].values()) == {"xla"}
         assert "denoise_attention_launch" not in row   # only where the XLA expert runs the kernel attention
-        assert row["overlap"] is False   # auto: only on a GPU
+        assert row["overlap"] is False and row["quantised_leaves"] == 0   # auto: only on a GPU
     assert results["peers"][0]["impl"].startswith("reference")
     assert results["peers"][0]["engine_vs_reference"]["rel_l2"] < 1e-2  # bf16, different matmul grouping
     assert results["env"]["device"] and results["env"]["kernels"] == results["env"]["attention"] == "auto"
-    assert results["env"]["source"] == benchmark.source_digest()
+    assert results["env"]["source"] == benchmark.source_digest() and results["env"]["quant"] == "none"
     assert list(results["compile"]["bfloat16"]["cold_compile_s_call"]) == ["B1_S2"]
     assert (tmp_path / "bench.png").stat().st_size > 1000
 
@@ -44,6 +46,26 @@ def test_benchmark_names_the_denoise_attention_kernels_launch(tmp_path):
     assert row["attention"] == "vision=xla,prefix=xla,denoise=pallas" and row["kernels"] == "xla"
     assert row["overlap"] is True and results["env"]["overlap"] == "on" and row["total"]["median_ms"] > 0
     assert row["denoise_attention_launch"] == {"kv_splits": 2, "attention_warps": 4, "fold": True}
+
+
+def test_benchmark_names_the_weights_scheme(tmp_path):
+    """--quant quantises a checkpoint's weights as it does random ones, and the JSON and the table's header name the
+    scheme; a checkpoint quantised already is refused a second scheme, by name."""
+    from pi0_jax import checkpoint
+    from pi0_jax.config import get_config
+    from pi0_jax.quant import schemes
+
+    config = get_config("dummy")
+    params = benchmark.random_params(config, 0)
+    checkpoint.save_checkpoint(tmp_path / "bf16", params, config)
+    results = _benchmark(tmp_path, "--checkpoint", str(tmp_path / "bf16"), "--quant", "prefix-mlp", "--steps", "1",
+                         "--batch", "1", "--iters", "1", "--warmup", "1", "--input-sets", "1")
+    assert results["env"]["quant"] == "prefix-mlp" and "· quant prefix-mlp ·" in benchmark.markdown(results)
+    assert results["rows"][0]["quantised_leaves"] == 2   # the VLM's MLP GEMMs, stacked over layers: gate/up, down
+    weight_only = schemes.quantize_params(params, "expert-weights", None)
+    checkpoint.save_checkpoint(tmp_path / "q", weight_only, config, extra_meta={"quant": {"scheme": "expert-weights"}})
+    with pytest.raises(ValueError, match=r"q is already quantised \(expert-weights\): drop --quant prefix-mlp"):
+        _benchmark(tmp_path, "--checkpoint", str(tmp_path / "q"), "--quant", "prefix-mlp")
 
 
 def test_source_digest_names_the_code(tmp_path):
