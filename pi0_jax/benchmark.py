@@ -68,9 +68,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "embeds it), for comparison")
     p.add_argument("--quant", default=None, choices=sorted(SCHEMES),
                    help="FP8 scheme applied to the weights (random, or --checkpoint's; calibrated on synthetic "
-                        "observations); a quantised --checkpoint is used as stored, without --quant. prefix-vision: FP8 x FP8 GEMMs in the prefix "
-                        "and SigLIP, for large batches; every-gemm: the action expert's too (calibrated over the "
-                        "denoise loop), for hundreds of samples")
+                        "observations); a quantised --checkpoint is used as stored, without --quant. prefix-vision: "
+                        "FP8 x FP8 GEMMs in the prefix and SigLIP, for large batches; every-gemm: the action "
+                        "expert's too (calibrated over the denoise loop), for hundreds of samples")
     p.add_argument("--no-unroll", action="store_true", help="scan over layers instead of unrolling them")
     p.add_argument("--unroll-steps", action="store_true", help="unroll the denoise loop as well")
     p.add_argument("--attention", default="auto", type=attention_spec,
