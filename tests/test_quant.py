@@ -244,10 +244,14 @@ def test_gemm_library_per_program():
 
 
 def test_activation_schemes_need_calibration(dummy):
+    """An activation scheme without its scales, or a weight quantised twice, fails by name."""
     config, params, _, _ = dummy
     with pytest.raises(ValueError, match="calibrate"):
         schemes.quantize_params(params, "prefix-mlp", None)
-    assert schemes.quantized_paths(schemes.quantize_params(params, "expert-weights", None))
+    weight_only = schemes.quantize_params(params, "expert-weights", None)
+    assert schemes.quantized_paths(weight_only)
+    with pytest.raises(ValueError, match=r"layers/attn/q_einsum_1/w is quantised already: quantise to 'expert-w"):
+        schemes.quantize_params(weight_only, "expert-weights", None)
 
 
 def test_accuracy_report_runs_on_dummy(dummy):

@@ -18,7 +18,7 @@ import numpy as np
 
 from pi0_jax.config import IMAGE_KEYS, Pi0Config
 from pi0_jax.ops import matmul as hooks
-from pi0_jax.ops.formats import act_scale_from_amax, fake_quant_fp4, quantize_fp8
+from pi0_jax.ops.formats import QArray, act_scale_from_amax, fake_quant_fp4, quantize_fp8
 from pi0_jax.ops.formats import from_storage, quantized_paths, to_storage  # noqa: F401  (re-exported)
 from pi0_jax.ops.formats import get_leaf as _get
 from pi0_jax.ops.formats import set_leaf as _set
@@ -185,6 +185,8 @@ def quantize_params(params: dict, scheme: str, amax: dict | None, *, per_channel
     activation scales of the activation-quantised groups."""
     for group, path, contract, key in _leaves(scheme):
         w = _get(params, path)
+        if isinstance(w, QArray):
+            raise ValueError(f"{'/'.join(path)} is quantised already: quantise to {scheme!r} from unquantised weights")
         act = None
         if group not in WEIGHT_ONLY:
             if amax is None or key not in amax:
