@@ -342,7 +342,7 @@ def chart(results: dict, path: Path) -> None:
 
 
 def quant_label(args: argparse.Namespace) -> str:
-    """The FP8 / FP4 scheme the benchmarked weights carry: --quant's, a quantised checkpoint's recorded scheme
+    """The FP8 scheme the benchmarked weights carry: --quant's, a quantised checkpoint's recorded scheme
     ("stored" where it records none), or "none". Raises where --quant names a scheme for a quantised checkpoint."""
     stored = None
     if args.checkpoint is not None:
@@ -384,7 +384,7 @@ def run(args: argparse.Namespace) -> dict:
         engine = Engine(config, params, unroll=not args.no_unroll, unroll_steps=args.unroll_steps,
                         attention=args.attention, kernels=args.kernels, gemm=args.gemm, overlap=args.overlap,
                         cache_dir=cache_dir)
-        quantised = len(formats.quantized_paths(params))   # the weights in an FP8 / FP4 format: what --quant did
+        quantised = len(formats.quantized_paths(params))   # the weights in FP8: what --quant did
         for batch in args.batch:
             results["rows"] += [{**r, "quantised_leaves": quantised} for r in bench_engine(engine, args, batch)]
             if args.reference:
