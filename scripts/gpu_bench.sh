@@ -119,16 +119,18 @@ PY
     gemm_b64) for p in pi05 pi0; do python3 scripts/profile_engine.py --preset ${p}_base --batch 64 --prompt-tokens 20 \
                  --gemm xla --gemm cublas --time --iters 10 --out "$OUT/gemm_${p}_b64.json" \
                  | grep -E "^==|median|relative"; done ;;
-    dump_hlo) python3 - <<'PY'
+    dump_hlo) python3 - <<'PY'   # the optimized HLO of each (preset, stage) in DUMP, e.g. "pi05_base:denoise"
 import os
 from pi0_jax import benchmark
 from pi0_jax.config import get_config
 from pi0_jax.engine import Engine
-cfg = get_config("pi05_base")
-e = Engine(cfg, benchmark.random_params(cfg, 0), cache_dir=False)
-obs, _ = benchmark.make_inputs(cfg, 1, 3, 20, 0)
-for stage in ("encode_images", "denoise"):
-    open(os.path.join(os.environ["OUT"], f"{stage}.hlo.txt"), "w").write(e.executable(stage, 1, 1, *e.plan(obs)).as_text())
+for item in os.environ.get("DUMP", "pi05_base:encode_images pi05_base:denoise").split():
+    preset, stage = item.split(":")
+    cfg = get_config(preset)
+    e = Engine(cfg, benchmark.random_params(cfg, 0), cache_dir=False)
+    obs, _ = benchmark.make_inputs(cfg, 1, 3, 20, 0)
+    text = e.executable(stage, 1, int(os.environ.get("DUMP_STEPS", 1)), *e.plan(obs)).as_text()
+    open(os.path.join(os.environ["OUT"], f"{preset}_{stage}.hlo.txt"), "w").write(text)
 PY
     ;;
   esac
