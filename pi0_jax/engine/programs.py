@@ -375,10 +375,7 @@ def step_velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array
     action_tokens = _dense(top["action_in_proj"], x_t)  # f32: the projections run in the promoted dtype
     if config.pi05:
         x = action_tokens
-        # (B or 1, H or 1, L, 3D) each, made one buffer a step: a layer's gated residual then fuses into the norm's
-        # Triton fusion after it, as π0's residual does (a gate read by a dynamic slice of the schedule kept it a
-        # kernel of its own, one a layer)
-        mods = jax.lax.optimization_barrier((at_step("mods_attn"), at_step("mods_ffw")))
+        mods = (at_step("mods_attn"), at_step("mods_ffw"))  # (B or 1, H or 1, L, 3D) each
     else:
         w_in = top["action_time_mlp_in"]["kernel"]
         h = action_tokens @ w_in[: config.action_expert.width].astype(jnp.float32) + at_step("time_in")
