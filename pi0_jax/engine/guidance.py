@@ -33,10 +33,9 @@ def guided_denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixC
     if not isinstance(num_steps, int):
         dt = jnp.asarray(dt, jnp.float32)
     target, weight = target.astype(jnp.float32), weight.astype(jnp.float32)
-    b = noise.shape[0]   # what every step reads alike, made once before the loop, as `programs.denoise` does
-    fixed = programs.step_invariants(config, weights, cache, state, b, "xla", attention, unroll=unroll)
-    fused = programs.fused_suffix_attention(config, attention, "xla", b, weights["expert"])
-    cache, kv = programs.step_cache(config, cache, fixed, fused)
+    # what every step reads alike, made once before the loop, as `programs.denoise` does
+    fixed, cache, kv = programs.step_inputs(config, weights, cache, state, noise.shape[0], "xla", attention,
+                                            unroll=unroll)
 
     def step(i, x_t):
         t = 1.0 + i.astype(jnp.float32) * dt    # f32 as the schedule's step_times, to rounding

@@ -317,17 +317,21 @@ def _state_kv(config: Pi0Config, weights: dict, cache: PrefixCache, state_token,
     return k, v
 
 
-def step_cache(config: Pi0Config, cache: PrefixCache, fixed: dict, fused: bool) -> tuple[PrefixCache, tuple | None]:
-    """(cache, kv): what the steps attend to besides their own rows. fused: `suffix_kv`'s buffers, with π0's state in
-    slot 0 when it ran once a call (`fixed["state_kv"]`); else the prefix cache, with the state's keys after it."""
+def step_inputs(config: Pi0Config, weights: dict, cache: PrefixCache, state, batch: int, kernels: str,
+                attention: Attention, *, unroll: bool) -> tuple[dict, PrefixCache, tuple | None]:
+    """(fixed, cache, kv), made once before a denoise loop: `step_invariants`, then what the steps attend to besides
+    their own rows: with the fused attention (`fused_suffix_attention`) the prefix cache and `suffix_kv`'s buffers,
+    with π0's state in slot 0 when it ran once a call; else the prefix cache, with the state's keys after it, and
+    None."""
+    fixed = step_invariants(config, weights, cache, state, batch, kernels, attention, unroll=unroll)
     state_kv = fixed["state_kv"]
-    if fused:
-        return cache, suffix_kv(config, cache, state_kv)
+    if fused_suffix_attention(config, attention, kernels, batch, weights["expert"]):
+        return fixed, cache, suffix_kv(config, cache, state_kv)
     if state_kv is None:
-        return cache, None
+        return fixed, cache, None
     k, v = (jax.tree.map(lambda c, s: jnp.concatenate([c, s.astype(c.dtype)], axis=-3), c, s)
             for c, s in zip((cache.k, cache.v), state_kv))
-    return PrefixCache(k=k, v=v, mask=jnp.pad(cache.mask, ((0, 0), (0, 1)), constant_values=True)), None
+    return fixed, PrefixCache(k=k, v=v, mask=jnp.pad(cache.mask, ((0, 0), (0, 1)), constant_values=True)), None
 
 
 def step_invariants(config: Pi0Config, weights: dict, cache: PrefixCache, state, batch: int, kernels: str,
@@ -358,7 +362,7 @@ def step_invariants(config: Pi0Config, weights: dict, cache: PrefixCache, state,
 
 def step_velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, cache: PrefixCache, fixed: dict,
                   x_t, kv, *, unroll: bool, attention: Attention, kernels: str, frozen: jax.Array | None) -> tuple:
-    """One denoise step's velocity v(x_t, t_step) -> (v, kv). cache, kv: `step_cache`'s; kv, the suffix-first
+    """One denoise step's velocity v(x_t, t_step) -> (v, kv). cache, kv: `step_inputs`'; kv, the suffix-first
     buffers of `suffix_kv` (exactly when `fused_suffix_attention`, else None), comes back with this step's suffix keys
     written in. fixed: `step_invariants`. frozen (B, H) or None: committed actions, at flow time 0."""
     dtype = jnp.dtype(config.dtype)
@@ -451,9 +455,7 @@ def denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixCache, s
         frozen = pi0.committed_mask(config.action_horizon, num_committed)
         x = jnp.where(frozen[..., None], committed.astype(jnp.float32), x)
 
-    fixed = step_invariants(config, weights, cache, state, x.shape[0], kernels, attention, unroll=unroll)
-    fused = fused_suffix_attention(config, attention, kernels, x.shape[0], weights["expert"])
-    cache, kv = step_cache(config, cache, fixed, fused)
+    fixed, cache, kv = step_inputs(config, weights, cache, state, x.shape[0], kernels, attention, unroll=unroll)
 
     def step(i, carry):   # the suffix-first buffers ride in the carry, so each step fills their slots in place
         x_t, kv = carry
