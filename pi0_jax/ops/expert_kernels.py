@@ -11,7 +11,7 @@ over K (hundreds of short programs, f32 partials), and the cheap elementwise wor
 
   norm_qkv_rope    = matmul_partials, then (XLA) the split sum, 1 / rms, RoPE and q's scaling
   norm_geglu       = matmul_partials, then (XLA) the split sum, 1 / rms, GELU-tanh(gate) * up
-  matmul_residual  = matmul_partials (adaRMS's gate on its partials), then (XLA) the split sum and the residual
+  matmul_residual  = matmul_partials, then (XLA) the split sum, adaRMS's gate and the residual
 
 Any of the four GEMMs may instead run `ops.mosaic_gemm` (a TMA-pipelined Mosaic GPU kernel, bf16 on Hopper): the
 Blocks field mosaic_<gemm> names its launch; gate/up's may end in GeGLU. Its GEMM is plain, so a norm before it is
@@ -25,10 +25,10 @@ smallest dot). Padding is zeros and padded keys are masked, so every valid numbe
 
 Numerics as `pi0_jax.engine.layers`: f32 norm statistics, f32 RoPE, f32 logits and softmax with the same big-negative
 fill; every GEMM output is rounded to the activation dtype before its epilogue, as XLA's `x @ w` is, and each
-epilogue op rounds where the XLA op would. Four reorderings, each within bf16 rounding of the XLA path and within f32
+epilogue op rounds where the XLA op would. Three reorderings, each within bf16 rounding of the XLA path and within f32
 rounding in f32: x * (1 + scale) enters the GEMM and the row's 1 / rms multiplies its f32 result; adaRMS's shift
-enters as its own product shift @ w; adaRMS's gate multiplies each f32 partial of its GEMM, before their sum is
-rounded; attention rounds each key split's normalised output to the dtype and merges the splits in f32.
+enters as its own product shift @ w; attention rounds each key split's normalised output to the dtype and merges the
+splits in f32.
 
 Axis legend: M rows (B * Sp), D width, F MLP hidden, N query heads, K kv heads, hp half head dim (padded), P keys,
 S splits.
@@ -155,11 +155,10 @@ def _round(acc, dtype):
 
 
 # -- split-K GEMM (with a norm's prologue) --------------------------------------------------------------------------
-def _partials_kernel(y_ref, mod_ref, w_ref, o_ref, *side, m, bm, bn, bk, chunk, mod_row, scaled, adaptive, gated):
+def _partials_kernel(y_ref, mod_ref, w_ref, o_ref, *side, m, bm, bn, bk, chunk, mod_row, scaled, adaptive):
     """Program (i, j, s): rows block i, columns block j, K chunk s -> o[s] = y' @ w over the chunk, y' = y, or
-    y * (1 + scale) (scaled); gated: times the gate row mod_row over the output columns. Side outputs: the chunk's
-    sum of squares of y per row (scaled; by the j = 0 programs) and shift @ w over the chunk (adaptive; by the i = 0
-    programs, 16 equal rows: a dot needs 16)."""
+    y * (1 + scale) (scaled). Side outputs: the chunk's sum of squares of y per row (scaled; by the j = 0 programs)
+    and shift @ w over the chunk (adaptive; by the i = 0 programs, 16 equal rows: a dot needs 16)."""
     i, j, s = pl.program_id(0), pl.program_id(1), pl.program_id(2)
     rows, cols = pl.ds(i * bm, bm), pl.ds(j * bn, bn)
     dtype = y_ref.dtype
@@ -180,8 +179,7 @@ def _partials_kernel(y_ref, mod_ref, w_ref, o_ref, *side, m, bm, bn, bk, chunk, 
     init += (jnp.zeros((bm,), jnp.float32),) if scaled else ()
     init += (jnp.zeros((ALIGN, bn), jnp.float32),) if adaptive else ()
     acc = jax.lax.fori_loop(0, chunk // bk, body, init)
-    o_ref[pl.ds(s * m + i * bm, bm), cols] = (acc[0] * mod_ref[pl.ds(mod_row, 1), cols].astype(jnp.float32)
-                                                 if gated else acc[0])
+    o_ref[pl.ds(s * m + i * bm, bm), cols] = acc[0]
     if scaled:
         @pl.when(j == 0)
         def _():
@@ -193,22 +191,18 @@ def _partials_kernel(y_ref, mod_ref, w_ref, o_ref, *side, m, bm, bn, bk, chunk, 
 
 
 def matmul_partials(y, w, mods=None, mod_row: int = 0, *, scaled: bool = False, adaptive: bool = False,
-                    gated: bool = False, gemm: Gemm, blocks: Blocks = Blocks(), name: str = "matmul_partials"):
+                    gemm: Gemm, blocks: Blocks = Blocks(), name: str = "matmul_partials"):
     """y (M, E) @ w (E, N) as `gemm.splits` f32 partials over K chunks -> (parts (S, M, N), sums of squares (S, M) or
     None, shift products (S, N) or None). scaled: y * (1 + mods[mod_row]) enters the GEMM (a norm's scale; mods (R, E));
-    adaptive: also mods[mod_row + 1] @ w (adaRMS's shift); gated: each partial times mods[mod_row] (π0.5's gate;
-    mods (R, N)). splits falls back to 1 where E does not split into multiples of 16. name: the kernel's (a profile
-    tells the GEMMs apart by it)."""
+    adaptive: also mods[mod_row + 1] @ w (adaRMS's shift). splits falls back to 1 where E does not split into
+    multiples of 16. name: the kernel's (a profile tells the GEMMs apart by it)."""
     m, e = y.shape
     n = w.shape[1]
-    if gated and scaled:
-        raise ValueError("matmul_partials: a gate (over the output columns) and a norm's scale (over K) share mods' "
-                         "row; pass one")
     splits = gemm.splits if e % (ALIGN * gemm.splits) == 0 else 1
     chunk = e // splits
     bm, bn, bk = fit(blocks.rows, m), fit(gemm.cols, n), fit(blocks.k, chunk)
     kernel = functools.partial(_partials_kernel, m=m, bm=bm, bn=bn, bk=bk, chunk=chunk, mod_row=mod_row,
-                               scaled=scaled, adaptive=adaptive, gated=gated)
+                               scaled=scaled, adaptive=adaptive)
     out = [jax.ShapeDtypeStruct((splits * m, n), jnp.float32)]
     out += [jax.ShapeDtypeStruct((splits * m,), jnp.float32)] if scaled else []
     out += [jax.ShapeDtypeStruct((splits * ALIGN, n), jnp.float32)] if adaptive else []
@@ -441,17 +435,14 @@ def merge_xla(o, lse, *, parts: int, num_heads: int):
 def matmul_residual(y, w, x, mods=None, gate_row: int | None = None, *, gemm: Gemm, blocks: Blocks = Blocks(),
                     name: str = "matmul_partials", mosaic: Launch | None = None):
     """x + (y @ w) [* mods[gate_row]]: y (M, E), w (E, D), x (M, D); the π0.5 adaRMS gate is a row of mods (R, D).
-    The split sum is rounded to the dtype, then the residual. The Triton kernel gates its f32 partials (so the gate
-    is no XLA op, and the residual fuses into the next norm's fusion as π0's does: docs/BENCHMARKS.md, session 41);
-    the Mosaic GEMM's split sum is rounded, then gated (the XLA path's order). mosaic: the GEMM as
-    `ops.mosaic_gemm` with this launch, where it applies."""
+    The split sum is rounded to the dtype, then the gate and the residual (the XLA path's ops, in its order).
+    mosaic: the GEMM as `ops.mosaic_gemm` with this launch, where it applies."""
     if _mosaic(y, w, mosaic):
-        z = sum(list(mosaic_gemm.partials(y, w, mosaic, name=name).astype(jnp.float32))).astype(x.dtype)
-        return x + (z if gate_row is None else z * mods[gate_row])
-    gated = gate_row is not None
-    parts, _, _ = matmul_partials(y, w, mods if gated else None, gate_row if gated else 0, gated=gated, gemm=gemm,
-                                  blocks=blocks, name=name)
-    return x + sum(list(parts)).astype(x.dtype)
+        parts = mosaic_gemm.partials(y, w, mosaic, name=name).astype(jnp.float32)
+    else:
+        parts, _, _ = matmul_partials(y, w, gemm=gemm, blocks=blocks, name=name)
+    z = sum(list(parts)).astype(x.dtype)
+    return x + (z if gate_row is None else z * mods[gate_row])
 
 
 def norm_geglu(x, mods, mod_row: int, adaptive: bool, w_gate_up, *, width: int, blocks: Blocks = Blocks()):
