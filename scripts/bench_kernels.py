@@ -76,6 +76,13 @@ STEP_SWEEPS = {
                      "mlp mosaic 64 1s 8st": dict(mosaic_mlp=L(64, 1, 8)),
                      "mlp geglu 64 8st": dict(mosaic_mlp=L(64, 1, 8, geglu=True)),
                      "mlp geglu 128 4st": dict(mosaic_mlp=L(128, 1, 4, geglu=True))},
+    # session 41: how many programs each GEMM and the attention run, at the defaults of session 31 (gate/up on Mosaic
+    # GPU, q/k/v at 4 splits): q/k/v 80, out 64, down 128, the attention 112 programs at B = 1
+    "fill": {"default": {}, "qkv 64x4": dict(qkv=G(64, 4)), "qkv 128x2": dict(qkv=G(128, 2)),
+             "qkv 128x4 s1": dict(qkv=G(128, 4, 1)), "out 32x4": dict(out=G(32, 4)), "out 64x8": dict(out=G(64, 8)),
+             "out 64x4 s1": dict(out=G(64, 4, 1)), "down 64x4": dict(down=G(64, 4)), "down 32x8": dict(down=G(32, 8)),
+             "down 64x8 s1": dict(down=G(64, 8, 1)), "attention 7 splits": dict(kv_splits=7),
+             "attention 26 splits": dict(kv=32, kv_splits=26), "attention w4": dict(attention_warps=4)},
     # the attention's query rows a program (a 64 x 256 f32 accumulator is 128 registers a thread at 4 warps)
     "query_rows": {"default": {}, "q32": dict(q=32), "q32 w4": dict(q=32, attention_warps=4),
                    "q16 w4": dict(q=16, attention_warps=4),
