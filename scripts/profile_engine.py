@@ -259,8 +259,9 @@ def main() -> None:
             args.attention or ["auto"], args.kernels or ["auto"], args.gemm or ["auto"], args.vision_norm or ["auto"],
             args.triton or ["on"], args.blocks or ["{}"]):
         pallas_base.TRITON = has_triton and triton == "on"   # until this variant's programs are traced
-        expert_kernels.default_blocks = lambda fields=json.loads(blocks): dataclasses.replace(default_blocks(),
-                                                                                                **fields)
+        # a GEMM's or a Mosaic launch's fields as a JSON object, e.g. '{"out": {"cols": 64, "splits": 4}}'
+        expert_kernels.default_blocks = lambda fields=json.loads(blocks): expert_kernels.Blocks.from_dict(
+            dataclasses.asdict(default_blocks()) | fields)
         # the programs are traced below, inside this variant: its LayerNorm choice holds for all of them
         programs.vision_norm = vision_norm if norm == "auto" else (lambda kernels, images, platform=None, n=norm: n)
         engine = Engine(config, params, unroll=not args.no_unroll, unroll_steps=args.unroll_steps,
