@@ -11,8 +11,6 @@ head, H head dim, D width.
 
 from __future__ import annotations
 
-import dataclasses
-
 import einops
 import jax
 import jax.numpy as jnp
@@ -22,7 +20,6 @@ from pi0_jax.gemma import _BIG_NEG, apply_rope
 from pi0_jax.ops import attention, expert_kernels, layout
 from pi0_jax.ops.formats import QArray
 from pi0_jax.ops.matmul import matmul, raw_matmul
-from pi0_jax.ops.pallas_base import fit
 
 
 def rms_norm(x, scale=None, mod=None):
@@ -247,9 +244,6 @@ def suffix_layers_pallas(cfg: GemmaConfig, weights, x, positions, cache_k, cache
     adaptive = mods is not None
     if adaptive:
         mods_attn, mods_ffw = layout.mods(mods[0], d), layout.mods(mods[1], d)
-    # the out-projection's columns a program per row block: 128 programs at B = 1 and 2 (docs/BENCHMARKS.md, session
-    # 41: 32 columns were faster than 64 at B = 1, slower at B = 2)
-    out = dataclasses.replace(blocks.out, cols=blocks.out.cols * (rows.shape[0] // fit(blocks.rows, rows.shape[0])))
     for i, w in enumerate(weights):
         w = layout.expert_weights(w, cfg)
         if adaptive:  # layer i's rows of the step's table: scale 3i, shift 3i + 1, gate 3i + 2
@@ -260,7 +254,7 @@ def suffix_layers_pallas(cfg: GemmaConfig, weights, x, positions, cache_k, cache
                                            head_dim=cfg.head_dim, blocks=blocks, **heads)
         k, v = (c[i].reshape(b * c[i].shape[1], -1) for c in (cache_k, cache_v))
         y = expert_kernels.attention(qkv, k, v, pmask, smask, batch=b, blocks=blocks, **heads)
-        rows = expert_kernels.matmul_residual(y, w["attn_out"], rows, ma, ga, gemm=out, blocks=blocks,
+        rows = expert_kernels.matmul_residual(y, w["attn_out"], rows, ma, ga, gemm=blocks.out, blocks=blocks,
                                               name="expert_attn_out", mosaic=blocks.mosaic_out)
         h = expert_kernels.norm_geglu(rows, mf, rf, adaptive, w["gate_up"], width=d, blocks=blocks)
         rows = expert_kernels.matmul_residual(h, w["down"], rows, mf, gf, gemm=blocks.down, blocks=blocks,

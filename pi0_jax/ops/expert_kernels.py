@@ -76,15 +76,13 @@ class Blocks:
     GPU kernel with GeGLU in its epilogue: π0's step 4.7 % and π0.5's 9.5 % faster on an H200; the other three
     GEMMs on it were 1-3 % slower, each needing its norm or sum apart ("A Mosaic GPU GEMM"). q/k/v at 4 splits (80
     programs, one wave on 132 SMs, half the partials to sum; 8 splits were 160 programs): π0's 10-step denoise 1.7-3 %
-    and π0.5's 4.6-5.2 % faster on an H100 ("Gate/up on 128 CTAs", session 31). The out-projection at 32 columns (128
-    programs at one row block, which `layers.suffix_layers_pallas` keeps at two by doubling the columns): its kernel
-    11 % faster in the step, the 10-step denoise 0.2-0.9 % (π0) and 2.2 % (π0.5) faster on an H200 (session 41)."""
+    and π0.5's 4.6-5.2 % faster on an H100 ("Gate/up on 128 CTAs", session 31)."""
 
     rows: int = 64  # GEMM rows per program
     k: int = 256  # GEMM contraction chunk per loop step
     qkv: Gemm = Gemm(128, 4)
     mlp: Gemm = Gemm(128, 4, 1)  # gate/up
-    out: Gemm = Gemm(32, 4)  # the attention's out-projection, at one row block (`layers.suffix_layers_pallas`)
+    out: Gemm = Gemm(32, 4)  # the attention's out-projection
     down: Gemm = Gemm(64, 8)
     q: int = 64  # attention queries per program
     kv: int = 64  # attention keys per loop step
