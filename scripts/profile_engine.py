@@ -224,7 +224,8 @@ def main() -> None:
                         "(default: on)")
     p.add_argument("--blocks", action="append", default=None,
                    help="JSON of `expert_kernels.Blocks` fields over this jax's default launch of the expert's "
-                        "kernels (e.g. '{\"mosaic_attention\": true}'); repeat it to compare (default: {})")
+                        "kernels (e.g. '{\"mosaic_attention\": true}'; a GEMM's launch as an object, "
+                        "'{\"out\": {\"cols\": 32, \"splits\": 4}}'); repeat it to compare (default: {})")
     p.add_argument("--time", action="store_true",
                    help="median ms of each stage program (and the fused one), round-robin over the variants (every "
                         "engine is kept until the end: mind device memory)")
@@ -259,7 +260,6 @@ def main() -> None:
             args.attention or ["auto"], args.kernels or ["auto"], args.gemm or ["auto"], args.vision_norm or ["auto"],
             args.triton or ["on"], args.blocks or ["{}"]):
         pallas_base.TRITON = has_triton and triton == "on"   # until this variant's programs are traced
-        # a GEMM's or a Mosaic launch's fields as a JSON object, e.g. '{"out": {"cols": 64, "splits": 4}}'
         expert_kernels.default_blocks = lambda fields=json.loads(blocks): expert_kernels.Blocks.from_dict(
             dataclasses.asdict(default_blocks()) | fields)
         # the programs are traced below, inside this variant: its LayerNorm choice holds for all of them
