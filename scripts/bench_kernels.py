@@ -83,10 +83,6 @@ STEP_SWEEPS = {
              "out 64x4 s1": dict(out=G(64, 4, 1)), "down 64x4": dict(down=G(64, 4)), "down 32x8": dict(down=G(32, 8)),
              "down 64x8 s1": dict(down=G(64, 8, 1)), "attention 7 splits": dict(kv_splits=7),
              "attention 26 splits": dict(kv=32, kv_splits=26), "attention w4": dict(attention_warps=4)},
-    # then with the out-projection at 32 x 4 (128 programs), the winner of "fill"
-    "fill2": {"default": {}, "out 64x4 (before)": dict(out=G(64, 4)), "out 16x4": dict(out=G(16, 4)),
-              "out 32x8": dict(out=G(32, 8)), "out 32x2": dict(out=G(32, 2)), "down 32x4": dict(down=G(32, 4)),
-              "down 128x16": dict(down=G(128, 16)), "gemm warps 8": dict(num_warps=8)},
     # the attention's query rows a program (a 64 x 256 f32 accumulator is 128 registers a thread at 4 warps)
     "query_rows": {"default": {}, "q32": dict(q=32), "q32 w4": dict(q=32, attention_warps=4),
                    "q16 w4": dict(q=16, attention_warps=4),
