@@ -1,0 +1,366 @@
+"""A layer's four GEMMs for all 18 layers as ONE persistent Mosaic GPU kernel, the weights streamed without a break.
+
+Sessions 30-41 left the denoise step at the sum of its kernels' own latencies: each GEMM kernel pays 3-4 us of
+ramp-up and tail whatever its work (`mgpu_gemm_probe.py --k-sweep`), a boundary inside XLA's command buffers costs
+almost nothing, and a persistent kernel whose phases each start their weight stream after a barrier (Triton, session
+30) or only a pipeline's depth before it (Mosaic GPU, gate/up alone, session 31) was level. What no probe had done:
+stream the weights as one continuous sequence across phases and layers, as far ahead as shared memory holds, so that
+only the activations wait at the grid barriers. The weights do not depend on the activations.
+
+One CTA per SM (`--ctas`), two warpgroups:
+  producer  walks the CTA's weight tiles (64 K rows x 64 columns, 8 KB) of every phase of every layer in order and
+            copies each by TMA into a ring of `--ring` slots as soon as the compute warpgroup frees one; it never
+            waits for a barrier, so it runs up to `ring` tiles ahead (ring x 8 KB x CTAs: 20 slots on 128 CTAs are
+            21 MB, 60 % of a layer's 34.6 MB)
+  compute   for each phase: waits at the grid barrier (a GPU-scope semaphore from `pl.get_global`), brings its
+            item's activation tiles by TMA (`--xdepth` deep), runs wgmma against the ring, writes its output, signals
+
+Phases a layer (pi0's expert at B = 1: 64 rows, the attention left out, as `persistent_probe.py`):
+  q    h (f32, the residual; rounded to bf16 as each tile arrives) @ w_qkv (1024 x 2560) -> qkv (bf16)
+  o    qkv[:, :2048] @ w_out (2048 x 1024), K split `--splits` ways; each split's f32 product added into h by
+       TMA's reduce-add (the residual and the split sum in one store)
+  g    h @ w_gate_up (1024 x 2 x 4096, gate and up in blocks of 32) -> GELU-tanh(gate) * up (bf16)
+  d    act @ w_down (4096 x 1024), K split, reduce-added into h
+The norms are left out: the step's RMSNorm would scale each row of q's and g's products by 1/rms after the GEMM.
+
+Against it, in one process on the same weights (kernel time per layer from a profiler trace): the engine's kernels
+for the same four GEMMs (`persistent_probe.engine_chain`: its norms and RoPE included), XLA's chain, and XLA reading
+every weight array once. Checked against XLA's chain (f32 accumulation, the kernel's roundings) and against itself
+on a second call (the reduce-add's order moves the last bits, nothing more).
+
+    python scripts/mgpu_layer_probe.py --out layer.json              # GPU (Hopper)
+    python scripts/mgpu_layer_probe.py --cpu-check                   # Mosaic GPU's interpreter, small, 1 CTA
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import functools
+import json
+import sys
+import time
+import traceback
+from pathlib import Path
+
+import jax
+import jax.experimental.pallas as pl
+import jax.experimental.pallas.mosaic_gpu as plgpu
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+from pi0_jax.ops import mosaic_gemm
+
+sys.path.insert(0, str(Path(__file__).parent))
+from persistent_probe import engine_chain  # noqa: E402
+from profile_engine import kernel_times  # noqa: E402
+
+ROWS = TK = TN = 64   # rows (50 suffix tokens padded), a tile's K rows and its columns
+UNITS = TN // 2   # GeGLU units a tile: gate and up alternate in blocks of 32 columns
+
+
+@dataclasses.dataclass(frozen=True)
+class Dims:
+    d: int = 1024     # width
+    nq: int = 2560    # q/k/v columns
+    a: int = 2048     # the out-projection's contraction (q's columns)
+    f: int = 4096     # GeGLU units
+    layers: int = 18
+
+
+@dataclasses.dataclass(frozen=True)
+class Phase:
+    name: str
+    k: int
+    cols: int        # weight columns
+    splits: int
+    x: str           # "h" (f32 residual), "qkv" or "act" (bf16)
+    out: str         # "store" (bf16), "add" (f32 reduce-add into h), "geglu"
+
+    @property
+    def items(self) -> int:
+        return self.cols // TN * self.splits
+
+    @property
+    def steps(self) -> int:
+        return self.k // self.splits // TK
+
+
+def phases(dm: Dims, splits: int) -> tuple:
+    return (Phase("q", dm.d, dm.nq, 1, "h", "store"), Phase("o", dm.a, dm.d, splits, "qkv", "add"),
+            Phase("g", dm.d, 2 * dm.f, 1, "h", "geglu"), Phase("d", dm.f, dm.d, splits, "act", "add"))
+
+
+def _t(minor, dtype):
+    return mosaic_gemm.transforms(minor, dtype)
+
+
+@functools.lru_cache(maxsize=None)
+def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype=jnp.bfloat16):
+    """(h0 f32 (64, d), w_qkv, w_out, w_gate_up (blocks of 32), w_down, each (L, K, N) in `dtype`) -> h (f32).
+    dtype: bf16 on a GPU (f32 in the interpreter's check)."""
+    ps = phases(dm, splits)
+    bf16, f32 = dtype, jnp.float32
+    n_phases = 1 + 4 * dm.layers   # a copy of h0 into h, then 4 a layer
+    on_cpu = jax.default_backend() == "cpu"
+    # Mosaic GPU's interpreter (jax 0.10.2) cannot lower semaphores; its one CTA never waits at a barrier
+    assert ctas == 1 or not on_cpu, "the interpreter runs one CTA"
+
+    def union(*refs):   # shared memory used by one phase or another (the interpreter has no RefUnion)
+        return refs if on_cpu else plgpu.RefUnion(*refs)
+
+    def signal(sem):
+        if not on_cpu:
+            plgpu.semaphore_signal(sem, 1, memory_scope="gpu")
+
+    def wait(sem, target, decrement=False):
+        if not on_cpu:
+            plgpu.semaphore_wait(sem, target, decrement=decrement, memory_scope="gpu")
+
+    def kernel(h0, wq, wo, wg, wd, h, qkv, act):
+        c = lax.axis_index("c")
+        sem = None if on_cpu else pl.get_global(plgpu.SemaphoreType.REGULAR)
+        weights = {"q": wq, "o": wo, "g": wg, "d": wd}
+
+        def mine(ph):   # this CTA's items of a phase: c, c + ctas, ...
+            return jnp.maximum(ph.items - c + ctas - 1, 0) // ctas
+
+        @functools.partial(
+            pl.run_scoped,
+            w_ring=plgpu.SMEM((ring, TK, TN), bf16, transforms=_t(TN, bf16)),
+            full=plgpu.Barrier(num_arrivals=1, num_barriers=ring),
+            empty=plgpu.Barrier(num_arrivals=1, num_barriers=ring),
+            xs=union(plgpu.SMEM((xdepth, ROWS, TK), f32, transforms=_t(TK, f32)),   # a phase's x
+                              plgpu.SMEM((xdepth, ROWS, TK), bf16, transforms=_t(TK, bf16))),  # is one or other
+            x_bar=plgpu.Barrier(num_arrivals=1, num_barriers=xdepth),
+            x_op=plgpu.SMEM((2, ROWS, TK), bf16, transforms=_t(TK, bf16)),
+            outs=union(plgpu.SMEM((ROWS, TN), bf16, transforms=_t(TN, bf16)),
+                                plgpu.SMEM((ROWS, TN), f32, transforms=_t(TN, f32)),
+                                plgpu.SMEM((ROWS, UNITS), bf16, transforms=_t(UNITS, bf16))),
+            collective_axes="wg")
+        def scope(w_ring, full, empty, xs, x_bar, x_op, outs):
+            (x32, x16), (o16, o32, og) = xs, outs   # each phase's stores land before the next phase starts
+            wg = lax.axis_index("wg")
+
+            @pl.when(wg == 1)
+            def producer():
+                def layer(l, t):
+                    for ph in ps:
+                        def item(m, t, ph=ph):
+                            i = c + m * ctas
+                            j, s = i // ph.splits, lax.rem(i, ph.splits)
+                            for kk in range(ph.steps):
+                                slot = lax.rem(t + kk, ring)
+
+                                @pl.when(t + kk >= ring)
+                                def _():
+                                    plgpu.barrier_wait(empty.at[slot])
+                                rows = pl.ds((s * ph.steps + kk) * TK, TK)
+                                plgpu.copy_gmem_to_smem(weights[ph.name].at[l, rows, pl.ds(j * TN, TN)],
+                                                        w_ring.at[slot], full.at[slot])
+                            return t + ph.steps
+                        t = lax.fori_loop(0, mine(ph), item, t)
+                    return t
+                t = lax.fori_loop(0, dm.layers, layer, jnp.int32(0))
+
+                @pl.loop(jnp.maximum(t - ring, 0), t)
+                def _(i):   # the last tiles' releases, so every phase of the barriers is observed
+                    plgpu.barrier_wait(empty.at[lax.rem(i, ring)])
+
+            @pl.when(wg == 0)
+            def compute():
+                @pl.loop(c, dm.d // TN, step=ctas)
+                def _(tile):   # h <- h0
+                    cols = pl.ds(tile * TN, TN)
+                    plgpu.copy_gmem_to_smem(h0.at[:, cols], o32, x_bar.at[0])
+                    plgpu.barrier_wait(x_bar.at[0])
+                    plgpu.copy_smem_to_gmem(o32, h.at[:, cols])
+                    plgpu.wait_smem_to_gmem(0)
+                signal(sem)
+
+                def x_copy(ph, s, kk):
+                    src = {"h": h, "qkv": qkv, "act": act}[ph.x]
+                    dst = (x32 if ph.x == "h" else x16).at[kk % xdepth]
+                    plgpu.copy_gmem_to_smem(src.at[:, pl.ds((s * ph.steps + kk) * TK, TK)], dst,
+                                            x_bar.at[kk % xdepth])
+
+                def layer(l, t):
+                    for p, ph in enumerate(ps):
+                        wait(sem, (1 + 4 * l + p) * ctas)
+
+                        def item(m, t, ph=ph):
+                            i = c + m * ctas
+                            j, s = i // ph.splits, lax.rem(i, ph.splits)
+                            for kk in range(min(xdepth, ph.steps)):
+                                x_copy(ph, s, kk)
+
+                            @functools.partial(pl.run_scoped, acc=plgpu.ACC((ROWS, TN), f32))
+                            def run(acc):
+                                for kk in range(ph.steps):
+                                    plgpu.barrier_wait(x_bar.at[kk % xdepth])
+                                    if ph.x == "h":   # the f32 residual, rounded as the GEMM's operand
+                                        x_op.at[kk % 2][...] = x32.at[kk % xdepth][...].astype(bf16)
+                                        plgpu.commit_smem()
+                                        a_tile = x_op.at[kk % 2]
+                                        if kk + xdepth < ph.steps:   # its f32 slot is free once read
+                                            x_copy(ph, s, kk + xdepth)
+                                    else:
+                                        a_tile = x16.at[kk % xdepth]
+                                    slot = lax.rem(t + kk, ring)
+                                    plgpu.barrier_wait(full.at[slot])
+                                    plgpu.wgmma(acc, a_tile, w_ring.at[slot])
+                                    plgpu.wgmma_wait(1)   # step kk - 1's wgmma is done: its tiles are free
+                                    if kk:
+                                        plgpu.barrier_arrive(empty.at[lax.rem(t + kk - 1, ring)])
+                                        if ph.x != "h" and kk - 1 + xdepth < ph.steps:
+                                            x_copy(ph, s, kk - 1 + xdepth)
+                                plgpu.wgmma_wait(0)
+                                plgpu.barrier_arrive(empty.at[lax.rem(t + ph.steps - 1, ring)])
+                                plgpu.wait_smem_to_gmem(0, wait_read_only=True)   # the last item's store read
+                                y = acc[...]
+                                if ph.out == "store":
+                                    o16[...] = y.astype(bf16)
+                                    plgpu.commit_smem()
+                                    plgpu.copy_smem_to_gmem(o16, qkv.at[:, pl.ds(j * TN, TN)])
+                                elif ph.out == "add":
+                                    o32[...] = y
+                                    plgpu.commit_smem()
+                                    dst = h.at[:, pl.ds(j * TN, TN)]
+                                    if on_cpu:   # the interpreter has no reduce-add; its one CTA adds alone
+                                        plgpu.wait_smem_to_gmem(0)
+                                        plgpu.copy_gmem_to_smem(dst, o32, x_bar.at[0])
+                                        plgpu.barrier_wait(x_bar.at[0])
+                                        o32[...] = o32[...] + y
+                                        plgpu.commit_smem()
+                                        plgpu.copy_smem_to_gmem(o32, dst)
+                                    else:
+                                        plgpu.copy_smem_to_gmem(o32, dst, reduction_op="add")
+                                else:
+                                    og[...] = mosaic_gemm._gelu_product(y[:, :UNITS], y[:, UNITS:], bf16)
+                                    plgpu.commit_smem()
+                                    plgpu.copy_smem_to_gmem(og, act.at[:, pl.ds(j * UNITS, UNITS)])
+                            return t + ph.steps
+                        t = lax.fori_loop(0, mine(ph), item, t)
+                        plgpu.wait_smem_to_gmem(0)   # this phase's stores have landed
+                        signal(sem)
+                    return t
+                lax.fori_loop(0, dm.layers, layer, jnp.int32(0))
+
+                @pl.when(c == 0)
+                def _():   # every CTA signalled once a phase: take the count back, the next call starts at zero
+                    wait(sem, n_phases * ctas, decrement=True)
+
+    out = (jax.ShapeDtypeStruct((ROWS, dm.d), f32), jax.ShapeDtypeStruct((ROWS, dm.nq), bf16),
+           jax.ShapeDtypeStruct((ROWS, dm.f), bf16))
+    call = plgpu.kernel(kernel, out_type=out, grid=(ctas,), grid_names=("c",), num_threads=2, thread_name="wg",
+                        kernel_name="persistent_layers",
+                        compiler_params=plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup),
+                        **({"interpret": mosaic_gemm._interpret()} if on_cpu else {}))
+    return jax.jit(lambda h0, ws: call(h0, *ws)[0])
+
+
+def interleave(w, f: int):
+    """(..., K, 2F) [gate | up] -> gate and up alternating in blocks of UNITS columns."""
+    g, u = w[..., :f], w[..., f:]
+    shape = w.shape[:-1] + (f // UNITS, 1, UNITS)
+    return jnp.concatenate([g.reshape(shape), u.reshape(shape)], axis=-2).reshape(w.shape)
+
+
+def reference(h, ws, dm: Dims):
+    """The chain in XLA, rounded where the kernel rounds: h f32; each GEMM's operand bf16, f32 accumulation."""
+    bf16, f32 = ws[0].dtype, jnp.float32
+    for l in range(dm.layers):
+        wq, wo, wg, wd = (w[l] for w in ws)   # wg: [gate | up]
+        qkv = jnp.dot(h.astype(bf16), wq, preferred_element_type=f32).astype(bf16)
+        h = h + jnp.dot(qkv[:, :dm.a], wo, preferred_element_type=f32)
+        gu = jnp.dot(h.astype(bf16), wg, preferred_element_type=f32)
+        act = mosaic_gemm._gelu_product(gu[:, :dm.f], gu[:, dm.f:], bf16)
+        h = h + jnp.dot(act, wd, preferred_element_type=f32)
+    return h
+
+
+def inputs(dm: Dims, seed: int = 0):
+    """h0 and the weights at gains that keep 18 layers of residual sums in range."""
+    ks = jax.random.split(jax.random.key(seed), 5)
+    h0 = jax.random.normal(ks[0], (ROWS, dm.d), jnp.float32)
+    shapes = [(dm.d, dm.nq), (dm.a, dm.d), (dm.d, 2 * dm.f), (dm.f, dm.d)]
+    ws = [(jax.random.normal(k, (dm.layers, kk, n), jnp.float32) * (0.5 / np.sqrt(kk))).astype(jnp.bfloat16)
+          for k, (kk, n) in zip(ks[1:], shapes)]
+    return h0, ws
+
+
+def _rel(got, want):
+    got, want = np.asarray(got, np.float64), np.asarray(want, np.float64)
+    return float(np.linalg.norm(got - want) / max(np.linalg.norm(want), 1e-30))
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", help="JSON file to write (GPU run)")
+    p.add_argument("--ctas", default="128", help="comma list of grid sizes, each at most the SM count "
+                   "(default: %(default)s)")
+    p.add_argument("--ring", default="20", help="comma list of weight ring depths in 8 KB tiles (default: %(default)s)")
+    p.add_argument("--xdepth", type=int, default=3, help="activation tiles in flight (default: %(default)s)")
+    p.add_argument("--splits", type=int, default=8, help="K splits of the out-projection and down "
+                   "(default: %(default)s: 128 items each)")
+    p.add_argument("--layers", type=int, default=18, help="layers of distinct weights (default: %(default)s)")
+    p.add_argument("--iters", type=int, default=30, help="traced calls per variant (default: %(default)s)")
+    p.add_argument("--no-peers", action="store_true", help="only the persistent kernel")
+    p.add_argument("--cpu-check", action="store_true",
+                   help="Mosaic GPU's interpreter at small sizes on one CTA, against XLA, and exit")
+    args = p.parse_args()
+    if args.cpu_check:
+        dm = Dims(d=128, nq=192, a=128, f=128, layers=2)
+        h0, ws = inputs(dm)
+        ws = [w.astype(jnp.float32) for w in ws]   # f32 on the interpreter: the check is to f32 rounding
+        want = reference(h0, ws, dm)
+        kws = [ws[0], ws[1], interleave(ws[2], dm.f), ws[3]]
+        got = layer_kernel(dm, 1, 4, 2, 2, jnp.float32)(h0, kws)
+        print(json.dumps({"rel_l2_vs_xla": _rel(got, want)}))
+        sys.exit(0 if _rel(got, want) < 1e-2 else 1)
+    if jax.default_backend() != "gpu" or not args.out:
+        raise SystemExit("mgpu_layer_probe needs a GPU (Hopper) and --out (or --cpu-check)")
+    dm = Dims(layers=args.layers)
+    h0, ws = inputs(dm)
+    kws = [ws[0], ws[1], interleave(ws[2], dm.f), ws[3]]
+    want = np.asarray(jax.jit(lambda h, w: reference(h, w, dm))(h0, ws))
+    res = {"device": jax.devices()[0].device_kind, "jax": jax.__version__, "layers": dm.layers,
+           "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()), "args": vars(args),
+           "weight_mb_per_layer": sum(int(np.prod(w.shape[1:])) * 2 for w in ws) / 1e6, "rows": {}}
+    fns = {}
+    for ctas in (int(v) for v in args.ctas.split(",")):
+        for ring in (int(v) for v in args.ring.split(",")):
+            name = f"persistent ctas={ctas} ring={ring} xdepth={args.xdepth}"
+            try:
+                fn = layer_kernel(dm, ctas, ring, args.xdepth, args.splits)
+                got, again = np.asarray(fn(h0, kws)), np.asarray(fn(h0, kws))
+                res["rows"][name] = {"rel_l2_vs_xla": _rel(got, want), "rel_l2_second_call": _rel(again, got),
+                                     "nan": int(np.isnan(got).sum())}
+                fns[name] = functools.partial(fn, h0, kws)
+            except Exception as e:   # a variant that fails to lower is a result, not the end of the run
+                res["rows"][name] = {"error": f"{type(e).__name__}: {e}"[:3000]}
+                traceback.print_exc()
+            print(name, res["rows"][name], flush=True)
+    if not args.no_peers:
+        per_layer = [tuple(w[l] for w in ws) for l in range(dm.layers)]
+        x0 = h0.astype(jnp.bfloat16)
+        fns["engine kernels (norms and RoPE too)"] = functools.partial(engine_chain(dm.a, dm.d), x0, per_layer)
+        fns["xla chain"] = functools.partial(jax.jit(lambda h, w: reference(h, w, dm)), h0, ws)
+        fns["xla: each weight array read once"] = functools.partial(
+            jax.jit(lambda ws: sum(jnp.sum(w, dtype=jnp.float32) for lw in ws for w in lw)), per_layer)
+    for name, fn in fns.items():
+        trace = kernel_times(fn, calls=args.iters)
+        row = res["rows"].setdefault(name, {})
+        row.update(kernel_us_per_layer=trace["kernel_ms"] * 1e3 / dm.layers,
+                   span_us_per_layer=trace.get("span_ms", float("nan")) * 1e3 / dm.layers,
+                   kernels_per_call=trace["kernels_per_call"], wall_ms=trace["wall_ms"],
+                   by_name=trace["by_name"][:8])
+        print(f"{name:50s} kernels {row['kernel_us_per_layer']:7.2f} us/layer, span "
+              f"{row['span_us_per_layer']:7.2f}, {row['kernels_per_call']:.0f} kernels a call", flush=True)
+    with open(args.out, "w") as f:
+        json.dump(res, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
