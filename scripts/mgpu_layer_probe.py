@@ -67,6 +67,8 @@ class Dims:
     a: int = 2048     # the out-projection's contraction (q's columns)
     f: int = 4096     # GeGLU units
     layers: int = 18
+    rows: int = 64    # the activations' rows in memory: 50 for the suffix's tokens (TMA fills the tiles' other rows
+                      # with zeros and stores only these), 64 to stream padded rows as the engine's kernels do
 
 
 @dataclasses.dataclass(frozen=True)
@@ -97,9 +99,13 @@ def _t(minor, dtype):
 
 
 @functools.lru_cache(maxsize=None)
-def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype=jnp.bfloat16):
-    """(h0 f32 (64, d), w_qkv, w_out, w_gate_up (blocks of 32), w_down, each (L, K, N) in `dtype`) -> h (f32).
-    dtype: bf16 on a GPU (f32 in the interpreter's check)."""
+def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype=jnp.bfloat16, ablate: str = ""):
+    """(h0 f32 (rows, d), w_qkv, w_out, w_gate_up (blocks of 32), w_down, each (L, K, N) in `dtype`) -> h (f32).
+    dtype: bf16 on a GPU (f32 in the interpreter's check). ablate (timing only, the result is wrong): a comma list of
+    "nobarrier" (no phase waits for the one before), "nox" (no activation tile is brought: every GEMM reads stale
+    tiles), "noconv" (the residual's f32 tiles are brought but not rounded into the GEMM's operand), "x16" (q and g
+    bring bf16 tiles, of q/k/v's buffer, as a bf16 copy of the residual would be)."""
+    ablate = set(filter(None, ablate.split(",")))
     ps = phases(dm, splits)
     bf16, f32 = dtype, jnp.float32
     n_phases = 1 + 4 * dm.layers   # a copy of h0 into h, then 4 a layer
@@ -179,15 +185,21 @@ def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype
                     plgpu.wait_smem_to_gmem(0)
                 signal(sem)
 
+                def f32_x(ph):   # whether the phase's activation tiles are the f32 residual's
+                    return ph.x == "h" and "x16" not in ablate
+
                 def x_copy(ph, s, kk):
-                    src = {"h": h, "qkv": qkv, "act": act}[ph.x]
-                    dst = (x32 if ph.x == "h" else x16).at[kk % xdepth]
+                    if "nox" in ablate:
+                        return
+                    src = {"h": qkv if "x16" in ablate else h, "qkv": qkv, "act": act}[ph.x]
+                    dst = (x32 if f32_x(ph) else x16).at[kk % xdepth]
                     plgpu.copy_gmem_to_smem(src.at[:, pl.ds((s * ph.steps + kk) * TK, TK)], dst,
                                             x_bar.at[kk % xdepth])
 
                 def layer(l, t):
                     for p, ph in enumerate(ps):
-                        wait(sem, (1 + 4 * l + p) * ctas)
+                        if "nobarrier" not in ablate:
+                            wait(sem, (1 + 4 * l + p) * ctas)
 
                         def item(m, t, ph=ph):
                             i = c + m * ctas
@@ -198,10 +210,12 @@ def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype
                             @functools.partial(pl.run_scoped, acc=plgpu.ACC((ROWS, TN), f32))
                             def run(acc):
                                 for kk in range(ph.steps):
-                                    plgpu.barrier_wait(x_bar.at[kk % xdepth])
-                                    if ph.x == "h":   # the f32 residual, rounded as the GEMM's operand
-                                        x_op.at[kk % 2][...] = x32.at[kk % xdepth][...].astype(bf16)
-                                        plgpu.commit_smem()
+                                    if "nox" not in ablate:
+                                        plgpu.barrier_wait(x_bar.at[kk % xdepth])
+                                    if f32_x(ph):   # the f32 residual, rounded as the GEMM's operand
+                                        if not ablate & {"nox", "noconv"}:
+                                            x_op.at[kk % 2][...] = x32.at[kk % xdepth][...].astype(bf16)
+                                            plgpu.commit_smem()
                                         a_tile = x_op.at[kk % 2]
                                         if kk + xdepth < ph.steps:   # its f32 slot is free once read
                                             x_copy(ph, s, kk + xdepth)
@@ -213,7 +227,7 @@ def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype
                                     plgpu.wgmma_wait(1)   # step kk - 1's wgmma is done: its tiles are free
                                     if kk:
                                         plgpu.barrier_arrive(empty.at[lax.rem(t + kk - 1, ring)])
-                                        if ph.x != "h" and kk - 1 + xdepth < ph.steps:
+                                        if not f32_x(ph) and kk - 1 + xdepth < ph.steps:
                                             x_copy(ph, s, kk - 1 + xdepth)
                                 plgpu.wgmma_wait(0)
                                 plgpu.barrier_arrive(empty.at[lax.rem(t + ph.steps - 1, ring)])
@@ -251,8 +265,8 @@ def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype
                 def _():   # every CTA signalled once a phase: take the count back, the next call starts at zero
                     wait(sem, n_phases * ctas, decrement=True)
 
-    out = (jax.ShapeDtypeStruct((ROWS, dm.d), f32), jax.ShapeDtypeStruct((ROWS, dm.nq), bf16),
-           jax.ShapeDtypeStruct((ROWS, dm.f), bf16))
+    out = (jax.ShapeDtypeStruct((dm.rows, dm.d), f32), jax.ShapeDtypeStruct((dm.rows, dm.nq), bf16),
+           jax.ShapeDtypeStruct((dm.rows, dm.f), bf16))
     call = plgpu.kernel(kernel, out_type=out, grid=(ctas,), grid_names=("c",), num_threads=2, thread_name="wg",
                         kernel_name="persistent_layers",
                         compiler_params=plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup),
@@ -283,7 +297,7 @@ def reference(h, ws, dm: Dims):
 def inputs(dm: Dims, seed: int = 0):
     """h0 and the weights at gains that keep 18 layers of residual sums in range."""
     ks = jax.random.split(jax.random.key(seed), 5)
-    h0 = jax.random.normal(ks[0], (ROWS, dm.d), jnp.float32)
+    h0 = jax.random.normal(ks[0], (dm.rows, dm.d), jnp.float32)
     shapes = [(dm.d, dm.nq), (dm.a, dm.d), (dm.d, 2 * dm.f), (dm.f, dm.d)]
     ws = [(jax.random.normal(k, (dm.layers, kk, n), jnp.float32) * (0.5 / np.sqrt(kk))).astype(jnp.bfloat16)
           for k, (kk, n) in zip(ks[1:], shapes)]
@@ -305,6 +319,11 @@ def main() -> None:
     p.add_argument("--splits", type=int, default=8, help="K splits of the out-projection and down "
                    "(default: %(default)s: 128 items each)")
     p.add_argument("--layers", type=int, default=18, help="layers of distinct weights (default: %(default)s)")
+    p.add_argument("--rows", default="64", help="comma list of the activations' rows in memory (default: "
+                   "%(default)s; 50: the suffix's tokens, the tiles' other rows filled with zeros by TMA)")
+    p.add_argument("--ablate", action="append", default=[],
+                   help="a variant with parts left out, for timing only (repeatable): a comma list of nobarrier, "
+                        "nox, noconv, x16 (`layer_kernel`)")
     p.add_argument("--iters", type=int, default=30, help="traced calls per variant (default: %(default)s)")
     p.add_argument("--no-peers", action="store_true", help="only the persistent kernel")
     p.add_argument("--cpu-check", action="store_true",
@@ -329,15 +348,19 @@ def main() -> None:
            "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()), "args": vars(args),
            "weight_mb_per_layer": sum(int(np.prod(w.shape[1:])) * 2 for w in ws) / 1e6, "rows": {}}
     fns = {}
-    for ctas in (int(v) for v in args.ctas.split(",")):
-        for ring in (int(v) for v in args.ring.split(",")):
-            name = f"persistent ctas={ctas} ring={ring} xdepth={args.xdepth}"
-            try:
-                fn = layer_kernel(dm, ctas, ring, args.xdepth, args.splits)
-                got, again = np.asarray(fn(h0, kws)), np.asarray(fn(h0, kws))
-                res["rows"][name] = {"rel_l2_vs_xla": _rel(got, want), "rel_l2_second_call": _rel(again, got),
+    variants = [(int(c), int(r), int(m), a) for c in args.ctas.split(",") for r in args.ring.split(",")
+                for m in args.rows.split(",") for a in [""] + args.ablate]
+    for ctas, ring, rows, ablate in variants:
+        name = f"persistent ctas={ctas} ring={ring} xdepth={args.xdepth} rows={rows}" + (f" -{ablate}" if ablate else "")
+        try:
+            fn = layer_kernel(dataclasses.replace(dm, rows=rows), ctas, ring, args.xdepth, args.splits,
+                              ablate=ablate)
+            x = h0[:rows]
+            fns[name] = functools.partial(fn, x, kws)
+            if not ablate:
+                got, again = np.asarray(fn(x, kws)), np.asarray(fn(x, kws))
+                res["rows"][name] = {"rel_l2_vs_xla": _rel(got, want[:rows]), "rel_l2_second_call": _rel(again, got),
                                      "nan": int(np.isnan(got).sum())}
-                fns[name] = functools.partial(fn, h0, kws)
             except Exception as e:   # a variant that fails to lower is a result, not the end of the run
                 res["rows"][name] = {"error": f"{type(e).__name__}: {e}"[:3000]}
                 traceback.print_exc()
