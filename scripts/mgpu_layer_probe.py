@@ -58,6 +58,7 @@ from profile_engine import kernel_times  # noqa: E402
 
 ROWS = TK = TN = 64   # rows (50 suffix tokens padded), a tile's K rows and its columns
 UNITS = TN // 2   # GeGLU units a tile: gate and up alternate in blocks of 32 columns
+EPS = 1e-6   # Gemma's RMSNorm
 
 
 @dataclasses.dataclass(frozen=True)
@@ -97,11 +98,13 @@ def _t(minor, dtype):
 
 
 @functools.lru_cache(maxsize=None)
-def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, lhs: str = "regs", dtype=jnp.bfloat16,
-                 ablate: str = ""):
+def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, lhs: str = "regs", norm: bool = False,
+                 dtype=jnp.bfloat16, ablate: str = ""):
     """(h0 f32 (64, d), w_qkv, w_out, w_gate_up (blocks of 32), w_down, each (L, K, N) in `dtype`) -> h (f32).
     lhs: how q's and g's GEMMs take the f32 residual's tiles, rounded: from registers ("regs": wgmma's register
-    operand) or written back to shared memory ("smem"). dtype: bf16 on a GPU (f32 in the interpreter's check). ablate (timing only, the result is wrong): a comma list of
+    operand) or written back to shared memory ("smem"). norm: q's and g's GEMMs take RMSNorm(h) (its weight taken
+    as 1): each row's sum of squares gathered from the tiles on their way to the GEMM, the product's rows scaled by
+    1 / rms after it, so the norm costs no pass of its own. dtype: bf16 on a GPU (f32 in the interpreter's check). ablate (timing only, the result is wrong): a comma list of
     "nobarrier" (no phase waits for the one before), "nox" (no activation tile is brought: every GEMM reads stale
     tiles), "noconv" (the residual's f32 tiles are brought but not rounded into the GEMM's operand), "x16" (q and g
     bring bf16 tiles, of q/k/v's buffer, as a bf16 copy of the residual would be)."""
@@ -209,13 +212,18 @@ def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, lhs: 
 
                             @functools.partial(pl.run_scoped, acc=plgpu.ACC((ROWS, TN), f32))
                             def run(acc):
+                                squares = None   # each row's sum of squares of h (norm)
                                 for kk in range(ph.steps):
                                     if "nox" not in ablate:
                                         plgpu.barrier_wait(x_bar.at[kk % xdepth])
                                     if f32_x(ph):   # the f32 residual, rounded as the GEMM's operand
                                         a_tile = x_op.at[kk % 2]
                                         if not ablate & {"nox", "noconv"}:
-                                            rounded = x32.at[kk % xdepth][...].astype(bf16)
+                                            tile = x32.at[kk % xdepth][...]
+                                            rounded = tile.astype(bf16)
+                                            if norm:
+                                                part = jnp.sum(tile * tile, axis=1)
+                                                squares = part if squares is None else squares + part
                                             if lhs == "regs":
                                                 a_tile = rounded
                                             else:
@@ -237,6 +245,8 @@ def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, lhs: 
                                 plgpu.barrier_arrive(empty.at[lax.rem(t + ph.steps - 1, ring)])
                                 plgpu.wait_smem_to_gmem(0, wait_read_only=True)   # the last item's store read
                                 y = acc[...]
+                                if squares is not None:
+                                    y = y * lax.rsqrt(squares * (1 / dm.d) + EPS)[:, None]
                                 if ph.out == "store":
                                     o16[...] = y.astype(bf16)
                                     plgpu.commit_smem()
@@ -285,14 +295,21 @@ def interleave(w, f: int):
     return jnp.concatenate([g.reshape(shape), u.reshape(shape)], axis=-2).reshape(w.shape)
 
 
-def reference(h, ws, dm: Dims):
-    """The chain in XLA, rounded where the kernel rounds: h f32; each GEMM's operand bf16, f32 accumulation."""
+def reference(h, ws, dm: Dims, norm: bool = False):
+    """The chain in XLA: h f32; each GEMM's operand bf16 (norm: RMSNorm(h), as the model rounds it), f32
+    accumulation."""
     bf16, f32 = ws[0].dtype, jnp.float32
+
+    def operand(h):
+        if norm:
+            h = h * lax.rsqrt(jnp.mean(h * h, axis=-1, keepdims=True) + EPS)
+        return h.astype(bf16)
+
     for l in range(dm.layers):
         wq, wo, wg, wd = (w[l] for w in ws)   # wg: [gate | up]
-        qkv = jnp.dot(h.astype(bf16), wq, preferred_element_type=f32).astype(bf16)
+        qkv = jnp.dot(operand(h), wq, preferred_element_type=f32).astype(bf16)
         h = h + jnp.dot(qkv[:, :dm.a], wo, preferred_element_type=f32)
-        gu = jnp.dot(h.astype(bf16), wg, preferred_element_type=f32)
+        gu = jnp.dot(operand(h), wg, preferred_element_type=f32)
         act = mosaic_gemm._gelu_product(gu[:, :dm.f], gu[:, dm.f:], bf16)
         h = h + jnp.dot(act, wd, preferred_element_type=f32)
     return h
@@ -323,6 +340,8 @@ def main() -> None:
     p.add_argument("--splits", type=int, default=8, help="K splits of the out-projection and down "
                    "(default: %(default)s: 128 items each)")
     p.add_argument("--layers", type=int, default=18, help="layers of distinct weights (default: %(default)s)")
+    p.add_argument("--norm", default="0", help="comma list of 0 / 1: q's and g's GEMMs on RMSNorm(h) "
+                   "(default: %(default)s)")
     p.add_argument("--lhs", default="regs", help="comma list: q's and g's rounded residual tiles from registers "
                    "(regs) or shared memory (smem) (default: %(default)s)")
     p.add_argument("--ablate", action="append", default=[],
@@ -337,10 +356,10 @@ def main() -> None:
         dm = Dims(d=128, nq=192, a=128, f=128, layers=2)
         h0, ws = inputs(dm)
         ws = [w.astype(jnp.float32) for w in ws]   # f32 on the interpreter: the check is to f32 rounding
-        want = reference(h0, ws, dm)
         kws = [ws[0], ws[1], interleave(ws[2], dm.f), ws[3]]
         # lhs="smem" only: the interpreter of jax 0.10.2 takes no register operand for wgmma
-        rel = {lhs: _rel(layer_kernel(dm, 1, 4, 2, 2, lhs, jnp.float32)(h0, kws), want) for lhs in ("smem",)}
+        rel = {f"norm={norm}": _rel(layer_kernel(dm, 1, 4, 2, 2, "smem", norm, jnp.float32)(h0, kws),
+                                    reference(h0, ws, dm, norm)) for norm in (False, True)}
         print(json.dumps({"rel_l2_vs_xla": rel}))
         sys.exit(0 if max(rel.values()) < 1e-5 else 1)
     if jax.default_backend() != "gpu" or not args.out:
@@ -348,22 +367,23 @@ def main() -> None:
     dm = Dims(layers=args.layers)
     h0, ws = inputs(dm)
     kws = [ws[0], ws[1], interleave(ws[2], dm.f), ws[3]]
-    want = np.asarray(jax.jit(lambda h, w: reference(h, w, dm))(h0, ws))
+    want = {norm: np.asarray(jax.jit(lambda h, w, norm=norm: reference(h, w, dm, norm))(h0, ws))
+            for norm in (False, True)}
     res = {"device": jax.devices()[0].device_kind, "jax": jax.__version__, "layers": dm.layers,
            "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()), "args": vars(args),
            "weight_mb_per_layer": sum(int(np.prod(w.shape[1:])) * 2 for w in ws) / 1e6, "rows": {}}
     fns = {}
-    variants = [(int(c), int(r), m, a) for c in args.ctas.split(",") for r in args.ring.split(",")
-                for m in args.lhs.split(",") for a in [""] + args.ablate]
-    for ctas, ring, lhs, ablate in variants:
-        name = f"persistent ctas={ctas} ring={ring} xdepth={args.xdepth} lhs={lhs}"
+    variants = [(int(c), int(r), m, bool(int(n)), a) for c in args.ctas.split(",") for r in args.ring.split(",")
+                for m in args.lhs.split(",") for n in args.norm.split(",") for a in [""] + args.ablate]
+    for ctas, ring, lhs, norm, ablate in variants:
+        name = f"persistent ctas={ctas} ring={ring} xdepth={args.xdepth} lhs={lhs}" + (" norm" if norm else "")
         name += f" -{ablate}" if ablate else ""
         res["rows"][name] = {}
         try:
-            fn = layer_kernel(dm, ctas, ring, args.xdepth, args.splits, lhs, ablate=ablate)
+            fn = layer_kernel(dm, ctas, ring, args.xdepth, args.splits, lhs, norm, ablate=ablate)
             got, again = np.asarray(fn(h0, kws)), np.asarray(fn(h0, kws))
             if not ablate:   # an ablation's result is wrong by design
-                res["rows"][name] = {"rel_l2_vs_xla": _rel(got, want), "rel_l2_second_call": _rel(again, got),
+                res["rows"][name] = {"rel_l2_vs_xla": _rel(got, want[norm]), "rel_l2_second_call": _rel(again, got),
                                      "nan": int(np.isnan(got).sum())}
             fns[name] = functools.partial(fn, h0, kws)
         except Exception as e:   # a variant that fails to lower is a result, not the end of the run
