@@ -98,13 +98,14 @@ def _t(minor, dtype):
 
 
 @functools.lru_cache(maxsize=None)
-def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, lhs: str = "regs", norm: bool = False,
+def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, lhs: str = "regs", norm: str = "",
                  dtype=jnp.bfloat16, ablate: str = ""):
     """(h0 f32 (64, d), w_qkv, w_out, w_gate_up (blocks of 32), w_down, each (L, K, N) in `dtype`) -> h (f32).
     lhs: how q's and g's GEMMs take the f32 residual's tiles, rounded: from registers ("regs": wgmma's register
     operand) or written back to shared memory ("smem"). norm: q's and g's GEMMs take RMSNorm(h) (its weight taken
     as 1): each row's sum of squares gathered from the tiles on their way to the GEMM, the product's rows scaled by
-    1 / rms after it, so the norm costs no pass of its own. dtype: bf16 on a GPU (f32 in the interpreter's check). ablate (timing only, the result is wrong): a comma list of
+    1 / rms after it, so the norm costs no pass of its own; the squares of the f32 tile as loaded ("tile"), of the
+    tile loaded in wgmma's layout ("load"), or of the bf16 operand ("rounded"); "" for no norm. dtype: bf16 on a GPU (f32 in the interpreter's check). ablate (timing only, the result is wrong): a comma list of
     "nobarrier" (no phase waits for the one before), "nox" (no activation tile is brought: every GEMM reads stale
     tiles), "noconv" (the residual's f32 tiles are brought but not rounded into the GEMM's operand), "x16" (q and g
     bring bf16 tiles, of q/k/v's buffer, as a bf16 copy of the residual would be)."""
@@ -219,11 +220,15 @@ def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, lhs: 
                                     if f32_x(ph):   # the f32 residual, rounded as the GEMM's operand
                                         a_tile = x_op.at[kk % 2]
                                         if not ablate & {"nox", "noconv"}:
-                                            tile = x32.at[kk % xdepth][...]
+                                            if norm == "load":
+                                                tile = plgpu.load(x32.at[kk % xdepth], (), layout=plgpu.Layout.WGMMA)
+                                            else:
+                                                tile = x32.at[kk % xdepth][...]
                                             rounded = tile.astype(bf16)
                                             if norm:   # elementwise here, one row reduction at the end: a
                                                 # reduction a tile took the layer from 20 to 41 us (H200)
-                                                squares = tile * tile if squares is None else squares + tile * tile
+                                                sq = rounded.astype(f32) if norm == "rounded" else tile
+                                                squares = sq * sq if squares is None else squares + sq * sq
                                             if lhs == "regs":
                                                 a_tile = rounded
                                             else:
@@ -295,7 +300,7 @@ def interleave(w, f: int):
     return jnp.concatenate([g.reshape(shape), u.reshape(shape)], axis=-2).reshape(w.shape)
 
 
-def reference(h, ws, dm: Dims, norm: bool = False):
+def reference(h, ws, dm: Dims, norm=False):
     """The chain in XLA: h f32; each GEMM's operand bf16 (norm: RMSNorm(h), as the model rounds it), f32
     accumulation."""
     bf16, f32 = ws[0].dtype, jnp.float32
@@ -340,8 +345,8 @@ def main() -> None:
     p.add_argument("--splits", type=int, default=8, help="K splits of the out-projection and down "
                    "(default: %(default)s: 128 items each)")
     p.add_argument("--layers", type=int, default=18, help="layers of distinct weights (default: %(default)s)")
-    p.add_argument("--norm", default="0", help="comma list of 0 / 1: q's and g's GEMMs on RMSNorm(h) "
-                   "(default: %(default)s)")
+    p.add_argument("--norm", default="none", help="comma list of none, tile, load, rounded: q's and g's GEMMs "
+                   "on RMSNorm(h), its squares taken as `layer_kernel` says (default: %(default)s)")
     p.add_argument("--lhs", default="regs", help="comma list: q's and g's rounded residual tiles from registers "
                    "(regs) or shared memory (smem) (default: %(default)s)")
     p.add_argument("--ablate", action="append", default=[],
@@ -359,7 +364,7 @@ def main() -> None:
         kws = [ws[0], ws[1], interleave(ws[2], dm.f), ws[3]]
         # lhs="smem" only: the interpreter of jax 0.10.2 takes no register operand for wgmma
         rel = {f"norm={norm}": _rel(layer_kernel(dm, 1, 4, 2, 2, "smem", norm, jnp.float32)(h0, kws),
-                                    reference(h0, ws, dm, norm)) for norm in (False, True)}
+                                    reference(h0, ws, dm, bool(norm))) for norm in ("", "tile", "rounded")}
         print(json.dumps({"rel_l2_vs_xla": rel}))
         sys.exit(0 if max(rel.values()) < 1e-5 else 1)
     if jax.default_backend() != "gpu" or not args.out:
@@ -373,17 +378,18 @@ def main() -> None:
            "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()), "args": vars(args),
            "weight_mb_per_layer": sum(int(np.prod(w.shape[1:])) * 2 for w in ws) / 1e6, "rows": {}}
     fns = {}
-    variants = [(int(c), int(r), m, bool(int(n)), a) for c in args.ctas.split(",") for r in args.ring.split(",")
+    variants = [(int(c), int(r), m, "" if n == "none" else n, a)
+                for c in args.ctas.split(",") for r in args.ring.split(",")
                 for m in args.lhs.split(",") for n in args.norm.split(",") for a in [""] + args.ablate]
     for ctas, ring, lhs, norm, ablate in variants:
-        name = f"persistent ctas={ctas} ring={ring} xdepth={args.xdepth} lhs={lhs}" + (" norm" if norm else "")
+        name = f"persistent ctas={ctas} ring={ring} xdepth={args.xdepth} lhs={lhs}" + (f" norm={norm}" if norm else "")
         name += f" -{ablate}" if ablate else ""
         res["rows"][name] = {}
         try:
             fn = layer_kernel(dm, ctas, ring, args.xdepth, args.splits, lhs, norm, ablate=ablate)
             got, again = np.asarray(fn(h0, kws)), np.asarray(fn(h0, kws))
             if not ablate:   # an ablation's result is wrong by design
-                res["rows"][name] = {"rel_l2_vs_xla": _rel(got, want[norm]), "rel_l2_second_call": _rel(again, got),
+                res["rows"][name] = {"rel_l2_vs_xla": _rel(got, want[bool(norm)]), "rel_l2_second_call": _rel(again, got),
                                      "nan": int(np.isnan(got).sum())}
             fns[name] = functools.partial(fn, h0, kws)
         except Exception as e:   # a variant that fails to lower is a result, not the end of the run
