@@ -99,13 +99,14 @@ def _t(minor, dtype):
 
 @functools.lru_cache(maxsize=None)
 def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, lhs: str = "regs", norm: str = "",
-                 dtype=jnp.bfloat16, ablate: str = ""):
+                 regs: int = 0, dtype=jnp.bfloat16, ablate: str = ""):
     """(h0 f32 (64, d), w_qkv, w_out, w_gate_up (blocks of 32), w_down, each (L, K, N) in `dtype`) -> h (f32).
     lhs: how q's and g's GEMMs take the f32 residual's tiles, rounded: from registers ("regs": wgmma's register
     operand) or written back to shared memory ("smem"). norm: q's and g's GEMMs take RMSNorm(h) (its weight taken
     as 1): each row's sum of squares gathered from the tiles on their way to the GEMM, the product's rows scaled by
     1 / rms after it, so the norm costs no pass of its own; the squares of the f32 tile as loaded ("tile"), of the
-    tile loaded in wgmma's layout ("load"), or of the bf16 operand ("rounded"); "" for no norm. dtype: bf16 on a GPU (f32 in the interpreter's check). ablate (timing only, the result is wrong): a comma list of
+    tile loaded in wgmma's layout ("load"), or of the bf16 operand ("rounded"); "" for no norm. regs: registers a
+    thread of the compute warpgroup may use, the producer's cut to 40 (0: the compiler's default). dtype: bf16 on a GPU (f32 in the interpreter's check). ablate (timing only, the result is wrong): a comma list of
     "nobarrier" (no phase waits for the one before), "nox" (no activation tile is brought: every GEMM reads stale
     tiles), "noconv" (the residual's f32 tiles are brought but not rounded into the GEMM's operand), "x16" (q and g
     bring bf16 tiles, of q/k/v's buffer, as a bf16 copy of the residual would be)."""
@@ -155,6 +156,8 @@ def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, lhs: 
 
             @pl.when(wg == 1)
             def producer():
+                if regs:
+                    plgpu.set_max_registers(40, action="decrease")
                 def layer(l, t):
                     for ph in ps:
                         def item(m, t, ph=ph):
@@ -180,6 +183,8 @@ def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, lhs: 
 
             @pl.when(wg == 0)
             def compute():
+                if regs:   # the accumulator, the norm's squares and a tile in flight, without spilling
+                    plgpu.set_max_registers(regs, action="increase")
                 @pl.loop(c, dm.d // TN, step=ctas)
                 def _(tile):   # h <- h0
                     cols = pl.ds(tile * TN, TN)
@@ -221,7 +226,7 @@ def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, lhs: 
                                         a_tile = x_op.at[kk % 2]
                                         if not ablate & {"nox", "noconv"}:
                                             if norm == "load":
-                                                tile = plgpu.load(x32.at[kk % xdepth], (), layout=plgpu.Layout.WGMMA)
+                                                tile = plgpu.load(x32.at[kk % xdepth], (), layout=plgpu.Layout.WGMMA)  # noqa
                                             else:
                                                 tile = x32.at[kk % xdepth][...]
                                             rounded = tile.astype(bf16)
@@ -347,6 +352,8 @@ def main() -> None:
     p.add_argument("--layers", type=int, default=18, help="layers of distinct weights (default: %(default)s)")
     p.add_argument("--norm", default="none", help="comma list of none, tile, load, rounded: q's and g's GEMMs "
                    "on RMSNorm(h), its squares taken as `layer_kernel` says (default: %(default)s)")
+    p.add_argument("--regs", default="0", help="comma list of the compute warpgroup's registers a thread, the "
+                   "producer's cut to 40 (0: the compiler's default) (default: %(default)s)")
     p.add_argument("--lhs", default="regs", help="comma list: q's and g's rounded residual tiles from registers "
                    "(regs) or shared memory (smem) (default: %(default)s)")
     p.add_argument("--ablate", action="append", default=[],
@@ -378,15 +385,16 @@ def main() -> None:
            "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()), "args": vars(args),
            "weight_mb_per_layer": sum(int(np.prod(w.shape[1:])) * 2 for w in ws) / 1e6, "rows": {}}
     fns = {}
-    variants = [(int(c), int(r), m, "" if n == "none" else n, a)
-                for c in args.ctas.split(",") for r in args.ring.split(",")
-                for m in args.lhs.split(",") for n in args.norm.split(",") for a in [""] + args.ablate]
-    for ctas, ring, lhs, norm, ablate in variants:
+    variants = [(int(c), int(r), m, "" if n == "none" else n, int(g), a)
+                for c in args.ctas.split(",") for r in args.ring.split(",") for m in args.lhs.split(",")
+                for n in args.norm.split(",") for g in args.regs.split(",") for a in [""] + args.ablate]
+    for ctas, ring, lhs, norm, regs, ablate in variants:
         name = f"persistent ctas={ctas} ring={ring} xdepth={args.xdepth} lhs={lhs}" + (f" norm={norm}" if norm else "")
+        name += f" regs={regs}" if regs else ""
         name += f" -{ablate}" if ablate else ""
         res["rows"][name] = {}
         try:
-            fn = layer_kernel(dm, ctas, ring, args.xdepth, args.splits, lhs, norm, ablate=ablate)
+            fn = layer_kernel(dm, ctas, ring, args.xdepth, args.splits, lhs, norm, regs, ablate=ablate)
             got, again = np.asarray(fn(h0, kws)), np.asarray(fn(h0, kws))
             if not ablate:   # an ablation's result is wrong by design
                 res["rows"][name] = {"rel_l2_vs_xla": _rel(got, want[bool(norm)]), "rel_l2_second_call": _rel(again, got),
