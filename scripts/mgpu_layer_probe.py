@@ -370,7 +370,7 @@ def main() -> None:
         ws = [w.astype(jnp.float32) for w in ws]   # f32 on the interpreter: the check is to f32 rounding
         kws = [ws[0], ws[1], interleave(ws[2], dm.f), ws[3]]
         # lhs="smem" only: the interpreter of jax 0.10.2 takes no register operand for wgmma
-        rel = {f"norm={norm}": _rel(layer_kernel(dm, 1, 4, 2, 2, "smem", norm, jnp.float32)(h0, kws),
+        rel = {f"norm={norm}": _rel(layer_kernel(dm, 1, 4, 2, 2, "smem", norm, dtype=jnp.float32)(h0, kws),
                                     reference(h0, ws, dm, bool(norm))) for norm in ("", "tile", "rounded")}
         print(json.dumps({"rel_l2_vs_xla": rel}))
         sys.exit(0 if max(rel.values()) < 1e-5 else 1)
