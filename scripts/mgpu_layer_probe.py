@@ -99,14 +99,16 @@ def _t(minor, dtype):
 
 @functools.lru_cache(maxsize=None)
 def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, lhs: str = "regs", norm: str = "",
-                 regs: int = 0, dtype=jnp.bfloat16, ablate: str = ""):
+                 regs: int = 0, loop: bool = False, dtype=jnp.bfloat16, ablate: str = ""):
     """(h0 f32 (64, d), w_qkv, w_out, w_gate_up (blocks of 32), w_down, each (L, K, N) in `dtype`) -> h (f32).
     lhs: how q's and g's GEMMs take the f32 residual's tiles, rounded: from registers ("regs": wgmma's register
     operand) or written back to shared memory ("smem"). norm: q's and g's GEMMs take RMSNorm(h) (its weight taken
     as 1): each row's sum of squares gathered from the tiles on their way to the GEMM, the product's rows scaled by
     1 / rms after it, so the norm costs no pass of its own; the squares of the f32 tile as loaded ("tile"), of the
     tile loaded in wgmma's layout ("load"), or of the bf16 operand ("rounded"); "" for no norm. regs: registers a
-    thread of the compute warpgroup may use, the producer's cut to 40 (0: the compiler's default). dtype: bf16 on a GPU (f32 in the interpreter's check). ablate (timing only, the result is wrong): a comma list of
+    thread of the compute warpgroup may use, the producer's cut to 40 (0: the compiler's default). loop: an item's
+    K steps as a loop rather than unrolled (ptxas held 166 registers unrolled, and spilled at 255 with the norm's
+    squares). dtype: bf16 on a GPU (f32 in the interpreter's check). ablate (timing only, the result is wrong): a comma list of
     "nobarrier" (no phase waits for the one before), "nox" (no activation tile is brought: every GEMM reads stale
     tiles), "noconv" (the residual's f32 tiles are brought but not rounded into the GEMM's operand), "x16" (q and g
     bring bf16 tiles, of q/k/v's buffer, as a bf16 copy of the residual would be)."""
@@ -201,9 +203,10 @@ def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, lhs: 
                     if "nox" in ablate:
                         return
                     src = {"h": qkv if "x16" in ablate else h, "qkv": qkv, "act": act}[ph.x]
-                    dst = (x32 if f32_x(ph) else x16).at[kk % xdepth]
+                    xs_ = kk % xdepth if isinstance(kk, int) else lax.rem(kk, xdepth)
+                    dst = (x32 if f32_x(ph) else x16).at[xs_]
                     plgpu.copy_gmem_to_smem(src.at[:, pl.ds((s * ph.steps + kk) * TK, TK)], dst,
-                                            x_bar.at[kk % xdepth])
+                                            x_bar.at[xs_])
 
                 def layer(l, t):
                     for p, ph in enumerate(ps):
@@ -218,17 +221,22 @@ def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, lhs: 
 
                             @functools.partial(pl.run_scoped, acc=plgpu.ACC((ROWS, TN), f32))
                             def run(acc):
-                                squares = None   # h's squares, summed over the K tiles (norm)
-                                for kk in range(ph.steps):
+                                def when(cond, fn):   # kk is a Python int (unrolled) or traced (a loop)
+                                    if isinstance(cond, bool):
+                                        return fn() if cond else None
+                                    return pl.when(cond)(fn)
+
+                                def step(kk, squares):   # squares: h's, summed over the K tiles (norm)
+                                    xs_ = lax.rem(kk, xdepth) if loop else kk % xdepth
                                     if "nox" not in ablate:
-                                        plgpu.barrier_wait(x_bar.at[kk % xdepth])
+                                        plgpu.barrier_wait(x_bar.at[xs_])
                                     if f32_x(ph):   # the f32 residual, rounded as the GEMM's operand
-                                        a_tile = x_op.at[kk % 2]
+                                        a_tile = x_op.at[lax.rem(kk, 2) if loop else kk % 2]
                                         if not ablate & {"nox", "noconv"}:
                                             if norm == "load":
-                                                tile = plgpu.load(x32.at[kk % xdepth], (), layout=plgpu.Layout.WGMMA)  # noqa
+                                                tile = plgpu.load(x32.at[xs_], (), layout=plgpu.Layout.WGMMA)  # noqa
                                             else:
-                                                tile = x32.at[kk % xdepth][...]
+                                                tile = x32.at[xs_][...]
                                             rounded = tile.astype(bf16)
                                             if norm:   # elementwise here, one row reduction at the end: a
                                                 # reduction a tile took the layer from 20 to 41 us (H200)
@@ -237,20 +245,31 @@ def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, lhs: 
                                             if lhs == "regs":
                                                 a_tile = rounded
                                             else:
-                                                x_op.at[kk % 2][...] = rounded
+                                                a_tile[...] = rounded
                                                 plgpu.commit_smem()
-                                        if kk + xdepth < ph.steps:   # its f32 slot is free once read
-                                            x_copy(ph, s, kk + xdepth)
+                                        when(kk + xdepth < ph.steps,   # its f32 slot is free once read
+                                             lambda: x_copy(ph, s, kk + xdepth))
                                     else:
-                                        a_tile = x16.at[kk % xdepth]
+                                        a_tile = x16.at[xs_]
                                     slot = lax.rem(t + kk, ring)
                                     plgpu.barrier_wait(full.at[slot])
                                     plgpu.wgmma(acc, a_tile, w_ring.at[slot])
                                     plgpu.wgmma_wait(1)   # step kk - 1's wgmma is done: its tiles are free
-                                    if kk:
+
+                                    def release():
                                         plgpu.barrier_arrive(empty.at[lax.rem(t + kk - 1, ring)])
-                                        if not f32_x(ph) and kk - 1 + xdepth < ph.steps:
-                                            x_copy(ph, s, kk - 1 + xdepth)
+                                        if not f32_x(ph):
+                                            when(kk - 1 + xdepth < ph.steps, lambda: x_copy(ph, s, kk - 1 + xdepth))
+                                    when(kk > 0, release)
+                                    return squares
+
+                                if loop:   # one step's code in a loop: fewer registers live than unrolled
+                                    squares = lax.fori_loop(0, ph.steps, step, jnp.zeros((ROWS, TK), f32)
+                                                            if norm and f32_x(ph) else None)
+                                else:
+                                    squares = None
+                                    for kk in range(ph.steps):
+                                        squares = step(kk, squares)
                                 plgpu.wgmma_wait(0)
                                 plgpu.barrier_arrive(empty.at[lax.rem(t + ph.steps - 1, ring)])
                                 plgpu.wait_smem_to_gmem(0, wait_read_only=True)   # the last item's store read
@@ -354,6 +373,8 @@ def main() -> None:
                    "on RMSNorm(h), its squares taken as `layer_kernel` says (default: %(default)s)")
     p.add_argument("--regs", default="0", help="comma list of the compute warpgroup's registers a thread, the "
                    "producer's cut to 40 (0: the compiler's default) (default: %(default)s)")
+    p.add_argument("--loop", default="0", help="comma list of 0 / 1: an item's K steps unrolled (0) or a loop (1) "
+                   "(default: %(default)s)")
     p.add_argument("--lhs", default="regs", help="comma list: q's and g's rounded residual tiles from registers "
                    "(regs) or shared memory (smem) (default: %(default)s)")
     p.add_argument("--ablate", action="append", default=[],
@@ -370,8 +391,9 @@ def main() -> None:
         ws = [w.astype(jnp.float32) for w in ws]   # f32 on the interpreter: the check is to f32 rounding
         kws = [ws[0], ws[1], interleave(ws[2], dm.f), ws[3]]
         # lhs="smem" only: the interpreter of jax 0.10.2 takes no register operand for wgmma
-        rel = {f"norm={norm}": _rel(layer_kernel(dm, 1, 4, 2, 2, "smem", norm, dtype=jnp.float32)(h0, kws),
-                                    reference(h0, ws, dm, bool(norm))) for norm in ("", "tile", "rounded")}
+        rel = {f"norm={norm} loop={loop}": _rel(
+            layer_kernel(dm, 1, 4, 2, 2, "smem", norm, loop=loop, dtype=jnp.float32)(h0, kws),
+            reference(h0, ws, dm, bool(norm))) for norm in ("", "tile") for loop in (False, True)}
         print(json.dumps({"rel_l2_vs_xla": rel}))
         sys.exit(0 if max(rel.values()) < 1e-5 else 1)
     if jax.default_backend() != "gpu" or not args.out:
@@ -385,16 +407,17 @@ def main() -> None:
            "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()), "args": vars(args),
            "weight_mb_per_layer": sum(int(np.prod(w.shape[1:])) * 2 for w in ws) / 1e6, "rows": {}}
     fns = {}
-    variants = [(int(c), int(r), m, "" if n == "none" else n, int(g), a)
+    variants = [(int(c), int(r), m, "" if n == "none" else n, int(g), bool(int(o)), a)
                 for c in args.ctas.split(",") for r in args.ring.split(",") for m in args.lhs.split(",")
-                for n in args.norm.split(",") for g in args.regs.split(",") for a in [""] + args.ablate]
-    for ctas, ring, lhs, norm, regs, ablate in variants:
+                for n in args.norm.split(",") for g in args.regs.split(",") for o in args.loop.split(",")
+                for a in [""] + args.ablate]
+    for ctas, ring, lhs, norm, regs, loop, ablate in variants:
         name = f"persistent ctas={ctas} ring={ring} xdepth={args.xdepth} lhs={lhs}" + (f" norm={norm}" if norm else "")
-        name += f" regs={regs}" if regs else ""
+        name += (f" regs={regs}" if regs else "") + (" loop" if loop else "")
         name += f" -{ablate}" if ablate else ""
         res["rows"][name] = {}
         try:
-            fn = layer_kernel(dm, ctas, ring, args.xdepth, args.splits, lhs, norm, regs, ablate=ablate)
+            fn = layer_kernel(dm, ctas, ring, args.xdepth, args.splits, lhs, norm, regs, loop, ablate=ablate)
             got, again = np.asarray(fn(h0, kws)), np.asarray(fn(h0, kws))
             if not ablate:   # an ablation's result is wrong by design
                 res["rows"][name] = {"rel_l2_vs_xla": _rel(got, want[bool(norm)]), "rel_l2_second_call": _rel(again, got),
