@@ -1,4 +1,5 @@
-"""A layer's four GEMMs for all 18 layers as ONE persistent Mosaic GPU kernel, the weights streamed without a break.
+"""A layer's four GEMMs and its norms for all 18 layers as ONE persistent Mosaic GPU kernel, the weights streamed
+without a break.
 
 Sessions 30-41 left the denoise step at the sum of its kernels' own latencies: each GEMM kernel pays 3-4 us of
 ramp-up and tail whatever its work (`mgpu_gemm_probe.py --k-sweep`), a boundary inside XLA's command buffers costs
@@ -10,24 +11,35 @@ only the activations wait at the grid barriers. The weights do not depend on the
 One CTA per SM (`--ctas`), two warpgroups:
   producer  walks the CTA's weight tiles (64 K rows x 64 columns, 8 KB) of every phase of every layer in order and
             copies each by TMA into a ring of `--ring` slots as soon as the compute warpgroup frees one; it never
-            waits for a barrier, so it runs up to `ring` tiles ahead (ring x 8 KB x CTAs: 20 slots on 128 CTAs are
-            21 MB, 60 % of a layer's 34.6 MB)
+            waits for a barrier, so it runs up to `ring` tiles ahead (16 slots on 128 CTAs are 16.8 MB, half a
+            layer's 34.6 MB; with the activation tiles that is 208 KB of shared memory a CTA)
   compute   for each phase: waits at the grid barrier (a GPU-scope semaphore from `pl.get_global`), brings its
             item's activation tiles by TMA (`--xdepth` deep), runs wgmma against the ring, writes its output, signals
 
 Phases a layer (pi0's expert at B = 1: 64 rows, the attention left out, as `persistent_probe.py`):
-  q    h (f32, the residual; rounded to bf16 as each tile arrives) @ w_qkv (1024 x 2560) -> qkv (bf16)
+  q    RMSNorm(h) @ w_qkv (1024 x 2560) -> qkv (bf16). h is the f32 residual: each tile is rounded to bf16 in
+       registers on its way in and goes to wgmma as its register operand; the norm's squares are summed on the way
+       too, and the product's rows are scaled by 1 / rms after the GEMM (`--norm`; the norm's weight taken as 1)
   o    qkv[:, :2048] @ w_out (2048 x 1024), K split `--splits` ways; each split's f32 product added into h by
        TMA's reduce-add (the residual and the split sum in one store)
-  g    h @ w_gate_up (1024 x 2 x 4096, gate and up in blocks of 32) -> GELU-tanh(gate) * up (bf16)
+  g    RMSNorm(h) @ w_gate_up (1024 x 2 x 4096, gate and up in blocks of 32) -> GELU-tanh(gate) * up (bf16)
   d    act @ w_down (4096 x 1024), K split, reduce-added into h
-The norms are left out: the step's RMSNorm would scale each row of q's and g's products by 1/rms after the GEMM.
 
 Against it, in one process on the same weights (kernel time per layer from a profiler trace): the engine's kernels
 for the same four GEMMs (`persistent_probe.engine_chain`: its norms and RoPE included), XLA's chain, and XLA reading
-every weight array once. Checked against XLA's chain (f32 accumulation, the kernel's roundings) and against itself
-on a second call (the reduce-add's order moves the last bits, nothing more).
+every weight array once. Checked against XLA's chain (f32 accumulation, the model's roundings) and against itself
+on a second call (with `--splits 1` bit-equal; split, the reduce-add's order moves the last bits).
 
+What it showed (docs/BENCHMARKS.md, session 42; µs a layer, kernel time):
+  - H200: 23.0 with the norms (19.6-20.1 without) against 28.3 for the engine's kernels, 34.2-34.7 for XLA's chain
+    and 19.8-20.0 for XLA only reading each weight once; H100: 23.6-24.2 against 31.8 (XLA reading: 23.0).
+  - Where it goes (H100, with the norms: 24.2): the grid barriers 3.5-4.3, the activation tiles 5.3; the weight
+    stream alone 14.6 (2.4 TB/s). A ring of 4 slots instead of 16 costs 3.5 (H200, no activations or barriers).
+  - The rounded residual written back to shared memory for wgmma (`--lhs smem`, a store and a fence a step) cost
+    8.7; the norm's squares with the K steps unrolled took ptxas from 166 to 255 registers and spilled (46 against
+    23 in a loop, `--loop`).
+
+    python scripts/mgpu_layer_probe.py --out layer.json              # GPU (Hopper)
     python scripts/mgpu_layer_probe.py --out layer.json              # GPU (Hopper)
     python scripts/mgpu_layer_probe.py --cpu-check                   # Mosaic GPU's interpreter, small, 1 CTA
 """
@@ -364,16 +376,16 @@ def main() -> None:
     p.add_argument("--out", help="JSON file to write (GPU run)")
     p.add_argument("--ctas", default="128", help="comma list of grid sizes, each at most the SM count "
                    "(default: %(default)s)")
-    p.add_argument("--ring", default="20", help="comma list of weight ring depths in 8 KB tiles (default: %(default)s)")
+    p.add_argument("--ring", default="16", help="comma list of weight ring depths in 8 KB tiles (default: %(default)s)")
     p.add_argument("--xdepth", type=int, default=3, help="activation tiles in flight (default: %(default)s)")
     p.add_argument("--splits", type=int, default=8, help="K splits of the out-projection and down "
                    "(default: %(default)s: 128 items each)")
     p.add_argument("--layers", type=int, default=18, help="layers of distinct weights (default: %(default)s)")
-    p.add_argument("--norm", default="none", help="comma list of none, tile, load, rounded: q's and g's GEMMs "
+    p.add_argument("--norm", default="tile", help="comma list of none, tile, load, rounded: q's and g's GEMMs "
                    "on RMSNorm(h), its squares taken as `layer_kernel` says (default: %(default)s)")
     p.add_argument("--regs", default="0", help="comma list of the compute warpgroup's registers a thread, the "
                    "producer's cut to 40 (0: the compiler's default) (default: %(default)s)")
-    p.add_argument("--loop", default="0", help="comma list of 0 / 1: an item's K steps unrolled (0) or a loop (1) "
+    p.add_argument("--loop", default="1", help="comma list of 0 / 1: an item's K steps unrolled (0) or a loop (1) "
                    "(default: %(default)s)")
     p.add_argument("--lhs", default="regs", help="comma list: q's and g's rounded residual tiles from registers "
                    "(regs) or shared memory (smem) (default: %(default)s)")
