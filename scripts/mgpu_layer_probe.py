@@ -11,8 +11,8 @@ only the activations wait at the grid barriers. The weights do not depend on the
 One CTA per SM (`--ctas`), two warpgroups:
   producer  walks the CTA's weight tiles (64 K rows x 64 columns, 8 KB) of every phase of every layer in order and
             copies each by TMA into a ring of `--ring` slots as soon as the compute warpgroup frees one; it never
-            waits for a barrier, so it runs up to `ring` tiles ahead (16 slots on 128 CTAs are 16.8 MB, half a
-            layer's 34.6 MB; with the activation tiles that is 208 KB of shared memory a CTA)
+            waits for a barrier, so it runs up to `ring` tiles ahead (14 slots on 128 CTAs are 14.7 MB, 42 % of a
+            layer's 34.6 MB; with 4 activation tiles in flight that is 208 KB of shared memory a CTA)
   compute   for each phase: waits at the grid barrier (a GPU-scope semaphore from `pl.get_global`), brings its
             item's activation tiles by TMA (`--xdepth` deep), runs wgmma against the ring, writes its output, signals
 
@@ -30,11 +30,13 @@ for the same four GEMMs (`persistent_probe.engine_chain`: its norms and RoPE inc
 every weight array once. Checked against XLA's chain (f32 accumulation, the model's roundings) and against itself
 on a second call (with `--splits 1` bit-equal; split, the reduce-add's order moves the last bits).
 
-What it showed (docs/BENCHMARKS.md, session 42; µs a layer, kernel time):
-  - H200: 23.0 with the norms (19.6-20.1 without) against 28.3 for the engine's kernels, 34.2-34.7 for XLA's chain
-    and 19.8-20.0 for XLA only reading each weight once; H100: 23.6-24.2 against 31.8 (XLA reading: 23.0).
-  - Where it goes (H100, with the norms: 24.2): the grid barriers 3.5-4.3, the activation tiles 5.3; the weight
-    stream alone 14.6 (2.4 TB/s). A ring of 4 slots instead of 16 costs 3.5 (H200, no activations or barriers).
+What it showed (docs/BENCHMARKS.md, session 42; us a layer, kernel time):
+  - H200: 22.2 with the norms and 4 activation tiles in flight (23.0 with 3; 19.6-20.1 without the norms) against
+    28.3 for the engine's kernels, 34.1-34.7 for XLA's chain and 19.8-20.0 for XLA only reading each weight once;
+    H100: 23.6-24.2 (3 tiles in flight) against 31.8 (XLA reading: 23.0).
+  - Where it goes (with the norms, 3 tiles in flight): the grid barriers 3.0 (H200) and 3.5-4.3 (H100), the
+    activation tiles 6.9 and 5.3; the weight stream alone 12.7 (2.7 TB/s) and 14.6 (2.4 TB/s). A ring of 4 slots
+    instead of 16 costs 3.5 (H200, no activations or barriers).
   - The rounded residual written back to shared memory for wgmma (`--lhs smem`, a store and a fence a step) cost
     8.7; the norm's squares with the K steps unrolled took ptxas from 166 to 255 registers and spilled (46 against
     23 in a loop, `--loop`).
@@ -376,8 +378,8 @@ def main() -> None:
     p.add_argument("--out", help="JSON file to write (GPU run)")
     p.add_argument("--ctas", default="128", help="comma list of grid sizes, each at most the SM count "
                    "(default: %(default)s)")
-    p.add_argument("--ring", default="16", help="comma list of weight ring depths in 8 KB tiles (default: %(default)s)")
-    p.add_argument("--xdepth", type=int, default=3, help="activation tiles in flight (default: %(default)s)")
+    p.add_argument("--ring", default="14", help="comma list of weight ring depths in 8 KB tiles (default: %(default)s)")
+    p.add_argument("--xdepth", type=int, default=4, help="activation tiles in flight (default: %(default)s)")
     p.add_argument("--splits", type=int, default=8, help="K splits of the out-projection and down "
                    "(default: %(default)s: 128 items each)")
     p.add_argument("--layers", type=int, default=18, help="layers of distinct weights (default: %(default)s)")
