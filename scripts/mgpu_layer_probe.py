@@ -67,6 +67,7 @@ from jax import lax
 from pi0_jax.ops import mosaic_gemm
 
 sys.path.insert(0, str(Path(__file__).parent))
+from mgpu_pdl_probe import interleave as pdl_interleave  # noqa: E402
 from persistent_probe import engine_chain  # noqa: E402
 from profile_engine import kernel_times  # noqa: E402
 
@@ -122,10 +123,10 @@ def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, lhs: 
     tile loaded in wgmma's layout ("load"), or of the bf16 operand ("rounded"); "" for no norm. regs: registers a
     thread of the compute warpgroup may use, the producer's cut to 40 (0: the compiler's default). loop: an item's
     K steps as a loop rather than unrolled (ptxas held 166 registers unrolled, and spilled at 255 with the norm's
-    squares). dtype: bf16 on a GPU (f32 in the interpreter's check). ablate (timing only, the result is wrong): a comma list of
-    "nobarrier" (no phase waits for the one before), "nox" (no activation tile is brought: every GEMM reads stale
-    tiles), "noconv" (the residual's f32 tiles are brought but not rounded into the GEMM's operand), "x16" (q and g
-    bring bf16 tiles, of q/k/v's buffer, as a bf16 copy of the residual would be)."""
+    squares). dtype: bf16 on a GPU (f32 in the interpreter's check). ablate (timing only, the result is wrong): a
+    comma list of "nobarrier" (no phase waits for the one before), "nox" (no activation tile is brought: every GEMM
+    reads stale tiles), "noconv" (the residual's f32 tiles are brought but not rounded into the GEMM's operand),
+    "x16" (q and g bring bf16 tiles, of q/k/v's buffer, as a bf16 copy of the residual would be)."""
     ablate = set(filter(None, ablate.split(",")))
     ps = phases(dm, splits)
     bf16, f32 = dtype, jnp.float32
@@ -174,6 +175,7 @@ def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, lhs: 
             def producer():
                 if regs:
                     plgpu.set_max_registers(40, action="decrease")
+
                 def layer(l, t):
                     for ph in ps:
                         def item(m, t, ph=ph):
@@ -201,6 +203,7 @@ def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, lhs: 
             def compute():
                 if regs:   # the accumulator, the norm's squares and a tile in flight, without spilling
                     plgpu.set_max_registers(regs, action="increase")
+
                 @pl.loop(c, dm.d // TN, step=ctas)
                 def _(tile):   # h <- h0
                     cols = pl.ds(tile * TN, TN)
@@ -252,8 +255,7 @@ def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, lhs: 
                                             else:
                                                 tile = x32.at[xs_][...]
                                             rounded = tile.astype(bf16)
-                                            if norm:   # elementwise here, one row reduction at the end: a
-                                                # reduction a tile took the layer from 20 to 41 us (H200)
+                                            if norm:   # elementwise here, one row reduction an item
                                                 sq = rounded.astype(f32) if norm == "rounded" else tile
                                                 squares = sq * sq if squares is None else squares + sq * sq
                                             if lhs == "regs":
@@ -332,10 +334,8 @@ def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, lhs: 
 
 
 def interleave(w, f: int):
-    """(..., K, 2F) [gate | up] -> gate and up alternating in blocks of UNITS columns."""
-    g, u = w[..., :f], w[..., f:]
-    shape = w.shape[:-1] + (f // UNITS, 1, UNITS)
-    return jnp.concatenate([g.reshape(shape), u.reshape(shape)], axis=-2).reshape(w.shape)
+    """(L, K, 2F) [gate | up] -> gate and up alternating in blocks of UNITS columns, layer by layer."""
+    return jax.vmap(functools.partial(pdl_interleave, hidden=f, units=UNITS))(w)
 
 
 def reference(h, ws, dm: Dims, norm=False):
@@ -434,8 +434,8 @@ def main() -> None:
             fn = layer_kernel(dm, ctas, ring, args.xdepth, args.splits, lhs, norm, regs, loop, ablate=ablate)
             got, again = np.asarray(fn(h0, kws)), np.asarray(fn(h0, kws))
             if not ablate:   # an ablation's result is wrong by design
-                res["rows"][name] = {"rel_l2_vs_xla": _rel(got, want[bool(norm)]), "rel_l2_second_call": _rel(again, got),
-                                     "nan": int(np.isnan(got).sum())}
+                res["rows"][name] = {"rel_l2_vs_xla": _rel(got, want[bool(norm)]),
+                                     "rel_l2_second_call": _rel(again, got), "nan": int(np.isnan(got).sum())}
             fns[name] = functools.partial(fn, h0, kws)
         except Exception as e:   # a variant that fails to lower is a result, not the end of the run
             res["rows"][name] = {"error": f"{type(e).__name__}: {e}"[:3000]}
