@@ -65,6 +65,7 @@ import numpy as np
 from jax import lax
 
 from pi0_jax.ops import mosaic_gemm
+from pi0_jax.ops.mosaic_gemm import transforms as _t
 
 sys.path.insert(0, str(Path(__file__).parent))
 from mgpu_pdl_probe import interleave as pdl_interleave  # noqa: E402
@@ -108,8 +109,16 @@ def phases(dm: Dims, splits: int) -> tuple:
             Phase("g", dm.d, 2 * dm.f, 1, "h", "geglu"), Phase("d", dm.f, dm.d, splits, "act", "add"))
 
 
-def _t(minor, dtype):
-    return mosaic_gemm.transforms(minor, dtype)
+def _mod(kk, n: int):
+    """kk % n for a K step that is a Python int (unrolled) or traced (a loop)."""
+    return kk % n if isinstance(kk, int) else lax.rem(kk, n)
+
+
+def _when(cond, fn):
+    """fn() where cond holds: a Python bool decides at trace time, a traced one in the kernel."""
+    if isinstance(cond, bool):
+        return fn() if cond else None
+    return pl.when(cond)(fn)
 
 
 @functools.lru_cache(maxsize=None)
@@ -220,7 +229,7 @@ def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, lhs: 
                     if "nox" in ablate:
                         return
                     src = {"h": qkv if "x16" in ablate else h, "qkv": qkv, "act": act}[ph.x]
-                    xs_ = kk % xdepth if isinstance(kk, int) else lax.rem(kk, xdepth)
+                    xs_ = _mod(kk, xdepth)
                     dst = (x32 if f32_x(ph) else x16).at[xs_]
                     plgpu.copy_gmem_to_smem(src.at[:, pl.ds((s * ph.steps + kk) * TK, TK)], dst,
                                             x_bar.at[xs_])
@@ -238,17 +247,12 @@ def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, lhs: 
 
                             @functools.partial(pl.run_scoped, acc=plgpu.ACC((ROWS, TN), f32))
                             def run(acc):
-                                def when(cond, fn):   # kk is a Python int (unrolled) or traced (a loop)
-                                    if isinstance(cond, bool):
-                                        return fn() if cond else None
-                                    return pl.when(cond)(fn)
-
                                 def step(kk, squares):   # squares: h's, summed over the K tiles (norm)
-                                    xs_ = lax.rem(kk, xdepth) if loop else kk % xdepth
+                                    xs_ = _mod(kk, xdepth)
                                     if "nox" not in ablate:
                                         plgpu.barrier_wait(x_bar.at[xs_])
                                     if f32_x(ph):   # the f32 residual, rounded as the GEMM's operand
-                                        a_tile = x_op.at[lax.rem(kk, 2) if loop else kk % 2]
+                                        a_tile = x_op.at[_mod(kk, 2)]
                                         if not ablate & {"nox", "noconv"}:
                                             if norm == "load":
                                                 tile = plgpu.load(x32.at[xs_], (), layout=plgpu.Layout.WGMMA)  # noqa
@@ -263,7 +267,7 @@ def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, lhs: 
                                             else:
                                                 a_tile[...] = rounded
                                                 plgpu.commit_smem()
-                                        when(kk + xdepth < ph.steps,   # its f32 slot is free once read
+                                        _when(kk + xdepth < ph.steps,   # its f32 slot is free once read
                                              lambda: x_copy(ph, s, kk + xdepth))
                                     else:
                                         a_tile = x16.at[xs_]
@@ -275,8 +279,8 @@ def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, lhs: 
                                     def release():
                                         plgpu.barrier_arrive(empty.at[lax.rem(t + kk - 1, ring)])
                                         if not f32_x(ph):
-                                            when(kk - 1 + xdepth < ph.steps, lambda: x_copy(ph, s, kk - 1 + xdepth))
-                                    when(kk > 0, release)
+                                            _when(kk - 1 + xdepth < ph.steps, lambda: x_copy(ph, s, kk - 1 + xdepth))
+                                    _when(kk > 0, release)
                                     return squares
 
                                 if loop:   # one step's code in a loop: fewer registers live than unrolled
