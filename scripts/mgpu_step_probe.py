@@ -9,19 +9,22 @@ layer has around those GEMMs, so that the kernel computes the step's layers for 
   - the attention of the suffix's 64 query rows (pi0: 51 valid) over the cached prefix's keys (masked per key) and
     the suffix's own (block-causal, each row a prefix of them: `mosaic_attention.suffix_ends`), MQA (one kv head).
 
-The attention is two phases of (head, 64-key block) items, 8 x 14 = 112 of them:
-  a1   S = q K^T for the item's block; its rows' maximum m and sum of exp(S - m) l go to global memory
-  a2   after a grid barrier, every item reads its head's m and l of all blocks, so it knows each row's softmax
-       maximum M and denominator L; it computes S again, P = exp(S - M) / L (already normalised, rounded to bf16),
-       and adds P V in f32 into the attention output by TMA's reduce-add. No merge pass and no partials: the
-       out-projection then takes the f32 attention output as q/k/v's GEMM takes the residual (rounded in registers).
+The attention is one phase of (head, 64-key block) items, 8 x 14 = 112 of them, one a CTA:
+  - S = q K^T for the item's block; its rows' maximum m and sum l of exp(S - m) go to global memory, and the item
+    signals its head's semaphore; then P V with P = exp(S - m) (rounded, as the engine's split kernel) into shared
+    memory, while the head's other blocks finish;
+  - once its head's 14 blocks are published, the item knows each row's softmax maximum M and denominator L, scales
+    its P V by exp(m - M) / L and adds it in f32 into the attention output by TMA's reduce-add. No merge pass: the
+    out-projection takes the f32 attention output as q/k/v's GEMM takes the residual (rounded in registers).
+(Session 43's first form, commit c89f403, split this into two phases with a grid barrier between and S computed
+twice: 37.5 us a layer on an H200.)
 The keys and values stream through the weight ring like weights: the producer warpgroup brings a prefix block's
 tiles whenever a slot is free (the cache does not change within a call); only the suffix's own block waits for the
 q/k/v phase (its producer waits at that phase's grid barrier). The attention output's buffer is zeroed in the
 gate/up phase, when its last reader (the out-projection) is done.
 
-Phases a layer: q (40 items) | a1 (112) | a2 (112) | o (128: 16 column tiles x 8 K splits, one per head) | g (128) |
-d (128), each after a GPU-scope grid barrier. The norms' weights are taken as 1 and pi0's; no adaRMS.
+Phases a layer: q (40 items) | a (112) | o (128: 16 column tiles x 8 K splits, one a head) | g (128) | d (128), each
+after a GPU-scope grid barrier. The norms' weights are taken as 1 and pi0's; no adaRMS.
 
 Checked against the same layer chain in XLA (the engine's roundings: q/k/v rounded, RoPE in f32 rounded, q scaled in
 bf16, softmax in f32, P in bf16, the attention output rounded) and on a second call. Against it in one process (kernel
@@ -58,6 +61,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from mgpu_layer_probe import EPS, _mod, _rel, _when, interleave  # noqa: E402
 from profile_engine import kernel_times  # noqa: E402
 
+PHASES = ("q", "a", "o", "g", "d")
 ROWS = TK = TN = 64   # query rows (pi0's 51 suffix tokens padded), a tile's K rows, its columns, a key block
 HALF = TN // 2        # a RoPE tile's halves; GeGLU units a tile (gate and up alternate in blocks of 32)
 
@@ -108,8 +112,11 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype=
     on_cpu = jax.default_backend() == "cpu"
     assert ctas == 1 or not on_cpu, "the interpreter runs one CTA"
     assert xdepth >= dm.dt, "a head's q tiles are held in the activation slots"
-    per_layer = 6
-    n_phases = 1 + per_layer * dm.layers   # a copy of h0 into h, then q a1 a2 o g d
+    per_layer = len(PHASES)
+    n_phases = 1 + per_layer * dm.layers   # a copy of h0 into h, then a layer's phases
+    per_cta = -(-dm.heads * dm.blocks // ctas)   # attention items a CTA
+    # one a CTA on a GPU: its P V (f32, 64 x hd) shares shared memory with the activation tiles
+    assert per_cta == 1 or on_cpu, "the attention's items are at most the CTAs"
     gemm_k = {"q": dm.d, "o": dm.a, "g": dm.d, "d": dm.f}
     gemm_cols = {"q": dm.nq, "o": dm.d, "g": 2 * dm.f, "d": dm.d}
     gemm_splits = {"q": 1, "o": splits, "g": 1, "d": splits}
@@ -121,13 +128,13 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype=
     lhs_regs = not on_cpu   # jax 0.10's interpreter takes no register operand for wgmma
 
     def items(name):
-        if name in ("a1", "a2"):
+        if name == "a":
             return att_items
         return gemm_cols[name] // TN * gemm_splits[name]
 
     def steps(name):   # ring tiles an item
-        if name in ("a1", "a2"):
-            return dm.dt * (1 if name == "a1" else 2)
+        if name == "a":   # a block's key tiles, then its value tiles
+            return 2 * dm.dt
         return gemm_k[name] // gemm_splits[name] // TK
 
     def union(*refs):   # the interpreter has no RefUnion
@@ -144,34 +151,36 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype=
     def kernel(h0, wq, wo, wg, wd, ck, cv, key_ok, ends_g, rope, h, qkv, act, attn, ml):
         c = lax.axis_index("c")
         sem = None if on_cpu else pl.get_global(plgpu.SemaphoreType.REGULAR)
+        head_sem = None if on_cpu else pl.get_global(plgpu.SemaphoreType.REGULAR((dm.heads,)))
         weights = {"q": wq, "o": wo, "g": wg, "d": wd}
 
         def mine(name):   # this CTA's items of a phase: c, c + ctas, ...
             return jnp.maximum(items(name) - c + ctas - 1, 0) // ctas
 
-        x16_group = (plgpu.SMEM((xdepth, ROWS, TK), bf16, transforms=_t(TK, bf16)),
-                     plgpu.SMEM((dm.blocks, 2, ROWS), f32))   # a2: its head's m and l of every block
 
         @functools.partial(
             pl.run_scoped,
             w_ring=plgpu.SMEM((ring, TK, TN), bf16, transforms=_t(TN, bf16)),
             full=plgpu.Barrier(num_arrivals=1, num_barriers=ring),
             empty=plgpu.Barrier(num_arrivals=1, num_barriers=ring),
-            xs=union(plgpu.SMEM((xdepth, ROWS, TK), f32, transforms=_t(TK, f32)), x16_group),
+            xs=union(plgpu.SMEM((xdepth, ROWS, TK), f32, transforms=_t(TK, f32)),
+                     plgpu.SMEM((xdepth, ROWS, TK), bf16, transforms=_t(TK, bf16)),
+                     plgpu.SMEM((per_cta, dm.dt, ROWS, TN), f32, transforms=_t(TN, f32))),   # P V, unscaled
             x_bar=plgpu.Barrier(num_arrivals=1, num_barriers=xdepth),
             outs=union(plgpu.SMEM((ROWS, TN), bf16, transforms=_t(TN, bf16)),
                        plgpu.SMEM((ROWS, TN), f32, transforms=_t(TN, f32)),
                        plgpu.SMEM((2, ROWS, HALF), bf16, transforms=_t(HALF, bf16))),
             cs=plgpu.SMEM((2, ROWS, HALF), f32, transforms=_t(HALF, f32)),
             mls=plgpu.SMEM((2, ROWS), f32),
+            mla=plgpu.SMEM((dm.blocks, 2, ROWS), f32),   # its head's m and l of every block
             masks=plgpu.SMEM((2, ROWS), jnp.int32),   # a block's key_ok, and ends
             misc_bar=plgpu.Barrier(num_arrivals=1, num_barriers=4),   # cs, key_ok, ends, m and l
             qdone=plgpu.Barrier(num_arrivals=1, num_barriers=1),   # the interpreter's q-phase barrier
             collective_axes="wg",
             # wgmma's A written to shared memory: the interpreter's only way (jax 0.10: no register operand)
             **({"x_op": plgpu.SMEM((2, ROWS, TK), bf16, transforms=_t(TK, bf16))} if on_cpu else {}))
-        def scope(w_ring, full, empty, xs, x_bar, outs, cs, mls, masks, misc_bar, qdone, x_op=None):
-            (x32, (x16, mla)), (o16, o32, o2x) = xs, outs
+        def scope(w_ring, full, empty, xs, x_bar, outs, cs, mls, mla, masks, misc_bar, qdone, x_op=None):
+            (x32, x16, part), (o16, o32, o2x) = xs, outs
             wg = lax.axis_index("wg")
 
             @pl.when(wg == 1)
@@ -202,19 +211,18 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype=
                     return issue
 
                 def layer(l, t):
-                    for name in ("q", "a1", "a2", "o", "g", "d"):
-                        if name == "a1" and on_cpu:
+                    for name in PHASES:
+                        if name == "a" and on_cpu:
                             plgpu.barrier_wait(qdone)
 
                         def item(m, t, name=name):
                             i = c + m * ctas
-                            if name in ("a1", "a2"):
+                            if name == "a":
                                 blk = lax.rem(i, dm.blocks)
                                 for tile in range(dm.dt):
                                     put(t + tile, kv_tile(l, blk, tile, ck, kcol))
-                                if name == "a2":
-                                    for tile in range(dm.dt):
-                                        put(t + dm.dt + tile, kv_tile(l, blk, tile, cv, vcol))
+                                for tile in range(dm.dt):
+                                    put(t + dm.dt + tile, kv_tile(l, blk, tile, cv, vcol))
                             else:
                                 j, s = i // gemm_splits[name], lax.rem(i, gemm_splits[name])
                                 for kk in range(steps(name)):
@@ -389,52 +397,27 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype=
                     valid = lax.broadcast_in_dim(ok & (blk < nb), (ROWS, ROWS), [1]) | (suffix_ok & (blk == nb))
                     return jnp.where(valid, s, BIG_NEG)
 
-                def att_loads(i, reload_q):
-                    n, blk = i // dm.blocks, lax.rem(i, dm.blocks)
-
-                    def q_tiles():
-                        for tile in range(dm.dt):
-                            plgpu.copy_gmem_to_smem(qkv.at[:, pl.ds(n * dm.hd + tile * TN, TN)], x16.at[tile],
-                                                    x_bar.at[tile])
-                    _when(reload_q, q_tiles)
-                    plgpu.copy_gmem_to_smem(key_ok.at[pl.ds(blk * ROWS, ROWS)], masks.at[0], misc_bar.at[1])
-
-                    def wait_q():
-                        for tile in range(dm.dt):
-                            plgpu.barrier_wait(x_bar.at[tile])
-                    _when(reload_q, wait_q)
-
-                def a1_item(m, t):
+                def att_first(m, t):
+                    """Item i's block: S, its rows' m and l published (then its head's semaphore), and
+                    exp(S - m) V into shared memory, while the head's other blocks finish."""
                     i = c + m * ctas
-                    att_loads(i, True)
+                    n, blk = i // dm.blocks, lax.rem(i, dm.blocks)
+                    for tile in range(dm.dt):
+                        plgpu.copy_gmem_to_smem(qkv.at[:, pl.ds(n * dm.hd + tile * TN, TN)], x16.at[tile],
+                                                x_bar.at[tile])
+                    plgpu.copy_gmem_to_smem(key_ok.at[pl.ds(blk * ROWS, ROWS)], masks.at[0], misc_bar.at[1])
+                    for tile in range(dm.dt):
+                        plgpu.barrier_wait(x_bar.at[tile])
                     s = logits(t, i)
                     mx = s.max(axis=1)
+                    p = jnp.exp(s - lax.broadcast_in_dim(mx, s.shape, [0]))
                     plgpu.wait_smem_to_gmem(0, wait_read_only=True)   # the last item's m and l read
                     mls.at[0][...] = mx
-                    mls.at[1][...] = jnp.exp(s - lax.broadcast_in_dim(mx, s.shape, [0])).sum(axis=1)
+                    mls.at[1][...] = p.sum(axis=1)   # from p unrounded, as the engine's split kernel
                     plgpu.commit_smem()
-                    plgpu.copy_smem_to_gmem(mls, ml.at[i // dm.blocks, lax.rem(i, dm.blocks)])
-                    return t + steps("a1")
-
-                def a2_item(m, t):
-                    i = c + m * ctas
-                    n = i // dm.blocks
-                    # one item a CTA (112 on 128): its q tiles are still those a1 brought
-                    att_loads(i, mine("a2") > 1)
-                    plgpu.copy_gmem_to_smem(ml.at[n], mla, misc_bar.at[3])
-                    s = logits(t, i)
-                    plgpu.barrier_wait(misc_bar.at[3])
-                    top = None
-                    for b in range(dm.blocks):
-                        mb = _in_layout(mla[b, 0], plgpu.Layout.WGMMA.reduce(1))
-                        top = mb if top is None else jnp.maximum(top, mb)
-                    total = 0
-                    for b in range(dm.blocks):
-                        mb = _in_layout(mla[b, 0], plgpu.Layout.WGMMA.reduce(1))
-                        lb = _in_layout(mla[b, 1], plgpu.Layout.WGMMA.reduce(1))
-                        total = total + lb * jnp.exp(mb - top)
-                    p = jnp.exp(s - lax.broadcast_in_dim(top, s.shape, [0])) * lax.broadcast_in_dim(
-                        1 / total, s.shape, [0])
+                    plgpu.copy_smem_to_gmem(mls, ml.at[n, blk])
+                    plgpu.wait_smem_to_gmem(0)
+                    signal(head_sem.at[n] if not on_cpu else None)
                     p = operand(p.astype(bf16), 0)
                     for tile in range(dm.dt):   # P V, a 64-column tile of the head at a time
                         slot = lax.rem(t + dm.dt + tile, ring)
@@ -445,16 +428,44 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype=
                             plgpu.wgmma(acc, p, w_ring.at[slot])
                             plgpu.wgmma_wait(0)
                             plgpu.barrier_arrive(empty.at[slot])
-                            add_into(acc[...], attn.at[:, pl.ds(n * dm.hd + tile * TN, TN)])
-                    return t + steps("a2")
+                            part.at[m, tile][...] = acc[...]
+                    return t + steps("a")
+
+                def att_second(l, m, carry):
+                    """Item i's P V rescaled once its head's blocks are all published: by exp(m - M) / L, each
+                    row's maximum M and denominator L over the blocks, and added into the attention output."""
+                    i = c + m * ctas
+                    n, blk = i // dm.blocks, lax.rem(i, dm.blocks)
+                    wait(head_sem.at[n] if not on_cpu else None, (l + 1) * dm.blocks)
+                    plgpu.copy_gmem_to_smem(ml.at[n], mla, misc_bar.at[3])
+                    plgpu.barrier_wait(misc_bar.at[3])
+
+                    def row(b, k):
+                        return _in_layout(mla[b, k], plgpu.Layout.WGMMA.reduce(1))
+                    top = functools.reduce(jnp.maximum, [row(b, 0) for b in range(dm.blocks)])
+                    total = sum(row(b, 1) * jnp.exp(row(b, 0) - top) for b in range(dm.blocks))
+                    scale = jnp.exp(row(blk, 0) - top) / total
+                    for tile in range(dm.dt):
+                        y = part.at[m, tile][...]
+                        if on_cpu:
+                            add_into(y * lax.broadcast_in_dim(scale, y.shape, [0]),
+                                     attn.at[:, pl.ds(n * dm.hd + tile * TN, TN)])
+                        else:   # scaled in place (each thread rewrites what it read), added by TMA
+                            part.at[m, tile][...] = y * lax.broadcast_in_dim(scale, y.shape, [0])
+                            plgpu.commit_smem()
+                            plgpu.copy_smem_to_gmem(part.at[m, tile], attn.at[:, pl.ds(n * dm.hd + tile * TN, TN)],
+                                                    reduction_op="add")
+                    return carry
 
                 def layer(l, t):
-                    for p, name in enumerate(("q", "a1", "a2", "o", "g", "d")):
+                    for p, name in enumerate(PHASES):
                         wait(sem, (1 + per_layer * l + p) * ctas)
                         if name == "g":   # the out-projection, the attention output's last reader, is done
                             zero_attn()
-                        body = {"a1": a1_item, "a2": a2_item}.get(name, functools.partial(gemm_item, name, l))
+                        body = att_first if name == "a" else functools.partial(gemm_item, name, l)
                         t = lax.fori_loop(0, mine(name), body, t)
+                        if name == "a":
+                            lax.fori_loop(0, mine(name), functools.partial(att_second, l), 0)
                         plgpu.wait_smem_to_gmem(0)   # this phase's stores have landed
                         if name == "q" and on_cpu:
                             plgpu.barrier_arrive(qdone)
@@ -463,8 +474,10 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype=
                 lax.fori_loop(0, dm.layers, layer, jnp.int32(0))
 
                 @pl.when(c == 0)
-                def _():   # every CTA signalled once a phase: take the count back, the next call starts at zero
+                def _():   # every CTA signalled once a phase: take the counts back, the next call starts at zero
                     wait(sem, n_phases * ctas, decrement=True)
+                    for n in range(dm.heads):
+                        wait(head_sem.at[n] if not on_cpu else None, dm.layers * dm.blocks, decrement=True)
 
     out = (jax.ShapeDtypeStruct((ROWS, dm.d), f32), jax.ShapeDtypeStruct((ROWS, dm.nq), bf16),
            jax.ShapeDtypeStruct((ROWS, dm.f), bf16), jax.ShapeDtypeStruct((ROWS, dm.a), f32),
