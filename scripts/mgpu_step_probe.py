@@ -104,10 +104,13 @@ def rope_perm(dm: Dims) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=None)
-def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype=jnp.bfloat16):
+def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype=jnp.bfloat16, ablate: str = ""):
     """(h0 f32 (64, d), w_qkv (permuted, `rope_perm`), w_out, w_gate_up (blocks of 32), w_down, each (L, K, N);
     cache_k, cache_v (L, prefix, hd); key_ok (prefix + 64,) int32 (the prefix's keys, then 64 ones); ends (64,) int32;
-    rope (2, 64, hd / 2) f32 cos and sin) -> h f32 (64, d)."""
+    rope (2, 64, hd / 2) f32 cos and sin) -> h f32 (64, d). ablate (timing only, the result is wrong): a comma list of
+    "noatt" (the attention phase has no items; its barrier stays) and "noexchange" (no item waits for its head's
+    other blocks)."""
+    ablate = set(filter(None, ablate.split(",")))
     bf16, f32 = dtype, jnp.float32
     on_cpu = jax.default_backend() == "cpu"
     assert ctas == 1 or not on_cpu, "the interpreter runs one CTA"
@@ -121,7 +124,7 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype=
     gemm_cols = {"q": dm.nq, "o": dm.d, "g": 2 * dm.f, "d": dm.d}
     gemm_splits = {"q": 1, "o": splits, "g": 1, "d": splits}
     gemm_x = {"q": "h", "o": "attn", "g": "h", "d": "act"}   # f32 residual (normed), f32 attention output, bf16
-    att_items = dm.heads * dm.blocks
+    att_items = 0 if "noatt" in ablate else dm.heads * dm.blocks
     nb = dm.blocks - 1   # the suffix's block index
     kcol, vcol = dm.a, dm.a + dm.hd
     q_scale = float(np.asarray(dm.hd ** -0.5, dtype))   # a value of the dtype, as the engine's
@@ -436,7 +439,8 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype=
                     row's maximum M and denominator L over the blocks, and added into the attention output."""
                     i = c + m * ctas
                     n, blk = i // dm.blocks, lax.rem(i, dm.blocks)
-                    wait(head_sem.at[n] if not on_cpu else None, (l + 1) * dm.blocks)
+                    if "noexchange" not in ablate:
+                        wait(head_sem.at[n] if not on_cpu else None, (l + 1) * dm.blocks)
                     plgpu.copy_gmem_to_smem(ml.at[n], mla, misc_bar.at[3])
                     plgpu.barrier_wait(misc_bar.at[3])
 
@@ -476,7 +480,7 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype=
                 @pl.when(c == 0)
                 def _():   # every CTA signalled once a phase: take the counts back, the next call starts at zero
                     wait(sem, n_phases * ctas, decrement=True)
-                    for n in range(dm.heads):
+                    for n in range(dm.heads if att_items else 0):
                         wait(head_sem.at[n] if not on_cpu else None, dm.layers * dm.blocks, decrement=True)
 
     out = (jax.ShapeDtypeStruct((ROWS, dm.d), f32), jax.ShapeDtypeStruct((ROWS, dm.nq), bf16),
@@ -583,6 +587,9 @@ def main() -> None:
     p.add_argument("--splits", type=int, default=8, help="K splits of the out-projection and down "
                    "(default: %(default)s: 128 items each)")
     p.add_argument("--layers", type=int, default=18, help="layers of distinct weights (default: %(default)s)")
+    p.add_argument("--ablate", action="append", default=[],
+                   help="a variant with parts left out, for timing only (repeatable): a comma list of noatt, "
+                        "noexchange (`step_kernel`)")
     p.add_argument("--iters", type=int, default=30, help="traced calls per variant (default: %(default)s)")
     p.add_argument("--no-peers", action="store_true", help="only the persistent kernel")
     p.add_argument("--cpu-check", action="store_true",
@@ -608,17 +615,21 @@ def main() -> None:
     fns = {}
     for ctas in map(int, args.ctas.split(",")):
         for ring in map(int, args.ring.split(",")):
-            name = f"persistent step ctas={ctas} ring={ring} xdepth={args.xdepth}"
-            try:
-                fn = step_kernel(dm, ctas, ring, args.xdepth, args.splits)
-                got, again = np.asarray(fn(h0, kws, att)), np.asarray(fn(h0, kws, att))
-                res["rows"][name] = {"rel_l2_vs_xla": _rel(got, want), "rel_l2_second_call": _rel(again, got),
-                                     "nan": int(np.isnan(got).sum())}
-                fns[name] = functools.partial(fn, h0, kws, att)
-            except Exception as e:   # a variant that fails to lower is a result, not the end of the run
-                res["rows"][name] = {"error": f"{type(e).__name__}: {e}"[:3000]}
-                traceback.print_exc()
-            print(name, res["rows"][name], flush=True)
+            for ablate in [""] + args.ablate:
+                name = f"persistent step ctas={ctas} ring={ring} xdepth={args.xdepth}"
+                name += f" -{ablate}" if ablate else ""
+                res["rows"][name] = {}
+                try:
+                    fn = step_kernel(dm, ctas, ring, args.xdepth, args.splits, ablate=ablate)
+                    got, again = np.asarray(fn(h0, kws, att)), np.asarray(fn(h0, kws, att))
+                    if not ablate:   # an ablation's result is wrong by design
+                        res["rows"][name] = {"rel_l2_vs_xla": _rel(got, want), "rel_l2_second_call": _rel(again, got),
+                                             "nan": int(np.isnan(got).sum())}
+                    fns[name] = functools.partial(fn, h0, kws, att)
+                except Exception as e:   # a variant that fails to lower is a result, not the end of the run
+                    res["rows"][name] = {"error": f"{type(e).__name__}: {e}"[:3000]}
+                    traceback.print_exc()
+                print(name, res["rows"][name], flush=True)
     if not args.no_peers:
         eng = engine_layers(dm)
         try:
