@@ -108,8 +108,9 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype=
     """(h0 f32 (64, d), w_qkv (permuted, `rope_perm`), w_out, w_gate_up (blocks of 32), w_down, each (L, K, N);
     cache_k, cache_v (L, prefix, hd); key_ok (prefix + 64,) int32 (the prefix's keys, then 64 ones); ends (64,) int32;
     rope (2, 64, hd / 2) f32 cos and sin) -> h f32 (64, d). ablate (timing only, the result is wrong): a comma list of
-    "noatt" (the attention phase has no items; its barrier stays) and "noexchange" (no item waits for its head's
-    other blocks)."""
+    "noatt" (the attention phase has no items; its barrier stays), "noexchange" (no item waits for its head's
+    other blocks), "noml" (nor publishes or reads the blocks' m and l), "noq" (no q tiles brought), "nopv" (no P V),
+    "noadd" (no reduce-add into the attention output)."""
     ablate = set(filter(None, ablate.split(",")))
     bf16, f32 = dtype, jnp.float32
     on_cpu = jax.default_backend() == "cpu"
@@ -405,11 +406,12 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype=
                     exp(S - m) V into shared memory, while the head's other blocks finish."""
                     i = c + m * ctas
                     n, blk = i // dm.blocks, lax.rem(i, dm.blocks)
-                    for tile in range(dm.dt):
+                    q_tiles = range(0 if "noq" in ablate else dm.dt)
+                    for tile in q_tiles:
                         plgpu.copy_gmem_to_smem(qkv.at[:, pl.ds(n * dm.hd + tile * TN, TN)], x16.at[tile],
                                                 x_bar.at[tile])
                     plgpu.copy_gmem_to_smem(key_ok.at[pl.ds(blk * ROWS, ROWS)], masks.at[0], misc_bar.at[1])
-                    for tile in range(dm.dt):
+                    for tile in q_tiles:
                         plgpu.barrier_wait(x_bar.at[tile])
                     s = logits(t, i)
                     mx = s.max(axis=1)
@@ -418,9 +420,10 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype=
                     mls.at[0][...] = mx
                     mls.at[1][...] = p.sum(axis=1)   # from p unrounded, as the engine's split kernel
                     plgpu.commit_smem()
-                    plgpu.copy_smem_to_gmem(mls, ml.at[n, blk])
-                    plgpu.wait_smem_to_gmem(0)
-                    signal(head_sem.at[n] if not on_cpu else None)
+                    if "noml" not in ablate:
+                        plgpu.copy_smem_to_gmem(mls, ml.at[n, blk])
+                        plgpu.wait_smem_to_gmem(0)
+                        signal(head_sem.at[n] if not on_cpu else None)
                     p = operand(p.astype(bf16), 0)
                     for tile in range(dm.dt):   # P V, a 64-column tile of the head at a time
                         slot = lax.rem(t + dm.dt + tile, ring)
@@ -428,10 +431,12 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype=
 
                         @functools.partial(pl.run_scoped, acc=plgpu.ACC((ROWS, TN), f32))
                         def pv(acc):
-                            plgpu.wgmma(acc, p, w_ring.at[slot])
-                            plgpu.wgmma_wait(0)
+                            if "nopv" not in ablate:
+                                plgpu.wgmma(acc, p, w_ring.at[slot])
+                                plgpu.wgmma_wait(0)
                             plgpu.barrier_arrive(empty.at[slot])
-                            part.at[m, tile][...] = acc[...]
+                            if "nopv" not in ablate:
+                                part.at[m, tile][...] = acc[...]
                     return t + steps("a")
 
                 def att_second(l, m, carry):
@@ -439,10 +444,11 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype=
                     row's maximum M and denominator L over the blocks, and added into the attention output."""
                     i = c + m * ctas
                     n, blk = i // dm.blocks, lax.rem(i, dm.blocks)
-                    if "noexchange" not in ablate:
+                    if not ablate & {"noexchange", "noml"}:
                         wait(head_sem.at[n] if not on_cpu else None, (l + 1) * dm.blocks)
-                    plgpu.copy_gmem_to_smem(ml.at[n], mla, misc_bar.at[3])
-                    plgpu.barrier_wait(misc_bar.at[3])
+                    if "noml" not in ablate:
+                        plgpu.copy_gmem_to_smem(ml.at[n], mla, misc_bar.at[3])
+                        plgpu.barrier_wait(misc_bar.at[3])
 
                     def row(b, k):
                         return _in_layout(mla[b, k], plgpu.Layout.WGMMA.reduce(1))
@@ -457,8 +463,10 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype=
                         else:   # scaled in place (each thread rewrites what it read), added by TMA
                             part.at[m, tile][...] = y * lax.broadcast_in_dim(scale, y.shape, [0])
                             plgpu.commit_smem()
-                            plgpu.copy_smem_to_gmem(part.at[m, tile], attn.at[:, pl.ds(n * dm.hd + tile * TN, TN)],
-                                                    reduction_op="add")
+                            if "noadd" not in ablate:
+                                plgpu.copy_smem_to_gmem(part.at[m, tile],
+                                                        attn.at[:, pl.ds(n * dm.hd + tile * TN, TN)],
+                                                        reduction_op="add")
                     return carry
 
                 def layer(l, t):
@@ -480,7 +488,7 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype=
                 @pl.when(c == 0)
                 def _():   # every CTA signalled once a phase: take the counts back, the next call starts at zero
                     wait(sem, n_phases * ctas, decrement=True)
-                    for n in range(dm.heads if att_items else 0):
+                    for n in range(dm.heads if att_items and "noml" not in ablate else 0):
                         wait(head_sem.at[n] if not on_cpu else None, dm.layers * dm.blocks, decrement=True)
 
     out = (jax.ShapeDtypeStruct((ROWS, dm.d), f32), jax.ShapeDtypeStruct((ROWS, dm.nq), bf16),
@@ -558,15 +566,14 @@ def engine_layers(dm: Dims):
     blocks = ek.Blocks()
     mods = jnp.zeros((2, dm.d), jnp.bfloat16)
 
-    def run(x, ws, att):
-        ck, cv, key_ok, ends, rope = att
+    def run(x, layers, att):
+        _, _, key_ok, ends, rope = att
         pmask = key_ok[None, :dm.prefix]
         smask = (jnp.arange(ROWS)[None] < ends[:, None]).astype(jnp.int32)
-        for l in range(dm.layers):
-            wq, wo, wg, wd = (w[l] for w in ws)
+        for wq, wo, wg, wd, ck, cv in layers:
             qkv = ek.norm_qkv_rope(x, mods, 0, False, wq, rope[0], rope[1], width=dm.d, num_heads=dm.heads,
                                    num_kv_heads=1, head_dim=dm.hd, blocks=blocks)
-            o = ek.attention(qkv, ck[l], cv[l], pmask, smask, batch=1, num_heads=dm.heads, num_kv_heads=1,
+            o = ek.attention(qkv, ck, cv, pmask, smask, batch=1, num_heads=dm.heads, num_kv_heads=1,
                              blocks=blocks)
             x2 = ek.matmul_residual(o, wo, x, gemm=blocks.out, blocks=blocks, name="expert_out")
             g = ek.norm_geglu(x2, mods, 0, False, wg, width=dm.d, blocks=blocks)
@@ -574,6 +581,13 @@ def engine_layers(dm: Dims):
         return x
 
     return jax.jit(run)
+
+
+def per_layer(ws, att, dm: Dims) -> list:
+    """Each layer's weights (gate/up in the engine's blocks of 32) and cache apart, as the engine holds them (a slice
+    of a stacked array inside a jit is a copy before each Pallas call)."""
+    ws = [ws[0], ws[1], interleave(ws[2], dm.f), ws[3]]
+    return [tuple(w[l] for w in (*ws, *att[:2])) for l in range(dm.layers)]
 
 
 def main() -> None:
@@ -589,7 +603,7 @@ def main() -> None:
     p.add_argument("--layers", type=int, default=18, help="layers of distinct weights (default: %(default)s)")
     p.add_argument("--ablate", action="append", default=[],
                    help="a variant with parts left out, for timing only (repeatable): a comma list of noatt, "
-                        "noexchange (`step_kernel`)")
+                        "noexchange, noml, noq, nopv, noadd (`step_kernel`)")
     p.add_argument("--iters", type=int, default=30, help="traced calls per variant (default: %(default)s)")
     p.add_argument("--no-peers", action="store_true", help="only the persistent kernel")
     p.add_argument("--cpu-check", action="store_true",
@@ -631,11 +645,11 @@ def main() -> None:
                     traceback.print_exc()
                 print(name, res["rows"][name], flush=True)
     if not args.no_peers:
-        eng = engine_layers(dm)
+        eng, layers = engine_layers(dm), per_layer(ws, att, dm)
         try:
-            got = np.asarray(eng(h0.astype(jnp.bfloat16), ws, att), np.float32)
+            got = np.asarray(eng(h0.astype(jnp.bfloat16), layers, att), np.float32)
             res["rows"]["engine kernels (the layer's)"] = {"rel_l2_vs_xla": _rel(got, want)}
-            fns["engine kernels (the layer's)"] = functools.partial(eng, h0.astype(jnp.bfloat16), ws, att)
+            fns["engine kernels (the layer's)"] = functools.partial(eng, h0.astype(jnp.bfloat16), layers, att)
         except Exception as e:
             res["rows"]["engine kernels (the layer's)"] = {"error": f"{type(e).__name__}: {e}"[:3000]}
             traceback.print_exc()
