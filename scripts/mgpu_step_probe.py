@@ -471,7 +471,9 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, pv: st
                         if on_cpu:
                             add_into(y * lax.broadcast_in_dim(scale, y.shape, [0]),
                                      attn.at[:, pl.ds(n * dm.hd + tile * TN, TN)])
-                        else:   # scaled in place (each thread rewrites what it read), added by TMA
+                        else:   # scaled in place, added by TMA. The load's layout need not be the store's: every
+                            # thread has loaded before any stores (commit_smem's warpgroup barrier)
+                            plgpu.commit_smem()
                             part.at[m, tile][...] = y * lax.broadcast_in_dim(scale, y.shape, [0])
                             plgpu.commit_smem()
                             if "noadd" not in ablate:
