@@ -11,13 +11,14 @@ layer has around those GEMMs, so that the kernel computes the step's layers for 
 
 The attention is one phase of (head, 64-key block) items, 8 x 14 = 112 of them, one a CTA:
   - S = q K^T for the item's block; its rows' maximum m and sum l of exp(S - m) go to global memory, and the item
-    signals its head's semaphore; then P V with P = exp(S - m) (rounded, as the engine's split kernel) into shared
-    memory, while the head's other blocks finish;
-  - once its head's 14 blocks are published, the item knows each row's softmax maximum M and denominator L, scales
-    its P V by exp(m - M) / L and adds it in f32 into the attention output by TMA's reduce-add. No merge pass: the
-    out-projection takes the f32 attention output as q/k/v's GEMM takes the residual (rounded in registers).
-(Session 43's first form, commit c89f403, split this into two phases with a grid barrier between and S computed
-twice: 37.5 us a layer on an H200.)
+    signals its head's semaphore; S stays in shared memory;
+  - once its head's 14 blocks are published, the item knows each row's softmax maximum M and denominator L, computes
+    P = exp(S - M) / L (rounded to bf16, as XLA's softmax output) and adds P V in f32 into the attention output by
+    TMA's reduce-add. No merge pass: the out-projection takes the f32 attention output as q/k/v's GEMM takes the
+    residual (rounded in registers).
+Two other forms were measured and are gone (docs/BENCHMARKS.md, session 43): two phases with a grid barrier between
+and S computed twice (`c89f403`, 37.5 us a layer on an H200), and P V before the exchange, rescaled after (`0dd6551`,
+36.9 us; from `d82a3ad` on, its results moved off XLA's by 7e-3 to 1.5e-2 against 1.6e-3, for a cause not found).
 The keys and values stream through the weight ring like weights: the producer warpgroup brings a prefix block's
 tiles whenever a slot is free (the cache does not change within a call); only the suffix's own block waits for the
 q/k/v phase (its producer waits at that phase's grid barrier). The attention output's buffer is zeroed in the
@@ -104,16 +105,13 @@ def rope_perm(dm: Dims) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=None)
-def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, pv: str = "before", dtype=jnp.bfloat16,
-                ablate: str = ""):
+def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype=jnp.bfloat16, ablate: str = ""):
     """(h0 f32 (64, d), w_qkv (permuted, `rope_perm`), w_out, w_gate_up (blocks of 32), w_down, each (L, K, N);
     cache_k, cache_v (L, prefix, hd); key_ok (blocks, 64) int32 (the prefix's keys, then 64 ones); ends (64,) int32;
-    rope (2, 64, hd / 2) f32 cos and sin) -> h f32 (64, d). pv: an item's P V "before" its head's blocks are all
-    published (exp(S - m) V, rescaled after) or "after" (P normalised first, the value tiles held in the ring).
-    ablate (timing only, the result is wrong): a comma list of "noatt" (the attention phase has no items; its
-    barrier stays), "noexchange" (no item waits for its head's other blocks), "noml" (nor publishes or reads the
-    blocks' m and l), "noq" (no q tiles brought), "nopv" (no P V), "noadd" (no reduce-add into the attention
-    output)."""
+    rope (2, 64, hd / 2) f32 cos and sin) -> h f32 (64, d). ablate (timing only, the result is wrong): a comma
+    list of "noatt" (the attention phase has no items; its barrier stays), "noexchange" (no item waits for its
+    head's other blocks), "noml" (nor publishes or reads the blocks' m and l), "noq" (no q tiles brought), "nopv"
+    (no P V), "noadd" (no reduce-add into the attention output)."""
     ablate = set(filter(None, ablate.split(",")))
     bf16, f32 = dtype, jnp.float32
     on_cpu = jax.default_backend() == "cpu"
@@ -407,8 +405,8 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, pv: st
                     return jnp.where(valid, s, BIG_NEG)
 
                 def att_first(m, t):
-                    """Item i's block: S, its rows' m and l published (then its head's semaphore), and
-                    exp(S - m) V into shared memory, while the head's other blocks finish."""
+                    """Item i's block: S, its rows' m and l published (then its head's semaphore), S kept in shared
+                    memory for the second pass."""
                     i = c + m * ctas
                     n, blk = i // dm.blocks, lax.rem(i, dm.blocks)
                     q_tiles = range(0 if "noq" in ablate else dm.dt)
@@ -428,31 +426,14 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, pv: st
                         plgpu.copy_smem_to_gmem(mls, ml.at[n, blk])
                         plgpu.wait_smem_to_gmem(0)
                         signal(head_sem.at[n] if not on_cpu else None)
-                    if pv == "after":   # S kept for the second pass
-                        part.at[m, 0][...] = s
-                        return t + steps("a")
-                    p = operand(p.astype(bf16), 0)
-                    for tile in range(dm.dt):   # P V, a 64-column tile of the head at a time
-                        slot = lax.rem(t + dm.dt + tile, ring)
-                        plgpu.barrier_wait(full.at[slot])
-
-                        @functools.partial(pl.run_scoped, acc=plgpu.ACC((ROWS, TN), f32))
-                        def product(acc):
-                            if "nopv" not in ablate:
-                                plgpu.wgmma(acc, p, w_ring.at[slot])
-                                plgpu.wgmma_wait(0)
-                            plgpu.barrier_arrive(empty.at[slot])
-                            if "nopv" not in ablate:
-                                part.at[m, tile][...] = acc[...]
+                    part.at[m, 0][...] = s
                     return t + steps("a")
 
                 def att_second(l, t0, m, carry):
-                    """Item i's P V rescaled once its head's blocks are all published: by exp(m - M) / L, each
-                    row's maximum M and denominator L over the blocks, and added into the attention output. pv
-                    "after": P V computed here, from P = exp(S - M) / L (the item's value tiles held in the ring
-                    meanwhile; t0: the phase's first ring position)."""
-                    i = c + m * ctas
-                    n, blk = i // dm.blocks, lax.rem(i, dm.blocks)
+                    """Item i's P V once its head's blocks are all published: P = exp(S - M) / L with each row's
+                    maximum M and denominator L over the blocks, P V added into the attention output (the item's
+                    value tiles held in the ring meanwhile; t0: the phase's first ring position)."""
+                    n = (c + m * ctas) // dm.blocks
                     if not ablate & {"noexchange", "noml"}:
                         wait(head_sem.at[n] if not on_cpu else None, (l + 1) * dm.blocks)
                     if "noml" not in ablate:
@@ -463,27 +444,7 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, pv: st
                         return _in_layout(mla[b, k], plgpu.Layout.WGMMA.reduce(1))
                     top = functools.reduce(jnp.maximum, [row(b, 0) for b in range(dm.blocks)])
                     total = sum(row(b, 1) * jnp.exp(row(b, 0) - top) for b in range(dm.blocks))
-                    if pv == "after":
-                        return pv_scaled(t0 + m * steps("a"), m, n, top, total)
-                    scale = jnp.exp(row(blk, 0) - top) / total
-                    for tile in range(dm.dt):
-                        # P V as att_first stored it, in wgmma's layout: each thread reads what it wrote (the layout
-                        # left to inference took 7e-3 to 1.5e-2 against XLA's 1.6e-3, a race between threads)
-                        y = part.at[m, tile][...] if on_cpu else plgpu.load(part.at[m, tile], (),
-                                                                             layout=plgpu.Layout.WGMMA)
-                        if on_cpu:
-                            add_into(y * lax.broadcast_in_dim(scale, y.shape, [0]),
-                                     attn.at[:, pl.ds(n * dm.hd + tile * TN, TN)])
-                        else:   # scaled in place (each thread rewrites what it read), added by TMA
-                            part.at[m, tile][...] = y * lax.broadcast_in_dim(scale, y.shape, [0])
-                            plgpu.commit_smem()
-                            if "noadd" not in ablate:
-                                plgpu.copy_smem_to_gmem(part.at[m, tile],
-                                                        attn.at[:, pl.ds(n * dm.hd + tile * TN, TN)],
-                                                        reduction_op="add")
-                    return carry
-
-                def pv_scaled(t, m, n, top, total):
+                    t = t0 + m * steps("a")
                     s = part.at[m, 0][...]
                     p = jnp.exp(s - lax.broadcast_in_dim(top, s.shape, [0])) * lax.broadcast_in_dim(
                         1 / total, s.shape, [0])
@@ -494,8 +455,9 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, pv: st
 
                         @functools.partial(pl.run_scoped, acc=plgpu.ACC((ROWS, TN), f32))
                         def _(acc):
-                            plgpu.wgmma(acc, p, w_ring.at[slot])
-                            plgpu.wgmma_wait(0)
+                            if "nopv" not in ablate:
+                                plgpu.wgmma(acc, p, w_ring.at[slot])
+                                plgpu.wgmma_wait(0)
                             plgpu.barrier_arrive(empty.at[slot])
                             dst = attn.at[:, pl.ds(n * dm.hd + tile * TN, TN)]
                             if on_cpu:
@@ -503,8 +465,9 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, pv: st
                             else:   # staged in the item's own slots (S, in slot 0, was read before the wgmma)
                                 part.at[m, tile][...] = acc[...]
                                 plgpu.commit_smem()
-                                plgpu.copy_smem_to_gmem(part.at[m, tile], dst, reduction_op="add")
-                    return 0
+                                if "noadd" not in ablate:
+                                    plgpu.copy_smem_to_gmem(part.at[m, tile], dst, reduction_op="add")
+                    return carry
 
                 def layer(l, t):
                     for p, name in enumerate(PHASES):
@@ -637,8 +600,6 @@ def main() -> None:
                    "tiles (default: %(default)s)")
     p.add_argument("--splits", type=int, default=8, help="K splits of the out-projection and down "
                    "(default: %(default)s: 128 items each)")
-    p.add_argument("--pv", default="before", help="comma list of before, after: an attention item's P V before its "
-                   "head's blocks are all published, or after (`step_kernel`) (default: %(default)s)")
     p.add_argument("--layers", type=int, default=18, help="layers of distinct weights (default: %(default)s)")
     p.add_argument("--ablate", action="append", default=[],
                    help="a variant with parts left out, for timing only (repeatable): a comma list of noatt, "
@@ -654,12 +615,11 @@ def main() -> None:
         ws = [w.astype(jnp.float32) for w in ws]   # f32 on the interpreter: the check is to f32 rounding
         att = (att[0].astype(jnp.float32), att[1].astype(jnp.float32), *att[2:])
         want = reference(h0, ws, att, dm)
-        # 24 ring slots: with pv "after" the one CTA holds all its 6 items' value tiles until their second pass, and
-        # the producer fills the ring in order
-        rel = {pv: _rel(step_kernel(dm, 1, 24, 2, 2, pv, dtype=jnp.float32)(h0, kernel_weights(ws, dm), att), want)
-               for pv in ("before", "after")}
+        # 24 ring slots: the one CTA holds all its 6 items' value tiles until their second pass, and the producer
+        # fills the ring in order
+        rel = _rel(step_kernel(dm, 1, 24, 2, 2, dtype=jnp.float32)(h0, kernel_weights(ws, dm), att), want)
         print(json.dumps({"rel_l2_vs_xla": rel}))
-        sys.exit(0 if max(rel.values()) < 1e-5 else 1)
+        sys.exit(0 if rel < 1e-5 else 1)
     if jax.default_backend() != "gpu" or not args.out:
         raise SystemExit("mgpu_step_probe needs a GPU (Hopper) and --out (or --cpu-check)")
     dm = Dims(layers=args.layers)
@@ -671,13 +631,12 @@ def main() -> None:
     fns = {}
     for ctas in map(int, args.ctas.split(",")):
         for ring in map(int, args.ring.split(",")):
-            for pv, ablate in [(pv, "") for pv in args.pv.split(",")] + [(args.pv.split(",")[0], a)
-                                                                          for a in args.ablate]:
-                name = f"persistent step ctas={ctas} ring={ring} xdepth={args.xdepth} pv={pv}"
+            for ablate in [""] + args.ablate:
+                name = f"persistent step ctas={ctas} ring={ring} xdepth={args.xdepth}"
                 name += f" -{ablate}" if ablate else ""
                 res["rows"][name] = {}
                 try:
-                    fn = step_kernel(dm, ctas, ring, args.xdepth, args.splits, pv, ablate=ablate)
+                    fn = step_kernel(dm, ctas, ring, args.xdepth, args.splits, ablate=ablate)
                     got, again = np.asarray(fn(h0, kws, att)), np.asarray(fn(h0, kws, att))
                     if not ablate:   # an ablation's result is wrong by design
                         res["rows"][name] = {"rel_l2_vs_xla": _rel(got, want), "rel_l2_second_call": _rel(again, got),
