@@ -377,6 +377,21 @@ def _rel(got, want):
     return float(np.linalg.norm(got - want) / max(np.linalg.norm(want), 1e-30))
 
 
+def timed(fns: dict, res: dict, layers: int, iters: int, out: str) -> None:
+    """Each fn()'s kernel time a layer, from a profiler trace of `iters` calls, into res["rows"]; res written to out."""
+    for name, fn in fns.items():
+        trace = kernel_times(fn, calls=iters)
+        row = res["rows"].setdefault(name, {})
+        row.update(kernel_us_per_layer=trace["kernel_ms"] * 1e3 / layers,
+                   span_us_per_layer=trace.get("span_ms", float("nan")) * 1e3 / layers,
+                   kernels_per_call=trace["kernels_per_call"], wall_ms=trace["wall_ms"],
+                   by_name=trace["by_name"][:10])
+        print(f"{name:50s} kernels {row['kernel_us_per_layer']:7.2f} us/layer, span "
+              f"{row['span_us_per_layer']:7.2f}, {row['kernels_per_call']:.0f} kernels a call", flush=True)
+    with open(out, "w") as f:
+        json.dump(res, f, indent=1)
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", help="JSON file to write (GPU run)")
@@ -452,17 +467,7 @@ def main() -> None:
         fns["xla chain"] = functools.partial(jax.jit(lambda h, w: reference(h, w, dm)), h0, ws)
         fns["xla: each weight array read once"] = functools.partial(
             jax.jit(lambda ws: sum(jnp.sum(w, dtype=jnp.float32) for lw in ws for w in lw)), per_layer)
-    for name, fn in fns.items():
-        trace = kernel_times(fn, calls=args.iters)
-        row = res["rows"].setdefault(name, {})
-        row.update(kernel_us_per_layer=trace["kernel_ms"] * 1e3 / dm.layers,
-                   span_us_per_layer=trace.get("span_ms", float("nan")) * 1e3 / dm.layers,
-                   kernels_per_call=trace["kernels_per_call"], wall_ms=trace["wall_ms"],
-                   by_name=trace["by_name"][:8])
-        print(f"{name:50s} kernels {row['kernel_us_per_layer']:7.2f} us/layer, span "
-              f"{row['span_us_per_layer']:7.2f}, {row['kernels_per_call']:.0f} kernels a call", flush=True)
-    with open(args.out, "w") as f:
-        json.dump(res, f, indent=1)
+    timed(fns, res, dm.layers, args.iters, args.out)
 
 
 if __name__ == "__main__":

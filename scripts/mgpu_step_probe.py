@@ -59,8 +59,7 @@ from pi0_jax.ops.mosaic_attention import BIG_NEG, _in_layout, _iota, _old_interp
 from pi0_jax.ops.mosaic_gemm import transforms as _t
 
 sys.path.insert(0, str(Path(__file__).parent))
-from mgpu_layer_probe import EPS, _mod, _rel, _when, interleave  # noqa: E402
-from profile_engine import kernel_times  # noqa: E402
+from mgpu_layer_probe import EPS, _mod, _rel, _when, interleave, timed  # noqa: E402
 
 PHASES = ("q", "a", "o", "g", "d")
 ROWS = TK = TN = 64   # query rows (pi0's 51 suffix tokens padded), a tile's K rows, its columns, a key block
@@ -656,17 +655,7 @@ def main() -> None:
             res["rows"]["engine kernels (the layer's)"] = {"error": f"{type(e).__name__}: {e}"[:3000]}
             traceback.print_exc()
         fns["xla chain"] = functools.partial(jax.jit(lambda h, w, a: reference(h, w, a, dm)), h0, ws, att)
-    for name, fn in fns.items():
-        trace = kernel_times(fn, calls=args.iters)
-        row = res["rows"].setdefault(name, {})
-        row.update(kernel_us_per_layer=trace["kernel_ms"] * 1e3 / dm.layers,
-                   span_us_per_layer=trace.get("span_ms", float("nan")) * 1e3 / dm.layers,
-                   kernels_per_call=trace["kernels_per_call"], wall_ms=trace["wall_ms"],
-                   by_name=trace["by_name"][:10])
-        print(f"{name:50s} kernels {row['kernel_us_per_layer']:7.2f} us/layer, span "
-              f"{row['span_us_per_layer']:7.2f}, {row['kernels_per_call']:.0f} kernels a call", flush=True)
-    with open(args.out, "w") as f:
-        json.dump(res, f, indent=1)
+    timed(fns, res, dm.layers, args.iters, args.out)
 
 
 if __name__ == "__main__":
