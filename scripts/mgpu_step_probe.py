@@ -16,21 +16,28 @@ The attention is one phase of (head, 64-key block) items, 8 x 14 = 112 of them, 
     P = exp(S - M) / L (rounded to bf16, as XLA's softmax output) and adds P V in f32 into the attention output by
     TMA's reduce-add. No merge pass: the out-projection takes the f32 attention output as q/k/v's GEMM takes the
     residual (rounded in registers).
-Two other forms were measured and are gone (docs/BENCHMARKS.md, session 43): two phases with a grid barrier between
-and S computed twice (`c89f403`, 37.5 us a layer on an H200), and P V before the exchange, rescaled after (`0dd6551`,
-36.9 us; from `d82a3ad` on, its results moved off XLA's by 7e-3 to 1.5e-2 against 1.6e-3, for a cause not found).
 The keys and values stream through the weight ring like weights: the producer warpgroup brings a prefix block's
 tiles whenever a slot is free (the cache does not change within a call); only the suffix's own block waits for the
 q/k/v phase (its producer waits at that phase's grid barrier). The attention output's buffer is zeroed in the
 gate/up phase, when its last reader (the out-projection) is done.
 
 Phases a layer: q (40 items) | a (112) | o (128: 16 column tiles x 8 K splits, one a head) | g (128) | d (128), each
-after a GPU-scope grid barrier. The norms' weights are taken as 1 and pi0's; no adaRMS.
+after a GPU-scope grid barrier. The norms' weights are taken as 1 (pi0's could be folded into the weights); no adaRMS.
 
 Checked against the same layer chain in XLA (the engine's roundings: q/k/v rounded, RoPE in f32 rounded, q scaled in
 bf16, softmax in f32, P in bf16, the attention output rounded) and on a second call. Against it in one process (kernel
 time a layer from a profiler trace): the engine's own kernels for the layer (`expert_kernels`: q/k/v with norm and
 RoPE, split-key attention and merge, out, gate/up, down) and the XLA chain.
+
+What it showed (docs/BENCHMARKS.md, session 43; us a layer, kernel time):
+  - H200: 36.4-36.5 against 38.0 for the engine's kernels and 54 for XLA's chain; H100: 38.8 against 41.3 and 58.8.
+    Relative L2 against XLA's chain 1.6e-3 after 18 layers (the engine's kernels, bf16 residual: 1.05e-2).
+  - The attention's work costs 12.2 (H200) and 13.2 (H100) of it (`--ablate noatt`), against 9.8 for the engine's
+    attention and merge kernels: a chain of memory round trips (`--ablate` noq, noml, noexchange, nopv, noadd: 0.8
+    to 4.1 each).
+  - Two other forms are gone: two phases with a grid barrier between and S computed twice (`c89f403`, 37.5), and P V
+    before the exchange, rescaled after (`0dd6551`, 36.9; from `d82a3ad` on, its results moved off XLA's by 7e-3 to
+    1.5e-2 against 1.6e-3, for a cause not found).
 
     python scripts/mgpu_step_probe.py --out step.json          # GPU (Hopper)
     python scripts/mgpu_step_probe.py --cpu-check              # Mosaic GPU's interpreter, small, 1 CTA
