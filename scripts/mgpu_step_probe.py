@@ -111,13 +111,10 @@ def rope_perm(dm: Dims) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=None)
-def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, exchange: str = "tma", dtype=jnp.bfloat16,
-                ablate: str = ""):
+def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype=jnp.bfloat16, ablate: str = ""):
     """(h0 f32 (64, d), w_qkv (permuted, `rope_perm`), w_out, w_gate_up (blocks of 32), w_down, each (L, K, N);
     cache_k, cache_v (L, prefix, hd); key_ok (blocks, 64) int32 (the prefix's keys, then 64 ones); ends (64,) int32;
-    rope (2, 64, hd / 2) f32 cos and sin) -> h f32 (64, d). exchange: how an attention item publishes its block's
-    m and l and reads its head's: by TMA through shared memory ("tma") or by the registers' own stores and loads
-    to and from global memory ("direct"). ablate (timing only, the result is wrong): a comma
+    rope (2, 64, hd / 2) f32 cos and sin) -> h f32 (64, d). ablate (timing only, the result is wrong): a comma
     list of "noatt" (the attention phase has no items; its barrier stays), "noexchange" (no item waits for its
     head's other blocks), "noml" (nor publishes or reads the blocks' m and l), "noq" (no q tiles brought), "nopv"
     (no P V), "noadd" (no reduce-add into the attention output)."""
@@ -427,19 +424,13 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, exchan
                     s = logits(t, i)
                     mx = s.max(axis=1)
                     p = jnp.exp(s - lax.broadcast_in_dim(mx, s.shape, [0]))
-                    total = p.sum(axis=1)   # from p unrounded, as the engine's split kernel
-                    if exchange == "direct":   # stored from registers; the signal's release orders them
-                        ml.at[n, blk, 0][...] = mx
-                        ml.at[n, blk, 1][...] = total
-                    else:
-                        plgpu.wait_smem_to_gmem(0, wait_read_only=True)   # the last item's m and l read
-                        mls.at[0][...] = mx
-                        mls.at[1][...] = total
-                        plgpu.commit_smem()
+                    plgpu.wait_smem_to_gmem(0, wait_read_only=True)   # the last item's m and l read
+                    mls.at[0][...] = mx
+                    mls.at[1][...] = p.sum(axis=1)   # from p unrounded, as the engine's split kernel
+                    plgpu.commit_smem()
                     if "noml" not in ablate:
-                        if exchange == "tma":
-                            plgpu.copy_smem_to_gmem(mls, ml.at[n, blk])
-                            plgpu.wait_smem_to_gmem(0)
+                        plgpu.copy_smem_to_gmem(mls, ml.at[n, blk])
+                        plgpu.wait_smem_to_gmem(0)
                         signal(head_sem.at[n] if not on_cpu else None)
                     part.at[m, 0][...] = s
                     return t + steps("a")
@@ -451,13 +442,12 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, exchan
                     n = (c + m * ctas) // dm.blocks
                     if not ablate & {"noexchange", "noml"}:
                         wait(head_sem.at[n] if not on_cpu else None, (l + 1) * dm.blocks)
-                    if "noml" not in ablate and exchange == "tma":
+                    if "noml" not in ablate:
                         plgpu.copy_gmem_to_smem(ml.at[n], mla, misc_bar.at[3])
                         plgpu.barrier_wait(misc_bar.at[3])
 
-                    def row(b, k):   # loaded from global memory itself ("direct") after the semaphore's acquire
-                        src = ml.at[n] if exchange == "direct" else mla
-                        return _in_layout(src[b, k], plgpu.Layout.WGMMA.reduce(1))
+                    def row(b, k):
+                        return _in_layout(mla[b, k], plgpu.Layout.WGMMA.reduce(1))
                     top = functools.reduce(jnp.maximum, [row(b, 0) for b in range(dm.blocks)])
                     total = sum(row(b, 1) * jnp.exp(row(b, 0) - top) for b in range(dm.blocks))
                     t = t0 + m * steps("a")
@@ -616,8 +606,6 @@ def main() -> None:
                    "tiles (default: %(default)s)")
     p.add_argument("--splits", type=int, default=8, help="K splits of the out-projection and down "
                    "(default: %(default)s: 128 items each)")
-    p.add_argument("--exchange", default="tma", help="comma list of tma, direct: how the attention's blocks share "
-                   "their softmax statistics (`step_kernel`) (default: %(default)s)")
     p.add_argument("--layers", type=int, default=18, help="layers of distinct weights (default: %(default)s)")
     p.add_argument("--ablate", action="append", default=[],
                    help="a variant with parts left out, for timing only (repeatable): a comma list of noatt, "
@@ -635,10 +623,9 @@ def main() -> None:
         want = reference(h0, ws, att, dm)
         # 24 ring slots: the one CTA holds all its 6 items' value tiles until their second pass, and the producer
         # fills the ring in order
-        rel = {e: _rel(step_kernel(dm, 1, 24, 2, 2, e, dtype=jnp.float32)(h0, kernel_weights(ws, dm), att), want)
-               for e in ("tma", "direct")}
+        rel = _rel(step_kernel(dm, 1, 24, 2, 2, dtype=jnp.float32)(h0, kernel_weights(ws, dm), att), want)
         print(json.dumps({"rel_l2_vs_xla": rel}))
-        sys.exit(0 if max(rel.values()) < 1e-5 else 1)
+        sys.exit(0 if rel < 1e-5 else 1)
     if jax.default_backend() != "gpu" or not args.out:
         raise SystemExit("mgpu_step_probe needs a GPU (Hopper) and --out (or --cpu-check)")
     dm = Dims(layers=args.layers)
@@ -650,13 +637,12 @@ def main() -> None:
     fns = {}
     for ctas in map(int, args.ctas.split(",")):
         for ring in map(int, args.ring.split(",")):
-            for exchange, ablate in [(e, "") for e in args.exchange.split(",")] + [
-                    (args.exchange.split(",")[0], a) for a in args.ablate]:
-                name = f"persistent step ctas={ctas} ring={ring} xdepth={args.xdepth} exchange={exchange}"
+            for ablate in [""] + args.ablate:
+                name = f"persistent step ctas={ctas} ring={ring} xdepth={args.xdepth}"
                 name += f" -{ablate}" if ablate else ""
                 res["rows"][name] = {}
                 try:
-                    fn = step_kernel(dm, ctas, ring, args.xdepth, args.splits, exchange, ablate=ablate)
+                    fn = step_kernel(dm, ctas, ring, args.xdepth, args.splits, ablate=ablate)
                     got, again = np.asarray(fn(h0, kws, att)), np.asarray(fn(h0, kws, att))
                     if not ablate:   # an ablation's result is wrong by design
                         res["rows"][name] = {"rel_l2_vs_xla": _rel(got, want), "rel_l2_second_call": _rel(again, got),
