@@ -111,13 +111,10 @@ def rope_perm(dm: Dims) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=None)
-def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, kb: int = 1, dtype=jnp.bfloat16,
-                ablate: str = ""):
+def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype=jnp.bfloat16, ablate: str = ""):
     """(h0 f32 (64, d), w_qkv (permuted, `rope_perm`), w_out, w_gate_up (blocks of 32), w_down, each (L, K, N);
     cache_k, cache_v (L, prefix, hd); key_ok (blocks, 64) int32 (the prefix's keys, then 64 ones); ends (64,) int32;
-    rope (2, 64, hd / 2) f32 cos and sin) -> h f32 (64, d). kb: 64-key blocks an attention item (1 or 2: fewer items,
-    each adding its P V into the attention output, for more work an item). ablate (timing only, the result is
-    wrong): a comma
+    rope (2, 64, hd / 2) f32 cos and sin) -> h f32 (64, d). ablate (timing only, the result is wrong): a comma
     list of "noatt" (the attention phase has no items; its barrier stays), "noexchange" (no item waits for its
     head's other blocks), "noml" (nor publishes or reads the blocks' m and l), "noq" (no q tiles brought), "nopv"
     (no P V), "noadd" (no reduce-add into the attention output)."""
@@ -128,16 +125,14 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, kb: in
     assert xdepth >= dm.dt, "a head's q tiles are held in the activation slots"
     per_layer = len(PHASES)
     n_phases = 1 + per_layer * dm.layers   # a copy of h0 into h, then a layer's phases
-    assert dm.blocks % kb == 0 and kb <= min(dm.dt, 2), "whole groups of blocks; their S in the P V slots"
-    groups = dm.blocks // kb   # an attention item's blocks: g kb, ..., g kb + kb - 1
-    per_cta = -(-dm.heads * groups // ctas)   # attention items a CTA
+    per_cta = -(-dm.heads * dm.blocks // ctas)   # attention items a CTA
     # one a CTA on a GPU: its P V (f32, 64 x hd) shares shared memory with the activation tiles
     assert per_cta == 1 or on_cpu, "the attention's items are at most the CTAs"
     gemm_k = {"q": dm.d, "o": dm.a, "g": dm.d, "d": dm.f}
     gemm_cols = {"q": dm.nq, "o": dm.d, "g": 2 * dm.f, "d": dm.d}
     gemm_splits = {"q": 1, "o": splits, "g": 1, "d": splits}
     gemm_x = {"q": "h", "o": "attn", "g": "h", "d": "act"}   # f32 residual (normed), f32 attention output, bf16
-    att_items = 0 if "noatt" in ablate else dm.heads * groups
+    att_items = 0 if "noatt" in ablate else dm.heads * dm.blocks
     nb = dm.blocks - 1   # the suffix's block index
     kcol, vcol = dm.a, dm.a + dm.hd
     q_scale = float(np.asarray(dm.hd ** -0.5, dtype))   # a value of the dtype, as the engine's
@@ -149,8 +144,8 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, kb: in
         return gemm_cols[name] // TN * gemm_splits[name]
 
     def steps(name):   # ring tiles an item
-        if name == "a":   # its blocks' key tiles, then their value tiles
-            return 2 * kb * dm.dt
+        if name == "a":   # a block's key tiles, then its value tiles
+            return 2 * dm.dt
         return gemm_k[name] // gemm_splits[name] // TK
 
     def union(*refs):   # the interpreter has no RefUnion
@@ -188,7 +183,7 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, kb: in
                        plgpu.SMEM((2, ROWS, HALF), bf16, transforms=_t(HALF, bf16))),
             cs=plgpu.SMEM((2, ROWS, HALF), f32, transforms=_t(HALF, f32)),
             mls=plgpu.SMEM((2, ROWS), f32),
-            mla=plgpu.SMEM((groups, 2, ROWS), f32),   # its head's m and l of every group of blocks
+            mla=plgpu.SMEM((dm.blocks, 2, ROWS), f32),   # its head's m and l of every block
             kok=plgpu.SMEM((dm.blocks, ROWS), jnp.int32),   # key_ok, for the whole call
             ends_s=plgpu.SMEM((ROWS,), jnp.int32),
             misc_bar=plgpu.Barrier(num_arrivals=1, num_barriers=4),   # cs, key_ok, ends, m and l
@@ -235,11 +230,11 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, kb: in
                         def item(m, t, name=name):
                             i = c + m * ctas
                             if name == "a":
-                                for kv, (cache, col) in enumerate(((ck, kcol), (cv, vcol))):
-                                    for b in range(kb):
-                                        for tile in range(dm.dt):
-                                            put(t + (kv * kb + b) * dm.dt + tile,
-                                                kv_tile(l, lax.rem(i, groups) * kb + b, tile, cache, col))
+                                blk = lax.rem(i, dm.blocks)
+                                for tile in range(dm.dt):
+                                    put(t + tile, kv_tile(l, blk, tile, ck, kcol))
+                                for tile in range(dm.dt):
+                                    put(t + dm.dt + tile, kv_tile(l, blk, tile, cv, vcol))
                             else:
                                 j, s = i // gemm_splits[name], lax.rem(i, gemm_splits[name])
                                 for kk in range(steps(name)):
@@ -386,9 +381,10 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, kb: in
                         plgpu.commit_smem()
                         plgpu.copy_smem_to_gmem(o16, qkv.at[:, pl.ds(j * TN, TN)])
 
-                def logits(t, blk):
-                    """Block blk's masked logits (64 query rows x its 64 keys, f32) from its head's q tiles (in x16)
+                def logits(t, i):
+                    """Item i's masked logits (64 query rows x its 64 keys, f32) from its head's q tiles (in x16)
                     and the key tiles at ring positions t, t + 1, ... (released)."""
+                    blk = lax.rem(i, dm.blocks)
                     if _old_interpreter():   # no transposed shared-memory operand: the same product as a dot
                         s = 0
                         for tile in range(dm.dt):
@@ -415,66 +411,60 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, kb: in
                     return jnp.where(valid, s, BIG_NEG)
 
                 def att_first(m, t):
-                    """Item i's blocks: S, its rows' m and l published (then its head's semaphore), S kept in
-                    shared memory for the second pass."""
+                    """Item i's block: S, its rows' m and l published (then its head's semaphore), S kept in shared
+                    memory for the second pass."""
                     i = c + m * ctas
-                    n, g = i // groups, lax.rem(i, groups)
+                    n, blk = i // dm.blocks, lax.rem(i, dm.blocks)
                     q_tiles = range(0 if "noq" in ablate else dm.dt)
                     for tile in q_tiles:
                         plgpu.copy_gmem_to_smem(qkv.at[:, pl.ds(n * dm.hd + tile * TN, TN)], x16.at[tile],
                                                 x_bar.at[tile])
                     for tile in q_tiles:
                         plgpu.barrier_wait(x_bar.at[tile])
-                    ss = [logits(t + b * dm.dt, g * kb + b) for b in range(kb)]
-                    mx = functools.reduce(jnp.maximum, [s.max(axis=1) for s in ss])
-                    # l from p unrounded, as the engine's split kernel
-                    total = sum(jnp.exp(s - lax.broadcast_in_dim(mx, s.shape, [0])).sum(axis=1) for s in ss)
+                    s = logits(t, i)
+                    mx = s.max(axis=1)
+                    p = jnp.exp(s - lax.broadcast_in_dim(mx, s.shape, [0]))
                     plgpu.wait_smem_to_gmem(0, wait_read_only=True)   # the last item's m and l read
                     mls.at[0][...] = mx
-                    mls.at[1][...] = total
+                    mls.at[1][...] = p.sum(axis=1)   # from p unrounded, as the engine's split kernel
                     plgpu.commit_smem()
                     if "noml" not in ablate:
-                        plgpu.copy_smem_to_gmem(mls, ml.at[n, g])
+                        plgpu.copy_smem_to_gmem(mls, ml.at[n, blk])
                         plgpu.wait_smem_to_gmem(0)
                         signal(head_sem.at[n] if not on_cpu else None)
-                    for b, s in enumerate(ss):
-                        part.at[m, b][...] = s
+                    part.at[m, 0][...] = s
                     return t + steps("a")
 
                 def att_second(l, t0, m, carry):
                     """Item i's P V once its head's blocks are all published: P = exp(S - M) / L with each row's
                     maximum M and denominator L over the blocks, P V added into the attention output (the item's
                     value tiles held in the ring meanwhile; t0: the phase's first ring position)."""
-                    n = (c + m * ctas) // groups
+                    n = (c + m * ctas) // dm.blocks
                     if not ablate & {"noexchange", "noml"}:
-                        wait(head_sem.at[n] if not on_cpu else None, (l + 1) * groups)
+                        wait(head_sem.at[n] if not on_cpu else None, (l + 1) * dm.blocks)
                     if "noml" not in ablate:
                         plgpu.copy_gmem_to_smem(ml.at[n], mla, misc_bar.at[3])
                         plgpu.barrier_wait(misc_bar.at[3])
 
                     def row(b, k):
                         return _in_layout(mla[b, k], plgpu.Layout.WGMMA.reduce(1))
-                    top = functools.reduce(jnp.maximum, [row(b, 0) for b in range(groups)])
-                    total = sum(row(b, 1) * jnp.exp(row(b, 0) - top) for b in range(groups))
-                    t = t0 + m * steps("a") + kb * dm.dt   # the item's value tiles, block by block
-                    ps = []
-                    for b in range(kb):
-                        s = part.at[m, b][...]
-                        p = jnp.exp(s - lax.broadcast_in_dim(top, s.shape, [0])) * lax.broadcast_in_dim(
-                            1 / total, s.shape, [0])
-                        ps.append(operand(p.astype(bf16), b))
+                    top = functools.reduce(jnp.maximum, [row(b, 0) for b in range(dm.blocks)])
+                    total = sum(row(b, 1) * jnp.exp(row(b, 0) - top) for b in range(dm.blocks))
+                    t = t0 + m * steps("a")
+                    s = part.at[m, 0][...]
+                    p = jnp.exp(s - lax.broadcast_in_dim(top, s.shape, [0])) * lax.broadcast_in_dim(
+                        1 / total, s.shape, [0])
+                    p = operand(p.astype(bf16), 0)
                     for tile in range(dm.dt):
-                        slots = [lax.rem(t + b * dm.dt + tile, ring) for b in range(kb)]
+                        slot = lax.rem(t + dm.dt + tile, ring)
+                        plgpu.barrier_wait(full.at[slot])
 
                         @functools.partial(pl.run_scoped, acc=plgpu.ACC((ROWS, TN), f32))
                         def _(acc):
-                            for p, slot in zip(ps, slots):
-                                plgpu.barrier_wait(full.at[slot])
-                                if "nopv" not in ablate:
-                                    plgpu.wgmma(acc, p, w_ring.at[slot])
-                            plgpu.wgmma_wait(0)
-                            for slot in slots:
-                                plgpu.barrier_arrive(empty.at[slot])
+                            if "nopv" not in ablate:
+                                plgpu.wgmma(acc, p, w_ring.at[slot])
+                                plgpu.wgmma_wait(0)
+                            plgpu.barrier_arrive(empty.at[slot])
                             dst = attn.at[:, pl.ds(n * dm.hd + tile * TN, TN)]
                             if on_cpu:
                                 add_into(acc[...], dst)
@@ -505,11 +495,11 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, kb: in
                 def _():   # every CTA signalled once a phase: take the counts back, the next call starts at zero
                     wait(sem, n_phases * ctas, decrement=True)
                     for n in range(dm.heads if att_items and "noml" not in ablate else 0):
-                        wait(head_sem.at[n] if not on_cpu else None, dm.layers * groups, decrement=True)
+                        wait(head_sem.at[n] if not on_cpu else None, dm.layers * dm.blocks, decrement=True)
 
     out = (jax.ShapeDtypeStruct((ROWS, dm.d), f32), jax.ShapeDtypeStruct((ROWS, dm.nq), bf16),
            jax.ShapeDtypeStruct((ROWS, dm.f), bf16), jax.ShapeDtypeStruct((ROWS, dm.a), f32),
-           jax.ShapeDtypeStruct((dm.heads, groups, 2, ROWS), f32))
+           jax.ShapeDtypeStruct((dm.heads, dm.blocks, 2, ROWS), f32))
     call = plgpu.kernel(kernel, out_type=out, grid=(ctas,), grid_names=("c",), num_threads=2, thread_name="wg",
                         kernel_name="persistent_step",
                         compiler_params=plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup),
@@ -616,8 +606,6 @@ def main() -> None:
                    "tiles (default: %(default)s)")
     p.add_argument("--splits", type=int, default=8, help="K splits of the out-projection and down "
                    "(default: %(default)s: 128 items each)")
-    p.add_argument("--kb", default="1", help="comma list of 64-key blocks an attention item, 1 or 2 "
-                   "(`step_kernel`) (default: %(default)s)")
     p.add_argument("--layers", type=int, default=18, help="layers of distinct weights (default: %(default)s)")
     p.add_argument("--ablate", action="append", default=[],
                    help="a variant with parts left out, for timing only (repeatable): a comma list of noatt, "
@@ -628,17 +616,16 @@ def main() -> None:
                    help="Mosaic GPU's interpreter at small sizes on one CTA, against XLA, and exit")
     args = p.parse_args()
     if args.cpu_check:
-        dm = Dims(d=128, heads=2, hd=128, f=128, prefix=192, layers=2)   # block 2 wholly masked
+        dm = Dims(d=128, heads=2, hd=128, f=128, prefix=128, layers=2)
         h0, ws, att = inputs(dm, valid_prefix=100)
         ws = [w.astype(jnp.float32) for w in ws]   # f32 on the interpreter: the check is to f32 rounding
         att = (att[0].astype(jnp.float32), att[1].astype(jnp.float32), *att[2:])
         want = reference(h0, ws, att, dm)
-        # 40 ring slots: the one CTA holds each item's value tiles until its second pass, and the producer fills the
-        # ring in order, so the last item's keys come after every other item's values (kb=1: 8 items of 4 tiles)
-        rel = {f"kb={kb}": _rel(step_kernel(dm, 1, 40, 2, 2, kb, dtype=jnp.float32)(h0, kernel_weights(ws, dm), att),
-                                want) for kb in (1, 2)}
+        # 24 ring slots: the one CTA holds all its 6 items' value tiles until their second pass, and the producer
+        # fills the ring in order
+        rel = _rel(step_kernel(dm, 1, 24, 2, 2, dtype=jnp.float32)(h0, kernel_weights(ws, dm), att), want)
         print(json.dumps({"rel_l2_vs_xla": rel}))
-        sys.exit(0 if max(rel.values()) < 1e-5 else 1)
+        sys.exit(0 if rel < 1e-5 else 1)
     if jax.default_backend() != "gpu" or not args.out:
         raise SystemExit("mgpu_step_probe needs a GPU (Hopper) and --out (or --cpu-check)")
     dm = Dims(layers=args.layers)
@@ -650,13 +637,12 @@ def main() -> None:
     fns = {}
     for ctas in map(int, args.ctas.split(",")):
         for ring in map(int, args.ring.split(",")):
-            for kb, ablate in [(int(k), "") for k in args.kb.split(",")] + [
-                    (int(args.kb.split(",")[0]), a) for a in args.ablate]:
-                name = f"persistent step ctas={ctas} ring={ring} xdepth={args.xdepth} kb={kb}"
+            for ablate in [""] + args.ablate:
+                name = f"persistent step ctas={ctas} ring={ring} xdepth={args.xdepth}"
                 name += f" -{ablate}" if ablate else ""
                 res["rows"][name] = {}
                 try:
-                    fn = step_kernel(dm, ctas, ring, args.xdepth, args.splits, kb, ablate=ablate)
+                    fn = step_kernel(dm, ctas, ring, args.xdepth, args.splits, ablate=ablate)
                     got, again = np.asarray(fn(h0, kws, att)), np.asarray(fn(h0, kws, att))
                     if not ablate:   # an ablation's result is wrong by design
                         res["rows"][name] = {"rel_l2_vs_xla": _rel(got, want), "rel_l2_second_call": _rel(again, got),
