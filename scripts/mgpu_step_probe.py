@@ -126,7 +126,7 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype=
     per_layer = len(PHASES)
     n_phases = 1 + per_layer * dm.layers   # a copy of h0 into h, then a layer's phases
     per_cta = -(-dm.heads * dm.blocks // ctas)   # attention items a CTA
-    # one a CTA on a GPU: its P V (f32, 64 x hd) shares shared memory with the activation tiles
+    # one a CTA on a GPU: its S and its P V tiles (f32) share shared memory with the activation tiles
     assert per_cta == 1 or on_cpu, "the attention's items are at most the CTAs"
     gemm_k = {"q": dm.d, "o": dm.a, "g": dm.d, "d": dm.f}
     gemm_cols = {"q": dm.nq, "o": dm.d, "g": 2 * dm.f, "d": dm.d}
@@ -168,7 +168,6 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype=
         def mine(name):   # this CTA's items of a phase: c, c + ctas, ...
             return jnp.maximum(items(name) - c + ctas - 1, 0) // ctas
 
-
         @functools.partial(
             pl.run_scoped,
             w_ring=plgpu.SMEM((ring, TK, TN), bf16, transforms=_t(TN, bf16)),
@@ -176,7 +175,8 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype=
             empty=plgpu.Barrier(num_arrivals=1, num_barriers=ring),
             xs=union(plgpu.SMEM((xdepth, ROWS, TK), f32, transforms=_t(TK, f32)),
                      plgpu.SMEM((xdepth, ROWS, TK), bf16, transforms=_t(TK, bf16)),
-                     plgpu.SMEM((per_cta, dm.dt, ROWS, TN), f32, transforms=_t(TN, f32))),   # P V, unscaled
+                     # an item's S, then its P V tiles on their way to the reduce-add
+                     plgpu.SMEM((per_cta, dm.dt, ROWS, TN), f32, transforms=_t(TN, f32))),
             x_bar=plgpu.Barrier(num_arrivals=1, num_barriers=xdepth),
             outs=union(plgpu.SMEM((ROWS, TN), bf16, transforms=_t(TN, bf16)),
                        plgpu.SMEM((ROWS, TN), f32, transforms=_t(TN, f32)),
@@ -216,7 +216,7 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype=
                                                     w_ring.at[slot], full.at[slot])
 
                         @pl.when(blk == nb)
-                        def _():   # the suffix's own keys: once its q/k/v phase is done
+                        def _():   # the suffix's own keys and values: once its q/k/v phase is done
                             wait(sem, (2 + per_layer * l) * ctas)
                             plgpu.copy_gmem_to_smem(qkv.at[:, pl.ds(col + tile * TN, TN)], w_ring.at[slot],
                                                     full.at[slot])
