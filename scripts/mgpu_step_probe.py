@@ -38,6 +38,8 @@ What it showed (docs/BENCHMARKS.md, session 43; us a layer, kernel time):
   - Two other forms are gone: two phases with a grid barrier between and S computed twice (`c89f403`, 37.5), and P V
     before the exchange, rescaled after (`0dd6551`, 36.9; from `d82a3ad` on, its results moved off XLA's by 7e-3 to
     1.5e-2 against 1.6e-3, for a cause not found).
+  - On 112 CTAs (an attention item on every CTA) the kept form is wrong too (1e-2), while 120-132 CTAs are right
+    and session 42's layer probe is right on 112: the cause is not found, so correctness holds where measured.
 
     python scripts/mgpu_step_probe.py --out step.json          # GPU (Hopper)
     python scripts/mgpu_step_probe.py --cpu-check              # Mosaic GPU's interpreter, small, 1 CTA
@@ -600,7 +602,8 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", help="JSON file to write (GPU run)")
     p.add_argument("--ctas", default="128", help="comma list of grid sizes, each at most the SM count and at least "
-                   "the attention's 112 items (default: %(default)s)")
+                   "the attention's 112 items; 112 itself gives wrong results (1e-2 from XLA, cause not found; "
+                   "120-132 are right) (default: %(default)s)")
     p.add_argument("--ring", default="14", help="comma list of ring depths in 8 KB tiles (default: %(default)s)")
     p.add_argument("--xdepth", type=int, default=4, help="activation tiles in flight, at least a head's 64-column "
                    "tiles (default: %(default)s)")
