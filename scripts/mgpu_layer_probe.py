@@ -121,6 +121,59 @@ def _when(cond, fn):
     return pl.when(cond)(fn)
 
 
+def union(*refs):
+    """Shared memory used by one phase or another: a RefUnion (the interpreter has none: apart there)."""
+    return refs if jax.default_backend() == "cpu" else plgpu.RefUnion(*refs)
+
+
+def signal(sem):
+    """+1 on a GPU-scope semaphore (the interpreter of jax 0.10.2 lowers none; its one CTA needs none)."""
+    if jax.default_backend() != "cpu":
+        plgpu.semaphore_signal(sem, 1, memory_scope="gpu")
+
+
+def wait(sem, target, decrement=False):
+    """Wait until a GPU-scope semaphore reaches target (none in the interpreter, as `signal`)."""
+    if jax.default_backend() != "cpu":
+        plgpu.semaphore_wait(sem, target, decrement=decrement, memory_scope="gpu")
+
+
+def add_into(y, dst, stage, bar, on_cpu: bool):
+    """dst (GMEM) += y (f32) through the f32 staging tile `stage`, by TMA's reduce-add; in the interpreter (no
+    reduce-add) its one CTA reads, adds and writes back alone, through `bar`."""
+    plgpu.wait_smem_to_gmem(0, wait_read_only=True)   # the stage's last store has read it
+    stage[...] = y
+    plgpu.commit_smem()
+    if on_cpu:
+        plgpu.wait_smem_to_gmem(0)
+        plgpu.copy_gmem_to_smem(dst, stage, bar)
+        plgpu.barrier_wait(bar)
+        stage[...] = stage[...] + y
+        plgpu.commit_smem()
+        plgpu.copy_smem_to_gmem(stage, dst)
+    else:
+        plgpu.copy_smem_to_gmem(stage, dst, reduction_op="add")
+
+
+def copy_columns(src, dst, stage, bar, c, ctas: int, width: int):
+    """dst <- src (GMEM, 64 rows), CTA c taking the 64-column tiles c, c + ctas, ... through `stage`."""
+    @pl.loop(c, width // TN, step=ctas)
+    def _(tile):
+        cols = pl.ds(tile * TN, TN)
+        plgpu.copy_gmem_to_smem(src.at[:, cols], stage, bar)
+        plgpu.barrier_wait(bar)
+        plgpu.copy_smem_to_gmem(stage, dst.at[:, cols])
+        plgpu.wait_smem_to_gmem(0)
+
+
+def drain(empty, ring: int, t):
+    """The producer's last wait on each ring slot's release (positions t - ring .. t - 1), so that every phase of
+    the barriers is observed before the kernel ends."""
+    @pl.loop(jnp.maximum(t - ring, 0), t)
+    def _(i):
+        plgpu.barrier_wait(empty.at[lax.rem(i, ring)])
+
+
 @functools.lru_cache(maxsize=None)
 def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, lhs: str = "regs", norm: str = "",
                  regs: int = 0, loop: bool = False, dtype=jnp.bfloat16, ablate: str = ""):
@@ -143,17 +196,6 @@ def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, lhs: 
     on_cpu = jax.default_backend() == "cpu"
     # Mosaic GPU's interpreter (jax 0.10.2) cannot lower semaphores; its one CTA never waits at a barrier
     assert ctas == 1 or not on_cpu, "the interpreter runs one CTA"
-
-    def union(*refs):   # shared memory used by one phase or another (the interpreter has no RefUnion)
-        return refs if on_cpu else plgpu.RefUnion(*refs)
-
-    def signal(sem):
-        if not on_cpu:
-            plgpu.semaphore_signal(sem, 1, memory_scope="gpu")
-
-    def wait(sem, target, decrement=False):
-        if not on_cpu:
-            plgpu.semaphore_wait(sem, target, decrement=decrement, memory_scope="gpu")
 
     def kernel(h0, wq, wo, wg, wd, h, qkv, act):
         c = lax.axis_index("c")
@@ -202,24 +244,14 @@ def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, lhs: 
                             return t + ph.steps
                         t = lax.fori_loop(0, mine(ph), item, t)
                     return t
-                t = lax.fori_loop(0, dm.layers, layer, jnp.int32(0))
-
-                @pl.loop(jnp.maximum(t - ring, 0), t)
-                def _(i):   # the last tiles' releases, so every phase of the barriers is observed
-                    plgpu.barrier_wait(empty.at[lax.rem(i, ring)])
+                drain(empty, ring, lax.fori_loop(0, dm.layers, layer, jnp.int32(0)))
 
             @pl.when(wg == 0)
             def compute():
                 if regs:   # the accumulator, the norm's squares and a tile in flight, without spilling
                     plgpu.set_max_registers(regs, action="increase")
 
-                @pl.loop(c, dm.d // TN, step=ctas)
-                def _(tile):   # h <- h0
-                    cols = pl.ds(tile * TN, TN)
-                    plgpu.copy_gmem_to_smem(h0.at[:, cols], o32, x_bar.at[0])
-                    plgpu.barrier_wait(x_bar.at[0])
-                    plgpu.copy_smem_to_gmem(o32, h.at[:, cols])
-                    plgpu.wait_smem_to_gmem(0)
+                copy_columns(h0, h, o32, x_bar.at[0], c, ctas, dm.d)   # h <- h0
                 signal(sem)
 
                 def f32_x(ph):   # whether the phase's activation tiles are the f32 residual's
@@ -301,18 +333,7 @@ def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, lhs: 
                                     plgpu.commit_smem()
                                     plgpu.copy_smem_to_gmem(o16, qkv.at[:, pl.ds(j * TN, TN)])
                                 elif ph.out == "add":
-                                    o32[...] = y
-                                    plgpu.commit_smem()
-                                    dst = h.at[:, pl.ds(j * TN, TN)]
-                                    if on_cpu:   # the interpreter has no reduce-add; its one CTA adds alone
-                                        plgpu.wait_smem_to_gmem(0)
-                                        plgpu.copy_gmem_to_smem(dst, o32, x_bar.at[0])
-                                        plgpu.barrier_wait(x_bar.at[0])
-                                        o32[...] = o32[...] + y
-                                        plgpu.commit_smem()
-                                        plgpu.copy_smem_to_gmem(o32, dst)
-                                    else:
-                                        plgpu.copy_smem_to_gmem(o32, dst, reduction_op="add")
+                                    add_into(y, h.at[:, pl.ds(j * TN, TN)], o32, x_bar.at[0], on_cpu)
                                 else:
                                     og[...] = mosaic_gemm._gelu_product(y[:, :UNITS], y[:, UNITS:], bf16)
                                     plgpu.commit_smem()

@@ -68,7 +68,8 @@ from pi0_jax.ops.mosaic_attention import BIG_NEG, _in_layout, _iota, _old_interp
 from pi0_jax.ops.mosaic_gemm import transforms as _t
 
 sys.path.insert(0, str(Path(__file__).parent))
-from mgpu_layer_probe import EPS, _mod, _rel, _when, interleave, timed  # noqa: E402
+from mgpu_layer_probe import (EPS, _mod, _rel, _when, add_into, copy_columns, drain, interleave, signal,  # noqa: E402
+                              timed, union, wait)
 
 PHASES = ("q", "a", "o", "g", "d")
 ROWS = TK = TN = 64   # query rows (pi0's 51 suffix tokens padded), a tile's K rows, its columns, a key block
@@ -149,17 +150,6 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype=
         if name == "a":   # a block's key tiles, then its value tiles
             return 2 * dm.dt
         return gemm_k[name] // gemm_splits[name] // TK
-
-    def union(*refs):   # the interpreter has no RefUnion
-        return refs if on_cpu else plgpu.RefUnion(*refs)
-
-    def signal(sem):
-        if not on_cpu:
-            plgpu.semaphore_signal(sem, 1, memory_scope="gpu")
-
-    def wait(sem, target, decrement=False):
-        if not on_cpu:
-            plgpu.semaphore_wait(sem, target, decrement=decrement, memory_scope="gpu")
 
     def kernel(h0, wq, wo, wg, wd, ck, cv, key_ok, ends_g, rope, h, qkv, act, attn, ml):
         c = lax.axis_index("c")
@@ -245,11 +235,7 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype=
                             return t + steps(name)
                         t = lax.fori_loop(0, mine(name), item, t)
                     return t
-                t = lax.fori_loop(0, dm.layers, layer, jnp.int32(0))
-
-                @pl.loop(jnp.maximum(t - ring, 0), t)
-                def _(i):   # the last tiles' releases, so every phase of the barriers is observed
-                    plgpu.barrier_wait(empty.at[lax.rem(i, ring)])
+                drain(empty, ring, lax.fori_loop(0, dm.layers, layer, jnp.int32(0)))
 
             @pl.when(wg == 0)
             def compute():
@@ -262,13 +248,7 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype=
                         plgpu.copy_smem_to_gmem(o32, attn.at[:, pl.ds(tile * TN, TN)])
                     plgpu.wait_smem_to_gmem(0)
 
-                @pl.loop(c, dm.d // TN, step=ctas)
-                def _(tile):   # h <- h0
-                    cols = pl.ds(tile * TN, TN)
-                    plgpu.copy_gmem_to_smem(h0.at[:, cols], o32, x_bar.at[0])
-                    plgpu.barrier_wait(x_bar.at[0])
-                    plgpu.copy_smem_to_gmem(o32, h.at[:, cols])
-                    plgpu.wait_smem_to_gmem(0)
+                copy_columns(h0, h, o32, x_bar.at[0], c, ctas, dm.d)   # h <- h0
                 zero_attn()
                 plgpu.copy_gmem_to_smem(key_ok, kok, misc_bar.at[1])
                 plgpu.copy_gmem_to_smem(ends_g, ends_s, misc_bar.at[2])
@@ -276,19 +256,8 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype=
                 plgpu.barrier_wait(misc_bar.at[2])
                 signal(sem)
 
-                def add_into(y, dst):   # dst += y (f32) by TMA's reduce-add; the interpreter's one CTA adds alone
-                    plgpu.wait_smem_to_gmem(0, wait_read_only=True)
-                    o32[...] = y
-                    plgpu.commit_smem()
-                    if on_cpu:
-                        plgpu.wait_smem_to_gmem(0)
-                        plgpu.copy_gmem_to_smem(dst, o32, x_bar.at[0])
-                        plgpu.barrier_wait(x_bar.at[0])
-                        o32[...] = o32[...] + y
-                        plgpu.commit_smem()
-                        plgpu.copy_smem_to_gmem(o32, dst)
-                    else:
-                        plgpu.copy_smem_to_gmem(o32, dst, reduction_op="add")
+                def add(y, dst):   # dst += y (f32), staged in o32
+                    add_into(y, dst, o32, x_bar.at[0], on_cpu)
 
                 def operand(tile, slot):   # a bf16 (64, 64) value as wgmma's A: registers, or shared memory
                     if lhs_regs:
@@ -350,7 +319,7 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype=
                         if name == "q":
                             epilogue_qkv(y, j)
                         elif name in ("o", "d"):
-                            add_into(y, h.at[:, pl.ds(j * TN, TN)])
+                            add(y, h.at[:, pl.ds(j * TN, TN)])
                         else:
                             o2x.at[0][...] = mosaic_gemm._gelu_product(y[:, :HALF], y[:, HALF:], bf16)
                             plgpu.commit_smem()
@@ -469,7 +438,7 @@ def step_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, dtype=
                             plgpu.barrier_arrive(empty.at[slot])
                             dst = attn.at[:, pl.ds(n * dm.hd + tile * TN, TN)]
                             if on_cpu:
-                                add_into(acc[...], dst)
+                                add(acc[...], dst)
                             else:   # staged in the item's own slots (S, in slot 0, was read before the wgmma)
                                 part.at[m, tile][...] = acc[...]
                                 plgpu.commit_smem()
