@@ -211,12 +211,12 @@ def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, lhs: 
             full=plgpu.Barrier(num_arrivals=1, num_barriers=ring),
             empty=plgpu.Barrier(num_arrivals=1, num_barriers=ring),
             xs=union(plgpu.SMEM((xdepth, ROWS, TK), f32, transforms=_t(TK, f32)),   # a phase's x
-                              plgpu.SMEM((xdepth, ROWS, TK), bf16, transforms=_t(TK, bf16))),  # is one or other
+                     plgpu.SMEM((xdepth, ROWS, TK), bf16, transforms=_t(TK, bf16))),  # is one or other
             x_bar=plgpu.Barrier(num_arrivals=1, num_barriers=xdepth),
             x_op=plgpu.SMEM((2, ROWS, TK), bf16, transforms=_t(TK, bf16)),
             outs=union(plgpu.SMEM((ROWS, TN), bf16, transforms=_t(TN, bf16)),
-                                plgpu.SMEM((ROWS, TN), f32, transforms=_t(TN, f32)),
-                                plgpu.SMEM((ROWS, UNITS), bf16, transforms=_t(UNITS, bf16))),
+                       plgpu.SMEM((ROWS, TN), f32, transforms=_t(TN, f32)),
+                       plgpu.SMEM((ROWS, UNITS), bf16, transforms=_t(UNITS, bf16))),
             collective_axes="wg")
         def scope(w_ring, full, empty, xs, x_bar, x_op, outs):
             (x32, x16), (o16, o32, og) = xs, outs   # each phase's stores land before the next phase starts
