@@ -41,7 +41,6 @@ from pi0_jax.config import IMAGE_KEYS, Pi0Config
 from pi0_jax.engine import engine_weights, enable_compilation_cache, prompt_bucket
 from pi0_jax.engine import programs
 from pi0_jax.engine import weights as weights_lib
-from pi0_jax.engine.dispatch import Direct
 from pi0_jax.engine.runtime import STAGE_WEIGHTS
 from pi0_jax.engine.store import ProgramStore
 from pi0_jax.observation import DEFAULT_OPTIONAL_CAMERAS, ObservationError, Prepared, Validator
@@ -391,8 +390,8 @@ class Policy:
         parts = (repr(core.config), core.sampler, core.num_steps, core.action_dims, core.unroll, core.kernels,
                  repr(core.attention), core.gemm, core.overlap, cameras)
 
-        def compile_(name, fn, args, options):   # called through `Direct`: no per-buffer checks on the weights
-            return Direct(self.store.compile(f"policy_{name}", parts, fn, args, options))
+        def compile_(name, fn, args, options):
+            return self.store.compile(f"policy_{name}", parts, fn, args, options)
 
         if core.sampler != "engine":
             def fn(model, norm, images, image_masks, tokens, token_mask, state, noise):

@@ -7,16 +7,10 @@ with `block_until_ready`). This probe times, round-robin in one process on the e
   null         a program of one tiny op that takes only the noise
   null_tree    the same op, with the whole weights tree passed and pruned at compile time (jit's default)
   null_kept    the same op, with the whole weights tree passed and kept as the program's arguments
-  null_direct  null_kept's program called through `engine.dispatch.Direct`
-  call         the engine's call (`Engine.sample_packed`: the vision program, then prefix + denoise), each program
-               dispatched through `engine.dispatch.Direct` (no per-argument checks of the trusted weights)
-  call_checked the same two programs through their compiled calls (jit's checks of every argument, as before)
-  vision, vision_checked   the vision program alone, each way
 
 It counts the fused program's kernels and writes a profiler trace of a few calls, summing the host's trace events by
 name (what the host does per call, nested events counted in each) beside the GPU's span (`profile_engine.idle`).
-null_kept against null is what the tree's buffers cost per call, call_checked against call what jit's checks of
-them cost.
+null_kept against null is what the tree's buffers cost per call.
 
     python scripts/dispatch_probe.py --preset pi0_base --iters 50 --out dispatch.json
 """
@@ -33,7 +27,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from pi0_jax import benchmark
-from pi0_jax.engine.dispatch import Direct
 # scripts/ is on the path when this runs as a script
 from profile_engine import (count_ops, gpu_kernels, idle, probe_arguments, probe_engine, round_robin, traced,
                             write_json)
@@ -111,22 +104,9 @@ def main() -> None:
     null = jax.jit(lambda x: x * 2.0).lower(noise).compile()
     pruned = jax.jit(tiny).lower(w, noise).compile()
     kept = jax.jit(tiny, keep_unused=True).lower(w, noise).compile()
-    kept_direct = Direct(kept)
-    vision, act = engine.call_programs(args.batch, args.steps, cameras, bucket)
-
-    def checked(prog, *a):   # the compiled call itself, with jit's checks of every argument
-        return prog.compiled({k: w[k] for k in prog.keys}, *a)
-
     calls = {"infer": lambda: infer(w, sched, *inputs, noise),
              "null": lambda: null(noise), "null_tree": lambda: pruned(w, noise), "null_kept": lambda: kept(w, noise),
-             "null_direct": lambda: kept_direct(w, noise),
-             "copy_only": lambda: jnp.copy(noise),
-             "call": lambda: engine.sample_packed(inputs, noise, args.steps, cameras, bucket),
-             "call_checked": lambda: checked(act, sched, checked(vision, inputs[0]), *inputs[1:], noise),
-             "vision": lambda: vision(w, inputs[0]), "vision_checked": lambda: checked(vision, inputs[0])}
-    got, want = (np.asarray(calls[k]()) for k in ("call", "call_checked"))
-    if not np.array_equal(got, want) or vision.direct.trusted is None or act.direct.trusted is None:
-        raise SystemExit("the call through `Direct` did not take its path or differs from the checked call")
+             "copy_only": lambda: jnp.copy(noise)}
     counts = {comp: c for comp, c in count_ops(infer.as_text()).items()
               if comp.startswith("ENTRY") or c["fusion"] + c["custom-call"] > 20}
     print("infer", json.dumps(counts), flush=True)
@@ -145,7 +125,8 @@ def main() -> None:
                    t, 16)
     if args.timeline:
         report["timeline"] = {}
-        for name, fn in calls.items():
+        for name, fn in {**calls, "call": lambda: engine.sample_packed(inputs, noise, args.steps, cameras,
+                                                                       bucket)}.items():
             t = report["timeline"][name] = timeline(fn, 8)
             print(f"{name}: {t['pre_us']:.1f} us to the first kernel, span {t['span_us']:.1f}, {t['post_us']:.1f} "
                   "after the last; the host before the first kernel:", flush=True)

@@ -31,7 +31,6 @@ import numpy as np
 from pi0_jax import pi0
 from pi0_jax.config import IMAGE_KEYS, Pi0Config
 from pi0_jax.engine import programs, weights as weights_lib
-from pi0_jax.engine.dispatch import Direct
 from pi0_jax.engine.store import ProgramStore
 from pi0_jax.ops import matmul
 
@@ -51,13 +50,9 @@ class Program:
 
     compiled: jax.stages.Compiled
     keys: tuple[str, ...]
-    direct: Direct = dataclasses.field(init=False, repr=False, compare=False)
-
-    def __post_init__(self):
-        object.__setattr__(self, "direct", Direct(self.compiled))
 
     def __call__(self, weights: dict, *args):
-        return self.direct({k: weights[k] for k in self.keys}, *args)
+        return self.compiled({k: weights[k] for k in self.keys}, *args)
 
     def as_text(self) -> str:
         return self.compiled.as_text()
