@@ -5,10 +5,12 @@ with one bias, the attention output one (N H, D) GEMM, and every matmul goes thr
 (`ops.matmul`), so FP8 weights sit (out, in) as cuBLASLt's FP8 GEMM reads them. (One q/k/v GEMM measured faster
 than three at every batch but bf16 from ~96 images, where cutting its output in three for cuDNN costs copies:
 docs/BENCHMARKS.md.) Numerics as Flax computes them: the
-patch convolution and the position add in f32; LayerNorm statistics in f32 (Flax's fast variance, E[x²] - E[x]²,
-eps 1e-6), the normalised value cast to the activation dtype; each Dense in the activation dtype with its bias added
-in it; GELU-tanh; attention as Flax's `dot_product_attention` ("xla"), cuDNN's fused kernel ("cudnn"), or a Pallas
-kernel that reads q, k and v in place from the fused GEMM's output ("pallas", `ops.vision_attention`). Each residual
+patch convolution and the position add in f32; LayerNorm statistics in f32, eps 1e-6, the normalised value cast
+to the activation dtype (the variance in two passes, the mean then the mean of squared deviations, where Flax takes
+E[x²] - E[x]²: equal to f32 rounding, and XLA makes it one kernel where it made two, docs/BENCHMARKS.md); each
+Dense in the activation dtype with its bias added in it; GELU-tanh; attention as Flax's `dot_product_attention`
+("xla"), cuDNN's fused kernel ("cudnn"), or a Pallas kernel that reads q, k and v in place from the fused GEMM's
+output ("pallas", `ops.vision_attention`). Each residual
 add is done with the LayerNorm after it (`add_norm`): XLA's ops, or one Pallas kernel (norm="pallas",
 `ops.layer_norm`), so a block hands the next its MLP output with the bias not yet added.
 
@@ -39,12 +41,13 @@ from pi0_jax.siglip import patch_embed
 
 
 def layer_norm(x, vectors, rows, dtype):
-    """LayerNorm with scale vectors[rows[0]] and bias vectors[rows[1]] (a `weights.vision_weights` table)."""
+    """LayerNorm with scale vectors[rows[0]] and bias vectors[rows[1]] (a `weights.vision_weights` table); the
+    variance from the deviations (module doc)."""
     xf = x.astype(jnp.float32)
-    mean = jnp.mean(xf, axis=-1, keepdims=True)
-    var = jnp.maximum(jnp.mean(jnp.square(xf), axis=-1, keepdims=True) - jnp.square(mean), 0.0)
+    xc = xf - jnp.mean(xf, axis=-1, keepdims=True)
+    var = jnp.mean(jnp.square(xc), axis=-1, keepdims=True)
     scale, bias = vectors[rows[0]], vectors[rows[1]]
-    return ((xf - mean) * (jax.lax.rsqrt(var + 1e-6) * scale) + bias).astype(dtype)
+    return (xc * (jax.lax.rsqrt(var + 1e-6) * scale) + bias).astype(dtype)
 
 
 def _finish(y, b, scale=None):

@@ -7,9 +7,10 @@ once, x + (y + b) and its LayerNorm written once. Triton's blocks are powers of 
 (So400m's 1152) is walked in equal power-of-two column chunks (9 x 128). On the tower it measured 1.5-3 % faster
 with XLA's GEMMs and no different with cuBLAS's (docs/BENCHMARKS.md, "SigLIP's LayerNorm as a kernel").
 
-Numerics as `pi0_jax.engine.vision.add_norm`'s XLA path (Flax's): each add rounded to the dtype, f32 statistics,
-the fast variance E[x²] - E[x]² clamped at 0, eps inside the rsqrt, scale and bias applied in f32, one rounding to
-the output dtype. Only the order of the sums differs (chunk by chunk here), so the two agree to f32 rounding.
+Numerics as `pi0_jax.engine.vision.add_norm`'s XLA path: each add rounded to the dtype, f32 statistics in two
+passes (the mean, then the mean of squared deviations), eps inside the rsqrt, scale and bias applied in f32, one
+rounding to the output dtype. Only the order of the sums differs (chunk by chunk here), so the two agree to f32
+rounding.
 
 Between FP8 GEMMs (`engine.vision`) the kernel also takes the residual's raw product with its f32 output scale and
 writes the next GEMM's e4m3 input, so neither needs a pass of its own. Triton divides f32 approximately (within 2
@@ -74,11 +75,10 @@ def _kernel(x_ref, *refs, br, bc, chunks, eps, residual, scaled, dtype, rows):
             outs[0][block, c] = x
     xs = [x.astype(jnp.float32) for x in xs]
     n = float(chunks * bc)
-    mean = jnp.sum(sum(xs), axis=1) / n
-    var = jnp.maximum(jnp.sum(sum(x * x for x in xs), axis=1) / n - mean * mean, 0.0)
-    inv = jax.lax.rsqrt(var + eps)[:, None]
+    xs = [x - (jnp.sum(sum(xs), axis=1) / n)[:, None] for x in xs]
+    inv = jax.lax.rsqrt(jnp.sum(sum(x * x for x in xs), axis=1) / n + eps)[:, None]
     for x, c, sc, b in zip(xs, cols, scale, bias):
-        y = ((x - mean[:, None]) * (inv * sc) + b).astype(dtype)
+        y = (x * (inv * sc) + b).astype(dtype)
         if outs[-1].dtype != dtype:   # e4m3 as `formats.quantise` (Triton's f32 division: module doc)
             y = jnp.clip(y.astype(jnp.float32) / act_ref[...][None, :], -E4M3_MAX, E4M3_MAX)
         outs[-1][block, c] = y.astype(outs[-1].dtype)
