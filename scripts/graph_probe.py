@@ -1,7 +1,7 @@
 """XLA options per compiled program, in one process on one set of weights: each variant is an Engine whose programs
 compile with extra XLA options on top of the engine's own (`matmul.compiler_options`: cuBLAS in the vision program
 under gemm="auto"), or, for "conv", with SigLIP's patch embedding as cuDNN's convolution (the engine's form until
-2026-11-26) instead of the f32 GEMM. Stage medians (round-robin over the variants), kernels per call, device span and
+2026-11-26) instead of the f32 GEMM; the "vision-" variants set their options on the vision program alone. Stage medians (round-robin over the variants), kernels per call, device span and
 idle time from a trace, and the fused program's actions against the first variant.
 
     python scripts/graph_probe.py --preset pi0_base --batch 1 --variant default --variant conv --out graph_probe.json
@@ -34,7 +34,11 @@ VARIANTS = {
     "graphs1": GRAPHS,
     "cudnn-graphs": {"xla_gpu_enable_command_buffer": COMMANDS},
     "cudnn-graphs1": {"xla_gpu_enable_command_buffer": COMMANDS, **GRAPHS},
+    # the vision program alone: its kernels launched one by one (no CUDA graph to update before the first one)
+    "vision-nographs": {"xla_gpu_enable_command_buffer": ""},
+    "vision-graphmin": {"xla_gpu_graph_min_graph_size": 1_000_000},
 }
+VISION_ONLY = ("vision-nographs", "vision-graphmin")
 
 
 def conv_patch_embed(images, kernel, bias, p: int):
@@ -58,6 +62,9 @@ def main() -> None:
                         "many calls in a row, as a robot's loop runs them, the blocks alternating for --iters rounds")
     p.add_argument("--variant", action="append", choices=list(VARIANTS), default=None,
                    help="repeatable, in this order (default: all)")
+    p.add_argument("--stage", action="append", default=None,
+                   choices=("encode_images", "fill_prefix_cache", "denoise", "infer", "call"),
+                   help="repeatable: only these programs (default: all; the actions compared are infer's, else call's)")
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args()
     config = get_config(args.preset, dtype="bfloat16")
@@ -69,13 +76,19 @@ def main() -> None:
         rows, timed, first = [], {}, None
         for name in args.variant or list(VARIANTS):
             extra = VARIANTS[name]
-            runtime.matmul.compiler_options = (lambda *a, o=extra, **kw: {**(own_options(*a, **kw) or {}), **o}
-                                               or None)
+            if name in VISION_ONLY:
+                runtime.matmul.compiler_options = (
+                    lambda *a, o=extra, **kw: {**(own_options(*a, **kw) or {}), **(o if kw.get("vision_tower") else {})}
+                    or None)
+            else:
+                runtime.matmul.compiler_options = (lambda *a, o=extra, **kw: {**(own_options(*a, **kw) or {}), **o}
+                                                   or None)
             vision.patch_embed = conv_patch_embed if name == "conv" else own_embed
             engine = Engine(config, params, cache_dir=False)
             cameras, bucket = engine.plan(obs)
             calls = profile_engine.stage_calls(engine, batch, 10, cameras, bucket, engine.pack(obs, cameras, bucket),
                                                noise)
+            calls = {k: v for k, v in calls.items() if k in (args.stage or calls)}
             for fn in calls.values():   # compile every program while this variant's options are set
                 jax.block_until_ready(fn())
             row = {"variant": name, "options": extra, "batch": batch, "kernels_per_call": {}, "span_ms": {},
@@ -85,7 +98,7 @@ def main() -> None:
                     t = profile_engine.kernel_times(fn, 3)
                     row["kernels_per_call"][stage] = t["kernels_per_call"]
                     row["span_ms"][stage], row["idle_ms"][stage] = t["span_ms"], t["idle_ms"]
-            out = np.asarray(calls["infer"](), np.float64)
+            out = np.asarray(calls["infer" if "infer" in calls else "call"](), np.float64)
             first = out if first is None else first
             row["rel_l2_vs_first"] = float(np.linalg.norm(out - first) / np.linalg.norm(first))
             rows.append(row)
