@@ -1,8 +1,9 @@
 """XLA options per compiled program, in one process on one set of weights: each variant is an Engine whose programs
 compile with extra XLA options on top of the engine's own (`matmul.compiler_options`: cuBLAS in the vision program
 under gemm="auto"), or, for "conv", with SigLIP's patch embedding as cuDNN's convolution (the engine's form until
-2026-11-26) instead of the f32 GEMM; the "vision-" variants set their options on the vision program alone. Stage medians (round-robin over the variants), kernels per call, device span and
-idle time from a trace, and the fused program's actions against the first variant.
+2026-11-26) instead of the f32 GEMM; the "vision-" variants set their options on the vision program alone. Stage
+medians (round-robin over the variants), kernels per call, device span and idle time from a trace, and the fused
+program's actions against the first variant.
 
     python scripts/graph_probe.py --preset pi0_base --batch 1 --variant default --variant conv --out graph_probe.json
 """
@@ -76,13 +77,10 @@ def main() -> None:
         rows, timed, first = [], {}, None
         for name in args.variant or list(VARIANTS):
             extra = VARIANTS[name]
-            if name in VISION_ONLY:
-                runtime.matmul.compiler_options = (
-                    lambda *a, o=extra, **kw: {**(own_options(*a, **kw) or {}), **(o if kw.get("vision_tower") else {})}
-                    or None)
-            else:
-                runtime.matmul.compiler_options = (lambda *a, o=extra, **kw: {**(own_options(*a, **kw) or {}), **o}
-                                                   or None)
+            only_vision = name in VISION_ONLY
+            runtime.matmul.compiler_options = (
+                lambda *a, o=extra, v=only_vision, **kw: {**(own_options(*a, **kw) or {}),
+                                                          **(o if kw.get("vision_tower") or not v else {})} or None)
             vision.patch_embed = conv_patch_embed if name == "conv" else own_embed
             engine = Engine(config, params, cache_dir=False)
             cameras, bucket = engine.plan(obs)
@@ -107,14 +105,14 @@ def main() -> None:
         times = profile_engine.round_robin(timed, args.iters)
         if args.loop:
             loops = {(row["variant"], stage): profile_engine.looping(timed[row["variant"], stage], args.loop)
-                     for row in rows for stage in LOOPED}
+                     for row in rows for stage in LOOPED if (row["variant"], stage) in timed}
             looped = profile_engine.round_robin(loops, args.iters)
         for row in rows:
             row["median_ms"] = {stage: float(np.median(t)) for (name, stage), t in times.items()
                                 if name == row["variant"]}
             if args.loop:
                 row["in_a_loop_ms"] = {stage: float(np.median(looped[row["variant"], stage])) / args.loop
-                                       for stage in LOOPED}
+                                       for stage in LOOPED if (row["variant"], stage) in looped}
             print(json.dumps({k: row[k] for k in ("variant", "batch", "median_ms", "in_a_loop_ms", "kernels_per_call",
                                                   "span_ms", "idle_ms", "rel_l2_vs_first") if k in row}), flush=True)
         report["rows"] += rows

@@ -75,7 +75,8 @@ def _kernel(x_ref, *refs, br, bc, chunks, eps, residual, scaled, dtype, rows):
             outs[0][block, c] = x
     xs = [x.astype(jnp.float32) for x in xs]
     n = float(chunks * bc)
-    xs = [x - (jnp.sum(sum(xs), axis=1) / n)[:, None] for x in xs]
+    mean = (jnp.sum(sum(xs), axis=1) / n)[:, None]
+    xs = [x - mean for x in xs]
     inv = jax.lax.rsqrt(jnp.sum(sum(x * x for x in xs), axis=1) / n + eps)[:, None]
     for x, c, sc, b in zip(xs, cols, scale, bias):
         y = (x * (inv * sc) + b).astype(dtype)
