@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import collections
 import dataclasses
+import functools
 import glob
 import gzip
 import itertools
@@ -184,16 +185,25 @@ def looping(fn, n: int):
 
 def stage_calls(engine: Engine, batch: int, steps: int, cameras, bucket, packed, noise) -> dict:
     """Each stage program as a no-argument call on fixed inputs (the denoise gets a fresh copy of the noise), the
-    fused program ("infer") and the engine's call ("call": `Engine.sample_packed`, two programs)."""
+    fused program ("infer") and the engine's call ("call": `Engine.sample_packed`, two programs). A program is
+    compiled at its call's first use, and the prefix's and the denoise's inputs made once, then."""
     w, sched = engine.weights, engine.schedule(steps)
-    enc, pre, den, fused = (engine.executable(s, batch, steps, cameras, bucket)
-                            for s in ("encode_images", "fill_prefix_cache", "denoise", "infer"))
-    tokens = enc(w, packed[0])
-    cache = pre(w, tokens, *packed[1:4])
-    return {"encode_images": lambda: enc(w, packed[0]),
-            "fill_prefix_cache": lambda: pre(w, tokens, *packed[1:4]),
-            "denoise": lambda: den(w, sched, cache, packed[4], noise),
-            "infer": lambda: fused(w, sched, *packed, noise),
+
+    def prog(stage):
+        return engine.executable(stage, batch, steps, cameras, bucket)
+
+    @functools.cache
+    def tokens():
+        return prog("encode_images")(w, packed[0])
+
+    @functools.cache
+    def cache():
+        return prog("fill_prefix_cache")(w, tokens(), *packed[1:4])
+
+    return {"encode_images": lambda: prog("encode_images")(w, packed[0]),
+            "fill_prefix_cache": lambda: prog("fill_prefix_cache")(w, tokens(), *packed[1:4]),
+            "denoise": lambda: prog("denoise")(w, sched, cache(), packed[4], noise),
+            "infer": lambda: prog("infer")(w, sched, *packed, noise),
             "call": lambda: engine.sample_packed(packed, noise, steps, cameras, bucket)}
 
 
