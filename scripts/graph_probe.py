@@ -38,6 +38,12 @@ VARIANTS = {
     # the vision program alone: its kernels launched one by one (no CUDA graph to update before the first one)
     "vision-nographs": {"xla_gpu_enable_command_buffer": ""},
     "vision-graphmin": {"xla_gpu_graph_min_graph_size": 1_000_000},
+    # GEMM libraries: cuBLASLt's heuristics (other tiles, stream-K), cuDNN's GEMM fusions beside XLA's Triton ones
+    "lt": {"xla_gpu_enable_cublaslt": True},
+    "cudnn-gemm": {"xla_gpu_cudnn_gemm_fusion_level": 2},
+    "vision-lt": {"xla_gpu_enable_cublaslt": True},
+    "vision-xla": {"xla_gpu_enable_triton_gemm": True},
+    "vision-cudnn-gemm": {"xla_gpu_enable_triton_gemm": True, "xla_gpu_cudnn_gemm_fusion_level": 2},
 }
 
 
@@ -95,6 +101,8 @@ def main() -> None:
                     t = profile_engine.kernel_times(fn, 3)
                     row["kernels_per_call"][stage] = t["kernels_per_call"]
                     row["span_ms"][stage], row["idle_ms"][stage] = t["span_ms"], t["idle_ms"]
+                    row.setdefault("kernel_ms", {})[stage] = t["kernel_ms"]
+                    row.setdefault("top_kernels", {})[stage] = t["by_name"][:20]
             actions = next((calls[k] for k in ("infer", "call") if k in calls), None)
             if actions is not None:
                 out = np.asarray(actions(), np.float64)
@@ -114,8 +122,9 @@ def main() -> None:
             if args.loop:
                 row["in_a_loop_ms"] = {stage: float(np.median(looped[row["variant"], stage])) / args.loop
                                        for stage in LOOPED if (row["variant"], stage) in looped}
-            print(json.dumps({k: row[k] for k in ("variant", "batch", "median_ms", "in_a_loop_ms", "kernels_per_call",
-                                                  "span_ms", "idle_ms", "rel_l2_vs_first") if k in row}), flush=True)
+            shown = ("variant", "batch", "median_ms", "in_a_loop_ms", "kernels_per_call", "kernel_ms", "span_ms",
+                     "idle_ms", "rel_l2_vs_first")
+            print(json.dumps({k: row[k] for k in shown if k in row}), flush=True)
         report["rows"] += rows
     profile_engine.write_json(args.out, report)
 
