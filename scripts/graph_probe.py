@@ -1,9 +1,9 @@
 """XLA options per compiled program, in one process on one set of weights: each variant is an Engine whose programs
 compile with extra XLA options on top of the engine's own (`matmul.compiler_options`: cuBLAS in the vision program
 under gemm="auto"), or, for "conv", with SigLIP's patch embedding as cuDNN's convolution (the engine's form until
-2026-11-26) instead of the f32 GEMM; the "vision-" variants set their options on the vision program alone. Stage
-medians (round-robin over the variants), kernels per call, device span and idle time from a trace, and the fused
-program's actions against the first variant.
+2026-11-26) instead of the f32 GEMM, or, for "unroll-steps", with the denoise loop unrolled; the "vision-" variants
+set their options on the vision program alone. Stage medians (round-robin over the variants), kernels per call,
+device span and idle time from a trace, and the fused program's actions against the first variant.
 
     python scripts/graph_probe.py --preset pi0_base --batch 1 --variant default --variant conv --out graph_probe.json
 """
@@ -44,7 +44,11 @@ VARIANTS = {
     "vision-lt": {"xla_gpu_enable_cublaslt": True},
     "vision-xla": {"xla_gpu_enable_triton_gemm": True},
     "vision-cudnn-gemm": {"xla_gpu_enable_triton_gemm": True, "xla_gpu_cudnn_gemm_fusion_level": 2},
+    # the denoise loop: unrolled (Engine(unroll_steps=True), below), or its while loop inside the command buffers
+    "unroll-steps": {},
+    "while-graphs": {"xla_gpu_enable_command_buffer": COMMANDS + ",WHILE,CONDITIONAL"},
 }
+ENGINE_KW = {"unroll-steps": {"unroll_steps": True}}
 
 
 def conv_patch_embed(images, kernel, bias, p: int):
@@ -71,6 +75,7 @@ def main() -> None:
     p.add_argument("--stage", action="append", default=None,
                    choices=("encode_images", "fill_prefix_cache", "denoise", "infer", "call"),
                    help="repeatable: only these programs (default: all; the actions compared are infer's, else call's)")
+    p.add_argument("--sequence", action="store_true", help="keep each stage's kernels in launch order (one call)")
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args()
     config = get_config(args.preset, dtype="bfloat16")
@@ -87,7 +92,7 @@ def main() -> None:
                 lambda *a, o=extra, v=only_vision, **kw: {**(own_options(*a, **kw) or {}),
                                                           **(o if kw.get("vision_tower") or not v else {})} or None)
             vision.patch_embed = conv_patch_embed if name == "conv" else own_embed
-            engine = Engine(config, params, cache_dir=False)
+            engine = Engine(config, params, cache_dir=False, **ENGINE_KW.get(name, {}))
             cameras, bucket = engine.plan(obs)
             calls = profile_engine.stage_calls(engine, batch, 10, cameras, bucket, engine.pack(obs, cameras, bucket),
                                                noise)
@@ -98,11 +103,14 @@ def main() -> None:
                    "idle_ms": {}, "compile_s": {k[0]: round(v, 2) for k, v in engine.compile_seconds.items()}}
             if batch <= 8:
                 for stage, fn in calls.items():
-                    t = profile_engine.kernel_times(fn, 3)
+                    t = profile_engine.kernel_times(fn, 3, sequence=args.sequence)
                     row["kernels_per_call"][stage] = t["kernels_per_call"]
                     row["span_ms"][stage], row["idle_ms"][stage] = t["span_ms"], t["idle_ms"]
                     row.setdefault("kernel_ms", {})[stage] = t["kernel_ms"]
                     row.setdefault("top_kernels", {})[stage] = t["by_name"][:20]
+                    row.setdefault("idle_before", {})[stage] = t["idle_before"][:12]
+                    if args.sequence:
+                        row.setdefault("sequence", {})[stage] = t["sequence"]
             actions = next((calls[k] for k in ("infer", "call") if k in calls), None)
             if actions is not None:
                 out = np.asarray(actions(), np.float64)
