@@ -24,7 +24,7 @@ import profile_engine  # noqa: E402
 
 from pi0_jax import benchmark  # noqa: E402
 from pi0_jax.config import get_config  # noqa: E402
-from pi0_jax.engine import Engine, runtime, vision  # noqa: E402
+from pi0_jax.engine import Engine, programs, runtime, vision  # noqa: E402
 
 GRAPHS = {"xla_gpu_graph_min_graph_size": 1}
 COMMANDS = "FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN"
@@ -48,7 +48,11 @@ VARIANTS = {
     "unroll-steps": {},
     "while-graphs": {"xla_gpu_enable_command_buffer": COMMANDS + ",WHILE,CONDITIONAL"},
 }
-ENGINE_KW = {"unroll-steps": {"unroll_steps": True}}
+# the call's second program without its first denoise step beside the prefix fill, or with it but in XLA's default
+# command-buffer order ("LHS") instead of CONCURRENT
+VARIANTS.update({"no-overlap": {}, "overlap-lhs": {}})
+ENGINE_KW = {"unroll-steps": {"unroll_steps": True}, "no-overlap": {"overlap": "off"}}
+SCHEDULING = {"overlap-lhs": {"xla_gpu_command_buffer_scheduling_mode": "LHS"}}
 
 
 def conv_patch_embed(images, kernel, bias, p: int):
@@ -81,7 +85,7 @@ def main() -> None:
     config = get_config(args.preset, dtype="bfloat16")
     params = benchmark.random_params(config, 0)
     report = {"preset": args.preset, "env": benchmark.environment(), "rows": []}
-    own_options, own_embed = runtime.matmul.compiler_options, vision.patch_embed
+    own_options, own_embed, own_concurrent = runtime.matmul.compiler_options, vision.patch_embed, programs.CONCURRENT
     for batch in args.batch or [1]:
         obs, noise = benchmark.make_inputs(config, batch, 3, args.prompt_tokens, 0)
         rows, timed, first = [], {}, None
@@ -92,6 +96,7 @@ def main() -> None:
                 lambda *a, o=extra, v=only_vision, **kw: {**(own_options(*a, **kw) or {}),
                                                           **(o if kw.get("vision_tower") or not v else {})} or None)
             vision.patch_embed = conv_patch_embed if name == "conv" else own_embed
+            programs.CONCURRENT = SCHEDULING.get(name, own_concurrent)
             engine = Engine(config, params, cache_dir=False, **ENGINE_KW.get(name, {}))
             cameras, bucket = engine.plan(obs)
             calls = profile_engine.stage_calls(engine, batch, 10, cameras, bucket, engine.pack(obs, cameras, bucket),
@@ -119,6 +124,7 @@ def main() -> None:
             rows.append(row)
             timed.update({(name, stage): fn for stage, fn in calls.items()})
         runtime.matmul.compiler_options, vision.patch_embed = own_options, own_embed
+        programs.CONCURRENT = own_concurrent
         times = profile_engine.round_robin(timed, args.iters)
         if args.loop:
             loops = {(row["variant"], stage): profile_engine.looping(timed[row["variant"], stage], args.loop)
