@@ -221,7 +221,7 @@ def bench_engine(engine: Engine, args, batch: int) -> list[dict]:
             row["total"] = time_calls(lambda p, n: engine.sample_packed(p, n, steps, cameras, bucket),
                                       [(p, n) for p, (_, n) in zip(packed, sets)], args.iters, args.warmup)
             row["compile_s"] = sum(engine.compile_seconds.get(engine.key(s, batch, steps, cameras, bucket), 0.0)
-                                   for s in ("encode_images", "prefix_denoise"))
+                                   for s in engine.call_stages(batch, steps))
             if args.one_program:
                 fused = engine.executable("infer", batch, steps, cameras, bucket)
                 row["one_program"] = time_calls(lambda p, n: fused(w, sched, *p, n),

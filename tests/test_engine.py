@@ -310,9 +310,10 @@ def test_attention_and_kernel_choices(monkeypatch):
 
 
 def test_the_first_step_beside_the_prefix_is_the_same_call(model, monkeypatch):
-    """overlap: the call's second program runs its first denoise step outside the loop (so its layer i waits for
-    the cache's layer i alone) in XLA's CONCURRENT command-buffer mode: the same actions bit for bit, one loop trip
-    fewer; "auto" only at batch 1 on a GPU where the expert runs its Pallas kernels."""
+    """overlap: the call's second program runs its first denoise step after the prefix fill (so its layer i waits
+    for the cache's layer i alone) in XLA's CONCURRENT command-buffer mode, and the loop over the other steps is a
+    third program in XLA's default order (one program with one step, as without the overlap): the same actions bit
+    for bit; "auto" only at batch 1 on a GPU where the expert runs its Pallas kernels."""
     import re
 
     from pi0_jax.engine import programs, runtime
@@ -327,16 +328,27 @@ def test_the_first_step_beside_the_prefix_is_the_same_call(model, monkeypatch):
         return jax.jit(fn).lower(*args).compile(opts)
 
     monkeypatch.setattr(runtime.ProgramStore, "compile", compile)
+    def mode(stage):
+        return (options.pop(stage) or {}).get("xla_gpu_command_buffer_scheduling_mode")
+
     for overlap in ("on", "off"):
         engine = Engine(config, params, cache_dir=False, overlap=overlap)
         got[overlap] = np.asarray(engine.sample_actions(obs, noise, 3))
-        hlo = engine.executable("prefix_denoise", 2, 3, *engine.plan(obs)).as_text()
+        got[overlap, 1] = np.asarray(engine.sample_actions(obs, noise, 1))
+        loop = engine.call_stages(2, 3)[-1]
+        hlo = engine.executable(loop, 2, 3, *engine.plan(obs)).as_text()
         trips[overlap] = re.findall(r'known_trip_count":\{"n":"(\d+)"', hlo)
         assert engine.overlaps(2) == (overlap == "on")
-        assert (options.pop("prefix_denoise") or {}).get("xla_gpu_command_buffer_scheduling_mode") == (
-            "CONCURRENT" if overlap == "on" else None)
-        assert "xla_gpu_command_buffer_scheduling_mode" not in (options.pop("encode_images") or {})
+        assert engine.call_stages(2, 1) == ("encode_images", "prefix_denoise")
+        if overlap == "on":
+            assert engine.call_stages(2, 3) == ("encode_images", "prefix_first_step", "denoise_rest")
+            assert (mode("prefix_first_step"), mode("denoise_rest"), mode("prefix_denoise")) == ("CONCURRENT",
+                                                                                              None, "CONCURRENT")
+        else:
+            assert engine.call_stages(2, 3) == ("encode_images", "prefix_denoise") and mode("prefix_denoise") is None
+        assert mode("encode_images") is None and not options
     np.testing.assert_array_equal(got["on"], got["off"])
+    np.testing.assert_array_equal(got["on", 1], got["off", 1])
     assert trips == {"on": ["2"], "off": ["3"]}
     assert not Engine(config, params, cache_dir=False).overlaps(1)   # auto: a CPU runs XLA's expert
     layers = [{"qkv": jnp.zeros((4, 4))}]

@@ -1,5 +1,5 @@
-"""The three inference stages, the last two as one (`prefix_denoise`), and the fused program, as pure functions of
-(engine weights, inputs).
+"""The three inference stages, the last two as one (`prefix_denoise`) or split after the first denoise step
+(`prefix_first_step`, `denoise_rest`), and the fused program, as pure functions of (engine weights, inputs).
 
 Static per compiled program: the config, batch size, the active cameras (a camera masked for every element is not
 encoded at all), the prompt bucket length, num_steps, whether layers are unrolled, each stage's attention
@@ -446,9 +446,8 @@ def denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixCache, s
     and `num_committed` d (B,): actions i < d are given, clean at every step and returned as given (training-time
     action conditioning, as `pi0.sample_actions`). peel_first: the first step outside the loop, in the program's
     own sequence, where its layer i depends on the cache's layer i alone (not on the whole prefix fill)."""
-    dt = -1.0 / num_steps
     if not isinstance(num_steps, int):
-        dt, unroll_steps = jnp.asarray(dt, jnp.float32), None   # f32 as the reference's traced dt
+        unroll_steps = None
     x = noise.astype(jnp.float32)
     frozen = None
     if num_committed is not None:
@@ -456,6 +455,19 @@ def denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixCache, s
         x = jnp.where(frozen[..., None], committed.astype(jnp.float32), x)
 
     fixed, cache, kv = step_inputs(config, weights, cache, state, x.shape[0], kernels, attention, unroll=unroll)
+    step = _euler_step(config, weights, sched, cache, fixed, num_steps, unroll=unroll, attention=attention,
+                       kernels=kernels, frozen=frozen)
+    carry, first = (x, kv), 0
+    if peel_first and isinstance(num_steps, int) and num_steps > 0:
+        carry, first = step(0, carry), 1
+    return jax.lax.fori_loop(first, num_steps, step, carry, unroll=unroll_steps)[0]
+
+
+def _euler_step(config, weights, sched, cache, fixed, num_steps, *, unroll, attention, kernels, frozen=None):
+    """The loop body of `denoise`: (i, (x_t, kv)) -> (x_t + dt v, kv), dt = -1 / num_steps."""
+    dt = -1.0 / num_steps
+    if not isinstance(num_steps, int):
+        dt = jnp.asarray(dt, jnp.float32)   # f32 as the reference's traced dt
 
     def step(i, carry):   # the suffix-first buffers ride in the carry, so each step fills their slots in place
         x_t, kv = carry
@@ -464,10 +476,31 @@ def denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixCache, s
         x_next = x_t + dt * v  # dt * v in v's dtype, then promoted to f32: as the reference
         return (x_next if frozen is None else jnp.where(frozen[..., None], x_t, x_next)), kv
 
-    carry, first = (x, kv), 0
-    if peel_first and isinstance(num_steps, int) and num_steps > 0:
-        carry, first = step(0, carry), 1
-    return jax.lax.fori_loop(first, num_steps, step, carry, unroll=unroll_steps)[0]
+    return step
+
+
+def prefix_first_step(config: Pi0Config, weights: dict, sched: dict, image_tokens, image_masks, tokens, token_mask,
+                      state, noise, *, num_steps: int, unroll: bool, attention: Attention = Attention(),
+                      kernels: str = "xla") -> tuple:
+    """The call's second program where its denoise loop is a program of its own (`denoise_rest`): the prefix cache
+    and the first denoise step, whose layer i waits for the cache's layer i alone. -> (x after the first step, the
+    suffix-first buffers or None, the cache and the step invariants the other steps read: `denoise_rest`'s inputs)."""
+    cache = fill_prefix_cache(config, weights, image_tokens, image_masks, tokens, token_mask, unroll=unroll,
+                              kernels=kernels, attention=attention)
+    fixed, cache, kv = step_inputs(config, weights, cache, state, noise.shape[0], kernels, attention, unroll=unroll)
+    step = _euler_step(config, weights, sched, cache, fixed, num_steps, unroll=unroll, attention=attention,
+                       kernels=kernels)
+    x, kv = step(0, (noise.astype(jnp.float32), kv))
+    return x, kv, cache, fixed
+
+
+def denoise_rest(config: Pi0Config, weights: dict, sched: dict, x, kv, cache: PrefixCache, fixed: dict, *,
+                 num_steps: int, unroll: bool, unroll_steps: bool, attention: Attention = Attention(),
+                 kernels: str = "xla") -> jax.Array:
+    """Denoise steps 1 .. num_steps - 1 from `prefix_first_step`'s outputs: the call's third program."""
+    step = _euler_step(config, weights, sched, cache, fixed, num_steps, unroll=unroll, attention=attention,
+                       kernels=kernels)
+    return jax.lax.fori_loop(1, num_steps, step, (x, kv), unroll=unroll_steps)[0]
 
 
 def prefix_denoise(config: Pi0Config, weights: dict, sched: dict, image_tokens, image_masks, tokens, token_mask,

@@ -6,7 +6,8 @@ shape is an error, never a silent recompile. With a cache directory, a second pr
 back from `store.ProgramStore` without tracing, and anything else compiled from XLA's persistent cache.
 
 A call (`sample_actions`) is two programs, dispatched one after the other with no host round trip between them:
-the vision tower, then the prefix fill and the denoise loop. Each takes only its own weights (`STAGE_WEIGHTS`): the
+the vision tower, then the prefix fill and the denoise loop (three where the first denoise step overlaps the prefix
+fill: `Engine.call_stages`). Each takes only its own weights (`STAGE_WEIGHTS`): the
 host pays about 1.2-1.7 µs per buffer a call takes before its first kernel runs, and the second program's dispatch
 runs while the GPU runs the first. And the vision program gets its own GEMM library (`matmul.compiler_options`).
 At batch 1 on a GPU the second program runs its first denoise step beside the prefix fill (`Engine.overlaps`).
@@ -39,6 +40,8 @@ PROMPT_BUCKETS = (16, 32, 48, 64, 96, 128, 160, 200)
 STAGE_WEIGHTS = {"encode_images": ("img",), "fill_prefix_cache": ("embedding", "vlm"),
                  "denoise": ("expert", "top", "final_norm_1"),
                  "prefix_denoise": ("embedding", "vlm", "expert", "top", "final_norm_1"),
+                 "prefix_first_step": ("embedding", "vlm", "expert", "top", "final_norm_1"),
+                 "denoise_rest": ("expert", "top", "final_norm_1"),
                  "infer": ("img", "embedding", "vlm", "expert", "top", "final_norm_1")}
 STAGES = tuple(STAGE_WEIGHTS)
 
@@ -175,7 +178,7 @@ class Engine:
             fn, args = self._stage(stage, _shapes(weights), batch, num_steps, cameras, prompt_len)
             options = programs.overlap_options(
                 matmul.compiler_options(weights, self.gemm, vision_tower=stage == "encode_images"),
-                stage == "prefix_denoise" and self.overlaps(batch))
+                stage == "prefix_first_step" or (stage == "prefix_denoise" and self.overlaps(batch)))
             # everything the traced program depends on besides its arguments and options
             parts = (key, repr(self.config), self.unroll, self.unroll_steps, repr(self.attention), self.kernels,
                      self.gemm, self.overlap)
@@ -202,10 +205,20 @@ class Engine:
             prompt_len = 0
         return (stage, batch, num_steps, tuple(cameras), prompt_len)
 
-    def call_programs(self, batch: int, num_steps: int, cameras: Sequence[str], prompt_len: int):
-        """The two programs of a call (`sample_actions`): (encode_images, prefix_denoise)."""
-        return (self.executable("encode_images", batch, num_steps, cameras, prompt_len),
-                self.executable("prefix_denoise", batch, num_steps, cameras, prompt_len))
+    def call_stages(self, batch: int, num_steps: int) -> tuple[str, ...]:
+        """The stages of a call's programs, in order: the vision tower, then the prefix fill with the denoise loop;
+        where the first denoise step runs beside the prefix fill (`overlaps`) and other steps follow, the prefix fill
+        with that step, then the loop as a program of its own. XLA's command buffers run the overlap's program in
+        their CONCURRENT order, and there a while loop's iterations were 20-25 µs apart; in a program of its own the
+        loop keeps XLA's default order (docs/BENCHMARKS.md, "The denoise loop as a program of its own")."""
+        if self.overlaps(batch) and num_steps > 1:
+            return "encode_images", "prefix_first_step", "denoise_rest"
+        return "encode_images", "prefix_denoise"
+
+    def call_programs(self, batch: int, num_steps: int, cameras: Sequence[str], prompt_len: int) -> tuple:
+        """The programs of a call (`sample_actions`), in `call_stages`' order."""
+        return tuple(self.executable(stage, batch, num_steps, cameras, prompt_len)
+                     for stage in self.call_stages(batch, num_steps))
 
     def _stage(self, stage, w, batch, num_steps, cameras, prompt_len):
         cfg, s = self.config, self.config.image_size
@@ -235,6 +248,13 @@ class Engine:
         if stage == "prefix_denoise":
             fn = functools.partial(programs.prefix_denoise, cfg, **denoise_kw, peel_first=self.overlaps(batch))
             return fn, (w, sched, image_tokens, image_masks, tokens, token_mask, state, noise)
+        first = functools.partial(programs.prefix_first_step, cfg, **kw, num_steps=num_steps, kernels=self.kernels)
+        first_args = (sched, image_tokens, image_masks, tokens, token_mask, state, noise)
+        if stage == "prefix_first_step":
+            return first, (w, *first_args)
+        if stage == "denoise_rest":
+            outs = jax.eval_shape(first, _shapes(self.stage_weights("prefix_first_step")), *first_args)
+            return functools.partial(programs.denoise_rest, cfg, **denoise_kw), (w, sched, *outs)
         fn = functools.partial(programs.infer, cfg, **denoise_kw)
         return fn, (w, sched, images, image_masks, tokens, token_mask, state, noise)
 
@@ -266,12 +286,13 @@ class Engine:
 
     def sample_packed(self, packed: tuple, noise: jax.Array, num_steps: int, cameras: Sequence[str],
                       prompt_len: int) -> jax.Array:
-        """`sample_actions` on `pack`'s arrays: the call's two programs, the second dispatched while the GPU runs
-        the first (no host round trip between them). noise (B, H, action_dim) f32."""
+        """`sample_actions` on `pack`'s arrays: the call's programs (`call_stages`), each dispatched while the GPU
+        runs the one before (no host round trip between them). noise (B, H, action_dim) f32."""
         images, image_masks, tokens, token_mask, state = packed
-        vision, act = self.call_programs(noise.shape[0], num_steps, cameras, prompt_len)
-        return act(self.weights, self.schedule(num_steps), vision(self.weights, images), image_masks, tokens,
-                   token_mask, state, noise)
+        vision, act, *rest = self.call_programs(noise.shape[0], num_steps, cameras, prompt_len)
+        sched = self.schedule(num_steps)
+        out = act(self.weights, sched, vision(self.weights, images), image_masks, tokens, token_mask, state, noise)
+        return rest[0](self.weights, sched, *out) if rest else out
 
     def run_stages(self, obs: pi0.Observation, noise: jax.Array, num_steps: int = 10):
         """The three stage programs one after another (for per-stage timing); returns (image_tokens, cache, actions)."""
