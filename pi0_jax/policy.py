@@ -227,6 +227,22 @@ class PolicyCore:
                                           kernels=self.kernels, attention=self.attention, peel_first=peel_first)
         return self._actions(norm, actions)
 
+    # `act` as two programs where its first denoise step overlaps the prefix fill (`Engine.call_stages`)
+    def act_first(self, model, norm, image_tokens, image_masks, tokens, token_mask, state, noise) -> tuple:
+        """`act` up to its first denoise step: `programs.prefix_first_step`'s outputs."""
+        return programs.prefix_first_step(self.config, model["weights"], self._schedule(model, self.num_steps),
+                                          image_tokens, image_masks, tokens, token_mask,
+                                          self.normalize_state(norm, state), noise.astype(jnp.float32),
+                                          num_steps=self.num_steps, unroll=self.unroll, kernels=self.kernels,
+                                          attention=self.attention)
+
+    def act_rest(self, model, norm, x, kv, cache, fixed) -> jax.Array:
+        """`act` after its first denoise step (`programs.denoise_rest`) -> un-normalised actions."""
+        actions = programs.denoise_rest(self.config, model["weights"], self._schedule(model, self.num_steps), x, kv,
+                                        cache, fixed, num_steps=self.num_steps, unroll=self.unroll,
+                                        unroll_steps=False, kernels=self.kernels, attention=self.attention)
+        return self._actions(norm, actions)
+
     def _actions(self, norm, actions: jax.Array) -> jax.Array:
         actions = actions[..., : self.action_dims].astype(jnp.float32)
         return actions * norm["action_scale"] + norm["action_offset"]
@@ -406,8 +422,21 @@ class Policy:
                           matmul.compiler_options(vision, core.gemm, vision_tower=True))
         tokens = jax.eval_shape(core.encode, vision, images)
         peel = programs.first_step_overlap(core.overlap, core.kernels, spec[-1].shape[0], rest["weights"]["expert"])
+        options = matmul.compiler_options(rest, core.gemm)
+        if peel and core.num_steps > 1:   # the loop as a program of its own, as `Engine.call_stages`
+            first_args = (rest, self._norm, tokens, *spec[1:])
+            first = compile_("act_first", core.act_first, first_args, programs.overlap_options(options, True))
+            loop = {**rest, "weights": {k: rest["weights"][k] for k in STAGE_WEIGHTS["denoise_rest"]
+                                        if k in rest["weights"]}}
+            last = compile_("act_rest", core.act_rest,
+                            (loop, self._norm, *jax.eval_shape(core.act_first, *first_args)), options)
+
+            def call(norm, images, *args):
+                return last(loop, norm, *first(rest, norm, encode(vision, images), *args))
+
+            return call
         act = compile_("act", functools.partial(core.act, peel_first=peel), (rest, self._norm, tokens, *spec[1:]),
-                       programs.overlap_options(matmul.compiler_options(rest, core.gemm), peel))
+                       programs.overlap_options(options, peel))
 
         def call(norm, images, *args):
             return act(rest, norm, encode(vision, images), *args)
