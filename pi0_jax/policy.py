@@ -9,7 +9,8 @@ One pipeline serves every caller (`Policy.infer` / `infer_batch`, the policy ser
           and resize-with-pad to the model's size, state normalised and zero-padded, the engine's vision -> prefix
           cache -> denoise (masked cameras not encoded, the prompt cut to its bucket), actions sliced to the
           dataset's dims and un-normalised. `Policy` runs it as two programs, `PolicyCore.encode` (the vision
-          tower) then `PolicyCore.act`, as `Engine.sample_actions` does; the simulator embeds `program` whole.
+          tower) then `PolicyCore.act` (where its first denoise step overlaps the prefix fill, `act_first` then
+          `act_rest`), as `Engine.sample_actions` does; the simulator embeds `program` whole.
 
 Normalisation runs on device as x * scale + offset (`Normalizer.affine`): every mode is affine per dimension, and
 the scale/offset come from the exact float64 formulas (openpi un-normalises all 32 dims and then slices; per-dim
@@ -389,8 +390,9 @@ class Policy:
     def executable(self, host_args: tuple, cameras: tuple[str, ...]):
         """The compiled call for these input shapes (compiled ahead of time on first use, then kept):
         (norm, *host_args) -> actions. With the engine sampler it is two programs, `PolicyCore.encode` on the vision
-        tower's weights and `PolicyCore.act` on the rest, the second dispatched while the GPU runs the first, as
-        `Engine.sample_actions`; the reference sampler is one program."""
+        tower's weights and `PolicyCore.act` on the rest (three where the first denoise step overlaps the prefix
+        fill: `act_first`, then `act_rest` on the expert's weights), each dispatched while the GPU runs the one
+        before, as `Engine.sample_actions`; the reference sampler is one program."""
         spec = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), host_args)
         key = (cameras, tuple((x.shape, x.dtype.str) for x in jax.tree.leaves(host_args)))
         with self._lock:
