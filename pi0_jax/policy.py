@@ -43,7 +43,7 @@ from pi0_jax.engine import engine_weights, enable_compilation_cache, prompt_buck
 from pi0_jax.engine import programs
 from pi0_jax.engine import weights as weights_lib
 from pi0_jax.engine.runtime import STAGE_WEIGHTS
-from pi0_jax.engine.store import ProgramStore
+from pi0_jax.engine.store import ProgramStore, out_shapes
 from pi0_jax.observation import DEFAULT_OPTIONAL_CAMERAS, ObservationError, Prepared, Validator
 from pi0_jax.ops import matmul
 from pi0_jax.preprocess import resize_with_pad
@@ -430,8 +430,7 @@ class Policy:
             first = compile_("act_first", core.act_first, first_args, programs.overlap_options(options, True))
             loop = {**rest, "weights": {k: rest["weights"][k] for k in STAGE_WEIGHTS["denoise_rest"]
                                         if k in rest["weights"]}}
-            last = compile_("act_rest", core.act_rest,
-                            (loop, self._norm, *jax.eval_shape(core.act_first, *first_args)), options)
+            last = compile_("act_rest", core.act_rest, (loop, self._norm, *out_shapes(first)), options)
 
             def call(norm, images, *args):
                 return last(loop, norm, *first(rest, norm, encode(vision, images), *args))

@@ -328,6 +328,7 @@ def test_the_first_step_beside_the_prefix_is_the_same_call(model, monkeypatch):
         return jax.jit(fn).lower(*args).compile(opts)
 
     monkeypatch.setattr(runtime.ProgramStore, "compile", compile)
+
     def mode(stage):
         return (options.pop(stage) or {}).get("xla_gpu_command_buffer_scheduling_mode")
 

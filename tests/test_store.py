@@ -41,7 +41,7 @@ _CHILD = textwrap.dedent("""
     store.PLATFORMS = ("cpu",)
     s = store.ProgramStore(sys.argv[1])
     program = s.compile("f", ("v",), _fn, _args())
-    out = {"loaded": s.loaded, "y": program(*_args())["y"].tolist()}
+    out = {"loaded": s.loaded, "y": program(*_args())["y"].tolist(), "outs": repr(store.out_shapes(program))}
     try:
         program(*_args(5))
     except TypeError as e:   # a loaded program still checks its inputs
@@ -57,6 +57,8 @@ def test_a_stored_program_is_loaded_by_a_second_process_and_computes_the_same(tm
             for _ in range(2)]
     assert [r["loaded"] for r in runs] == [0, 1]
     np.testing.assert_array_equal(runs[0]["y"], runs[1]["y"])
+    # the outputs' shapes are read off the loaded executable as off the compiled one (`Engine`'s third program)
+    assert runs[0]["outs"] == runs[1]["outs"] == repr({"y": jax.ShapeDtypeStruct((4,), jnp.float32)})
     np.testing.assert_allclose(runs[1]["y"], np.asarray(jax.jit(_fn)(*_args())["y"]), rtol=1e-6)
     assert all(r["error"].startswith("Argument types differ") for r in runs)
 

@@ -32,7 +32,7 @@ import numpy as np
 from pi0_jax import pi0
 from pi0_jax.config import IMAGE_KEYS, Pi0Config
 from pi0_jax.engine import programs, weights as weights_lib
-from pi0_jax.engine.store import ProgramStore
+from pi0_jax.engine.store import ProgramStore, out_shapes
 from pi0_jax.ops import matmul
 
 PROMPT_BUCKETS = (16, 32, 48, 64, 96, 128, 160, 200)
@@ -59,6 +59,9 @@ class Program:
 
     def as_text(self) -> str:
         return self.compiled.as_text()
+
+    def out_shapes(self):
+        return out_shapes(self.compiled)
 
 
 def _shapes(tree):
@@ -248,12 +251,11 @@ class Engine:
         if stage == "prefix_denoise":
             fn = functools.partial(programs.prefix_denoise, cfg, **denoise_kw, peel_first=self.overlaps(batch))
             return fn, (w, sched, image_tokens, image_masks, tokens, token_mask, state, noise)
-        first = functools.partial(programs.prefix_first_step, cfg, **kw, num_steps=num_steps, kernels=self.kernels)
-        first_args = (sched, image_tokens, image_masks, tokens, token_mask, state, noise)
         if stage == "prefix_first_step":
-            return first, (w, *first_args)
-        if stage == "denoise_rest":
-            outs = jax.eval_shape(first, _shapes(self.stage_weights("prefix_first_step")), *first_args)
+            fn = functools.partial(programs.prefix_first_step, cfg, **kw, num_steps=num_steps, kernels=self.kernels)
+            return fn, (w, sched, image_tokens, image_masks, tokens, token_mask, state, noise)
+        if stage == "denoise_rest":   # it takes the first step's program's outputs (read off it, not traced again)
+            outs = self.executable("prefix_first_step", batch, num_steps, cameras, prompt_len).out_shapes()
             return functools.partial(programs.denoise_rest, cfg, **denoise_kw), (w, sched, *outs)
         fn = functools.partial(programs.infer, cfg, **denoise_kw)
         return fn, (w, sched, images, image_masks, tokens, token_mask, state, noise)

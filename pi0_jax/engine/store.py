@@ -169,3 +169,13 @@ class _Loaded:
 
     def as_text(self) -> str:
         return self._compiled.as_text()
+
+    @property
+    def out_info(self):
+        return self._compiled.out_info
+
+
+def out_shapes(compiled):
+    """A compiled or stored program's outputs as shape-and-dtype structs, read from the executable (not traced
+    again): the arguments of a program that takes them."""
+    return jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape, s.dtype), compiled.out_info)
