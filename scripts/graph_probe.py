@@ -49,10 +49,10 @@ VARIANTS = {
     "unroll-steps": {},
     "while-graphs": {"xla_gpu_enable_command_buffer": COMMANDS + ",WHILE,CONDITIONAL"},
 }
-# the call's second program without its first denoise step beside the prefix fill, or with it but in XLA's default
-# command-buffer order ("LHS") instead of CONCURRENT
-VARIANTS.update({"no-overlap": {}, "overlap-lhs": {}, "one-loop-program": {}})
-ENGINE_KW = {"unroll-steps": {"unroll_steps": True}, "no-overlap": {"overlap": "off"}}
+# the call's second program without its first denoise step beside the prefix fill, with it at any batch, or with it
+# but in XLA's default command-buffer order ("LHS") instead of CONCURRENT
+VARIANTS.update({"no-overlap": {}, "overlap-on": {}, "overlap-lhs": {}, "one-loop-program": {}})
+ENGINE_KW = {"unroll-steps": {"unroll_steps": True}, "no-overlap": {"overlap": "off"}, "overlap-on": {"overlap": "on"}}
 SCHEDULING = {"overlap-lhs": {"xla_gpu_command_buffer_scheduling_mode": "LHS"}}
 # the overlap's program with the whole denoise loop in it (the call's form until session 45), not a third program
 STAGES = {"one-loop-program": lambda self, batch, num_steps: ("encode_images", "prefix_denoise")}
