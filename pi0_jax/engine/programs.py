@@ -51,8 +51,10 @@ VISION_NORM_MIN_IMAGES = 24
 OVERLAPS = ("auto", "on", "off")
 # The first denoise step beside the prefix fill (`first_step_overlap`): "auto" up to this batch. On H200s π0's call
 # was 1.0-2.4 % faster at B = 1 (six machines) and π0.5's 2.3-3.5 % (two), and level at B = 2 (-0.4 %), 8 and 64,
-# where it costs compile time and scratch memory for nothing (docs/BENCHMARKS.md)
-OVERLAP_MAX_BATCH = 1
+# where it costs compile time and scratch memory for nothing. With the other steps' loop a program of its own
+# (`Engine.call_stages`, session 45) π0's call is 1.3 % faster at B = 1 again and 1.7 % faster at B = 2 than without
+# the overlap (H200; docs/BENCHMARKS.md)
+OVERLAP_MAX_BATCH = 2
 # The call's second program with its first denoise step beside the prefix fill (`first_step_overlap`) compiles with
 # this: XLA's command buffers then run each kernel once the kernels whose buffers it reads are done, not in the
 # scheduler's one order (XLA's default, "LHS")
@@ -96,12 +98,14 @@ def expert_path(kernels: str, batch: int, expert_weights, platform: str | None =
 
 
 def first_step_overlap(overlap: str, kernels: str, batch: int, expert_weights, platform: str | None = None) -> bool:
-    """Whether the call's second program (`prefix_denoise`) runs its first denoise step beside the prefix fill: the
-    step peeled out of the loop (`peel_first`; its layer i then waits for the cache's layer i alone), the program
-    compiled with `CONCURRENT`, so the latency-bound step's kernels run in the compute-bound prefix's gaps. "on" /
-    "off" as asked; "auto" up to OVERLAP_MAX_BATCH where the expert runs its Pallas kernels on a GPU (`expert_path`).
-    On an H200 at B = 1 the call is 2.4 % (π0) and 3.5 % (π0.5) faster; at B = 2, 8 and 64 level, and at B = 64 the
-    program takes 4.5 GB more scratch (docs/BENCHMARKS.md, "The first denoise step beside the prefix fill")."""
+    """Whether the call's second program runs its first denoise step beside the prefix fill: the step after the
+    fill (`prefix_first_step`, or `peel_first` in `prefix_denoise`; its layer i then waits for the cache's layer i
+    alone), the program compiled with `CONCURRENT`, so the latency-bound step's kernels run in the compute-bound
+    prefix's gaps. "on" / "off" as asked; "auto" up to OVERLAP_MAX_BATCH where the expert runs its Pallas kernels on
+    a GPU (`expert_path`). On an H200 at B = 1 the call is 2.4 % (π0) and 3.5 % (π0.5) faster; at B = 8 and 64 level,
+    and at B = 64 the program takes 4.5 GB more scratch (docs/BENCHMARKS.md, "The first denoise step beside the prefix
+    fill"); at B = 2 1.7 % faster since the other steps' loop is a program of its own ("The denoise loop as a program
+    of its own")."""
     if check_overlap(overlap) != "auto":
         return overlap == "on"
     platform = platform or jax.default_backend()

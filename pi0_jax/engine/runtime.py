@@ -10,7 +10,7 @@ the vision tower, then the prefix fill and the denoise loop (three where the fir
 fill: `Engine.call_stages`). Each takes only its own weights (`STAGE_WEIGHTS`): the host pays about 1.2-1.7 µs per
 buffer a call takes before its first kernel runs, and each program's dispatch runs while the GPU runs the one
 before. And the vision program gets its own GEMM library (`matmul.compiler_options`).
-At batch 1 on a GPU the second program runs its first denoise step beside the prefix fill (`Engine.overlaps`).
+At batch 1 and 2 on a GPU the second program runs its first denoise step beside the prefix fill (`Engine.overlaps`).
 On an H200, π0 at B = 1 in a loop of calls: 16.1 ms against 17.2 ms for the one fused program (`infer`, kept for
 comparison and for callers that embed the pipeline in a larger program); docs/BENCHMARKS.md, "The call as two
 programs", which also gives a round-robin where it was slower.
@@ -128,8 +128,8 @@ class Engine:
     GPU (`pi0_jax.ops.matmul.compiler_options`: "auto", cuBLAS in the vision program and XLA's autotuned choice in
     the others; "xla" or "cublas" in every program); cache_dir: where compiled programs are kept (`store`, beside
     XLA's persistent cache; None: $PI0_JAX_CACHE_DIR or ~/.cache/pi0_jax/xla, False: nothing kept); overlap: the
-    first denoise step beside the prefix fill in the call's second program (`overlaps`: "auto" at batch 1 on a GPU
-    where the expert runs its Pallas kernels, "on", "off").
+    first denoise step beside the prefix fill in the call's second program (`overlaps`: "auto" at batch 1 and 2 on a
+    GPU, where the expert runs its Pallas kernels, "on", "off").
     """
 
     def __init__(self, config: Pi0Config, params: dict, *, unroll: bool = True, unroll_steps: bool = False,
