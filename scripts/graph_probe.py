@@ -1,9 +1,10 @@
 """XLA options per compiled program, in one process on one set of weights: each variant is an Engine whose programs
 compile with extra XLA options on top of the engine's own (`matmul.compiler_options`: cuBLAS in the vision program
 under gemm="auto"), or, for "conv", with SigLIP's patch embedding as cuDNN's convolution (the engine's form until
-2026-11-26) instead of the f32 GEMM, or, for "unroll-steps", with the denoise loop unrolled; the "vision-" variants
-set their options on the vision program alone. Stage medians (round-robin over the variants), kernels per call,
-device span and idle time from a trace, and the fused program's actions against the first variant.
+2026-11-26) instead of the f32 GEMM, or an Engine built another way (`ENGINE_KW`, `SCHEDULING`, `STAGES`: the
+denoise loop unrolled, the first step's overlap and its programs); the "vision-" variants set their options on the
+vision program alone. Stage medians (round-robin over the variants), kernels per call, device span and idle time
+(by the kernel that waited) from a trace, and the fused program's actions against the first variant.
 
     python scripts/graph_probe.py --preset pi0_base --batch 1 --variant default --variant conv --out graph_probe.json
 """
@@ -45,16 +46,19 @@ VARIANTS = {
     "vision-lt": {"xla_gpu_enable_cublaslt": True},
     "vision-xla": {"xla_gpu_enable_triton_gemm": True},
     "vision-cudnn-gemm": {"xla_gpu_enable_triton_gemm": True, "xla_gpu_cudnn_gemm_fusion_level": 2},
-    # the denoise loop: unrolled (Engine(unroll_steps=True), below), or its while loop inside the command buffers
+    # the denoise loop: unrolled (ENGINE_KW), or its while loop inside the command buffers
     "unroll-steps": {},
     "while-graphs": {"xla_gpu_enable_command_buffer": COMMANDS + ",WHILE,CONDITIONAL"},
+    # the first denoise step beside the prefix fill: off, on at any batch (ENGINE_KW), in XLA's default command-buffer
+    # order ("LHS", SCHEDULING) instead of CONCURRENT, or with the other steps' loop inside its program (STAGES: the
+    # call until session 45) instead of a third program
+    "no-overlap": {},
+    "overlap-on": {},
+    "overlap-lhs": {},
+    "one-loop-program": {},
 }
-# the call's second program without its first denoise step beside the prefix fill, with it at any batch, or with it
-# but in XLA's default command-buffer order ("LHS") instead of CONCURRENT
-VARIANTS.update({"no-overlap": {}, "overlap-on": {}, "overlap-lhs": {}, "one-loop-program": {}})
 ENGINE_KW = {"unroll-steps": {"unroll_steps": True}, "no-overlap": {"overlap": "off"}, "overlap-on": {"overlap": "on"}}
 SCHEDULING = {"overlap-lhs": {"xla_gpu_command_buffer_scheduling_mode": "LHS"}}
-# the overlap's program with the whole denoise loop in it (the call's form until session 45), not a third program
 STAGES = {"one-loop-program": lambda self, batch, num_steps: ("encode_images", "prefix_denoise")}
 
 

@@ -61,6 +61,7 @@ class Program:
         return self.compiled.as_text()
 
     def out_shapes(self):
+        """Its outputs' shapes and dtypes (`store.out_shapes`): the arguments of a program that takes them."""
         return out_shapes(self.compiled)
 
 
