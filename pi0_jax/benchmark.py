@@ -93,9 +93,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "the vision program, xla in the others); programs with FP8 weights always get cublas; the "
                         "reference always runs XLA's defaults (default: %(default)s)")
     p.add_argument("--overlap", choices=OVERLAPS, default="auto",
-                   help="the first denoise step beside the prefix fill in the call's second program (peeled out of "
-                        "the loop, the program's command buffers in XLA's CONCURRENT mode): on, off, or auto (on a "
-                        "GPU where the expert runs its Pallas kernels, at batch 1); each row records it "
+                   help="the first denoise step beside the prefix fill in the call's second program (its command "
+                        "buffers in XLA's CONCURRENT mode, the other steps a third program): on, off, or auto (on a "
+                        "GPU where the expert runs its Pallas kernels, at batch 1 and 2); each row records it "
                         "(default: %(default)s)")
     p.add_argument("--reference", action="store_true",
                    help="also time the reference model (pi0_jax.pi0.sample_actions: openpi's structure, layers "

@@ -313,7 +313,7 @@ def test_the_first_step_beside_the_prefix_is_the_same_call(model, monkeypatch):
     """overlap: the call's second program runs its first denoise step after the prefix fill (so its layer i waits
     for the cache's layer i alone) in XLA's CONCURRENT command-buffer mode, and the loop over the other steps is a
     third program in XLA's default order (one program with one step, as without the overlap): the same actions bit
-    for bit; "auto" only at batch 1 on a GPU where the expert runs its Pallas kernels."""
+    for bit; "auto" only at batch 1 and 2 on a GPU, where the expert runs its Pallas kernels."""
     import re
 
     from pi0_jax.engine import programs, runtime

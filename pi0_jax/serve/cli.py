@@ -82,10 +82,10 @@ def add_serve_parser(subparsers) -> None:
                           "(vision may be pallas: a kernel that reads q, k, v in place; denoise may be pallas: the "
                           "action expert's split-key kernel) (default: %(default)s)")
     pol.add_argument("--overlap", choices=("auto", "on", "off"), default="auto",
-                     help="the first denoise step beside the prefix fill (peeled out of the step loop, the program's "
-                          "command buffers in XLA's CONCURRENT mode): on, off, or auto (on a GPU where the expert "
-                          "runs its Pallas kernels, at batch 1; on an H200 such a call 2-3.5 %% faster, "
-                          "docs/BENCHMARKS.md). Default: %(default)s")
+                     help="the first denoise step beside the prefix fill (that program's command buffers in XLA's "
+                          "CONCURRENT mode, the other steps a program of their own): on, off, or auto (on a GPU where "
+                          "the expert runs its Pallas kernels, at batch 1 and 2; on an H200 such a call 2-3.5 %% "
+                          "faster at batch 1, docs/BENCHMARKS.md). Default: %(default)s")
     pol.add_argument("--tokenizer", type=Path, default=None, metavar="FILE",
                      help="PaliGemma SentencePiece model (default: CHECKPOINT/tokenizer.model, then "
                           "CHECKPOINT/assets/tokenizer.model)")
