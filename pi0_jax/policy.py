@@ -43,7 +43,7 @@ from pi0_jax.engine import engine_weights, enable_compilation_cache, prompt_buck
 from pi0_jax.engine import programs
 from pi0_jax.engine import weights as weights_lib
 from pi0_jax.engine.runtime import STAGE_WEIGHTS
-from pi0_jax.engine.store import ProgramStore, out_shapes
+from pi0_jax.engine.store import ProgramStore, shapes
 from pi0_jax.observation import DEFAULT_OPTIONAL_CAMERAS, ObservationError, Prepared, Validator
 from pi0_jax.ops import matmul
 from pi0_jax.preprocess import resize_with_pad
@@ -393,7 +393,7 @@ class Policy:
         tower's weights and `PolicyCore.act` on the rest (three where the first denoise step overlaps the prefix
         fill: `act_first`, then `act_rest` on the expert's weights), each dispatched while the GPU runs the one
         before, as `Engine.sample_actions`; the reference sampler is one program."""
-        spec = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), host_args)
+        spec = shapes(host_args)
         key = (cameras, tuple((x.shape, x.dtype.str) for x in jax.tree.leaves(host_args)))
         with self._lock:
             if key not in self._executables:
@@ -430,7 +430,7 @@ class Policy:
             first = compile_("act_first", core.act_first, first_args, programs.overlap_options(options, True))
             loop = {**rest, "weights": {k: rest["weights"][k] for k in STAGE_WEIGHTS["denoise_rest"]
                                         if k in rest["weights"]}}
-            last = compile_("act_rest", core.act_rest, (loop, self._norm, *out_shapes(first)), options)
+            last = compile_("act_rest", core.act_rest, (loop, self._norm, *shapes(first.out_info)), options)
 
             def call(norm, images, *args):
                 return last(loop, norm, *first(rest, norm, encode(vision, images), *args))

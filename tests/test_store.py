@@ -41,7 +41,7 @@ _CHILD = textwrap.dedent("""
     store.PLATFORMS = ("cpu",)
     s = store.ProgramStore(sys.argv[1])
     program = s.compile("f", ("v",), _fn, _args())
-    out = {"loaded": s.loaded, "y": program(*_args())["y"].tolist(), "outs": repr(store.out_shapes(program))}
+    out = {"loaded": s.loaded, "y": program(*_args())["y"].tolist(), "outs": repr(store.shapes(program.out_info))}
     try:
         program(*_args(5))
     except TypeError as e:   # a loaded program still checks its inputs

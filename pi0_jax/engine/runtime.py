@@ -32,7 +32,7 @@ import numpy as np
 from pi0_jax import pi0
 from pi0_jax.config import IMAGE_KEYS, Pi0Config
 from pi0_jax.engine import programs, weights as weights_lib
-from pi0_jax.engine.store import ProgramStore, out_shapes
+from pi0_jax.engine.store import ProgramStore, shapes
 from pi0_jax.ops import matmul
 
 PROMPT_BUCKETS = (16, 32, 48, 64, 96, 128, 160, 200)
@@ -59,14 +59,6 @@ class Program:
 
     def as_text(self) -> str:
         return self.compiled.as_text()
-
-    def out_shapes(self):
-        """Its outputs' shapes and dtypes (`store.out_shapes`): the arguments of a program that takes them."""
-        return out_shapes(self.compiled)
-
-
-def _shapes(tree):
-    return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), tree)
 
 
 def default_cache_dir() -> Path:
@@ -179,7 +171,7 @@ class Engine:
         if key not in self._executables:
             start = time.perf_counter()
             weights = self.stage_weights(stage)
-            fn, args = self._stage(stage, _shapes(weights), batch, num_steps, cameras, prompt_len)
+            fn, args = self._stage(stage, shapes(weights), batch, num_steps, cameras, prompt_len)
             options = programs.overlap_options(
                 matmul.compiler_options(weights, self.gemm, vision_tower=stage == "encode_images"),
                 stage == "prefix_first_step" or (stage == "prefix_denoise" and self.overlaps(batch)))
@@ -245,7 +237,7 @@ class Engine:
         if stage == "fill_prefix_cache":
             return fill, (w, image_tokens, image_masks, tokens, token_mask)
         if stage == "denoise":
-            cache = jax.eval_shape(fill, _shapes(self.stage_weights("fill_prefix_cache")), image_tokens, image_masks,
+            cache = jax.eval_shape(fill, shapes(self.stage_weights("fill_prefix_cache")), image_tokens, image_masks,
                                    tokens, token_mask)
             fn = functools.partial(programs.denoise, cfg, **denoise_kw)
             return fn, (w, sched, cache, state, noise)
@@ -256,7 +248,7 @@ class Engine:
             fn = functools.partial(programs.prefix_first_step, cfg, **kw, num_steps=num_steps, kernels=self.kernels)
             return fn, (w, sched, image_tokens, image_masks, tokens, token_mask, state, noise)
         if stage == "denoise_rest":   # it takes the first step's program's outputs (read off it, not traced again)
-            outs = self.executable("prefix_first_step", batch, num_steps, cameras, prompt_len).out_shapes()
+            outs = shapes(self.executable("prefix_first_step", batch, num_steps, cameras, prompt_len).compiled.out_info)
             return functools.partial(programs.denoise_rest, cfg, **denoise_kw), (w, sched, *outs)
         fn = functools.partial(programs.infer, cfg, **denoise_kw)
         return fn, (w, sched, images, image_masks, tokens, token_mask, state, noise)

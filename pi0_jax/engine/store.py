@@ -175,7 +175,7 @@ class _Loaded:
         return self._compiled.out_info
 
 
-def out_shapes(compiled):
-    """A compiled or stored program's outputs as shape-and-dtype structs, read from the executable (not traced
-    again): the arguments of a program that takes them."""
-    return jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape, s.dtype), compiled.out_info)
+def shapes(tree):
+    """Shape-and-dtype structs of a tree of arrays, or of a compiled or stored program's `out_info` (its outputs,
+    read off the executable, not traced again): the arguments to compile a program that takes them."""
+    return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), tree)
