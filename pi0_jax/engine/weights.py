@@ -134,6 +134,8 @@ def prepare(config: Pi0Config, params: dict) -> dict:
         expert["pre_attn"] = layers["pre_attention_norm_1"]["scale"]
         expert["pre_ffw"] = layers["pre_ffw_norm_1"]["scale"]
     top = {k: v for k, v in params.items() if k != "PaliGemma"}
+    if not config.pi05:
+        top["action_time_in"] = fold_action_in(config, params)
     out = {
         "img": vision_weights(params["PaliGemma"]["img"], dtype),
         "embedding": llm["embedder"]["input_embedding"],
@@ -152,7 +154,8 @@ def precompute_schedule(config: Pi0Config, params: dict, num_steps, length: int 
 
     π0.5: `mods_attn`, `mods_ffw` (T, L, 3 D) and `mods_final` (T, 3 D): the adaRMS Dense outputs, computed in the
     activation dtype as the reference does (cond cast to it, then Dense). π0: `time_in` (T, D) = the time half of
-    `action_time_mlp_in` plus its bias, in f32 (the projection runs in f32 in the reference too). `committed`: the
+    `action_time_mlp_in` plus its bias and the in-projection's bias through the action half (`fold_action_in`), in
+    f32 (the projections run in f32 in the reference too). `committed`: the
     same at t = 0 (leading axis 1), the time of committed actions under training-time action conditioning.
     """
     out = _schedule_at(config, params, jnp.asarray(step_times(num_steps, length)))
@@ -184,13 +187,27 @@ def _schedule_at(config: Pi0Config, params: dict, t: jax.Array) -> dict:
         }
     w = params["action_time_mlp_in"]
     kernel = w["kernel"].astype(jnp.float32)
-    return {"time_in": emb @ kernel[width:] + w["bias"].astype(jnp.float32)}
+    folded = _highest(params["action_in_proj"]["bias"], kernel[:width])   # the in-projection's bias (`fold_action_in`)
+    return {"time_in": emb @ kernel[width:] + w["bias"].astype(jnp.float32) + folded}
+
+
+def _highest(a, b):
+    return jnp.matmul(a.astype(jnp.float32), b.astype(jnp.float32), precision=jax.lax.Precision.HIGHEST)
+
+
+def fold_action_in(config: Pi0Config, params: dict) -> jax.Array:
+    """π0's action in-projection folded into the time MLP's action half, (A, D) f32: the reference computes
+    (x W_a + b_a) W_1 + (time half), two f32 GEMMs in a row with nothing between them; the engine computes x (W_a W_1)
+    + (b_a W_1 + time half), W_a W_1 made here and b_a W_1 in the schedule's `time_in`, both in full f32. The same
+    function to f32 rounding (the step's first GEMM then has K = A rather than D: 32 x 1024 weights, not 1024 x 1024
+    and another GEMM)."""
+    return _highest(params["action_in_proj"]["kernel"], params["action_time_mlp_in"]["kernel"][: config.action_expert.width])
 
 
 def schedule_params(config: Pi0Config, params: dict) -> dict:
     """The part of the param tree `precompute_schedule` reads (time MLPs, adaRMS Dense layers)."""
     if not config.pi05:
-        return {"action_time_mlp_in": params["action_time_mlp_in"]}
+        return {"action_time_mlp_in": params["action_time_mlp_in"], "action_in_proj": params["action_in_proj"]}
     llm = params["PaliGemma"]["llm"]
     layers = {k: llm["layers"][k] for k in ("pre_attention_norm_1", "pre_ffw_norm_1")}
     return {"time_mlp_in": params["time_mlp_in"], "time_mlp_out": params["time_mlp_out"],

@@ -36,7 +36,8 @@ def fit(block: int, n: int) -> int:
 
 
 def dot(a, b, trans_b: bool = False):
-    """a @ b (or a @ b.T) with an f32 accumulator; f32 operands multiply in full f32 (Triton's IEEE mode)."""
+    """a @ b (or a @ b.T) with an f32 accumulator. f32 operands multiply at the default precision, which Pallas's
+    Triton lowering makes TF32, as XLA's f32 GEMMs on a GPU are by default (full f32 in interpret mode)."""
     dims = (((1,), (1 if trans_b else 0,)), ((), ()))
     return jax.lax.dot_general(a, b, dims, preferred_element_type=jnp.float32)
 
