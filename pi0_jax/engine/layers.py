@@ -224,33 +224,22 @@ def pallas_tables(cfg: GemmaConfig, positions, prefix_mask, suffix_mask, blocks=
 
 def suffix_layers_pallas(cfg: GemmaConfig, weights, x, positions, cache_k, cache_v, prefix_mask, suffix_mask,
                          mods=None, blocks: expert_kernels.Blocks | None = None, tables=None):
-    """All action-expert layers as Pallas kernels (`pi0_jax.ops`): the same function as `suffix_layer` applied layer
-    by layer, on x (B, S, D) -> (B, S, D) (`suffix_rows_pallas` on its rows).
-
-    positions (B, S); suffix_mask (B, S, S); cache_k/v, prefix_mask, mods, blocks, tables: `suffix_rows_pallas`';
-    tables None: made here from positions and the masks."""
-    b, s, d = x.shape
-    if tables is None:
-        tables = pallas_tables(cfg, positions, prefix_mask, suffix_mask)
-    rows = suffix_rows_pallas(cfg, weights, layout.rows(x, layout.suffix_rows(s)), cache_k, cache_v, tables, mods,
-                              blocks, batch=b)
-    return rows.reshape(b, layout.suffix_rows(s), -1)[:, :s, :d]
-
-
-def suffix_rows_pallas(cfg: GemmaConfig, weights, rows, cache_k, cache_v, tables, mods=None,
-                       blocks: expert_kernels.Blocks | None = None, *, batch: int):
-    """All action-expert layers as Pallas kernels on the kernels' rows (B Sp, Dpad) -> (B Sp, Dpad): per layer four
-    split-K GEMMs and the attention, each followed by one XLA fusion (norm, RoPE, GeGLU, residuals, the split merges).
+    """All action-expert layers as Pallas kernels (`pi0_jax.ops`): per layer four split-K GEMMs and the attention,
+    each followed by one XLA fusion (norm, RoPE, GeGLU, residuals, the split merges); the same function as
+    `suffix_layer` applied layer by layer.
 
     weights: the engine's per-layer dicts, laid out for the kernels here (`ops.layout.expert_weights`: reshapes that
-    XLA makes free at full size, where nothing is padded); cache_k/v: per layer (B, Pp, K, 2hp) in kernel layout
-    (`ops.layout.cache_kv`); tables: `pallas_tables` of the rows' positions and the prefix (B, Pp) and suffix masks,
-    made once per call by the caller; mods: None (π0) or a step's π0.5 adaRMS outputs (attn, ffw), (L, 3D) each;
-    blocks: the kernels' launch (None: this jax's, `expert_kernels.default_blocks`).
+    XLA makes free at full size, where nothing is padded); cache_k/v: per layer (B, Pp, K, 2hp)
+    and prefix_mask (B, Pp) in kernel layout (`ops.layout.cache_kv`); x (B, S, D); positions (B, S); suffix_mask
+    (B, S, S); mods: None (π0) or a step's π0.5 adaRMS outputs (attn, ffw), (L, 3D) each; tables: `pallas_tables`
+    of these, made once per call by the caller (None: made here); blocks: the kernels' launch (None: this jax's,
+    `expert_kernels.default_blocks`). Returns x (B, S, D).
     """
     blocks = expert_kernels.default_blocks() if blocks is None else blocks
-    b, d = batch, cfg.width
-    cos, sin, pmask, smask = tables
+    b, s, d = x.shape
+    sp = layout.suffix_rows(s)
+    rows = layout.rows(x, sp)
+    cos, sin, pmask, smask = pallas_tables(cfg, positions, prefix_mask, suffix_mask) if tables is None else tables
     heads = {"num_heads": cfg.num_heads, "num_kv_heads": cfg.num_kv_heads}
     adaptive = mods is not None
     if adaptive:
@@ -270,4 +259,4 @@ def suffix_rows_pallas(cfg: GemmaConfig, weights, rows, cache_k, cache_v, tables
         h = expert_kernels.norm_geglu(rows, mf, rf, adaptive, w["gate_up"], width=d, blocks=blocks)
         rows = expert_kernels.matmul_residual(h, w["down"], rows, mf, gf, gemm=blocks.down, blocks=blocks,
                                               name="expert_down", mosaic=blocks.mosaic_down)
-    return rows
+    return rows.reshape(b, sp, -1)[:, :s, :d]

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 from pi0_jax import pi0
 from pi0_jax.config import Pi0Config
 from pi0_jax.engine import layers, vision
-from pi0_jax.ops import expert_kernels, layout, mosaic_gemm, pallas_base, step_kernels
+from pi0_jax.ops import expert_kernels, layout, mosaic_gemm, pallas_base
 from pi0_jax.ops import matmul as quant
 
 # The batch sizes at which kernels="auto" runs the expert's Pallas kernels on a GPU: measured faster than XLA at
@@ -44,9 +44,11 @@ PALLAS_DENOISE_BATCHES_MASKED = range(3, 17)
 PALLAS_DENOISE_BATCHES = range(4, 9)
 
 
-# On the Pallas expert the denoise step's two ends run as kernels (`ops.step_kernels`, `step_kernels_on`); False:
-# XLA's ops, as on the XLA expert (an A/B switch for probes, read when a program is traced)
-STEP_KERNELS = True
+# π0's action in-projection folded into the time MLP's first product (`weights.fold_action_in`); False: the two
+# products as the reference runs them (an A/B switch for probes, read when a program is traced)
+FOLD_ACTION_IN = True
+# the denoise step's products over or onto the action dim (`_small_dense`): "dot" or "reduce" (an A/B switch)
+SMALL_PRODUCTS = "dot"
 
 KERNELS = ("auto", "xla", "pallas")
 # SigLIP's LayerNorm kernel measured 3 % faster on the tower at 24 and 192 images, and no faster at 3 (H100, XLA's
@@ -269,6 +271,15 @@ def _dense(p, x):
     return x @ p["kernel"] + p["bias"]
 
 
+def _small_dense(p, x):
+    """`_dense` where the action dim is the weight's K or N (32): as a product, or with SMALL_PRODUCTS "reduce" as
+    XLA's multiply and sum in f32, which it can fuse with the ops around it."""
+    if SMALL_PRODUCTS == "dot":
+        return _dense(p, x)
+    w = p["kernel"].astype(jnp.float32)
+    return jnp.sum(x.astype(jnp.float32)[..., :, None] * w, axis=-2) + p["bias"]
+
+
 def kernel_cache(kernels: str, attention: Attention, batch: int, expert_weights) -> bool:
     """Whether a program at this batch keeps its prefix cache in the expert kernels' layout (`ops.layout.cache_kv`):
     the Pallas expert's path, or the XLA expert's with the Pallas attention. `attention` resolved (`at_batch`)."""
@@ -384,11 +395,17 @@ def step_velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array
         where = frozen.reshape(frozen.shape + (1,) * (now.ndim - 2))
         return jnp.where(where, sched["committed"][key][0][None, None], now)
 
+    # f32: the projections run in the promoted dtype
     if config.pi05:
-        x = _dense(top["action_in_proj"], x_t)  # f32: the projections run in the promoted dtype
+        x = _small_dense(top["action_in_proj"], x_t)
         mods = (at_step("mods_attn"), at_step("mods_ffw"))  # (B or 1, H or 1, L, 3D) each
-    else:   # the in-projection folded into the time MLP's first GEMM (`weights.fold_action_in`)
-        h = x_t @ top["action_time_in"] + at_step("time_in")
+    else:
+        if FOLD_ACTION_IN:   # one product where there were two (`weights.fold_action_in`)
+            h = _small_dense(top["action_time_in"], x_t) + at_step("time_in")
+        else:
+            w_in = top["action_time_mlp_in"]["kernel"]
+            h = _dense(top["action_in_proj"], x_t) @ w_in[: config.action_expert.width].astype(jnp.float32)
+            h = h + at_step("time_in")
         x = _dense(top["action_time_mlp_out"], jax.nn.swish(h))
         if fixed["state_kv"] is None:
             x = jnp.concatenate([fixed["state"][:, None, :], x], axis=1)
@@ -436,7 +453,7 @@ def _top(config, weights, final_mod, x):
         x, _ = layers.rms_norm(x, mod=final_mod)
     else:
         x, _ = layers.rms_norm(x, weights["final_norm_1"])
-    return _dense(weights["top"]["action_out_proj"], x[:, -config.action_horizon:])
+    return _small_dense(weights["top"]["action_out_proj"], x[:, -config.action_horizon:])
 
 
 def _by_layer(x, unroll):
@@ -461,30 +478,16 @@ def denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixCache, s
         x = jnp.where(frozen[..., None], committed.astype(jnp.float32), x)
 
     fixed, cache, kv = step_inputs(config, weights, cache, state, x.shape[0], kernels, attention, unroll=unroll)
-    step, enter, leave = _euler_step(config, weights, sched, cache, fixed, num_steps, unroll=unroll,
-                                     attention=attention, kernels=kernels, frozen=frozen)
-    carry, first = (enter(x), kv), 0
+    step = _euler_step(config, weights, sched, cache, fixed, num_steps, unroll=unroll, attention=attention,
+                       kernels=kernels, frozen=frozen)
+    carry, first = (x, kv), 0
     if peel_first and isinstance(num_steps, int) and num_steps > 0:
         carry, first = step(0, carry), 1
-    return leave(jax.lax.fori_loop(first, num_steps, step, carry, unroll=unroll_steps)[0])
-
-
-def step_kernels_on(config: Pi0Config, kernels: str, batch: int, expert_weights, num_steps,
-                    frozen: jax.Array | None = None) -> bool:
-    """Whether a denoise loop runs its steps' ends as kernels (`ops.step_kernels`, carrying the actions as their
-    rows): on the Pallas expert (`expert_path`), with a Python int of steps (dt is the kernel's constant), without
-    committed actions, and while STEP_KERNELS."""
-    return (STEP_KERNELS and isinstance(num_steps, int) and frozen is None
-            and expert_path(kernels, batch, expert_weights) == "pallas")
+    return jax.lax.fori_loop(first, num_steps, step, carry, unroll=unroll_steps)[0]
 
 
 def _euler_step(config, weights, sched, cache, fixed, num_steps, *, unroll, attention, kernels, frozen=None):
-    """The loop body of `denoise` and how its carry's actions go in and come out: (step, enter, leave). step: (i,
-    (x_t, kv)) -> (x_t + dt v, kv), dt = -1 / num_steps; enter: the actions (B, H, A) f32 as the carry holds them,
-    leave: back. With `step_kernels_on`, the kernels' step (`_rows_step`) on action rows, else XLA's ops on the
-    actions as they are."""
-    if step_kernels_on(config, kernels, fixed["positions"].shape[0], weights["expert"], num_steps, frozen):
-        return _rows_step(config, weights, sched, cache, fixed, num_steps)
+    """The loop body of `denoise`: (i, (x_t, kv)) -> (x_t + dt v, kv), dt = -1 / num_steps."""
     dt = -1.0 / num_steps
     if not isinstance(num_steps, int):
         dt = jnp.asarray(dt, jnp.float32)   # f32 as the reference's traced dt
@@ -496,55 +499,7 @@ def _euler_step(config, weights, sched, cache, fixed, num_steps, *, unroll, atte
         x_next = x_t + dt * v  # dt * v in v's dtype, then promoted to f32: as the reference
         return (x_next if frozen is None else jnp.where(frozen[..., None], x_t, x_next)), kv
 
-    return step, (lambda x: x), (lambda x: x)
-
-
-def _rows_step(config, weights, sched, cache, fixed, num_steps: int):
-    """`_euler_step` on the Pallas expert with the step's ends as kernels: the action rows into the expert's rows
-    (`step_kernels.expert_rows`), its layers (`layers.suffix_rows_pallas`), the final norm (XLA: one fusion with
-    the last residual), the out-projection and the Euler update (`step_kernels.euler`). The carry holds the actions
-    as action rows (`step_kernels.action_rows`). The weights are laid out here, before the loop."""
-    cfg, top, dtype = config.action_expert, weights["top"], jnp.dtype(config.dtype)
-    b, s = fixed["positions"].shape
-    sp, offset, horizon, a = layout.suffix_rows(s), s - config.action_horizon, config.action_horizon, config.action_dim
-    dp, ap = layout.padded(cfg.width), layout.padded(a)
-
-    def f32(w, rows=None, cols=None):   # (in, out) weight padded to (rows, cols), in f32 (the promoted dtype)
-        w = w.astype(jnp.float32)
-        return jnp.pad(w, ((0, (rows or w.shape[0]) - w.shape[0]), (0, (cols or w.shape[1]) - w.shape[1])))
-
-    out_w = f32(top["action_out_proj"]["kernel"], cols=ap)
-    out_b = f32(top["action_out_proj"]["bias"][None], cols=ap)
-    if config.pi05:
-        w_in = f32(top["action_in_proj"]["kernel"], ap, dp)
-        table, mlp, state = f32(top["action_in_proj"]["bias"][None], cols=dp), None, None
-    else:
-        w_in, table = f32(top["action_time_in"], ap, dp), f32(sched["time_in"], cols=dp)
-        mlp = (f32(top["action_time_mlp_out"]["kernel"], dp, dp), f32(top["action_time_mlp_out"]["bias"][None], cols=dp))
-        state = f32(fixed["state"], cols=dp)
-    ends = {"batch": b, "horizon": horizon, "offset": offset}
-
-    def step(i, carry):
-        x, kv = carry
-        rows = step_kernels.expert_rows(x, w_in, table, 0 if config.pi05 else i, dtype=dtype, mlp=mlp, state=state,
-                                        **ends)
-        mods = (sched["mods_attn"][i], sched["mods_ffw"][i]) if config.pi05 else None
-        rows = layers.suffix_rows_pallas(cfg, weights["expert"], rows, cache.k, cache.v, fixed["tables"], mods,
-                                         batch=b)
-        rows = rows.reshape(b, sp, -1)[..., : cfg.width]
-        if config.pi05:
-            h, _ = layers.rms_norm(rows, mod=sched["mods_final"][i][None])
-        else:
-            h, _ = layers.rms_norm(rows, weights["final_norm_1"])
-        return step_kernels.euler(h.reshape(b * sp, -1), x, out_w, out_b, -1.0 / num_steps, **ends), kv
-
-    def enter(x):
-        return step_kernels.action_rows(x, sp, offset)
-
-    def leave(x):
-        return step_kernels.actions(x, b, horizon, a, offset)
-
-    return step, enter, leave
+    return step
 
 
 def prefix_first_step(config: Pi0Config, weights: dict, sched: dict, image_tokens, image_masks, tokens, token_mask,
@@ -556,9 +511,9 @@ def prefix_first_step(config: Pi0Config, weights: dict, sched: dict, image_token
     cache = fill_prefix_cache(config, weights, image_tokens, image_masks, tokens, token_mask, unroll=unroll,
                               kernels=kernels, attention=attention)
     fixed, cache, kv = step_inputs(config, weights, cache, state, noise.shape[0], kernels, attention, unroll=unroll)
-    step, enter, _ = _euler_step(config, weights, sched, cache, fixed, num_steps, unroll=unroll, attention=attention,
-                                 kernels=kernels)
-    x, kv = step(0, (enter(noise.astype(jnp.float32)), kv))
+    step = _euler_step(config, weights, sched, cache, fixed, num_steps, unroll=unroll, attention=attention,
+                       kernels=kernels)
+    x, kv = step(0, (noise.astype(jnp.float32), kv))
     return x, kv, cache, fixed
 
 
@@ -566,9 +521,9 @@ def denoise_rest(config: Pi0Config, weights: dict, sched: dict, x, kv, cache: Pr
                  num_steps: int, unroll: bool, unroll_steps: bool, attention: Attention = Attention(),
                  kernels: str = "xla") -> jax.Array:
     """Denoise steps 1 .. num_steps - 1 from `prefix_first_step`'s outputs: the call's third program."""
-    step, _, leave = _euler_step(config, weights, sched, cache, fixed, num_steps, unroll=unroll, attention=attention,
-                                 kernels=kernels)
-    return leave(jax.lax.fori_loop(1, num_steps, step, (x, kv), unroll=unroll_steps)[0])
+    step = _euler_step(config, weights, sched, cache, fixed, num_steps, unroll=unroll, attention=attention,
+                       kernels=kernels)
+    return jax.lax.fori_loop(1, num_steps, step, (x, kv), unroll=unroll_steps)[0]
 
 
 def prefix_denoise(config: Pi0Config, weights: dict, sched: dict, image_tokens, image_masks, tokens, token_mask,

@@ -148,14 +148,26 @@ def prepare(config: Pi0Config, params: dict) -> dict:
     return out
 
 
+def fold_action_in(config: Pi0Config, params: dict) -> dict:
+    """π0's action in-projection folded into the time MLP's action half, as one Dense (A -> D) in f32. The reference
+    computes (x W_a + b_a) W_1 + (the time half), two f32 products in a row with nothing between them; the fold is
+    x (W_a W_1) + b_a W_1 + (the time half), the same function to f32 rounding, W_a W_1 and b_a W_1 made here in full
+    f32. The step's first product then has K = A (32) where it had two GEMMs, one over a 1024 x 1024 weight."""
+    w_a, w_1 = params["action_in_proj"], params["action_time_mlp_in"]["kernel"][: config.action_expert.width]
+
+    def f32(a, b):
+        return jnp.matmul(a.astype(jnp.float32), b.astype(jnp.float32), precision=jax.lax.Precision.HIGHEST)
+
+    return {"kernel": f32(w_a["kernel"], w_1), "bias": f32(w_a["bias"], w_1)}
+
+
 def precompute_schedule(config: Pi0Config, params: dict, num_steps, length: int | None = None) -> dict:
     """Everything that depends only on the step times. Pure; jit it to run on device. A traced num_steps needs a
     static `length` (the schedule's leading axis; see `step_times`).
 
     π0.5: `mods_attn`, `mods_ffw` (T, L, 3 D) and `mods_final` (T, 3 D): the adaRMS Dense outputs, computed in the
     activation dtype as the reference does (cond cast to it, then Dense). π0: `time_in` (T, D) = the time half of
-    `action_time_mlp_in` plus its bias and the in-projection's bias through the action half (`fold_action_in`), in
-    f32 (the projections run in f32 in the reference too). `committed`: the
+    `action_time_mlp_in` plus its bias, in f32 (the projection runs in f32 in the reference too). `committed`: the
     same at t = 0 (leading axis 1), the time of committed actions under training-time action conditioning.
     """
     out = _schedule_at(config, params, jnp.asarray(step_times(num_steps, length)))
@@ -187,27 +199,13 @@ def _schedule_at(config: Pi0Config, params: dict, t: jax.Array) -> dict:
         }
     w = params["action_time_mlp_in"]
     kernel = w["kernel"].astype(jnp.float32)
-    folded = _highest(params["action_in_proj"]["bias"], kernel[:width])   # the in-projection's bias (`fold_action_in`)
-    return {"time_in": emb @ kernel[width:] + w["bias"].astype(jnp.float32) + folded}
-
-
-def _highest(a, b):
-    return jnp.matmul(a.astype(jnp.float32), b.astype(jnp.float32), precision=jax.lax.Precision.HIGHEST)
-
-
-def fold_action_in(config: Pi0Config, params: dict) -> jax.Array:
-    """π0's action in-projection folded into the time MLP's action half, (A, D) f32: the reference computes
-    (x W_a + b_a) W_1 + (time half), two f32 GEMMs in a row with nothing between them; the engine computes x (W_a W_1)
-    + (b_a W_1 + time half), W_a W_1 made here and b_a W_1 in the schedule's `time_in`, both in full f32. The same
-    function to f32 rounding (the step's first GEMM then has K = A rather than D: 32 x 1024 weights, not 1024 x 1024
-    and another GEMM)."""
-    return _highest(params["action_in_proj"]["kernel"], params["action_time_mlp_in"]["kernel"][: config.action_expert.width])
+    return {"time_in": emb @ kernel[width:] + w["bias"].astype(jnp.float32)}
 
 
 def schedule_params(config: Pi0Config, params: dict) -> dict:
     """The part of the param tree `precompute_schedule` reads (time MLPs, adaRMS Dense layers)."""
     if not config.pi05:
-        return {"action_time_mlp_in": params["action_time_mlp_in"], "action_in_proj": params["action_in_proj"]}
+        return {"action_time_mlp_in": params["action_time_mlp_in"]}
     llm = params["PaliGemma"]["llm"]
     layers = {k: llm["layers"][k] for k in ("pre_attention_norm_1", "pre_ffw_norm_1")}
     return {"time_mlp_in": params["time_mlp_in"], "time_mlp_out": params["time_mlp_out"],

@@ -27,11 +27,6 @@ def _round_up(n: int, m: int) -> int:
     return -(-n // m) * m
 
 
-def padded(n: int) -> int:
-    """A width n padded to the kernels' multiple of 16."""
-    return _round_up(n, ALIGN)
-
-
 def _pad(x, axis: int, size: int):
     """Zero-pad `axis` of x to `size` (nothing when it is already that size)."""
     axis = axis % x.ndim
