@@ -189,3 +189,109 @@ def _call(m: int, k: int, n: int, dtype, launch: Launch, name: str):
                         num_threads=wgs + 1, thread_name="wg", kernel_name=name,
                         compiler_params=plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup),
                         **({"interpret": _interpret()} if on_cpu else {}))
+
+
+# -- a many-row GEMM: the VLM prefix's gate/up with GeGLU ----------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class Tiling:
+    """The launch of `geglu_tiles`: CTA tiles of `rows` x `cols` weight columns (whole block pairs), two compute
+    warpgroups of rows / 2 rows each, a TMA pipeline `stages` deep, one CTA an SM walking the tiles row block first
+    (each weight tile then serves every row block from L2 while it is there: the prefix's gate/up weight is 134 MB,
+    its rows 864; column block first took jax's own Hopper matmul 223 against 154 us, docs/BENCHMARKS.md, session
+    46)."""
+
+    rows: int = 128
+    cols: int = 256
+    stages: int = 4
+
+
+def tiling_for(n: int) -> Tiling:
+    """`Tiling()` for a fused gate/up weight of n columns, or one block pair a tile where 256 columns do not divide n
+    (test sizes)."""
+    return Tiling() if n % Tiling.cols == 0 else Tiling(cols=2 * gate_up_block(n // 2))
+
+
+def tiles_apply(x, w, tiling: Tiling = Tiling()) -> bool:
+    """Whether `geglu_tiles` takes x @ w: bf16 on a Hopper GPU (or any float on the CPU interpreter), K in whole
+    steps of TK, the fused weight's columns in whole tiles of block pairs, the rows in whole row blocks (the caller
+    pads them: TMA would read zeros past the end on a GPU, but Mosaic GPU's interpreter refuses to)."""
+    k, n = w.shape
+    pair = 2 * gate_up_block(n // 2)
+    fits = k % TK == 0 and n % tiling.cols == 0 and tiling.cols % pair == 0 and x.shape[0] % tiling.rows == 0
+    if jax.default_backend() == "cpu":
+        return fits
+    return fits and hopper() and x.dtype == w.dtype == jnp.bfloat16
+
+
+def geglu_tiles(x, w, tiling: Tiling = Tiling(), name: str = "mosaic_geglu_tiles"):
+    """x (M, K) @ w (K, 2F), gate and up in alternating blocks (`ops.layout.gate_up_block`) -> GELU-tanh(gate) * up
+    (M, F) in x's dtype: `geglu`'s product and numerics for many rows (the prefix's 864 and more), where the GEMM is
+    compute-bound. M a multiple of `tiling.rows` (`tiles_apply`)."""
+    return _tiles_call(x.shape[0], x.shape[1], w.shape[1] // 2, x.dtype, tiling, name)(x, w)
+
+
+def _sms() -> int:
+    """The persistent grid: the GPU's SMs (two CTAs in the CPU interpreter, so its tests walk several tiles each)."""
+    return 2 if jax.default_backend() == "cpu" else jax.devices()[0].core_count
+
+
+@functools.lru_cache(maxsize=None)
+def _tiles_call(m: int, k: int, f: int, dtype, tiling: Tiling, name: str):
+    rows, cols, half = tiling.rows, tiling.cols, tiling.rows // 2
+    block = gate_up_block(f)   # a pair is [gate | up] of `block` units each
+    pairs = cols // (2 * block)
+    m_tiles, n_tiles = -(-m // rows), 2 * f // cols
+
+    def pipeline(body, context):
+        spec = functools.partial(plgpu.BlockSpec, memory_space=plgpu.SMEM)
+        return plgpu.emit_pipeline_warp_specialized(
+            body, grid=(k // TK,), memory_registers=40, wg_axis="wg", num_compute_wgs=2,
+            max_concurrent_steps=tiling.stages, compute_context=context,
+            in_specs=[spec((rows, TK), lambda kk: (0, kk), transforms=transforms(TK, dtype)),
+                      spec((TK, cols), lambda kk: (kk, 0), transforms=transforms(cols, dtype))])
+
+    def kernel(x_gmem, w_gmem, o_gmem):
+        def nothing(*_, **__):
+            return None
+
+        @functools.partial(pl.run_scoped, allocs=pipeline(nothing, nothing).get_allocations(x_gmem, w_gmem),
+                           out_smem=plgpu.SMEM((2, pairs, half, block), dtype, transforms=transforms(block, dtype)),
+                           collective_axes="wg")
+        def scope(allocs, out_smem):
+            wg = lax.axis_index("wg")
+
+            @plgpu.nd_loop((n_tiles, m_tiles), collective_axes="sm")
+            def tile(info):
+                ni, mi = info.index
+                wg_rows = pl.ds(wg * half, half)
+
+                def context(run):
+                    @functools.partial(pl.run_scoped, acc=plgpu.ACC((half, cols), jnp.float32))
+                    def accumulate(acc):
+                        run(acc)
+                        y = acc[...]
+                        plgpu.wait_smem_to_gmem(0, wait_read_only=True)   # the last tile's stores have read it
+                        for p in range(pairs):
+                            g, u = y[:, 2 * p * block:(2 * p + 1) * block], y[:, (2 * p + 1) * block:(2 * p + 2) * block]
+                            out_smem[wg, p] = _gelu_product(g, u, dtype)
+                        plgpu.commit_smem()
+                        out_rows = pl.ds(mi * rows + wg * half, half)
+                        for p in range(pairs):
+                            units = pl.ds(ni * (cols // 2) + p * block, block)
+                            plgpu.copy_smem_to_gmem(out_smem.at[wg, p], o_gmem.at[out_rows, units])
+
+                def step(_, x_smem, w_smem, acc):
+                    plgpu.wgmma(acc, x_smem.at[wg_rows], w_smem)
+                    plgpu.wgmma_wait(0)
+                    return acc
+
+                pipeline(step, context)(x_gmem.at[pl.ds(mi * rows, rows), :], w_gmem.at[:, pl.ds(ni * cols, cols)],
+                                        allocations=allocs)
+
+        plgpu.wait_smem_to_gmem(0, wait_read_only=True)
+
+    on_cpu = jax.default_backend() == "cpu"
+    return plgpu.kernel(kernel, out_type=jax.ShapeDtypeStruct((m, f), dtype), grid=(_sms(),), grid_names=("sm",),
+                        num_threads=3, thread_name="wg", kernel_name=name,
+                        compiler_params=plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup),
+                        **({"interpret": _interpret()} if on_cpu else {}))
