@@ -2,10 +2,10 @@
 compile with extra XLA options on top of the engine's own (`matmul.compiler_options`: cuBLAS in the vision program
 under gemm="auto"), or, for "conv", with SigLIP's patch embedding as cuDNN's convolution (the engine's form until
 2026-11-26) instead of the f32 GEMM, or an Engine built another way (`ENGINE_KW`, `SCHEDULING`, `STAGES`,
-`STEP_ENDS`, `PREFIX_GEGLU`: the denoise loop unrolled, the first step's overlap and its programs, the step's ends
-in other forms, the prefix's GeGLU as XLA's); the "vision-" variants set their options on the vision program alone.
-Stage medians (round-robin over the variants), kernels per call, device span and idle time (by the kernel that
-waited) from a trace, and the fused program's actions against the first variant.
+`STEP_ENDS`: the denoise loop unrolled, the first step's overlap and its programs, the step's ends in other forms);
+the "vision-" variants set their options on the vision program alone. Stage medians (round-robin over the
+variants), kernels per call, device span and idle time (by the kernel that waited) from a trace, and the fused
+program's actions against the first variant.
 
     python scripts/graph_probe.py --preset pi0_base --batch 1 --variant default --variant conv --out graph_probe.json
 """
@@ -61,14 +61,11 @@ VARIANTS = {
     # products over or onto the action dim as XLA's multiply and sum
     "unfolded": {},
     "small-reduce": {},
-    # the prefix's gate/up as cuBLAS's GEMM and GeGLU as XLA's fusion, not the Mosaic GPU kernel (PREFIX_GEGLU)
-    "xla-prefix-geglu": {},
 }
 ENGINE_KW = {"unroll-steps": {"unroll_steps": True}, "no-overlap": {"overlap": "off"}, "overlap-on": {"overlap": "on"}}
 SCHEDULING = {"overlap-lhs": {"xla_gpu_command_buffer_scheduling_mode": "LHS"}}
 STAGES = {"one-loop-program": lambda self, batch, num_steps: ("encode_images", "prefix_denoise")}
 STEP_ENDS = {"unfolded": {"FOLD_ACTION_IN": False}, "small-reduce": {"SMALL_PRODUCTS": "reduce"}}
-PREFIX_GEGLU = {"xla-prefix-geglu": lambda *a, **kw: "xla"}
 
 
 def conv_patch_embed(images, kernel, bias, p: int):
@@ -103,7 +100,6 @@ def main() -> None:
     report = {"preset": args.preset, "env": benchmark.environment(), "rows": []}
     own_options, own_embed, own_concurrent = runtime.matmul.compiler_options, vision.patch_embed, programs.CONCURRENT
     own_ends = {k: getattr(programs, k) for k in ("FOLD_ACTION_IN", "SMALL_PRODUCTS")}
-    own_prefix_geglu = programs.prefix_geglu
     for batch in args.batch or [1]:
         obs, noise = benchmark.make_inputs(config, batch, 3, args.prompt_tokens, 0)
         rows, timed, first = [], {}, None
@@ -117,7 +113,6 @@ def main() -> None:
             programs.CONCURRENT = SCHEDULING.get(name, own_concurrent)
             for k, v in {**own_ends, **STEP_ENDS.get(name, {})}.items():
                 setattr(programs, k, v)
-            programs.prefix_geglu = PREFIX_GEGLU.get(name, own_prefix_geglu)
             engine = Engine(config, params, cache_dir=False, **ENGINE_KW.get(name, {}))
             if name in STAGES:   # this engine's calls only
                 engine.call_stages = types.MethodType(STAGES[name], engine)
@@ -147,7 +142,7 @@ def main() -> None:
             rows.append(row)
             timed.update({(name, stage): fn for stage, fn in calls.items()})
         runtime.matmul.compiler_options, vision.patch_embed = own_options, own_embed
-        programs.CONCURRENT, programs.prefix_geglu = own_concurrent, own_prefix_geglu
+        programs.CONCURRENT = own_concurrent
         for k, v in own_ends.items():
             setattr(programs, k, v)
         times = profile_engine.round_robin(timed, args.iters)

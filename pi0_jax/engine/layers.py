@@ -17,9 +17,9 @@ import jax.numpy as jnp
 
 from pi0_jax.config import GemmaConfig
 from pi0_jax.gemma import _BIG_NEG, apply_rope
-from pi0_jax.ops import attention, expert_kernels, layout, mosaic_gemm
+from pi0_jax.ops import attention, expert_kernels, layout
 from pi0_jax.ops.formats import QArray
-from pi0_jax.ops.matmul import is_quant, matmul, raw_matmul
+from pi0_jax.ops.matmul import matmul, raw_matmul
 
 
 def rms_norm(x, scale=None, mod=None):
@@ -63,19 +63,8 @@ def _qkv(h, w, cfg: GemmaConfig, positions):
     return einops.rearrange(q, "B T (K G) H -> B T K G H", K=cfg.num_kv_heads), k, v
 
 
-def _mlp(h, w, geglu: str = "xla"):
-    """Gemma's MLP. geglu "mosaic": gate/up with GeGLU as one kernel (`ops.mosaic_gemm.geglu_tiles`, where it
-    applies), its rows padded to whole row blocks and down's product cut back; "xla": the GEMM, then XLA's GeGLU."""
-    gate_up = w["gate_up"]
-    if geglu == "mosaic" and not is_quant(gate_up):
-        x = h.reshape(-1, h.shape[-1])
-        tiling = mosaic_gemm.tiling_for(gate_up.shape[1])
-        m = x.shape[0]
-        x = jnp.pad(x, ((0, -(-m // tiling.rows) * tiling.rows - m), (0, 0)))
-        if mosaic_gemm.tiles_apply(x, gate_up, tiling):   # padded rows: GELU(0) * 0 = 0 through down
-            y = _mm(mosaic_gemm.geglu_tiles(x, gate_up, tiling, name="prefix_gate_up"), w["down"])
-            return y[:m].reshape(*h.shape[:-1], -1)
-    gate, up = layout.split_gate_up(_mm(h, gate_up))
+def _mlp(h, w):
+    gate, up = layout.split_gate_up(_mm(h, w["gate_up"]))
     return _mm(jax.nn.gelu(gate, approximate=True) * up, w["down"])
 
 
@@ -103,12 +92,12 @@ def _attend_fused(q, keys, values, kv_len):
     return einops.rearrange(out, "B (T G) K H -> B T (K G H)", G=g)
 
 
-def prefix_layer(cfg: GemmaConfig, w, x, positions, mask, kv_len=None, keys: int | None = None, geglu: str = "xla"):
+def prefix_layer(cfg: GemmaConfig, w, x, positions, mask, kv_len=None, keys: int | None = None):
     """One VLM layer over the prefix. x (B,P,D); mask (B,P,P). Returns (x, k, v) with k, v (B,P,K,H) post-RoPE.
     kv_len: None for XLA attention under `mask`, else (B,) lengths for the fused kernel (the valid tokens are then
     each element's first kv_len, see `programs.fill_prefix_cache`). keys: with kv_len, k and v are zero-padded to
     this many keys first (the Pallas expert's cache length) and returned so; the fused kernel reads them padded,
-    cut off by kv_len, so the cache needs no copy of its own. geglu: the MLP's gate/up and GeGLU (`_mlp`)."""
+    cut off by kv_len, so the cache needs no copy of its own."""
     h, _ = rms_norm(x, w["pre_attn"])
     q, k, v = _qkv(h, w["qkv"], cfg, positions)
     if keys is not None and kv_len is not None:
@@ -116,7 +105,7 @@ def prefix_layer(cfg: GemmaConfig, w, x, positions, mask, kv_len=None, keys: int
     y = _attend(q, [k], [v], [mask], x.dtype) if kv_len is None else _attend_fused(q, k, v, kv_len)
     x = x + _mm(y, w["attn_out"])
     h, _ = rms_norm(x, w["pre_ffw"])
-    return x + _mlp(h, w, geglu), k, v
+    return x + _mlp(h, w), k, v
 
 
 def _attend_suffix_fused(q, k, v, buf_k, buf_v, kv_len, slot: int = 0):

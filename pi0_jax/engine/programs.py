@@ -54,8 +54,6 @@ KERNELS = ("auto", "xla", "pallas")
 # SigLIP's LayerNorm kernel measured 3 % faster on the tower at 24 and 192 images, and no faster at 3 (H100, XLA's
 # GEMMs; docs/BENCHMARKS.md, "SigLIP's LayerNorm as a kernel"): "auto" takes it where it was measured faster
 VISION_NORM_MIN_IMAGES = 24
-# The prefix's gate/up with GeGLU as one Mosaic GPU kernel (`prefix_geglu`): "auto" up to this batch
-PREFIX_GEGLU_MAX_BATCH = 2
 OVERLAPS = ("auto", "on", "off")
 # The first denoise step beside the prefix fill (`first_step_overlap`): "auto" up to this batch. On H200s π0's call
 # was 1.0-2.4 % faster at B = 1 (six machines) and π0.5's 2.3-3.5 % (two), and level at B = 2 (-0.4 %), 8 and 64,
@@ -124,17 +122,6 @@ def first_step_overlap(overlap: str, kernels: str, batch: int, expert_weights, p
 def overlap_options(options: dict | None, overlap: bool) -> dict | None:
     """A call's second program's compiler options: `options`, with `CONCURRENT` where it overlaps its first step."""
     return {**(options or {}), **CONCURRENT} if overlap else options
-
-
-def prefix_geglu(kernels: str, batch: int, dtype, platform: str | None = None) -> str:
-    """The VLM prefix's gate/up GEMM and GeGLU (`layers._mlp`): "mosaic" (`ops.mosaic_gemm.geglu_tiles`, one kernel
-    writing half the bytes, where it applies: bf16 unquantised weights on Hopper, any float in a CPU's interpreter)
-    or "xla" (cuBLAS's GEMM, then GeGLU's pass over its output). kernels "xla": XLA; "pallas": the kernel; "auto":
-    the kernel on a Hopper GPU in bf16 up to PREFIX_GEGLU_MAX_BATCH."""
-    if check_kernels(kernels) != "auto":
-        return "mosaic" if kernels == "pallas" else "xla"
-    hopper = (platform or jax.default_backend()) == "gpu" and mosaic_gemm.hopper()
-    return "mosaic" if hopper and jnp.dtype(dtype) == jnp.bfloat16 and batch <= PREFIX_GEGLU_MAX_BATCH else "xla"
 
 
 def vision_norm(kernels: str, images: int, platform: str | None = None) -> str:
@@ -271,7 +258,7 @@ def fill_prefix_cache(config: Pi0Config, weights: dict, image_tokens, image_mask
     kernel = kernel_cache(kernels, attention, x.shape[0], weights.get("expert"))
     keys = layout.cache_len(x.shape[1]) if kernel else None   # each layer writes its cache padded
     layer = functools.partial(layers.prefix_layer, config.paligemma, positions=positions, mask=attn_mask,
-                              kv_len=kv_len, keys=keys, geglu=prefix_geglu(kernels, x.shape[0], dtype))
+                              kv_len=kv_len, keys=keys)
     _, (k, v) = layers.run_layers(layer, weights["vlm"], x, unroll=unroll)
     if kernel:  # once per call: no step pads
         head_dim = config.paligemma.head_dim
