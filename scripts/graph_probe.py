@@ -2,7 +2,7 @@
 compile with extra XLA options on top of the engine's own (`matmul.compiler_options`: cuBLAS in the vision program
 under gemm="auto"), or, for "conv", with SigLIP's patch embedding as cuDNN's convolution (the engine's form until
 2026-11-26) instead of the f32 GEMM, or an Engine built another way (`ENGINE_KW`, `SCHEDULING`, `STAGES`,
-`STEP_ENDS`: the denoise loop unrolled, the first step's overlap and its programs, the step's ends in other forms);
+`STEP_ENDS`: the denoise loop unrolled, the first step's overlap and its programs, π0's in-projection unfolded);
 the "vision-" variants set their options on the vision program alone. Stage medians (round-robin over the
 variants), kernels per call, device span and idle time (by the kernel that waited) from a trace, and the fused
 program's actions against the first variant.
@@ -57,15 +57,13 @@ VARIANTS = {
     "overlap-on": {},
     "overlap-lhs": {},
     "one-loop-program": {},
-    # the denoise step's ends (STEP_ENDS): π0's in-projection and time MLP as two products, not folded into one; the
-    # products over or onto the action dim as XLA's multiply and sum
+    # the denoise step's ends (STEP_ENDS): π0's in-projection and time MLP as two products, not folded into one
     "unfolded": {},
-    "small-reduce": {},
 }
 ENGINE_KW = {"unroll-steps": {"unroll_steps": True}, "no-overlap": {"overlap": "off"}, "overlap-on": {"overlap": "on"}}
 SCHEDULING = {"overlap-lhs": {"xla_gpu_command_buffer_scheduling_mode": "LHS"}}
 STAGES = {"one-loop-program": lambda self, batch, num_steps: ("encode_images", "prefix_denoise")}
-STEP_ENDS = {"unfolded": {"FOLD_ACTION_IN": False}, "small-reduce": {"SMALL_PRODUCTS": "reduce"}}
+STEP_ENDS = {"unfolded": {"FOLD_ACTION_IN": False}}
 
 
 def conv_patch_embed(images, kernel, bias, p: int):
@@ -99,7 +97,7 @@ def main() -> None:
     params = benchmark.random_params(config, 0)
     report = {"preset": args.preset, "env": benchmark.environment(), "rows": []}
     own_options, own_embed, own_concurrent = runtime.matmul.compiler_options, vision.patch_embed, programs.CONCURRENT
-    own_ends = {k: getattr(programs, k) for k in ("FOLD_ACTION_IN", "SMALL_PRODUCTS")}
+    own_ends = {k: getattr(programs, k) for k in ("FOLD_ACTION_IN",)}
     for batch in args.batch or [1]:
         obs, noise = benchmark.make_inputs(config, batch, 3, args.prompt_tokens, 0)
         rows, timed, first = [], {}, None

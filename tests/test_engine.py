@@ -16,6 +16,7 @@ import pytest
 from pi0_jax import pi0
 from pi0_jax.config import IMAGE_KEYS, get_config
 from pi0_jax.engine import Engine, prompt_bucket
+from pi0_jax.engine import weights as weights_lib
 from test_model import make_obs, randomize
 
 sample_ref = jax.jit(pi0.sample_actions, static_argnums=(0, 4))
@@ -398,6 +399,34 @@ def test_the_state_token_runs_once_a_call(monkeypatch):
     assert not programs.cached_state(get_config("dummy_pi05"), A(), "xla", 2, None)
     assert not programs.cached_state(config, A(), "pallas", 1, None)
     assert not programs.cached_state(config, A(denoise="pallas"), "xla", 8, None)
+
+
+def test_the_in_projection_is_folded_into_the_time_mlp(monkeypatch):
+    """π0's action in-projection and the time MLP's action half are one product (`weights.fold_action_in`), its bias
+    through the MLP's weight too: the same actions as the two products in float32, on the XLA expert and the Pallas
+    one; a fold that dropped the bias's path moves them far off."""
+    from pi0_jax.engine import programs
+
+    config = get_config("dummy")
+    params = randomize(pi0.param_shapes(config))
+    params["action_in_proj"]["bias"] = jax.random.normal(jax.random.key(3), params["action_in_proj"]["bias"].shape)
+    obs = make_obs(config)
+    noise = jax.random.normal(jax.random.key(5), (2, config.action_horizon, config.action_dim))
+    fold = Engine(config, params, cache_dir=False).weights["top"]["action_time_in"]
+    assert fold["kernel"].shape == (config.action_dim, config.action_expert.width)
+    for kernels in ("xla", "pallas"):
+        got = {}
+        for folded in (True, False):
+            with monkeypatch.context() as m:
+                m.setattr(programs, "FOLD_ACTION_IN", folded)
+                engine = Engine(config, params, cache_dir=False, kernels=kernels)
+                got[folded] = np.asarray(engine.sample_actions(obs, noise, 3))
+        np.testing.assert_allclose(got[True], got[False], rtol=1e-5, atol=1e-5)
+    with monkeypatch.context() as m:   # the bias left out of the fold
+        m.setattr(weights_lib, "fold_action_in", lambda c, p, f=weights_lib.fold_action_in: {
+            **f(c, p), "bias": jnp.zeros(c.action_expert.width)})
+        off = np.asarray(Engine(config, params, cache_dir=False).sample_actions(obs, noise, 3))
+    assert not np.allclose(off, got[False], rtol=1e-3, atol=1e-3)
 
 
 def test_gemm_library_per_program():

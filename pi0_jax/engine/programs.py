@@ -47,8 +47,6 @@ PALLAS_DENOISE_BATCHES = range(4, 9)
 # π0's action in-projection folded into the time MLP's first product (`weights.fold_action_in`); False: the two
 # products as the reference runs them (an A/B switch for probes, read when a program is traced)
 FOLD_ACTION_IN = True
-# the denoise step's products over or onto the action dim (`_small_dense`): "dot" or "reduce" (an A/B switch)
-SMALL_PRODUCTS = "dot"
 
 KERNELS = ("auto", "xla", "pallas")
 # SigLIP's LayerNorm kernel measured 3 % faster on the tower at 24 and 192 images, and no faster at 3 (H100, XLA's
@@ -271,15 +269,6 @@ def _dense(p, x):
     return x @ p["kernel"] + p["bias"]
 
 
-def _small_dense(p, x):
-    """`_dense` where the action dim is the weight's K or N (32): as a product, or with SMALL_PRODUCTS "reduce" as
-    XLA's multiply and sum in f32, which it can fuse with the ops around it."""
-    if SMALL_PRODUCTS == "dot":
-        return _dense(p, x)
-    w = p["kernel"].astype(jnp.float32)
-    return jnp.sum(x.astype(jnp.float32)[..., :, None] * w, axis=-2) + p["bias"]
-
-
 def kernel_cache(kernels: str, attention: Attention, batch: int, expert_weights) -> bool:
     """Whether a program at this batch keeps its prefix cache in the expert kernels' layout (`ops.layout.cache_kv`):
     the Pallas expert's path, or the XLA expert's with the Pallas attention. `attention` resolved (`at_batch`)."""
@@ -395,13 +384,12 @@ def step_velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array
         where = frozen.reshape(frozen.shape + (1,) * (now.ndim - 2))
         return jnp.where(where, sched["committed"][key][0][None, None], now)
 
-    # f32: the projections run in the promoted dtype
     if config.pi05:
-        x = _small_dense(top["action_in_proj"], x_t)
+        x = _dense(top["action_in_proj"], x_t)  # f32: the projections run in the promoted dtype
         mods = (at_step("mods_attn"), at_step("mods_ffw"))  # (B or 1, H or 1, L, 3D) each
     else:
-        if FOLD_ACTION_IN:   # one product where there were two (`weights.fold_action_in`)
-            h = _small_dense(top["action_time_in"], x_t) + at_step("time_in")
+        if FOLD_ACTION_IN:   # the in-projection inside the time MLP's first product (`weights.fold_action_in`)
+            h = _dense(top["action_time_in"], x_t) + at_step("time_in")
         else:
             w_in = top["action_time_mlp_in"]["kernel"]
             h = _dense(top["action_in_proj"], x_t) @ w_in[: config.action_expert.width].astype(jnp.float32)
@@ -453,7 +441,7 @@ def _top(config, weights, final_mod, x):
         x, _ = layers.rms_norm(x, mod=final_mod)
     else:
         x, _ = layers.rms_norm(x, weights["final_norm_1"])
-    return _small_dense(weights["top"]["action_out_proj"], x[:, -config.action_horizon:])
+    return _dense(weights["top"]["action_out_proj"], x[:, -config.action_horizon:])
 
 
 def _by_layer(x, unroll):

@@ -6,6 +6,8 @@
 - Per-layer weights split into separate buffers (unrolled layers) or kept stacked (scanned layers).
 - The prefix pass returns only K/V, so XLA drops the VLM's last MLP and final norm as dead code; the VLM's final
   norm weights are not carried at all.
+- π0's action in-projection is folded into its time MLP's first product (`fold_action_in`): two f32 products in a
+  row with nothing between them are one.
 - The step schedule of a fixed-step sampler is known: its times, the time embeddings and what depends only on them
   (π0.5's adaRMS scale/shift/gate for every layer and step; π0's time half of `action_time_mlp_in`) are precomputed
   once per (params, num_steps) with exactly the reference's ops, so the denoise loop never reads those weights.
