@@ -403,8 +403,8 @@ def test_the_state_token_runs_once_a_call(monkeypatch):
 
 def test_the_in_projection_is_folded_into_the_time_mlp(monkeypatch):
     """π0's action in-projection and the time MLP's action half are one product (`weights.fold_action_in`), its bias
-    through the MLP's weight too: the same actions as the two products in float32, on the XLA expert and the Pallas
-    one; a fold that dropped the bias's path moves them far off."""
+    through the MLP's weight too: the same actions as the two products in float32 (`step_velocity` is the Pallas
+    expert's as well); a fold that dropped the bias's path moves them far off."""
     from pi0_jax.engine import programs
 
     config = get_config("dummy")
@@ -412,16 +412,14 @@ def test_the_in_projection_is_folded_into_the_time_mlp(monkeypatch):
     params["action_in_proj"]["bias"] = jax.random.normal(jax.random.key(3), params["action_in_proj"]["bias"].shape)
     obs = make_obs(config)
     noise = jax.random.normal(jax.random.key(5), (2, config.action_horizon, config.action_dim))
-    fold = Engine(config, params, cache_dir=False).weights["top"]["action_time_in"]
-    assert fold["kernel"].shape == (config.action_dim, config.action_expert.width)
-    for kernels in ("xla", "pallas"):
-        got = {}
-        for folded in (True, False):
-            with monkeypatch.context() as m:
-                m.setattr(programs, "FOLD_ACTION_IN", folded)
-                engine = Engine(config, params, cache_dir=False, kernels=kernels)
-                got[folded] = np.asarray(engine.sample_actions(obs, noise, 3))
-        np.testing.assert_allclose(got[True], got[False], rtol=1e-5, atol=1e-5)
+    got = {}
+    for folded in (True, False):
+        with monkeypatch.context() as m:
+            m.setattr(programs, "FOLD_ACTION_IN", folded)
+            engine = Engine(config, params, cache_dir=False)
+            got[folded] = np.asarray(engine.sample_actions(obs, noise, 3))
+    assert engine.weights["top"]["action_time_in"]["kernel"].shape == (config.action_dim, config.action_expert.width)
+    np.testing.assert_allclose(got[True], got[False], rtol=1e-5, atol=1e-5)
     with monkeypatch.context() as m:   # the bias left out of the fold
         m.setattr(weights_lib, "fold_action_in", lambda c, p, f=weights_lib.fold_action_in: {
             **f(c, p), "bias": jnp.zeros(c.action_expert.width)})
