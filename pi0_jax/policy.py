@@ -42,6 +42,7 @@ from pi0_jax.config import IMAGE_KEYS, Pi0Config
 from pi0_jax.engine import engine_weights, enable_compilation_cache, prompt_bucket
 from pi0_jax.engine import programs
 from pi0_jax.engine import weights as weights_lib
+from pi0_jax.engine import runtime
 from pi0_jax.engine.runtime import STAGE_WEIGHTS
 from pi0_jax.engine.store import ProgramStore, shapes
 from pi0_jax.observation import DEFAULT_OPTIONAL_CAMERAS, ObservationError, Prepared, Validator
@@ -215,6 +216,18 @@ class PolicyCore:
         pixels = [self.pixels(x) for x in images]
         return programs.encode_images(self.config, model["weights"], jnp.stack(pixels), unroll=self.unroll,
                                       kernels=self.kernels, attention=self.attention)
+
+    # `encode` as two programs where the engine's call cuts the tower (`runtime.splits_vision`)
+    def encode_head(self, model, images: Sequence[jax.Array]) -> tuple:
+        """`encode` up to the blocks of its weights (`programs.encode_images_head`)."""
+        pixels = [self.pixels(x) for x in images]
+        return programs.encode_images_head(self.config, model["weights"], jnp.stack(pixels), kernels=self.kernels,
+                                           attention=self.attention)
+
+    def encode_tail(self, model, x, f, *, cameras: int) -> jax.Array:
+        """`encode` after `encode_head` (`programs.encode_images_tail`) -> image tokens."""
+        return programs.encode_images_tail(self.config, model["weights"], x, f, cameras=cameras,
+                                           kernels=self.kernels, attention=self.attention)
 
     def act(self, model, norm, image_tokens, image_masks, tokens, token_mask, state, noise, *,
             num_steps=None, peel_first: bool = False) -> jax.Array:
@@ -391,7 +404,8 @@ class Policy:
         """The compiled call for these input shapes (compiled ahead of time on first use, then kept):
         (norm, *host_args) -> actions. With the engine sampler it is two programs, `PolicyCore.encode` on the vision
         tower's weights and `PolicyCore.act` on the rest (three where the first denoise step overlaps the prefix
-        fill: `act_first`, then `act_rest` on the expert's weights), each dispatched while the GPU runs the one
+        fill: `act_first`, then `act_rest` on the expert's weights; and the tower itself two, `encode_head` and
+        `encode_tail`, where the engine cuts it: `runtime.splits_vision`), each dispatched while the GPU runs the one
         before, as `Engine.sample_actions`; the reference sampler is one program."""
         spec = shapes(host_args)
         key = (cameras, tuple((x.shape, x.dtype.str) for x in jax.tree.leaves(host_args)))
@@ -420,8 +434,18 @@ class Policy:
             return functools.partial(exe, core.model)
         vision, rest = core.split_model(core.model)
         images = spec[0]
-        encode = compile_("encode", core.encode, (vision, images),
-                          matmul.compiler_options(vision, core.gemm, vision_tower=True))
+        vision_options = matmul.compiler_options(vision, core.gemm, vision_tower=True)
+        if runtime.splits_vision(core.config, core.unroll):   # the tower as two programs, as `Engine.call_stages`
+            head_w, tail_w = ({"weights": runtime.stage_tree(vision["weights"], s)} for s in ("vision_head",
+                                                                                               "vision_tail"))
+            head = compile_("encode_head", core.encode_head, (head_w, images), vision_options)
+            tail_fn = functools.partial(core.encode_tail, cameras=len(cameras))
+            tail = compile_("encode_tail", tail_fn, (tail_w, *shapes(head.out_info)), vision_options)
+
+            def encode(images):
+                return tail(tail_w, *head(head_w, images))
+        else:
+            encode = functools.partial(compile_("encode", core.encode, (vision, images), vision_options), vision)
         tokens = jax.eval_shape(core.encode, vision, images)
         peel = programs.first_step_overlap(core.overlap, core.kernels, spec[-1].shape[0], rest["weights"]["expert"])
         options = matmul.compiler_options(rest, core.gemm)
@@ -433,14 +457,14 @@ class Policy:
             last = compile_("act_rest", core.act_rest, (loop, self._norm, *shapes(first.out_info)), options)
 
             def call(norm, images, *args):
-                return last(loop, norm, *first(rest, norm, encode(vision, images), *args))
+                return last(loop, norm, *first(rest, norm, encode(images), *args))
 
             return call
         act = compile_("act", functools.partial(core.act, peel_first=peel), (rest, self._norm, tokens, *spec[1:]),
                        programs.overlap_options(options, peel))
 
         def call(norm, images, *args):
-            return act(rest, norm, encode(vision, images), *args)
+            return act(rest, norm, encode(images), *args)
 
         return call
 

@@ -2,7 +2,8 @@
 compile with extra XLA options on top of the engine's own (`matmul.compiler_options`: cuBLAS in the vision program
 under gemm="auto"), or, for "conv", with SigLIP's patch embedding as cuDNN's convolution (the engine's form until
 2026-11-26) instead of the f32 GEMM, or an Engine built another way (`ENGINE_KW`, `SCHEDULING`, `STAGES`,
-`STEP_ENDS`: the denoise loop unrolled, the first step's overlap and its programs, π0's in-projection unfolded);
+`STEP_ENDS`, `RUNTIME`: the denoise loop unrolled, the first step's overlap and its programs, π0's in-projection
+unfolded, the vision tower as one program);
 the "vision-" variants set their options on the vision program alone. Stage medians (round-robin over the
 variants), kernels per call, device span and idle time (by the kernel that waited) from a trace, and the fused
 program's actions against the first variant.
@@ -59,11 +60,14 @@ VARIANTS = {
     "one-loop-program": {},
     # the denoise step's ends (STEP_ENDS): π0's in-projection and time MLP as two products, not folded into one
     "unfolded": {},
+    # the call's vision tower as one program (RUNTIME), not two
+    "one-vision-program": {},
 }
 ENGINE_KW = {"unroll-steps": {"unroll_steps": True}, "no-overlap": {"overlap": "off"}, "overlap-on": {"overlap": "on"}}
 SCHEDULING = {"overlap-lhs": {"xla_gpu_command_buffer_scheduling_mode": "LHS"}}
 STAGES = {"one-loop-program": lambda self, batch, num_steps: ("encode_images", "prefix_denoise")}
 STEP_ENDS = {"unfolded": {"FOLD_ACTION_IN": False}}
+RUNTIME = {"one-vision-program": {"VISION_SPLIT": 0}}
 
 
 def conv_patch_embed(images, kernel, bias, p: int):
@@ -98,6 +102,7 @@ def main() -> None:
     report = {"preset": args.preset, "env": benchmark.environment(), "rows": []}
     own_options, own_embed, own_concurrent = runtime.matmul.compiler_options, vision.patch_embed, programs.CONCURRENT
     own_ends = {k: getattr(programs, k) for k in ("FOLD_ACTION_IN",)}
+    own_split = runtime.VISION_SPLIT
     for batch in args.batch or [1]:
         obs, noise = benchmark.make_inputs(config, batch, 3, args.prompt_tokens, 0)
         rows, timed, first = [], {}, None
@@ -111,6 +116,7 @@ def main() -> None:
             programs.CONCURRENT = SCHEDULING.get(name, own_concurrent)
             for k, v in {**own_ends, **STEP_ENDS.get(name, {})}.items():
                 setattr(programs, k, v)
+            runtime.VISION_SPLIT = RUNTIME.get(name, {}).get("VISION_SPLIT", own_split)
             engine = Engine(config, params, cache_dir=False, **ENGINE_KW.get(name, {}))
             if name in STAGES:   # this engine's calls only
                 engine.call_stages = types.MethodType(STAGES[name], engine)
@@ -140,7 +146,7 @@ def main() -> None:
             rows.append(row)
             timed.update({(name, stage): fn for stage, fn in calls.items()})
         runtime.matmul.compiler_options, vision.patch_embed = own_options, own_embed
-        programs.CONCURRENT = own_concurrent
+        programs.CONCURRENT, runtime.VISION_SPLIT = own_concurrent, own_split
         for k, v in own_ends.items():
             setattr(programs, k, v)
         times = profile_engine.round_robin(timed, args.iters)

@@ -427,6 +427,28 @@ def test_the_in_projection_is_folded_into_the_time_mlp(monkeypatch):
     assert not np.allclose(off, got[False], rtol=1e-3, atol=1e-3)
 
 
+def test_the_vision_tower_as_two_programs(model, monkeypatch):
+    """Where the tower has more blocks than `runtime.VISION_SPLIT`, the call runs it as two programs: the first on
+    the patch embedding and those blocks, the second on the others, the final norm and the projection, each
+    handed only its own weights (on cuBLAS as the tower's); the same actions as one program, bit for bit."""
+    from pi0_jax.engine import runtime
+
+    config, params = model
+    obs = make_obs(config)
+    noise = jax.random.normal(jax.random.key(5), (2, config.action_horizon, config.action_dim))
+    want = np.asarray(Engine(config, params, cache_dir=False).sample_actions(obs, noise, 3))
+    monkeypatch.setattr(runtime, "VISION_SPLIT", 1)
+    engine = Engine(config, params, cache_dir=False)
+    assert engine.call_stages(2, 3)[:2] == ("vision_head", "vision_tail")
+    np.testing.assert_array_equal(np.asarray(engine.sample_actions(obs, noise, 3)), want)
+    blocks = engine.weights["img"]["blocks"]
+    head, tail = (engine.stage_weights(s)["img"] for s in ("vision_head", "vision_tail"))
+    ids = lambda tree: [id(x) for x in jax.tree.leaves(tree)]   # noqa: E731 (the same buffers, not copies)
+    assert ids(head["blocks"]) == ids(blocks[:1]) and ids(tail["blocks"]) == ids(blocks[1:])
+    assert set(head) | set(tail) == set(engine.weights["img"])
+    assert not Engine(config, params, cache_dir=False, unroll=False).splits_vision()
+
+
 def test_gemm_library_per_program():
     """gemm="auto": cuBLAS for the program that runs the vision tower alone, XLA's choice for the others; FP8
     weights always cuBLAS; off a GPU always XLA's ops."""

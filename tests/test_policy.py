@@ -160,6 +160,31 @@ def test_the_first_step_beside_the_prefix_in_the_policy(pi0_ckpt, pi0_policy, mo
         Policy.from_checkpoint(pi0_ckpt[0], cache_dir=False, overlap="always")
 
 
+def test_the_vision_tower_as_two_programs_in_the_policy(pi0_ckpt, monkeypatch):
+    """Where the engine's call cuts the vision tower in two (`runtime.VISION_SPLIT` blocks first), `Policy` compiles
+    the same two programs, each on its own blocks' weights; the actions are the same bit for bit."""
+    from pi0_jax.engine import runtime
+    from pi0_jax.engine.store import ProgramStore
+
+    compiled = {}
+
+    def compile(self, name, parts, fn, args, options=None):
+        compiled[name] = len(jax.tree.leaves(args[0]))
+        return jax.jit(fn).lower(*args).compile(options)
+
+    monkeypatch.setattr(ProgramStore, "compile", compile)
+    noise = RNG.normal(size=(pi0_ckpt[1].action_horizon, pi0_ckpt[1].action_dim)).astype(np.float32)
+    got = {}
+    for split in (0, 1):
+        monkeypatch.setattr(runtime, "VISION_SPLIT", split)
+        got[split] = Policy.from_checkpoint(pi0_ckpt[0], cache_dir=False).infer(libero_obs(), noise=noise)["actions"]
+    np.testing.assert_array_equal(got[0], got[1])
+    depth = pi0_ckpt[1].siglip.depth
+    per_block = (compiled["policy_encode"] - 6) // depth   # the patch embedding's 2, pos, the final norm, head's 2
+    assert (compiled["policy_encode_head"], compiled["policy_encode_tail"]) == (3 + per_block,
+                                                                                 3 + per_block * (depth - 1))
+
+
 def test_engine_equals_reference_sampler_bf16(pi0_ckpt):
     _, config, _ = pi0_ckpt
     eng = Policy.from_checkpoint(pi0_ckpt[0], dtype="bfloat16", cache_dir=False)

@@ -230,6 +230,25 @@ def encode_images(config: Pi0Config, weights: dict, images: jax.Array, *, unroll
     return tokens.reshape(b, -1, tokens.shape[-1])
 
 
+def encode_images_head(config: Pi0Config, weights: dict, images: jax.Array, *, attention: Attention = Attention(),
+                       kernels: str = "xla") -> tuple:
+    """`encode_images` up to the blocks of weights["img"]["blocks"] (`vision.encode_head`; unrolled) -> (x, f):
+    the first of the call's two vision programs where the tower is cut (`runtime.VISION_SPLIT`)."""
+    c, b = images.shape[:2]
+    flat = jnp.swapaxes(images, 0, 1).reshape(b * c, *images.shape[2:])
+    return vision.encode_head(config.siglip, weights["img"], flat, dtype=jnp.dtype(config.dtype),
+                              attention=attention.vision, norm=vision_norm(kernels, b * c))
+
+
+def encode_images_tail(config: Pi0Config, weights: dict, x, f, *, cameras: int, attention: Attention = Attention(),
+                       kernels: str = "xla") -> jax.Array:
+    """`encode_images` from `encode_images_head`'s (x, f), over the other blocks, the final norm and the projection
+    (`vision.encode_tail`) -> (B, C * 256, VLM width). cameras: C, the active cameras."""
+    tokens = vision.encode_tail(config.siglip, weights["img"], x, f, dtype=jnp.dtype(config.dtype),
+                                attention=attention.vision, norm=vision_norm(kernels, x.shape[0]))
+    return tokens.reshape(x.shape[0] // cameras, -1, tokens.shape[-1])
+
+
 def fill_prefix_cache(config: Pi0Config, weights: dict, image_tokens, image_masks, tokens, token_mask, *,
                       unroll: bool, kernels: str = "xla", attention: Attention = Attention()) -> PrefixCache:
     """image_tokens (B, C*256, D); image_masks (C, B) bool; tokens / token_mask (B, L). The prefix is bidirectional.

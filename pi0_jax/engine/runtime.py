@@ -7,7 +7,7 @@ back from `store.ProgramStore` without tracing, and anything else compiled from 
 
 A call (`sample_actions`) is two programs, dispatched one after the other with no host round trip between them:
 the vision tower, then the prefix fill and the denoise loop (three where the first denoise step overlaps the prefix
-fill: `Engine.call_stages`). Each takes only its own weights (`STAGE_WEIGHTS`): the host pays about 1.2-1.7 µs per
+fill, and the tower itself two at full size: `Engine.call_stages`). Each takes only its own weights (`STAGE_WEIGHTS`): the host pays about 1.2-1.7 µs per
 buffer a call takes before its first kernel runs, and each program's dispatch runs while the GPU runs the one
 before. And the vision program gets its own GEMM library (`matmul.compiler_options`).
 At batch 1 and 2 on a GPU the second program runs its first denoise step beside the prefix fill (`Engine.overlaps`).
@@ -37,25 +37,53 @@ from pi0_jax.ops import matmul
 
 PROMPT_BUCKETS = (16, 32, 48, 64, 96, 128, 160, 200)
 # The engine weights (top-level keys of `weights.prepare`'s tree) each program reads; "infer" is the fused program
-STAGE_WEIGHTS = {"encode_images": ("img",), "fill_prefix_cache": ("embedding", "vlm"),
+STAGE_WEIGHTS = {"encode_images": ("img",), "vision_head": ("img",), "vision_tail": ("img",),
+                 "fill_prefix_cache": ("embedding", "vlm"),
                  "denoise": ("expert", "top", "final_norm_1"),
                  "prefix_denoise": ("embedding", "vlm", "expert", "top", "final_norm_1"),
                  "prefix_first_step": ("embedding", "vlm", "expert", "top", "final_norm_1"),
                  "denoise_rest": ("expert", "top", "final_norm_1"),
                  "infer": ("img", "embedding", "vlm", "expert", "top", "final_norm_1")}
 STAGES = tuple(STAGE_WEIGHTS)
+VISION_STAGES = ("encode_images", "vision_head", "vision_tail")
+# The call's vision tower as two programs, the first with this many blocks (`Engine.splits_vision`): the host
+# dispatches the second while the GPU runs the first, and the first, with a third of the tower's weight buffers,
+# starts sooner. π0's call at B = 1 took 14.03 against 15.18 ms (H200, one process; 6 blocks 14.19, 13 blocks
+# 14.08, 3 blocks 15.20: the first program then ends before the second is dispatched; docs/BENCHMARKS.md, session 46)
+VISION_SPLIT = 9
+
+
+def splits_vision(config: Pi0Config, unroll: bool) -> bool:
+    """Whether a call runs the vision tower as two programs (`VISION_SPLIT`): with unrolled layers, where the tower
+    has more blocks than the first program takes."""
+    return unroll and 0 < VISION_SPLIT < config.siglip.depth
+
+
+def stage_tree(weights: dict, stage: str, split: int | None = None) -> dict:
+    """The engine weights a stage's program takes: `STAGE_WEIGHTS`' keys; the vision tower's two programs take
+    its blocks before `split` (None: `VISION_SPLIT`) with the patch embedding ("vision_head"), or the others with
+    the final norm and the projection ("vision_tail")."""
+    if stage in ("vision_head", "vision_tail"):
+        img, split = weights["img"], VISION_SPLIT if split is None else split
+        if stage == "vision_head":
+            return {"img": {"embedding": img["embedding"], "pos": img["pos"], "blocks": img["blocks"][:split]}}
+        return {"img": {"blocks": img["blocks"][split:], "norm": img["norm"], "head": img["head"]}}
+    return {k: weights[k] for k in STAGE_WEIGHTS[stage] if k in weights}
 
 
 @dataclasses.dataclass(frozen=True)
 class Program:
     """A compiled stage program and the engine weights it reads: called with the engine's whole weights tree, it
-    hands the program only those (`keys`), so the host never dispatches a buffer the program does not read."""
+    hands the program only those (`stage_tree` of its stage: under the top-level `keys`), so the host never
+    dispatches a buffer the program does not read."""
 
     compiled: jax.stages.Compiled
     keys: tuple[str, ...]
+    stage: str
+    split: int   # the vision tower's first program's blocks (`stage_tree`)
 
     def __call__(self, weights: dict, *args):
-        return self.compiled({k: weights[k] for k in self.keys}, *args)
+        return self.compiled(stage_tree(weights, self.stage, self.split), *args)
 
     def as_text(self) -> str:
         return self.compiled.as_text()
@@ -140,6 +168,7 @@ class Engine:
         self.unroll_steps = unroll_steps
         self._schedule_params = weights_lib.schedule_params(config, params)  # not the whole tree: it is 6 GB
         self.weights = engine_weights(config, params, unroll=unroll, kernels=kernels)
+        self.vision_split = VISION_SPLIT if splits_vision(config, unroll) else 0
         self._schedules: dict[int, dict] = {}
         self._executables: dict[tuple, jax.stages.Compiled] = {}
         self.compile_seconds: dict[tuple, float] = {}
@@ -173,43 +202,50 @@ class Engine:
             weights = self.stage_weights(stage)
             fn, args = self._stage(stage, shapes(weights), batch, num_steps, cameras, prompt_len)
             options = programs.overlap_options(
-                matmul.compiler_options(weights, self.gemm, vision_tower=stage == "encode_images"),
+                matmul.compiler_options(weights, self.gemm, vision_tower=stage in VISION_STAGES),
                 stage == "prefix_first_step" or (stage == "prefix_denoise" and self.overlaps(batch)))
             # everything the traced program depends on besides its arguments and options
             parts = (key, repr(self.config), self.unroll, self.unroll_steps, repr(self.attention), self.kernels,
-                     self.gemm, self.overlap)
-            self._executables[key] = Program(self.store.compile(stage, parts, fn, args, options), tuple(weights))
+                     self.gemm, self.overlap, self.vision_split)
+            self._executables[key] = Program(self.store.compile(stage, parts, fn, args, options), tuple(weights),
+                                             stage, self.vision_split)
             self.compile_seconds[key] = time.perf_counter() - start
         return self._executables[key]
 
     def stage_weights(self, stage: str) -> dict:
-        """The engine weights a stage's program takes (`STAGE_WEIGHTS`)."""
-        return {k: self.weights[k] for k in STAGE_WEIGHTS[stage] if k in self.weights}
+        """The engine weights a stage's program takes (`stage_tree`)."""
+        return stage_tree(self.weights, stage, self.vision_split)
 
     def gemm_library(self, stage: str) -> str:
         """The GEMM library of a stage's program on this device: "xla" (XLA's choice) or "cublas"."""
-        return matmul.library(self.stage_weights(stage), self.gemm, vision_tower=stage == "encode_images")
+        return matmul.library(self.stage_weights(stage), self.gemm, vision_tower=stage in VISION_STAGES)
 
     @staticmethod
     def key(stage: str, batch: int, num_steps: int, cameras: Sequence[str], prompt_len: int) -> tuple:
         """The key of a stage's program in `compile_seconds` (the shapes it depends on)."""
         if stage not in STAGE_WEIGHTS:
             raise ValueError(f"unknown stage {stage!r}; stages: {STAGES}")
-        if stage in ("encode_images", "fill_prefix_cache"):
+        if stage in (*VISION_STAGES, "fill_prefix_cache"):
             num_steps = 0  # these programs do not depend on the step count
-        if stage == "encode_images":
+        if stage in VISION_STAGES:
             prompt_len = 0
         return (stage, batch, num_steps, tuple(cameras), prompt_len)
 
     def call_stages(self, batch: int, num_steps: int) -> tuple[str, ...]:
-        """The stages of a call's programs, in order: the vision tower, then the prefix fill with the denoise loop;
+        """The stages of a call's programs, in order: the vision tower (as two programs where `splits_vision`), then
+        the prefix fill with the denoise loop;
         where the first denoise step runs beside the prefix fill (`overlaps`) and other steps follow, the prefix fill
         with that step, then the loop as a program of its own. XLA's command buffers run the overlap's program in
         their CONCURRENT order, and there a while loop's iterations were 20-25 µs apart; in a program of its own the
         loop keeps XLA's default order (docs/BENCHMARKS.md, "The denoise loop as a program of its own")."""
+        vision = ("vision_head", "vision_tail") if self.splits_vision() else ("encode_images",)
         if self.overlaps(batch) and num_steps > 1:
-            return "encode_images", "prefix_first_step", "denoise_rest"
-        return "encode_images", "prefix_denoise"
+            return *vision, "prefix_first_step", "denoise_rest"
+        return *vision, "prefix_denoise"
+
+    def splits_vision(self) -> bool:
+        """Whether the call runs the vision tower as two programs (`splits_vision`, fixed when the Engine is made)."""
+        return self.vision_split > 0
 
     def call_programs(self, batch: int, num_steps: int, cameras: Sequence[str], prompt_len: int) -> tuple:
         """The programs of a call (`sample_actions`), in `call_stages`' order."""
@@ -231,6 +267,12 @@ class Engine:
         denoise_kw = {**kw, "num_steps": num_steps, "unroll_steps": self.unroll_steps, "kernels": self.kernels}
         if stage == "encode_images":
             return functools.partial(programs.encode_images, cfg, **kw, kernels=self.kernels), (w, images)
+        vision_kw = {"attention": self.attention, "kernels": self.kernels}
+        if stage == "vision_head":
+            return functools.partial(programs.encode_images_head, cfg, **vision_kw), (w, images)
+        if stage == "vision_tail":   # it takes the first vision program's outputs (read off it)
+            outs = shapes(self.executable("vision_head", batch, num_steps, cameras, prompt_len).compiled.out_info)
+            return functools.partial(programs.encode_images_tail, cfg, cameras=c, **vision_kw), (w, *outs)
         image_tokens = spec((batch, c * cfg.siglip.num_patches, cfg.paligemma.width), dtype)
         # the prefix program alone has no expert weights to choose the cache's layout by: it is given the choice
         fill = functools.partial(programs.fill_prefix_cache, cfg, **kw, kernels=self.kernels_for(batch))
@@ -284,10 +326,16 @@ class Engine:
         """`sample_actions` on `pack`'s arrays: the call's programs (`call_stages`), each dispatched while the GPU
         runs the one before (no host round trip between them). noise (B, H, action_dim) f32."""
         images, image_masks, tokens, token_mask, state = packed
-        vision, act, *rest = self.call_programs(noise.shape[0], num_steps, cameras, prompt_len)
-        sched = self.schedule(num_steps)
-        out = act(self.weights, sched, vision(self.weights, images), image_masks, tokens, token_mask, state, noise)
-        return rest[0](self.weights, sched, *out) if rest else out
+        progs = self.call_programs(noise.shape[0], num_steps, cameras, prompt_len)
+        w, sched = self.weights, self.schedule(num_steps)
+        if self.splits_vision():
+            head, tail, act, *rest = progs
+            image_tokens = tail(w, *head(w, images))
+        else:
+            vision, act, *rest = progs
+            image_tokens = vision(w, images)
+        out = act(w, sched, image_tokens, image_masks, tokens, token_mask, state, noise)
+        return rest[0](w, sched, *out) if rest else out
 
     def run_stages(self, obs: pi0.Observation, noise: jax.Array, num_steps: int = 10):
         """The three stage programs one after another (for per-stage timing); returns (image_tokens, cache, actions)."""

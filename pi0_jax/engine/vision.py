@@ -121,18 +121,44 @@ def block(cfg: SiglipConfig, w, x, f, *, attention: str, norm: str = "xla"):
 def encode(cfg: SiglipConfig, w: dict, images, *, dtype, unroll: bool, attention: str = "xla", norm: str = "xla"):
     """images (B, S, S, 3) in [-1, 1] -> tokens (B, 256, out_dim) in dtype (image tokens are not scaled by
     sqrt(width), spec §3.8). w["blocks"]: a list of per-block dicts (unroll) or one stacked dict (lax.scan).
-    norm: "xla" or "pallas" (`add_norm`)."""
-    x = patch_embed(images, w["embedding"]["kernel"], w["embedding"]["bias"], cfg.patch_size)
-    x = (x + w["pos"].astype(jnp.float32)).astype(dtype)
-    blocks = w["blocks"]
-    if unroll:   # the first block has no MLP output to add
-        x, f = block(cfg, blocks[0], x, None, attention=attention, norm=norm)
-        blocks = blocks[1:]
-    else:        # lax.scan's carry keeps one structure: a zero MLP output (x + 0 is x)
-        fp8 = matmul.input_scale(blocks["fc2"]) is not None
-        f = (jnp.zeros_like(x), jnp.zeros((FC2_BIAS + 1, x.shape[-1]), jnp.float32),
-             jnp.ones(x.shape[-1:], jnp.float32) if fp8 else None)
+    norm: "xla" or "pallas" (`add_norm`). Unrolled, `encode_head` then `encode_tail` (which the engine's call may
+    run as two programs)."""
+    if unroll:
+        x, f = encode_head(cfg, w, images, dtype=dtype, attention=attention, norm=norm)
+        return encode_tail(cfg, {**w, "blocks": []}, x, f, dtype=dtype, attention=attention, norm=norm)
+    x = _embed(cfg, w, images, dtype)
+    blocks = w["blocks"]   # lax.scan's carry keeps one structure: a zero MLP output (x + 0 is x)
+    fp8 = matmul.input_scale(blocks["fc2"]) is not None
+    f = (jnp.zeros_like(x), jnp.zeros((FC2_BIAS + 1, x.shape[-1]), jnp.float32),
+         jnp.ones(x.shape[-1:], jnp.float32) if fp8 else None)
     (x, f), _ = layers.run_layers(lambda wi, c: (block(cfg, wi, *c, attention=attention, norm=norm),), blocks,
-                                  (x, f), unroll=unroll)
+                                  (x, f), unroll=False)
+    return _project(w, x, f, dtype, norm)
+
+
+def _embed(cfg: SiglipConfig, w: dict, images, dtype):
+    x = patch_embed(images, w["embedding"]["kernel"], w["embedding"]["bias"], cfg.patch_size)
+    return (x + w["pos"].astype(jnp.float32)).astype(dtype)
+
+
+def _project(w: dict, x, f, dtype, norm: str):
+    """The last MLP output added, the final LayerNorm and the projection to the VLM's width."""
     _, x = add_norm(x, _fc2(f), (w["norm"], (0, 1)), dtype, norm)
     return _dense(x, w["head"]["kernel"], w["head"]["bias"])
+
+
+def encode_head(cfg: SiglipConfig, w: dict, images, *, dtype, attention: str = "xla", norm: str = "xla") -> tuple:
+    """The tower's first part: the patch embedding and the blocks of w["blocks"] (a list, at least one) ->
+    (x, f), the residual stream and the last block's MLP output not yet added (`block`'s)."""
+    x, f = _embed(cfg, w, images, dtype), None   # the first block has no MLP output to add
+    for wi in w["blocks"]:
+        x, f = block(cfg, wi, x, f, attention=attention, norm=norm)
+    return x, f
+
+
+def encode_tail(cfg: SiglipConfig, w: dict, x, f, *, dtype, attention: str = "xla", norm: str = "xla"):
+    """The tower after `encode_head`: the blocks of w["blocks"] (a list, maybe empty), the final norm and the
+    projection -> tokens (B, 256, out_dim)."""
+    for wi in w["blocks"]:
+        x, f = block(cfg, wi, x, f, attention=attention, norm=norm)
+    return _project(w, x, f, dtype, norm)
