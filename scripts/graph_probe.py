@@ -65,7 +65,8 @@ VARIANTS = {
 }
 ENGINE_KW = {"unroll-steps": {"unroll_steps": True}, "no-overlap": {"overlap": "off"}, "overlap-on": {"overlap": "on"}}
 SCHEDULING = {"overlap-lhs": {"xla_gpu_command_buffer_scheduling_mode": "LHS"}}
-STAGES = {"one-loop-program": lambda self, batch, num_steps: ("encode_images", "prefix_denoise")}
+STAGES = {"one-loop-program": lambda self, batch, num_steps: (
+    *(s for s in Engine.call_stages(self, batch, num_steps) if s in runtime.VISION_STAGES), "prefix_denoise")}
 STEP_ENDS = {"unfolded": {"FOLD_ACTION_IN": False}}
 RUNTIME = {"one-vision-program": {"VISION_SPLIT": 0}}
 

@@ -328,7 +328,7 @@ class Engine:
         images, image_masks, tokens, token_mask, state = packed
         progs = self.call_programs(noise.shape[0], num_steps, cameras, prompt_len)
         w, sched = self.weights, self.schedule(num_steps)
-        if self.splits_vision():
+        if progs[0].stage == "vision_head":
             head, tail, act, *rest = progs
             image_tokens = tail(w, *head(w, images))
         else:
