@@ -40,9 +40,8 @@ from pi0_jax import normalize as _norm
 from pi0_jax import pi0
 from pi0_jax.config import IMAGE_KEYS, Pi0Config
 from pi0_jax.engine import engine_weights, enable_compilation_cache, prompt_bucket
-from pi0_jax.engine import programs
+from pi0_jax.engine import programs, runtime
 from pi0_jax.engine import weights as weights_lib
-from pi0_jax.engine import runtime
 from pi0_jax.engine.runtime import STAGE_WEIGHTS
 from pi0_jax.engine.store import ProgramStore, shapes
 from pi0_jax.observation import DEFAULT_OPTIONAL_CAMERAS, ObservationError, Prepared, Validator

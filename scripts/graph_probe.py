@@ -3,10 +3,9 @@ compile with extra XLA options on top of the engine's own (`matmul.compiler_opti
 under gemm="auto"), or, for "conv", with SigLIP's patch embedding as cuDNN's convolution (the engine's form until
 2026-11-26) instead of the f32 GEMM, or an Engine built another way (`ENGINE_KW`, `SCHEDULING`, `STAGES`,
 `STEP_ENDS`, `RUNTIME`: the denoise loop unrolled, the first step's overlap and its programs, π0's in-projection
-unfolded, the vision tower as one program);
-the "vision-" variants set their options on the vision program alone. Stage medians (round-robin over the
-variants), kernels per call, device span and idle time (by the kernel that waited) from a trace, and the fused
-program's actions against the first variant.
+unfolded, the vision tower as one program); the "vision-" variants set their options on the vision program alone.
+Stage medians (round-robin over the variants), kernels per call, device span and idle time (by the kernel that
+waited) from a trace, and the fused program's actions against the first variant.
 
     python scripts/graph_probe.py --preset pi0_base --batch 1 --variant default --variant conv --out graph_probe.json
 """

@@ -32,7 +32,9 @@ def main() -> None:
     args = probe_arguments(__doc__, 40, "the variants' times and kernels").parse_args()
     config, engine, noise, cameras, bucket, packed = probe_engine(args)
     images, image_masks, tokens, token_mask, state = packed
-    vision, act = engine.call_programs(args.batch, args.steps, cameras, bucket)
+    # the call as two programs, the tower as one (the engine's call at the time of this probe, session 37)
+    vision, act = (engine.executable(s, args.batch, args.steps, cameras, bucket)
+                   for s in ("encode_images", "prefix_denoise"))
     sched = engine.schedule(args.steps)
     img = engine.weights["img"]
     depth = config.siglip.depth
@@ -63,7 +65,8 @@ def main() -> None:
     for name, (fn, tree) in compiled.items():
         report["max_abs_vs_engine"][name] = float(np.max(np.abs(np.asarray(fn(tree, images), np.float32) - want)))
 
-    calls = {"engine": lambda: engine.sample_packed(packed, noise, args.steps, cameras, bucket)}
+    calls = {"engine": lambda: act(engine.weights, sched, vision(engine.weights, images), image_masks, tokens,
+                                   token_mask, state, noise)}
     for name, (fn, tree) in compiled.items():
         calls[name] = lambda fn=fn, tree=tree: act(engine.weights, sched, fn(tree, images), image_masks, tokens,
                                                    token_mask, state, noise)

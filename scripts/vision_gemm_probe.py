@@ -43,9 +43,9 @@ PEAK = 989e12   # bf16 dense, H100 / H200 SXM
 
 
 def configs(m: int, n: int, sms: int = 132):
-    """(label, TuningConfig) of the sweep whose CTA tiles divide (m, n), fewest waves first. Over several waves the
-    grid also runs M-minor (a weight tile's row blocks one after another, while it is in L2: the prefix's MLP
-    weights are 67-134 MB, its rows 864)."""
+    """(label, TuningConfig) of the sweep whose CTA tiles divide (m, n), fewest waves first. Over several waves both
+    grid orders run: `grid_minor_dim` N walks a weight tile's row blocks one after another (the tile then serves
+    them from L2: the prefix's MLP weights are 67-134 MB, its rows 864), M walks the column blocks first."""
     from jax.experimental.pallas.ops.gpu import hopper_matmul_mgpu as hm
     dims = hm.MatmulDimension
     out = []

@@ -6,9 +6,10 @@ critical path. The programs after it are dispatched while the GPU runs the one b
 programs: the patch embedding and the first `n` blocks (7 buffers a block), then the other blocks, the final norm
 and the projection, dispatched while the GPU runs the first. The call's other programs are the engine's own.
 
-Timed round-robin in one process against the engine's call (`Engine.sample_packed`), with each variant's host time
-until its first program is dispatched (the call returns before the GPU is done), its kernel span and count from a
-trace, and its actions against the engine's.
+Timed round-robin in one process against the call with the tower as one program (the engine's call before session
+46, when this probe led to `runtime.VISION_SPLIT`), with each variant's host time until its first program is
+dispatched (the call returns before the GPU is done), its kernel span and count from a trace, and its actions
+against the one-program call's.
 
     python scripts/vision_split_probe.py --split 3 --split 6 --split 9 --split 13 --out vision_split.json
 """
@@ -27,7 +28,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent))
 import profile_engine  # noqa: E402
 
-from pi0_jax.engine import programs, vision  # noqa: E402
+from pi0_jax.engine import programs, runtime, vision  # noqa: E402
 from pi0_jax.ops import matmul  # noqa: E402
 
 
@@ -73,34 +74,36 @@ def main() -> None:
     args = p.parse_args()
     config, engine, noise, cameras, bucket, packed = profile_engine.probe_engine(args)
     images, image_masks, tokens, token_mask, state = packed
-    vision_p, act, *rest = engine.call_programs(args.batch, args.steps, cameras, bucket)
+    after = [s for s in engine.call_stages(args.batch, args.steps) if s not in runtime.VISION_STAGES]
+    vision_p, act, *rest = (engine.executable(s, args.batch, args.steps, cameras, bucket)
+                            for s in ("encode_images", *after))
     w, sched = engine.weights, engine.schedule(args.steps)
 
     def finish(image_tokens):
         out = act(w, sched, image_tokens, image_masks, tokens, token_mask, state, noise)
         return rest[0](w, sched, *out) if rest else out
 
-    calls, dispatch = {"engine": lambda: engine.sample_packed(packed, noise, args.steps, cameras, bucket)}, {}
-    firsts = {"engine": lambda: vision_p(w, images)}
+    calls = {"one program": lambda: finish(vision_p(w, images))}
+    firsts = {"one program": lambda: vision_p(w, images)}
     for n in args.split or [3, 6, 9, 13]:
         head, tail, hw, tw = split_programs(engine, images, n)
         calls[f"split {n}"] = functools.partial(lambda h, t, hw, tw: finish(t(tw, *h(hw, images))), head, tail, hw, tw)
         firsts[f"split {n}"] = functools.partial(lambda h, hw: h(hw, images), head, hw)
         print(f"split {n}: head {len(jax.tree.leaves(hw))} buffers, tail {len(jax.tree.leaves(tw))}", flush=True)
-    want = np.asarray(calls["engine"](), np.float64)
+    want = np.asarray(calls["one program"](), np.float64)
     report = {"env": profile_engine.benchmark.environment(), "rows": {}}
     for name, fn in calls.items():
         jax.block_until_ready(fn())
         got = np.asarray(fn(), np.float64)
         t = profile_engine.kernel_times(fn, 3)
-        report["rows"][name] = {"rel_l2_vs_engine": float(np.linalg.norm(got - want) / np.linalg.norm(want)),
+        report["rows"][name] = {"rel_l2_vs_one": float(np.linalg.norm(got - want) / np.linalg.norm(want)),
                                 "kernels_per_call": t["kernels_per_call"], "span_ms": t["span_ms"],
                                 "idle_ms": t["idle_ms"]}
     # the host's time to dispatch each variant's first program (it returns before its kernels run)
     for name, fn in firsts.items():
         ts = []
         for _ in range(args.iters):
-            jax.block_until_ready(calls["engine"]())
+            jax.block_until_ready(calls["one program"]())
             start = time.perf_counter()
             out = fn()
             ts.append((time.perf_counter() - start) * 1e3)

@@ -430,7 +430,7 @@ def test_the_in_projection_is_folded_into_the_time_mlp(monkeypatch):
 def test_the_vision_tower_as_two_programs(model, monkeypatch):
     """Where the tower has more blocks than `runtime.VISION_SPLIT`, the call runs it as two programs: the first on
     the patch embedding and those blocks, the second on the others, the final norm and the projection, each
-    handed only its own weights (on cuBLAS as the tower's); the same actions as one program, bit for bit."""
+    handed only its own weights; the same actions as one program, bit for bit."""
     from pi0_jax.engine import runtime
 
     config, params = model

@@ -7,9 +7,9 @@ back from `store.ProgramStore` without tracing, and anything else compiled from 
 
 A call (`sample_actions`) is two programs, dispatched one after the other with no host round trip between them:
 the vision tower, then the prefix fill and the denoise loop (three where the first denoise step overlaps the prefix
-fill, and the tower itself two at full size: `Engine.call_stages`). Each takes only its own weights (`STAGE_WEIGHTS`): the host pays about 1.2-1.7 µs per
-buffer a call takes before its first kernel runs, and each program's dispatch runs while the GPU runs the one
-before. And the vision program gets its own GEMM library (`matmul.compiler_options`).
+fill, and the tower itself two at full size: `Engine.call_stages`). Each takes only its own weights (`stage_tree`):
+the host pays about 1.2-1.7 µs per buffer a call takes before its first kernel runs, and each program's dispatch
+runs while the GPU runs the one before. And the vision program gets its own GEMM library (`matmul.compiler_options`).
 At batch 1 and 2 on a GPU the second program runs its first denoise step beside the prefix fill (`Engine.overlaps`).
 On an H200, π0 at B = 1 in a loop of calls: 16.1 ms against 17.2 ms for the one fused program (`infer`, kept for
 comparison and for callers that embed the pipeline in a larger program); docs/BENCHMARKS.md, "The call as two
@@ -233,11 +233,11 @@ class Engine:
 
     def call_stages(self, batch: int, num_steps: int) -> tuple[str, ...]:
         """The stages of a call's programs, in order: the vision tower (as two programs where `splits_vision`), then
-        the prefix fill with the denoise loop;
-        where the first denoise step runs beside the prefix fill (`overlaps`) and other steps follow, the prefix fill
-        with that step, then the loop as a program of its own. XLA's command buffers run the overlap's program in
-        their CONCURRENT order, and there a while loop's iterations were 20-25 µs apart; in a program of its own the
-        loop keeps XLA's default order (docs/BENCHMARKS.md, "The denoise loop as a program of its own")."""
+        the prefix fill with the denoise loop; where the first denoise step runs beside the prefix fill (`overlaps`)
+        and other steps follow, the prefix fill with that step, then the loop as a program of its own. XLA's command
+        buffers run the overlap's program in their CONCURRENT order, and there a while loop's iterations were 20-25 µs
+        apart; in a program of its own the loop keeps XLA's default order (docs/BENCHMARKS.md, "The denoise loop as a
+        program of its own")."""
         vision = ("vision_head", "vision_tail") if self.splits_vision() else ("encode_images",)
         if self.overlaps(batch) and num_steps > 1:
             return *vision, "prefix_first_step", "denoise_rest"

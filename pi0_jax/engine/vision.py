@@ -148,8 +148,8 @@ def _project(w: dict, x, f, dtype, norm: str):
 
 
 def encode_head(cfg: SiglipConfig, w: dict, images, *, dtype, attention: str = "xla", norm: str = "xla") -> tuple:
-    """The tower's first part: the patch embedding and the blocks of w["blocks"] (a list, at least one) ->
-    (x, f), the residual stream and the last block's MLP output not yet added (`block`'s)."""
+    """The tower's first part: the patch embedding and the blocks of w["blocks"] (a list) -> (x, f), the residual
+    stream and the last block's MLP output not yet added (`block`'s; None without blocks)."""
     x, f = _embed(cfg, w, images, dtype), None   # the first block has no MLP output to add
     for wi in w["blocks"]:
         x, f = block(cfg, wi, x, f, attention=attention, norm=norm)
