@@ -444,8 +444,9 @@ class Policy:
             def encode(images):
                 return tail(tail_w, *head(head_w, images))
         else:
-            encode = functools.partial(compile_("encode", core.encode, (vision, images), vision_options), vision)
-        tokens = jax.eval_shape(core.encode, vision, images)
+            tail = compile_("encode", core.encode, (vision, images), vision_options)
+            encode = functools.partial(tail, vision)
+        tokens = shapes(tail.out_info)   # the image tokens, read off the tower's last program
         peel = programs.first_step_overlap(core.overlap, core.kernels, spec[-1].shape[0], rest["weights"]["expert"])
         options = matmul.compiler_options(rest, core.gemm)
         if peel and core.num_steps > 1:   # the loop as a program of its own, as `Engine.call_stages`

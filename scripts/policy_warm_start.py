@@ -1,8 +1,8 @@
 """A Policy's first call in this process: its programs compiled, or loaded from the program store (`engine.store`).
 
 Run it twice with the same cache directory: the first process compiles and stores the call's programs, the
-second loads them (`loaded` 2 on a GPU, 3 where the first denoise step overlaps the prefix fill) and must return
-the same actions.
+second loads them (`loaded` 2 on a GPU, one more where the first denoise step overlaps the prefix fill and one more
+where the vision tower is cut, at full size) and must return the same actions.
 
     python scripts/policy_warm_start.py pi0_jax/assets/pi0_small /tmp/pi0-cache   # twice
 """

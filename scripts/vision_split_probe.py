@@ -22,48 +22,26 @@ import time
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
 import profile_engine  # noqa: E402
 
-from pi0_jax.engine import programs, runtime, vision  # noqa: E402
+from pi0_jax.engine import programs, runtime  # noqa: E402
 from pi0_jax.ops import matmul  # noqa: E402
 
 
 def split_programs(engine, images, n: int):
-    """(head, tail, head weights, tail weights): the tower's first n blocks and the rest, compiled for `images`
-    (C, B, H, W, 3) as `programs.encode_images` runs them (the same block function, attention and norm)."""
-    cfg, img = engine.config, engine.weights["img"]
-    dtype = jnp.dtype(cfg.dtype)
-    c, b = images.shape[:2]
-    attention = engine.attention.vision
-    norm = programs.vision_norm(engine.kernels, b * c)
-    head_w = {"embedding": img["embedding"], "pos": img["pos"], "blocks": img["blocks"][:n]}
-    tail_w = {"blocks": img["blocks"][n:], "norm": img["norm"], "head": img["head"]}
-
-    def head(w, images):
-        flat = jnp.swapaxes(images, 0, 1).reshape(b * c, *images.shape[2:])
-        s = cfg.siglip
-        x = vision.patch_embed(flat, w["embedding"]["kernel"], w["embedding"]["bias"], s.patch_size)
-        x = (x + w["pos"].astype(jnp.float32)).astype(dtype)
-        f = None
-        for wi in w["blocks"]:
-            x, f = vision.block(s, wi, x, f, attention=attention, norm=norm)
-        return x, f
-
-    def tail(w, x, f):
-        for wi in w["blocks"]:
-            x, f = vision.block(cfg.siglip, wi, x, f, attention=attention, norm=norm)
-        _, x = vision.add_norm(x, vision._fc2(f), (w["norm"], (0, 1)), dtype, norm)
-        tokens = vision._dense(x, w["head"]["kernel"], w["head"]["bias"])
-        return tokens.reshape(b, -1, tokens.shape[-1])
-
-    options = matmul.compiler_options({"img": img}, engine.gemm, vision_tower=True)
+    """(head, tail, head weights, tail weights): the tower's first n blocks and the rest as the engine's two vision
+    programs run them (`programs.encode_images_head` / `encode_images_tail` on `runtime.stage_tree`'s weights),
+    compiled for `images` (C, B, H, W, 3) with the cut at n."""
+    head_w, tail_w = (runtime.stage_tree(engine.weights, s, n) for s in ("vision_head", "vision_tail"))
+    kw = {"attention": engine.attention, "kernels": engine.kernels}
+    head = functools.partial(programs.encode_images_head, engine.config, **kw)
+    tail = functools.partial(programs.encode_images_tail, engine.config, cameras=images.shape[0], **kw)
+    options = matmul.compiler_options(head_w, engine.gemm, vision_tower=True)
     head_c = jax.jit(head).lower(head_w, images).compile(options)
-    mid = jax.eval_shape(head, head_w, images)
-    tail_c = jax.jit(tail).lower(tail_w, *mid).compile(options)
+    tail_c = jax.jit(tail).lower(tail_w, *head_c.out_info).compile(options)
     return head_c, tail_c, head_w, tail_w
 
 
