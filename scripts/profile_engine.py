@@ -56,15 +56,20 @@ def count_ops(hlo: str) -> dict:
     return {k: v for k, v in counts.items() if sum(v.values())}
 
 
+CALL = "profile_engine.call"   # the host's span of one traced call (`traced`), from dispatch to block_until_ready
+
+
 def traced(fn, calls: int) -> tuple:
-    """Run fn() `calls` times under jax.profiler (after one untraced call) -> (the perfetto trace's events, thread
-    names by (pid, tid), the GPU processes' pids, the host-timed wall per call in s)."""
+    """Run fn() `calls` times under jax.profiler (after one untraced call), each call inside a `CALL` annotation ->
+    (the perfetto trace's events, thread names by (pid, tid), the GPU processes' pids, the host-timed wall per call
+    in s)."""
     jax.block_until_ready(fn())
     with tempfile.TemporaryDirectory() as log_dir:
         with jax.profiler.trace(log_dir, create_perfetto_trace=True):
             start = time.perf_counter()
             for _ in range(calls):
-                jax.block_until_ready(fn())
+                with jax.profiler.TraceAnnotation(CALL):
+                    jax.block_until_ready(fn())
             wall = (time.perf_counter() - start) / calls
         events = json.load(gzip.open(glob.glob(f"{log_dir}/**/perfetto_trace.json.gz", recursive=True)[0]))
     events = events["traceEvents"] if isinstance(events, dict) else events
@@ -101,9 +106,33 @@ def kernel_times(fn, calls: int = 5, sequence: bool = False) -> dict:
     return {"calls": calls, "wall_ms": wall * 1e3, "kernels_per_call": launched, "kernel_ms": busy_us / 1e3,
             "busy": busy_us / 1e3 / (wall * 1e3) if wall else None,
             "device_lines": sorted(name for key, name in threads.items() if key[0] in gpu),
-            **idle(short, calls),
+            **idle(short, calls), **edges(events, kernels),
             "by_name": [{"name": n, "per_call": c / calls, "us_per_call": t / calls} for n, (c, t) in top[:60]],
             **({"sequence": first} if sequence else {})}
+
+
+def edges(events, kernels) -> dict:
+    """Each traced call's edges, from its host span (the `CALL` annotation) and the GPU kernels inside it (the trace
+    puts host and device on one clock): `lead_us`, the host's dispatch up to the call's first kernel; `tail_us`,
+    its last kernel's end up to the host's return from block_until_ready; `gaps_us`, the device's idle between them
+    (every gap, long or short, unlike `idle`). Medians over the calls; empty when the trace has no annotation."""
+    spans = sorted((float(e["ts"]), float(e["ts"]) + float(e.get("dur", 0.0))) for e in events
+                   if e.get("ph") == "X" and e.get("name") == CALL)
+    lead, tail, gaps = [], [], []
+    for start, end in spans:
+        inside = [(ts, ts + dur) for ts, dur, _ in kernels if start <= ts <= end]
+        if not inside:
+            continue
+        lead.append(inside[0][0] - start)
+        last, idle_us = inside[0][1], 0.0
+        for ts, stop in inside[1:]:
+            idle_us += max(0.0, ts - last)
+            last = max(last, stop)
+        tail.append(end - last)
+        gaps.append(idle_us)
+    if not lead:
+        return {}
+    return {"lead_us": float(np.median(lead)), "tail_us": float(np.median(tail)), "gaps_us": float(np.median(gaps))}
 
 
 def idle(kernels, calls: int, between_calls_us: float = 100.0) -> dict:
@@ -305,6 +334,9 @@ def main() -> None:
                 print(f"   {stage:18s} {t['kernels_per_call']:.0f} kernels, {t['kernel_ms']:.3f} ms in kernels of "
                       f"{t['wall_ms']:.3f} ms ({t['busy']:.0%} busy); device span {t['span_ms']:.3f} ms, idle "
                       f"{t['idle_ms']:.3f} ms inside it (largest gap {t['idle_max_us']:.1f} us)", flush=True)
+                if "lead_us" in t:
+                    print(f"      host to first kernel {t['lead_us']:.1f} us, last kernel to host {t['tail_us']:.1f} "
+                          f"us, device idle between {t['gaps_us']:.1f} us (medians a call)", flush=True)
                 for row in t["by_name"][:12]:
                     print(f"      {row['us_per_call']:9.1f} us  x{row['per_call']:6.1f}  {row['name'][:80]}", flush=True)
                 print("      idle before:", flush=True)
