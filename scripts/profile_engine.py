@@ -86,12 +86,13 @@ def gpu_kernels(events, threads, gpu) -> list:
                   and threads.get((e["pid"], e.get("tid")), "").startswith("Stream"))
 
 
-def kernel_times(fn, calls: int = 5, sequence: bool = False) -> dict:
+def kernel_times(fn, calls: int = 5, sequence: bool = False, host: bool = False) -> dict:
     """Run fn() `calls` times under jax.profiler and sum the GPU kernels of the trace by name (numeric suffixes
     dropped: fusion.12 and fusion.40 are one row). Per call: kernels launched, their summed time, the host-timed wall
     time, busy = summed / wall (the wall holds the host's dispatch and synchronisation too), and the device's own
     span and idle time (`idle`). sequence: also the first traced call's kernels in launch order, each with its
-    full name (the optimized HLO's instruction name for XLA's fusions) and duration in us."""
+    full name (the optimized HLO's instruction name for XLA's fusions) and duration in us. host: also the host's
+    events during each call's lead (`edges`)."""
     events, threads, gpu, wall = traced(fn, calls)
     kernels = gpu_kernels(events, threads, gpu)
     short = [(ts, dur, re.sub(r"([._]\d+)+$", "", name)) for ts, dur, name in kernels]
@@ -106,24 +107,34 @@ def kernel_times(fn, calls: int = 5, sequence: bool = False) -> dict:
     return {"calls": calls, "wall_ms": wall * 1e3, "kernels_per_call": launched, "kernel_ms": busy_us / 1e3,
             "busy": busy_us / 1e3 / (wall * 1e3) if wall else None,
             "device_lines": sorted(name for key, name in threads.items() if key[0] in gpu),
-            **idle(short, calls), **edges(events, kernels),
+            **idle(short, calls), **edges(events, kernels, gpu, host),
             "by_name": [{"name": n, "per_call": c / calls, "us_per_call": t / calls} for n, (c, t) in top[:60]],
             **({"sequence": first} if sequence else {})}
 
 
-def edges(events, kernels) -> dict:
+def edges(events, kernels, gpu=frozenset(), host: bool = False) -> dict:
     """Each traced call's edges, from its host span (the `CALL` annotation) and the GPU kernels inside it (the trace
     puts host and device on one clock): `lead_us`, the host's dispatch up to the call's first kernel; `tail_us`,
     its last kernel's end up to the host's return from block_until_ready; `gaps_us`, the device's idle between them
-    (every gap, long or short, unlike `idle`). Medians over the calls; empty when the trace has no annotation."""
+    (every gap, long or short, unlike `idle`). Medians over the calls; empty when the trace has no annotation.
+    host: also `lead_events`, the host's traced events (not those of the `gpu` pids) that overlap the lead, summed by
+    name over the calls (nested events each count: read them as a profile's inclusive times)."""
     spans = sorted((float(e["ts"]), float(e["ts"]) + float(e.get("dur", 0.0))) for e in events
                    if e.get("ph") == "X" and e.get("name") == CALL)
     lead, tail, gaps = [], [], []
+    on_host = [(float(e["ts"]), float(e.get("dur", 0.0)), e["name"]) for e in events
+               if host and e.get("ph") == "X" and e["pid"] not in gpu and e.get("name") != CALL]
+    during = collections.defaultdict(lambda: [0, 0.0])
     for start, end in spans:
         inside = [(ts, ts + dur) for ts, dur, _ in kernels if start <= ts <= end]
         if not inside:
             continue
         lead.append(inside[0][0] - start)
+        for ts, dur, name in on_host:   # clipped to the lead [start, first kernel)
+            overlap = min(ts + dur, inside[0][0]) - max(ts, start)
+            if overlap > 0:
+                during[name][0] += 1
+                during[name][1] += overlap
         last, idle_us = inside[0][1], 0.0
         for ts, stop in inside[1:]:
             idle_us += max(0.0, ts - last)
@@ -132,7 +143,10 @@ def edges(events, kernels) -> dict:
         gaps.append(idle_us)
     if not lead:
         return {}
-    return {"lead_us": float(np.median(lead)), "tail_us": float(np.median(tail)), "gaps_us": float(np.median(gaps))}
+    top = sorted(during.items(), key=lambda kv: -kv[1][1])[:40]
+    return {"lead_us": float(np.median(lead)), "tail_us": float(np.median(tail)), "gaps_us": float(np.median(gaps)),
+            **({"lead_events": [{"name": n, "per_call": c / len(lead), "us_per_call": t / len(lead)}
+                                for n, (c, t) in top]} if host else {})}
 
 
 def idle(kernels, calls: int, between_calls_us: float = 100.0) -> dict:
@@ -274,6 +288,12 @@ def main() -> None:
     p.add_argument("--kernel-sequence", action="store_true",
                    help="with --trace-stages: also each program's kernels of one call in launch order, by full name "
                         "(to read against --dump-hlo's fusions)")
+    p.add_argument("--host-events", action="store_true",
+                   help="with --trace-stages: also the host's traced events during each program's lead, the time from "
+                        "its dispatch to its first kernel, summed by name")
+    p.add_argument("--stages", default=None,
+                   help="with --trace-stages: a comma list of the programs to trace (encode_images, fill_prefix_cache, "
+                        "denoise, infer, call; default: all)")
     p.add_argument("--trace", type=Path, default=None, help="write a jax.profiler trace of 3 fused calls here")
     p.add_argument("--out", type=Path, default=None, help="JSON of the counts, times and traces")
     p.add_argument("--dump-hlo", type=Path, default=None, help="write each stage program's optimized HLO here")
@@ -329,14 +349,17 @@ def main() -> None:
         jax.block_until_ready(calls["call"]())   # the call's two programs are compiled here, under this variant
         timed.append((var, calls))
         for stage, fn in calls.items():
-            if args.trace_stages:
-                t = var["trace"][stage] = kernel_times(fn, 5, sequence=args.kernel_sequence)
+            if args.trace_stages and (args.stages is None or stage in args.stages.split(",")):
+                t = var["trace"][stage] = kernel_times(fn, 5, sequence=args.kernel_sequence, host=args.host_events)
                 print(f"   {stage:18s} {t['kernels_per_call']:.0f} kernels, {t['kernel_ms']:.3f} ms in kernels of "
                       f"{t['wall_ms']:.3f} ms ({t['busy']:.0%} busy); device span {t['span_ms']:.3f} ms, idle "
                       f"{t['idle_ms']:.3f} ms inside it (largest gap {t['idle_max_us']:.1f} us)", flush=True)
                 if "lead_us" in t:
                     print(f"      host to first kernel {t['lead_us']:.1f} us, last kernel to host {t['tail_us']:.1f} "
                           f"us, device idle between {t['gaps_us']:.1f} us (medians a call)", flush=True)
+                for row in t.get("lead_events", [])[:25]:
+                    print(f"      lead {row['us_per_call']:9.1f} us  x{row['per_call']:6.1f}  {row['name'][:100]}",
+                          flush=True)
                 for row in t["by_name"][:12]:
                     print(f"      {row['us_per_call']:9.1f} us  x{row['per_call']:6.1f}  {row['name'][:80]}", flush=True)
                 print("      idle before:", flush=True)
