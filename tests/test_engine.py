@@ -467,20 +467,27 @@ def test_gemm_library_per_program():
         matmul.library(plain, "triton", platform="gpu")
 
 
-def test_no_recompilation_when_only_values_change(model):
+def test_no_recompilation_when_only_values_change(model, monkeypatch):
+    """New input values reuse the call's programs, and a call after the first does not walk the weights to choose
+    them (`Engine.call_programs`: the walk cost the host 0.2 ms before every call's first kernel)."""
+    from pi0_jax.engine import programs
+
     config, params = model
     engine = Engine(config, params, cache_dir=False)
-    compiles = []
+    compiles, walks = [], []
     jax.monitoring.register_event_duration_secs_listener(
         lambda name, *_, **__: compiles.append(name) if name == "/jax/core/compile/backend_compile_duration" else None)
+    choose = programs.first_step_overlap   # on a GPU it walks the expert's weights (`expert_path`)
+    monkeypatch.setattr(programs, "first_step_overlap", lambda *a, **k: walks.append(1) or choose(*a, **k))
     for seed in range(3):
         obs = make_obs(config, seed=seed)
         noise = jax.random.normal(jax.random.key(seed), (2, config.action_horizon, config.action_dim))
         jax.block_until_ready(engine.sample_actions(obs, noise, 2))
         if seed == 0:
-            first = len(compiles)
+            first, walked = len(compiles), len(walks)
     assert engine.num_compiled == 2   # a call is two programs: the vision tower, then the prefix and denoise
     assert len(compiles) == first, "new input values triggered a recompilation"
+    assert walked > 0 and len(walks) == walked, "a later call walked the weights to choose its programs"
 
 
 def test_each_program_takes_only_its_own_weights_and_the_call_equals_the_fused_program(model):
