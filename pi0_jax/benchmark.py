@@ -117,7 +117,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="measure the warm start: a second process loads the B=1 call's programs from the cache")
     p.add_argument("--cache-dir", type=Path, default=None,
                    help="persistent compilation cache (default: a fresh temp dir, so the cold compile is cold)")
-    p.add_argument("--out", type=Path, default=Path("benchmark.json"), help="JSON results (default: %(default)s)")
+    p.add_argument("--out", type=Path, default=Path("benchmark.json"),
+                   help="JSON results, rewritten as each batch size and peer is done, so a run stopped midway keeps "
+                        "them (\"complete\": false until the end; default: %(default)s)")
     p.add_argument("--chart", type=Path, default=None, help="PNG chart (default: --out with .png)")
     p.add_argument("--seed", type=int, default=0, help="seed of weights and inputs")
 
@@ -355,13 +357,25 @@ def quant_label(args: argparse.Namespace) -> str:
     return args.quant or stored or "none"
 
 
-def run(args: argparse.Namespace) -> dict:
+def write_results(path: Path, results: dict) -> None:
+    """results as JSON at path, atomically (a temporary file beside it, then a rename): a run stopped midway leaves
+    its last whole write, never half a file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(results, indent=2, default=str) + "\n")
+    os.replace(tmp, path)
+
+
+def run(args: argparse.Namespace, save=None) -> dict:
+    """The benchmark's measurements. save(results), when given, is called whenever a batch size, a peer or a
+    dtype's compile figures are done, with "complete" False until `main`'s last write."""
+    save = save or (lambda results: None)
     quant = quant_label(args)
     cache_dir = args.cache_dir or Path(tempfile.mkdtemp(prefix="pi0-jax-xla-"))
     results = {"preset": args.preset, "env": {**environment(), "kernels": args.kernels, "attention": args.attention,
                                                "gemm": args.gemm, "overlap": args.overlap, "quant": quant,
                                                "expert_blocks": dataclasses.asdict(expert_kernels.Blocks())},
-               "rows": [], "peers": [],
+               "complete": False, "rows": [], "peers": [],
                "compile": {},
                "args": {k: str(v) for k, v in vars(args).items() if k != "func"}}
     print(f"{results['env']['device']} · jax {jax.__version__} · quant {results['env']['quant']}\n\n{TABLE_HEADER}",
@@ -395,11 +409,13 @@ def run(args: argparse.Namespace) -> dict:
                 results["peers"].append(ref)
                 print(f"reference B={batch}: {ref['total']['median_ms']:.2f} ms ({ref['ratio']:.2f}x); engine vs "
                       f"reference: {ref['engine_vs_reference']}", flush=True)
+            save(results)
         cold = {f"B{r['batch']}_S{r['steps']}": round(r["compile_s"], 2) for r in results["rows"]
                 if r["dtype"] == dtype and "compile_s" in r}
         results["compile"][dtype] = {"cold_compile_s_call": cold, "peak_device_bytes": _peak_bytes()}
         if args.warm_start:
             results["compile"][dtype]["warm_start"] = measure_warm_start(config, args, cache_dir, max(args.steps))
+        save(results)
         if args.compare == "lerobot":
             from peers import lerobot_torch
 
@@ -410,14 +426,15 @@ def run(args: argparse.Namespace) -> dict:
                 results["peers"].append(peer)
                 print(f"{peer['impl']} B={peer['batch']}: {peer['total']['median_ms']:.2f} ms "
                       f"({peer['ratio']:.2f}x)", flush=True)
+                save(results)
         del engine, params
     return results
 
 
 def main(args: argparse.Namespace) -> int:
-    results = run(args)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(results, indent=2, default=str) + "\n")
+    results = run(args, save=lambda partial: write_results(args.out, partial))
+    results["complete"] = True
+    write_results(args.out, results)
     print("\n" + markdown(results))
     chart(results, args.chart or args.out.with_suffix(".png"))
     print(f"\nwrote {args.out}")

@@ -37,6 +37,28 @@ def test_benchmark_dummy_writes_every_stage(tmp_path):
     assert (tmp_path / "bench.png").stat().st_size > 1000
 
 
+def test_a_stopped_benchmark_keeps_the_batches_it_finished(tmp_path, monkeypatch):
+    """The JSON is written (atomically) as each batch size is done: a run stopped during its second batch leaves the
+    first's rows, marked incomplete; a finished run is marked complete."""
+    def bench_engine(engine, args, batch):
+        if batch == 2:
+            raise KeyboardInterrupt
+        return [{"dtype": "bfloat16", "batch": batch, "steps": 1, "total_ms": 1.0}]
+
+    monkeypatch.setattr(benchmark, "bench_engine", bench_engine)
+    out = tmp_path / "bench.json"
+    args = ["benchmark", "--preset", "dummy", "--steps", "1", "--out", str(out), "--cache-dir", str(tmp_path / "xla")]
+    with pytest.raises(KeyboardInterrupt):
+        cli.main([*args, "--batch", "1,2"])
+    results = json.loads(out.read_text())
+    assert results["complete"] is False and [r["batch"] for r in results["rows"]] == [1]
+    assert [p.name for p in tmp_path.iterdir() if p.name.endswith(".tmp")] == []
+    monkeypatch.setattr(benchmark, "markdown", lambda results: "")   # the table and chart need real rows
+    monkeypatch.setattr(benchmark, "chart", lambda results, path: None)
+    assert cli.main([*args, "--batch", "1"]) == 0
+    assert json.loads(out.read_text())["complete"] is True
+
+
 def test_benchmark_names_the_denoise_attention_kernels_launch(tmp_path):
     """The XLA expert on the Pallas attention (interpreted here) at B = 8: the row records its launch, folded; and
     the first step beside the prefix fill, asked for (a one-step call peels its only step)."""
