@@ -24,6 +24,9 @@ for phase in "$@"; do
                --trace-stages --out "$OUT/stages_b1.json" ;;
     gaps_b1) python3 scripts/profile_engine.py --preset pi0_base --batch 1 --prompt-tokens 48 --steps 10 --time \
                --iters 20 --trace-stages --out "$OUT/gaps_b1.json" ;;   # each stage's device span and idle gaps
+    edges_b1) python3 scripts/profile_engine.py --preset pi0_base --batch 1 --prompt-tokens 20 --steps 10 \
+               --trace-stages --host-events --stages call,encode_images,denoise --out "$OUT/edges_b1.json" \
+               | grep -E "kernels,|host to first|lead |==" ;;   # the call's lead, tail and gaps; the host's lead
     chain_b1) for m in pi0 pi05; do   # fused program against the stage programs chained (own weights, cuBLAS vision)
                python3 scripts/chain_probe.py --preset ${m}_base --iters 40 --out "$OUT/chain_${m}_b1.json"; done ;;
     call_pi0|call_pi05) m=${phase#call_}; python3 -m pi0_jax.cli benchmark --preset ${m}_base --steps 1,10 \
