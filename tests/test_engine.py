@@ -469,7 +469,7 @@ def test_gemm_library_per_program():
 
 def test_no_recompilation_when_only_values_change(model, monkeypatch):
     """New input values reuse the call's programs, and a call after the first does not walk the weights to choose
-    them (`Engine.call_programs`: the walk cost the host 0.2 ms before every call's first kernel)."""
+    them (`Engine.call_programs`: the walk cost the host 0.12 ms before every call's first kernel)."""
     from pi0_jax.engine import programs
 
     config, params = model

@@ -250,8 +250,8 @@ class Engine:
 
     def call_programs(self, batch: int, num_steps: int, cameras: Sequence[str], prompt_len: int) -> tuple:
         """The programs of a call (`sample_actions`), in `call_stages`' order; chosen once per shape, then kept. The
-        choice walks the expert's weights (`overlaps`): 0.2 ms of the host's time before a call's first kernel, on
-        every call, until session 47 (docs/BENCHMARKS.md)."""
+        choice walks the expert's weights (`overlaps`), which took the host 0.12 ms (a CPU core; 0.4 ms under the
+        profiler) before every call's first kernel until session 47 (docs/BENCHMARKS.md, "The call's edges")."""
         key = (batch, num_steps, tuple(cameras), prompt_len)
         if key not in self._calls:
             self._calls[key] = tuple(self.executable(stage, batch, num_steps, cameras, prompt_len)
