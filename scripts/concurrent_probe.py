@@ -4,7 +4,8 @@ denoise loop it waits for the whole prefix. Here the first step is peeled out of
 (`xla_gpu_command_buffer_scheduling_mode=CONCURRENT`; XLA's default, LHS, keeps the scheduler's order). Variants,
 timed round-robin in one process as the whole call (the vision program, then prefix + denoise):
 
-  engine            the engine's call (`Engine.sample_packed`), with `overlap="off"` (the default before it)
+  engine            the engine's programs with `overlap="off"` (the default before it): the tower as one program,
+                    then prefix + denoise
   concurrent        both programs in CONCURRENT mode
   peel              the first step peeled, default mode
   peel_concurrent   peeled and CONCURRENT
@@ -40,7 +41,8 @@ import numpy as np
 from profile_engine import kernel_times, probe_arguments, probe_engine, round_robin, write_json
 
 from pi0_jax.engine.programs import CONCURRENT
-from pi0_jax.engine.runtime import Program, _shapes
+from pi0_jax.engine.runtime import Program
+from pi0_jax.engine.store import shapes
 from pi0_jax.ops import matmul
 
 # XLA's default command types on jax 0.11.2, and a device-side loop
@@ -63,12 +65,13 @@ def main() -> None:
     args = p.parse_args()
     config, engine, noise, cameras, bucket, packed = probe_engine(args, overlap="off")
     images, image_masks, tokens, token_mask, state = packed
-    vision, act = engine.call_programs(args.batch, args.steps, cameras, bucket)
+    act = engine.call_programs(args.batch, args.steps, cameras, bucket)[-1]   # overlap off: the prefix and the loop
+    vision = engine.executable("encode_images", args.batch, args.steps, cameras, bucket)   # the tower as one program
     sched = engine.schedule(args.steps)
 
     def compile_stage(stage, extra, split=False, **kw):
         weights = engine.stage_weights(stage)
-        fn, shapes = engine._stage(stage, _shapes(weights), args.batch, args.steps, cameras, bucket)
+        fn, specs = engine._stage(stage, shapes(weights), args.batch, args.steps, cameras, bucket)
         if kw:
             fn = functools.partial(fn, **kw)
         if split:
@@ -78,7 +81,8 @@ def main() -> None:
                 return jnp.concatenate([tower(w, im[i:i + 1]) for i in range(im.shape[0])], axis=1)
         opts = {**(matmul.compiler_options(weights, engine.gemm, vision_tower=stage == "encode_images") or {}),
                 **extra}
-        return Program(jax.jit(fn).lower(*shapes).compile(compiler_options=opts), tuple(weights))
+        return Program(jax.jit(fn).lower(*specs).compile(compiler_options=opts), tuple(weights), stage,
+                       engine.vision_split)
 
     variants = {}
     for name in args.variants.split(","):
