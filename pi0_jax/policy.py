@@ -413,7 +413,7 @@ class Policy:
         before, as `Engine.sample_actions`; the reference sampler is one program."""
         key = (cameras, tuple((x.shape, x.dtype.str) for x in jax.tree.leaves(host_args)))
         with self._lock:
-            if key not in self._executables:   # the shapes' tree only here: it cost 0.1 ms a call (session 47)
+            if key not in self._executables:   # the shapes' tree only here: 17 µs a call (a CPU core)
                 start = time.perf_counter()
                 self._executables[key] = self._compile(shapes(host_args), cameras)
                 self.compile_seconds[key] = time.perf_counter() - start

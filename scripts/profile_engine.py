@@ -123,7 +123,7 @@ def edges(events, kernels, gpu=frozenset(), host: bool = False) -> dict:
                    if e.get("ph") == "X" and e.get("name") == CALL)
     lead, tail, gaps = [], [], []
     on_host = [(float(e["ts"]), float(e.get("dur", 0.0)), e["name"]) for e in events
-               if host and e.get("ph") == "X" and e["pid"] not in gpu and e.get("name") != CALL]
+               if e.get("ph") == "X" and e["pid"] not in gpu and e.get("name") != CALL] if host else []
     during = collections.defaultdict(lambda: [0, 0.0])
     for start, end in spans:
         inside = [(ts, ts + dur) for ts, dur, _ in kernels if start <= ts <= end]
