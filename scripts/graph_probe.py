@@ -47,6 +47,9 @@ VARIANTS = {
     "vision-lt": {"xla_gpu_enable_cublaslt": True},
     "vision-xla": {"xla_gpu_enable_triton_gemm": True},
     "vision-cudnn-gemm": {"xla_gpu_enable_triton_gemm": True, "xla_gpu_cudnn_gemm_fusion_level": 2},
+    # the programs with the VLM's weights alone (the prefix fill, with the first step where it overlaps): cuBLAS for
+    # every GEMM (XLA gave the prefix's q/k/v to a Triton GEMM, 17.5 µs a layer; cuBLAS took 14.2 in session 27)
+    "prefix-cublas": {"xla_gpu_enable_triton_gemm": False},
     # the denoise loop: unrolled (ENGINE_KW), or its while loop inside the command buffers
     "unroll-steps": {},
     "while-graphs": {"xla_gpu_enable_command_buffer": COMMANDS + ",WHILE,CONDITIONAL"},
@@ -95,6 +98,9 @@ def main() -> None:
                    choices=("encode_images", "fill_prefix_cache", "denoise", "infer", "call"),
                    help="repeatable: only these programs (default: all; the actions compared are infer's, else call's)")
     p.add_argument("--sequence", action="store_true", help="keep each stage's kernels in launch order (one call)")
+    p.add_argument("--marks", action="store_true",
+                   help="with the call stage: the host's untraced time to each program's dispatch and to the call's "
+                        "end (`profile_engine.call_marks`, medians in µs)")
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args()
     config = get_config(args.preset, dtype="bfloat16")
@@ -108,10 +114,15 @@ def main() -> None:
         rows, timed, first = [], {}, None
         for name in args.variant or list(VARIANTS):
             extra = VARIANTS[name]
-            only_vision = name.startswith("vision-")
+            only = name.split("-")[0] if name.startswith(("vision-", "prefix-")) else None
+
+            def applies(tree, vision_tower=False, only=only):
+                return (only is None or (only == "vision" and vision_tower)
+                        or (only == "prefix" and isinstance(tree, dict) and "vlm" in tree))
+
             runtime.matmul.compiler_options = (
-                lambda *a, o=extra, v=only_vision, **kw: {**(own_options(*a, **kw) or {}),
-                                                          **(o if kw.get("vision_tower") or not v else {})} or None)
+                lambda *a, o=extra, f=applies, **kw: {**(own_options(*a, **kw) or {}),
+                                                      **(o if f(a[0], kw.get("vision_tower", False)) else {})} or None)
             vision.patch_embed = conv_patch_embed if name == "conv" else own_embed
             programs.CONCURRENT = SCHEDULING.get(name, own_concurrent)
             for k, v in {**own_ends, **STEP_ENDS.get(name, {})}.items():
@@ -138,6 +149,9 @@ def main() -> None:
                     row.setdefault("idle_before", {})[stage] = t["idle_before"][:12]
                     if args.sequence:
                         row.setdefault("sequence", {})[stage] = t["sequence"]
+            if args.marks and "call" in calls:
+                row["marks_us"] = profile_engine.call_marks(engine, batch, 10, cameras, bucket,
+                                                            engine.pack(obs, cameras, bucket), noise, args.iters)
             actions = next((calls[k] for k in ("infer", "call") if k in calls), None)
             if actions is not None:
                 out = np.asarray(actions(), np.float64)
@@ -160,8 +174,8 @@ def main() -> None:
             if args.loop:
                 row["in_a_loop_ms"] = {stage: float(np.median(looped[row["variant"], stage])) / args.loop
                                        for stage in LOOPED if (row["variant"], stage) in looped}
-            shown = ("variant", "batch", "median_ms", "in_a_loop_ms", "kernels_per_call", "kernel_ms", "span_ms",
-                     "idle_ms", "rel_l2_vs_first")
+            shown = ("variant", "batch", "median_ms", "in_a_loop_ms", "marks_us", "kernels_per_call", "kernel_ms",
+                     "span_ms", "idle_ms", "rel_l2_vs_first")
             print(json.dumps({k: row[k] for k in shown if k in row}), flush=True)
         report["rows"] += rows
     profile_engine.write_json(args.out, report)

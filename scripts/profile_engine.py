@@ -226,6 +226,39 @@ def looping(fn, n: int):
     return run
 
 
+def call_marks(engine: Engine, batch: int, steps: int, cameras, bucket, packed, noise, iters: int = 30) -> dict:
+    """Untraced host times of the engine's call (`Engine.sample_packed`), median µs from the call's start: when each
+    program's dispatch returned (its `stage`), and when `block_until_ready` returned ("done"). The GPU starts a
+    program about when its dispatch returns, so the first mark bounds the call's lead; a later program whose mark
+    comes after the GPU has run the ones before it (their kernel times from a trace) left the GPU idle."""
+    key = (batch, steps, tuple(cameras), bucket)
+    engine.call_programs(batch, steps, cameras, bucket)
+    own, marks = engine._calls[key], []
+
+    class Marked:   # a Program that notes when its dispatch returned
+        def __init__(self, prog):
+            self.prog, self.stage = prog, prog.stage
+
+        def __call__(self, *a):
+            out = self.prog(*a)
+            marks.append((self.stage, time.perf_counter()))
+            return out
+
+    engine._calls[key] = tuple(Marked(p) for p in own)
+    rows = []
+    try:
+        for i in range(iters + 3):
+            marks.clear()
+            start = time.perf_counter()
+            jax.block_until_ready(engine.sample_packed(packed, noise, steps, cameras, bucket))
+            done = time.perf_counter()
+            if i >= 3:
+                rows.append({**{s: (t - start) * 1e6 for s, t in marks}, "done": (done - start) * 1e6})
+    finally:
+        engine._calls[key] = own
+    return {k: round(float(np.median([r[k] for r in rows])), 1) for k in rows[0]}
+
+
 def stage_calls(engine: Engine, batch: int, steps: int, cameras, bucket, packed, noise) -> dict:
     """Each stage program as a no-argument call on fixed inputs (the denoise gets a fresh copy of the noise), the
     fused program ("infer") and the engine's call ("call": `Engine.sample_packed`, two programs). A program is
