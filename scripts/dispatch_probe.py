@@ -18,8 +18,10 @@ null_kept against null is what the tree's buffers cost per call.
 from __future__ import annotations
 
 import collections
+import functools
 import json
 import re
+import time
 from pathlib import Path
 
 import jax
@@ -27,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from pi0_jax import benchmark
+from pi0_jax.engine import runtime
 # scripts/ is on the path when this runs as a script
 from profile_engine import (count_ops, gpu_kernels, idle, probe_arguments, probe_engine, round_robin, traced,
                             write_json)
@@ -79,11 +82,71 @@ def timeline(fn, calls: int, n: int = 15) -> dict:
             "host_before_first_kernel": [{"name": k, "us_per_call": v / max(len(pre), 1)} for k, v in top]}
 
 
+def first_dispatch(calls: dict, iters: int) -> dict:
+    """Untraced µs until each call's dispatch returns (medians), the GPU idle before it in three ways: after
+    `block_until_ready` on the previous call's output (a robot's loop: the host thread slept), after polling
+    `is_ready` on it instead (the thread stayed awake), and right behind the previous call's dispatch with the GPU
+    still busy (back to back)."""
+    def ready(out):
+        return all(x.is_ready() for x in jax.tree.leaves(out))
+
+    rows = {}
+    for name, fn in calls.items():
+        times = {"after_block": [], "after_spin": [], "back_to_back": []}
+        for i in range(iters + 3):
+            prev = jax.block_until_ready(fn())
+            start = time.perf_counter()
+            out = fn()
+            mid = time.perf_counter()
+            jax.block_until_ready(out)
+            prev = fn()
+            while not ready(prev):
+                pass
+            spin = time.perf_counter()
+            out = fn()
+            spun = time.perf_counter()
+            again = fn()
+            end = time.perf_counter()
+            jax.block_until_ready((out, again))
+            if i >= 3:
+                times["after_block"].append(mid - start)
+                times["after_spin"].append(spun - spin)
+                times["back_to_back"].append(end - spun)
+        rows[name] = {k: round(float(np.median(v)) * 1e6, 1) for k, v in times.items()}
+    return rows
+
+
 def print_host(title: str, t: dict, n: int) -> None:
     """`host_events`' n largest rows under a title."""
     print(title, flush=True)
     for row in t["host"][:n]:
         print(f"   {row['us_per_call']:9.1f} us  x{row['per_call']:7.1f}  {row['name']}", flush=True)
+
+
+def dispatch_calls(engine, args, w, sched, noise, cameras, bucket, inputs) -> dict:
+    """`first_dispatch`'s calls: each program of the engine's call on its inputs, a one-op program that keeps the
+    vision head's weights as arguments (its buffers without its kernels), a one-op program, and the call."""
+    progs = engine.call_programs(args.batch, args.steps, cameras, bucket)
+    calls, x = {}, inputs[0]
+    for prog in progs:
+        if prog.stage in ("vision_head", "encode_images"):
+            head_w = runtime.stage_tree(w, prog.stage, prog.split)
+            kept = jax.jit(lambda w, x: x * 2.0, keep_unused=True).lower(head_w, noise).compile()
+            calls[prog.stage] = functools.partial(prog, w, x)
+            calls["one_op_with_its_weights"] = functools.partial(kept, head_w, noise)
+            x = prog(w, x)
+        elif prog.stage == "vision_tail":
+            calls[prog.stage] = functools.partial(prog, w, *x)
+            x = prog(w, *x)
+        else:
+            out = prog(w, sched, x, *inputs[1:], noise) if prog.stage != "denoise_rest" else prog(w, sched, *x)
+            calls[prog.stage] = (functools.partial(prog, w, sched, x, *inputs[1:], noise)
+                                 if prog.stage != "denoise_rest" else functools.partial(prog, w, sched, *x))
+            x = out
+    null = jax.jit(lambda x: x * 2.0).lower(noise).compile()
+    calls["one_op"] = functools.partial(null, noise)
+    calls["call"] = functools.partial(engine.sample_packed, inputs, noise, args.steps, cameras, bucket)
+    return calls
 
 
 def main() -> None:
@@ -92,10 +155,20 @@ def main() -> None:
     p.add_argument("--timeline", action="store_true",
                    help="also each call's time to its first kernel and after its last one, from a trace (`timeline`), "
                         "for the programs above and the engine's call (two programs)")
+    p.add_argument("--first-dispatch", action="store_true",
+                   help="only the untraced time to each program's dispatch return (`first_dispatch`): the call's "
+                        "vision programs, one-op programs taking their weights, and the engine's call")
     args = p.parse_args()
 
     _, engine, noise, cameras, bucket, inputs = probe_engine(args)
     w, sched = engine.weights, engine.schedule(args.steps)
+    if args.first_dispatch:
+        report = {"preset": args.preset, "batch": args.batch, "env": benchmark.environment(),
+                  "first_dispatch_us": first_dispatch(dispatch_calls(engine, args, w, sched, noise, cameras, bucket,
+                                                                     inputs), args.iters)}
+        print(json.dumps(report["first_dispatch_us"], indent=1), flush=True)
+        write_json(args.out, report)
+        return
     infer = engine.executable("infer", args.batch, args.steps, cameras, bucket)
 
     def tiny(w, x):
