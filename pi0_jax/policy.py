@@ -455,7 +455,8 @@ class Policy:
         options = matmul.compiler_options(rest, core.gemm)
         if peel and core.num_steps > 1:   # the loop as a program of its own, as `Engine.call_stages`
             first_args = (rest, self._norm, tokens, *spec[1:])
-            first = compile_("act_first", core.act_first, first_args, programs.overlap_options(options, True))
+            first_options = matmul.compiler_options(rest, core.gemm, prefix_batch=spec[-1].shape[0])
+            first = compile_("act_first", core.act_first, first_args, programs.overlap_options(first_options, True))
             loop = {**rest, "weights": {k: rest["weights"][k] for k in STAGE_WEIGHTS["denoise_rest"]
                                         if k in rest["weights"]}}
             last = compile_("act_rest", core.act_rest, (loop, self._norm, *shapes(first.out_info)), options)

@@ -47,9 +47,11 @@ VARIANTS = {
     "vision-lt": {"xla_gpu_enable_cublaslt": True},
     "vision-xla": {"xla_gpu_enable_triton_gemm": True},
     "vision-cudnn-gemm": {"xla_gpu_enable_triton_gemm": True, "xla_gpu_cudnn_gemm_fusion_level": 2},
-    # the programs with the VLM's weights alone (the prefix fill, with the first step where it overlaps): cuBLAS for
-    # every GEMM (XLA gave the prefix's q/k/v to a Triton GEMM, 17.5 µs a layer; cuBLAS took 14.2 in session 27)
+    # the programs with the VLM's weights (the prefix fill, with the first step or the loop): cuBLAS for every GEMM
+    # (XLA gave the prefix's q/k/v to a Triton GEMM, 17.5 µs a layer; cuBLAS took 14.2 in session 27)
     "prefix-cublas": {"xla_gpu_enable_triton_gemm": False},
+    # the same programs on XLA's choice (the engine until session 48, where `matmul.PREFIX_CUBLAS_MAX_BATCH` applies)
+    "prefix-xla": {"xla_gpu_enable_triton_gemm": True},
     # the denoise loop: unrolled (ENGINE_KW), or its while loop inside the command buffers
     "unroll-steps": {},
     "while-graphs": {"xla_gpu_enable_command_buffer": COMMANDS + ",WHILE,CONDITIONAL"},

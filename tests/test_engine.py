@@ -450,8 +450,9 @@ def test_the_vision_tower_as_two_programs(model, monkeypatch):
 
 
 def test_gemm_library_per_program():
-    """gemm="auto": cuBLAS for the program that runs the vision tower alone, XLA's choice for the others; FP8
-    weights always cuBLAS; off a GPU always XLA's ops."""
+    """gemm="auto": cuBLAS for the program that runs the vision tower alone and for the prefix fill without the
+    denoise loop at a small batch, XLA's choice for the others; FP8 weights always cuBLAS; off a GPU always XLA's
+    ops."""
     from pi0_jax.ops import formats, matmul
 
     plain, fp8 = {"w": jnp.ones((4, 4))}, {"w": formats.quantize_fp8(jnp.ones((4, 4)))}
@@ -459,6 +460,12 @@ def test_gemm_library_per_program():
     assert lib(plain, "auto", vision_tower=True) == "cublas" and lib(plain, "auto") == "xla"
     assert lib(plain, "xla", vision_tower=True) == "xla" and lib(plain, "cublas") == "cublas"
     assert lib(fp8, "auto") == lib(fp8, "xla") == "cublas"
+    small, large = matmul.PREFIX_CUBLAS_MAX_BATCH, matmul.PREFIX_CUBLAS_MAX_BATCH + 1
+    assert lib(plain, "auto", prefix_batch=small) == "cublas" and lib(plain, "auto", prefix_batch=large) == "xla"
+    assert lib(plain, "xla", prefix_batch=1) == "xla"
+    assert Engine._library("prefix_first_step", 1) == {"vision_tower": False, "prefix_batch": 1}
+    assert Engine._library("denoise_rest", 1)["prefix_batch"] is None
+    assert Engine._library("prefix_denoise", 1)["prefix_batch"] is None   # the loop's XLA GEMMs: slower on cuBLAS
     assert matmul.library(plain, "cublas", platform="cpu") == "xla"
     assert matmul.compiler_options(plain, "auto", platform="gpu", vision_tower=True) == {
         "xla_gpu_enable_triton_gemm": False}

@@ -5,17 +5,21 @@
 input while `recording()` is active, for calibration) runs the plain op. SigLIP's Flax Dense layers keep their own
 op for plain kernels and come here through `dense_interceptor` only for quantised or tapped ones.
 
-`compiler_options(tree, gemm, vision_tower=...)`: which library runs the GEMMs of a program compiled on a GPU. "xla"
-is XLA's own choice: its autotuner picks a Triton GEMM or cuBLAS per dot, and a dot it gives to Triton keeps its
-bias, GELU and residual as separate fusions. "cublas" turns XLA's Triton GEMMs off, so every dot is a cuBLAS call
-that takes its bias, GELU-tanh and residual add as epilogues (SigLIP's Dense layers: 386 -> 305 kernels at B = 1).
+`compiler_options(tree, gemm, vision_tower=..., prefix_batch=...)`: which library runs the GEMMs of a program
+compiled on a GPU. "xla" is XLA's own choice: its autotuner picks a Triton GEMM or cuBLAS per dot, and a dot it
+gives to Triton keeps its bias, GELU and residual as separate fusions. "cublas" turns XLA's Triton GEMMs off, so
+every dot is a cuBLAS call that takes its bias, GELU-tanh and residual add as epilogues (SigLIP's Dense layers:
+386 -> 305 kernels at B = 1).
 That is faster in the vision tower at every batch (its kernels 2.32 -> 1.98 ms at B = 1, 5-10 % from B = 8) but
-slower in the denoise step and the prefix (docs/BENCHMARKS.md, "cuBLAS for every GEMM", "The call as two
-programs"), and one option holds for a whole program. "auto" (the default) is therefore cuBLAS for a program that
-runs only the vision tower (`vision_tower=True`: the engine's call runs it as a program of its own) and XLA's choice
-for any other; the simulator's rollout (`pi0-jax eval`), one program, defaults to "cublas", 5 % faster there
-("cuBLAS in the simulator"). Programs with FP8 weights always get cuBLAS: XLA's autotuner compiles Triton FP8
-GEMMs for minutes, then picks cuBLASLt anyway.
+slower in the denoise step, and level or slower in the prefix from B = 8 (docs/BENCHMARKS.md, "cuBLAS for every
+GEMM", "The call as two programs"); one option holds for a whole program. "auto" (the default) is therefore cuBLAS
+for a program that runs only the vision tower (`vision_tower=True`: the engine's call runs it as a program of its
+own) and for the prefix fill without the denoise loop at batch <= PREFIX_CUBLAS_MAX_BATCH (`prefix_batch`: the
+call's prefix program with its first step, or the prefix alone), where XLA gives the prefix's q/k/v and
+out-projection Triton GEMMs slower than cuBLAS's (the call at B = 1 0.09 ms faster for π0 and 0.21 ms for π0.5 on an
+H200: "The call's host times", session 48); XLA's choice for any other. The simulator's rollout (`pi0-jax eval`),
+one program, defaults to "cublas", 5 % faster there ("cuBLAS in the simulator"). Programs with FP8 weights always
+get cuBLAS: XLA's autotuner compiles Triton FP8 GEMMs for minutes, then picks cuBLASLt anyway.
 """
 
 from __future__ import annotations
@@ -33,6 +37,7 @@ from pi0_jax.ops import formats
 from pi0_jax.ops.formats import QArray, has_fp8, qmatmul
 
 GEMMS = ("auto", "xla", "cublas")
+PREFIX_CUBLAS_MAX_BATCH = 2   # measured at B = 1; at B = 8 and 64 cuBLAS was level or slower in the prefix (2026-11-25)
 _RECORDER: dict | None = None
 
 
@@ -42,21 +47,24 @@ def check_gemm(gemm: str) -> str:
     return gemm
 
 
-def library(tree, gemm: str = "auto", platform: str | None = None, *, vision_tower: bool = False) -> str:
+def library(tree, gemm: str = "auto", platform: str | None = None, *, vision_tower: bool = False,
+            prefix_batch: int | None = None) -> str:
     """Which GEMM library a program over the weights `tree` gets (module doc): "xla" (XLA's choice; always off a
-    GPU) or "cublas". vision_tower: the program runs SigLIP alone (gemm="auto" is cuBLAS there)."""
+    GPU) or "cublas". vision_tower: the program runs SigLIP alone; prefix_batch: the program fills the prefix cache
+    (with at most the first denoise step) at this batch; gemm="auto" is cuBLAS for either at a small batch."""
     if (platform or jax.default_backend()) != "gpu":
         return "xla"
     gemm = check_gemm(gemm)
     if gemm == "auto":
-        gemm = "cublas" if vision_tower else "xla"
+        small_prefix = prefix_batch is not None and prefix_batch <= PREFIX_CUBLAS_MAX_BATCH
+        gemm = "cublas" if vision_tower or small_prefix else "xla"
     return "cublas" if gemm == "cublas" or has_fp8(tree) else "xla"
 
 
-def compiler_options(tree, gemm: str = "auto", platform: str | None = None, *,
-                     vision_tower: bool = False) -> dict | None:
+def compiler_options(tree, gemm: str = "auto", platform: str | None = None, *, vision_tower: bool = False,
+                     prefix_batch: int | None = None) -> dict | None:
     """XLA options for `library`'s choice: None (XLA's defaults) or no Triton GEMMs."""
-    if library(tree, gemm, platform, vision_tower=vision_tower) == "xla":
+    if library(tree, gemm, platform, vision_tower=vision_tower, prefix_batch=prefix_batch) == "xla":
         return None
     return {"xla_gpu_enable_triton_gemm": False}
 
