@@ -41,6 +41,12 @@ VARIANTS = {
     # the vision program alone: its kernels launched one by one (no CUDA graph to update before the first one)
     "vision-nographs": {"xla_gpu_enable_command_buffer": ""},
     "vision-graphmin": {"xla_gpu_graph_min_graph_size": 1_000_000},
+    # the vision programs' CUDA graphs (their launch is most of the call's lead): cuBLAS outside them, no PDL, and
+    # the command buffers' other schedules
+    "vision-graphs-nocublas": {"xla_gpu_enable_command_buffer": "FUSION,CUSTOM_CALL"},
+    "vision-nopdl": {"xla_gpu_enable_pdl": False},
+    "vision-serialize": {"xla_gpu_command_buffer_scheduling_mode": "SERIALIZE"},
+    "vision-concurrent": {"xla_gpu_command_buffer_scheduling_mode": "CONCURRENT"},
     # GEMM libraries: cuBLASLt's heuristics (other tiles, stream-K), cuDNN's GEMM fusions beside XLA's Triton ones
     "lt": {"xla_gpu_enable_cublaslt": True},
     "cudnn-gemm": {"xla_gpu_cudnn_gemm_fusion_level": 2},
