@@ -25,7 +25,7 @@ import numpy as np
 from pi0_jax import benchmark, checkpoint
 from pi0_jax import normalize as nz
 from pi0_jax.config import IMAGE_KEYS, get_config
-from pi0_jax.engine import Engine
+from pi0_jax.engine import Engine, prompt_bucket
 from pi0_jax.policy import Policy, find_tokenizer
 from pi0_jax.tokenizer import PaligemmaTokenizer
 
@@ -114,6 +114,15 @@ def main() -> int:
         engine_actions[:, : policy.action_dims]
     rel = float(np.linalg.norm(got - want) / np.linalg.norm(want))
     rows = {"engine_alone": engine_t, "policy_infer": policy_t}
+    # Policy's compiled call alone, on the host arrays `Policy._run_group` makes for obs[0]: with them already on the
+    # device (its programs against the engine's), then as numpy with the actions copied back (the transfers)
+    n = prompt_bucket(prepared.valid_tokens, config.max_token_len)
+    host = (tuple(prepared.images[c][None] for c in prepared.cameras), np.ones((len(prepared.cameras), 1), bool),
+            prepared.tokens[None, :n], prepared.token_mask[None, :n], prepared.state[None], prepared.noise[None])
+    policy_call = policy.executable(host, prepared.cameras)
+    on_device = jax.device_put(host)
+    rows["policy_call_device_inputs"] = timed(lambda: policy_call(policy._norm, *on_device), args.iters, args.warmup)
+    rows["policy_call_numpy"] = timed(lambda: np.asarray(policy_call(policy._norm, *host)), args.iters, args.warmup)
     if args.batch:
         batch_obs = [obs[k % len(obs)] for k in range(args.batch)]
         rows[f"infer_batch_{args.batch}"] = timed(lambda: policy.infer_batch(batch_obs)[-1]["actions"], args.iters,
