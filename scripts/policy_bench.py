@@ -123,6 +123,31 @@ def main() -> int:
     on_device = jax.device_put(host)
     rows["policy_call_device_inputs"] = timed(lambda: policy_call(policy._norm, *on_device), args.iters, args.warmup)
     rows["policy_call_numpy"] = timed(lambda: np.asarray(policy_call(policy._norm, *host)), args.iters, args.warmup)
+    # where the transfers' time goes: the actions' copy back alone; that copy queued behind the call at its dispatch;
+    # the inputs as one host buffer (one transfer, unpacked on the device by a program of its own)
+    rows["policy_call_device_inputs_copy_back"] = timed(lambda: np.asarray(policy_call(policy._norm, *on_device)),
+                                                        args.iters, args.warmup)
+
+    def queued(*inputs):
+        out = policy_call(policy._norm, *inputs)
+        out.copy_to_host_async()
+        return np.asarray(out)
+
+    rows["policy_call_numpy_copy_queued"] = timed(lambda: queued(*host), args.iters, args.warmup)
+    leaves, tree = jax.tree.flatten(host)
+    flat = [np.ascontiguousarray(x).reshape(-1).view(np.uint8) for x in leaves]
+    ends = np.cumsum([0] + [f.size for f in flat])
+    unpack = jax.jit(lambda buf: jax.tree.unflatten(tree, [
+        jax.lax.bitcast_convert_type(buf[a:b].reshape(-1, x.dtype.itemsize), x.dtype).reshape(x.shape)
+        if x.dtype.itemsize > 1 else buf[a:b].view(x.dtype).reshape(x.shape)
+        for x, a, b in zip(leaves, ends[:-1], ends[1:])]))
+
+    def one_transfer():
+        buf = np.concatenate(flat)
+        return queued(*unpack(buf))
+
+    rows["policy_call_one_transfer"] = timed(one_transfer, args.iters, args.warmup)
+    assert np.array_equal(one_transfer(), np.asarray(policy_call(policy._norm, *host)))
     if args.batch:
         batch_obs = [obs[k % len(obs)] for k in range(args.batch)]
         rows[f"infer_batch_{args.batch}"] = timed(lambda: policy.infer_batch(batch_obs)[-1]["actions"], args.iters,
