@@ -55,6 +55,16 @@ TOKENIZER_FILE = "tokenizer.model"
 SAMPLERS = ("engine", "reference")
 
 
+def _to_host(fn):
+    """fn with its result in pinned host memory: the call's last program copies the actions back itself, on its own
+    stream. A copy asked for after the call (`np.asarray` of a device array) took 0.44 ms of a 14.2 ms call on an
+    H200 (docs/BENCHMARKS.md, "The call's host times", session 48)."""
+    @functools.wraps(fn)
+    def wrapped(*args):
+        return jax.device_put(fn(*args), jax.memory.Space.Host)
+    return wrapped
+
+
 def _stack(rows: list) -> np.ndarray:
     """The rows as one batch: a view of a single row (no copy of its frames before the call's own transfer)."""
     return rows[0][None] if len(rows) == 1 else np.stack(rows)
@@ -400,13 +410,14 @@ class Policy:
                 _stack([p.state for p in rows]), _stack([p.noise for p in rows]))
         call = self.executable(host, cameras)
         start = time.perf_counter()
-        # numpy in, so the call's own dispatch copies it to the device: jax.device_put first took 0.5 ms more
+        # numpy in, so the call's own dispatch copies it to the device (jax.device_put first took 0.5 ms more); the
+        # actions come back in host memory (`_to_host`)
         actions = np.asarray(call(self._norm, *host))
         return actions[:n], (time.perf_counter() - start) * 1000.0
 
     def executable(self, host_args: tuple, cameras: tuple[str, ...]):
         """The compiled call for these input shapes (compiled ahead of time on first use, then kept):
-        (norm, *host_args) -> actions. With the engine sampler it is two programs, `PolicyCore.encode` on the vision
+        (norm, *host_args) -> actions, in pinned host memory (`_to_host`). With the engine sampler it is two programs, `PolicyCore.encode` on the vision
         tower's weights and `PolicyCore.act` on the rest (three where the first denoise step overlaps the prefix
         fill: `act_first`, then `act_rest` on the expert's weights; and the tower itself two, `encode_head` and
         `encode_tail`, where the engine cuts it: `runtime.splits_vision`), each dispatched while the GPU runs the one
@@ -429,6 +440,7 @@ class Policy:
             return self.store.compile(f"policy_{name}", parts, fn, args, options)
 
         if core.sampler != "engine":
+            @_to_host
             def fn(model, norm, images, image_masks, tokens, token_mask, state, noise):
                 return core.program(model, norm, images, cameras, image_masks, tokens, token_mask, state, noise)
 
@@ -459,14 +471,14 @@ class Policy:
             first = compile_("act_first", core.act_first, first_args, programs.overlap_options(first_options, True))
             loop = {**rest, "weights": {k: rest["weights"][k] for k in STAGE_WEIGHTS["denoise_rest"]
                                         if k in rest["weights"]}}
-            last = compile_("act_rest", core.act_rest, (loop, self._norm, *shapes(first.out_info)), options)
+            last = compile_("act_rest", _to_host(core.act_rest), (loop, self._norm, *shapes(first.out_info)), options)
 
             def call(norm, images, *args):
                 return last(loop, norm, *first(rest, norm, encode(images), *args))
 
             return call
-        act = compile_("act", functools.partial(core.act, peel_first=peel), (rest, self._norm, tokens, *spec[1:]),
-                       programs.overlap_options(options, peel))
+        act = compile_("act", _to_host(functools.partial(core.act, peel_first=peel)),
+                       (rest, self._norm, tokens, *spec[1:]), programs.overlap_options(options, peel))
 
         def call(norm, images, *args):
             return act(rest, norm, encode(images), *args)
