@@ -24,6 +24,7 @@ import numpy as np
 
 from pi0_jax import benchmark, checkpoint
 from pi0_jax import normalize as nz
+from pi0_jax import policy as policy_module
 from pi0_jax.config import IMAGE_KEYS, get_config
 from pi0_jax.engine import Engine, prompt_bucket
 from pi0_jax.policy import Policy, find_tokenizer
@@ -70,6 +71,9 @@ def main() -> int:
     p.add_argument("--overlap", choices=("auto", "on", "off"), default="auto",
                    help="the first denoise step beside the prefix fill, in the policy and the engine alike "
                         "(`programs.first_step_overlap`; default: %(default)s)")
+    p.add_argument("--copy-back-ab", action="store_true",
+                   help="also time, in turns, a Policy whose actions are copied back after the call instead of by its "
+                        "last program (`policy._to_host`)")
     p.add_argument("--out", type=Path, default=Path("policy_bench.json"), help="JSON results (default: %(default)s)")
     args = p.parse_args()
 
@@ -152,6 +156,21 @@ def main() -> int:
         batch_obs = [obs[k % len(obs)] for k in range(args.batch)]
         rows[f"infer_batch_{args.batch}"] = timed(lambda: policy.infer_batch(batch_obs)[-1]["actions"], args.iters,
                                                   args.warmup)
+    if args.copy_back_ab:
+        # the same Policy with the actions' copy back after the call (as before session 48), timed in turns with it
+        own = policy_module._to_host
+        policy_module._to_host = lambda fn: fn
+        try:
+            after = Policy(config, params, tokenizer, normalizer, num_steps=args.steps, cache_dir=False, max_batch=1,
+                           overlap=args.overlap)
+            after.warmup([1], obs[0])
+        finally:
+            policy_module._to_host = own
+        for turn in range(2):
+            rows[f"policy_infer_turn{turn}"] = timed(lambda: policy.infer(obs[0])["actions"], args.iters, args.warmup)
+            rows[f"policy_infer_copy_after_call_turn{turn}"] = timed(lambda: after.infer(obs[0])["actions"],
+                                                                     args.iters, args.warmup)
+        assert np.array_equal(after.infer(obs[0], noise=prepared.noise)["actions"], got)
     env = benchmark.environment()
     result = {"model": name, "dtype": args.dtype, "steps": args.steps, "cameras": cameras,
               "overlap": {"policy": policy.metadata["overlap"], "at_batch_1": engine.overlaps(1)},
