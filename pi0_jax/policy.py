@@ -56,9 +56,10 @@ SAMPLERS = ("engine", "reference")
 
 
 def _to_host(fn):
-    """fn with its result in pinned host memory: the call's last program copies the actions back itself, on its own
-    stream. A copy asked for after the call (`np.asarray` of a device array) took 0.44 ms of a 14.2 ms call on an
-    H200 (docs/BENCHMARKS.md, "The call's host times", session 48)."""
+    """fn with its result in pinned host memory: the call's last program copies the actions back itself. A copy
+    asked for after the call (`np.asarray` of a device array) took 0.44 ms of a 14.2 ms call on an H200; this way
+    `Policy.infer` was 0.17-0.23 ms faster (docs/BENCHMARKS.md, "π0 under 14 ms, the call's host times, and
+    `Policy`'s copy back")."""
     @functools.wraps(fn)
     def wrapped(*args):
         return jax.device_put(fn(*args), jax.memory.Space.Host)
@@ -417,11 +418,12 @@ class Policy:
 
     def executable(self, host_args: tuple, cameras: tuple[str, ...]):
         """The compiled call for these input shapes (compiled ahead of time on first use, then kept):
-        (norm, *host_args) -> actions, in pinned host memory (`_to_host`). With the engine sampler it is two programs, `PolicyCore.encode` on the vision
-        tower's weights and `PolicyCore.act` on the rest (three where the first denoise step overlaps the prefix
-        fill: `act_first`, then `act_rest` on the expert's weights; and the tower itself two, `encode_head` and
-        `encode_tail`, where the engine cuts it: `runtime.splits_vision`), each dispatched while the GPU runs the one
-        before, as `Engine.sample_actions`; the reference sampler is one program."""
+        (norm, *host_args) -> actions, in pinned host memory (`_to_host`). With the engine sampler it is two
+        programs, `PolicyCore.encode` on the vision tower's weights and `PolicyCore.act` on the rest (three where the
+        first denoise step overlaps the prefix fill: `act_first`, then `act_rest` on the expert's weights; and the
+        tower itself two, `encode_head` and `encode_tail`, where the engine cuts it: `runtime.splits_vision`), each
+        dispatched while the GPU runs the one before, as `Engine.sample_actions`; the reference sampler is one
+        program."""
         key = (cameras, tuple((x.shape, x.dtype.str) for x in jax.tree.leaves(host_args)))
         with self._lock:
             if key not in self._executables:   # the shapes' tree only here: 17 µs a call (a CPU core)

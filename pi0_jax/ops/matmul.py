@@ -16,10 +16,10 @@ GEMM", "The call as two programs"); one option holds for a whole program. "auto"
 for a program that runs only the vision tower (`vision_tower=True`: the engine's call runs it as a program of its
 own) and for the prefix fill without the denoise loop at batch <= PREFIX_CUBLAS_MAX_BATCH (`prefix_batch`: the
 call's prefix program with its first step, or the prefix alone), where XLA gives the prefix's q/k/v and
-out-projection Triton GEMMs slower than cuBLAS's (the call at B = 1 0.09 ms faster for π0 and 0.21 ms for π0.5 on an
-H200: "The call's host times", session 48); XLA's choice for any other. The simulator's rollout (`pi0-jax eval`),
-one program, defaults to "cublas", 5 % faster there ("cuBLAS in the simulator"). Programs with FP8 weights always
-get cuBLAS: XLA's autotuner compiles Triton FP8 GEMMs for minutes, then picks cuBLASLt anyway.
+out-projection Triton GEMMs slower than cuBLAS's (the call 0.03-0.20 ms faster at B = 1 and 2 on H200s: "π0 under
+14 ms, the call's host times, and `Policy`'s copy back"); XLA's choice for any other. The simulator's rollout
+(`pi0-jax eval`), one program, defaults to "cublas", 5 % faster there ("cuBLAS in the simulator"). Programs with
+FP8 weights always get cuBLAS: XLA's autotuner compiles Triton FP8 GEMMs for minutes, then picks cuBLASLt anyway.
 """
 
 from __future__ import annotations
