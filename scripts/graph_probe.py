@@ -96,6 +96,7 @@ def main() -> None:
     p.add_argument("--preset", default="pi0_base")
     p.add_argument("--batch", type=int, action="append", default=None, help="repeatable (default: 1)")
     p.add_argument("--prompt-tokens", type=int, default=48)
+    p.add_argument("--steps", type=int, default=10, help="denoise steps of each call (default: %(default)s)")
     p.add_argument("--iters", type=int, default=30, help="timed rounds (one call of every variant's stage each)")
     p.add_argument("--loop", type=int, default=0,
                    help="also time each variant's vision program and call (the engine's two programs) in blocks of this "
@@ -140,8 +141,8 @@ def main() -> None:
             if name in STAGES:   # this engine's calls only
                 engine.call_stages = types.MethodType(STAGES[name], engine)
             cameras, bucket = engine.plan(obs)
-            calls = profile_engine.stage_calls(engine, batch, 10, cameras, bucket, engine.pack(obs, cameras, bucket),
-                                               noise)
+            calls = profile_engine.stage_calls(engine, batch, args.steps, cameras, bucket,
+                                               engine.pack(obs, cameras, bucket), noise)
             calls = {k: v for k, v in calls.items() if k in (args.stage or calls)}
             for fn in calls.values():   # compile every program while this variant's options are set
                 jax.block_until_ready(fn())
@@ -158,7 +159,7 @@ def main() -> None:
                     if args.sequence:
                         row.setdefault("sequence", {})[stage] = t["sequence"]
             if args.marks and "call" in calls:
-                row["marks_us"] = profile_engine.call_marks(engine, batch, 10, cameras, bucket,
+                row["marks_us"] = profile_engine.call_marks(engine, batch, args.steps, cameras, bucket,
                                                             engine.pack(obs, cameras, bucket), noise, args.iters)
             actions = next((calls[k] for k in ("infer", "call") if k in calls), None)
             if actions is not None:

@@ -129,7 +129,8 @@ def test_two_programs_equal_the_pipeline_as_one(pi0_ckpt, pi0_policy):
 def test_the_first_step_beside_the_prefix_in_the_policy(pi0_ckpt, pi0_policy, monkeypatch):
     """overlap="on": `Policy`'s second program runs its first denoise step after the prefix fill and compiles in
     XLA's CONCURRENT mode, and the loop over the other steps is a third program in XLA's default order, as the
-    engine's call (`Engine.call_stages`); the actions are the same bit for bit."""
+    engine's call (`Engine.call_stages`); the actions are the same bit for bit. Either way the call's last program
+    leaves the actions in host memory (`policy._to_host`)."""
     import re
 
     from pi0_jax.engine.store import ProgramStore
@@ -149,6 +150,7 @@ def test_the_first_step_beside_the_prefix_in_the_policy(pi0_ckpt, pi0_policy, mo
         options, act = compiled.pop("policy_act_rest" if overlap == "on" else "policy_act")
         trips = re.findall(r'known_trip_count":\{"n":"(\d+)"', act.as_text())
         assert trips == (["9"] if overlap == "on" else ["10"])
+        assert act.out_info.sharding.memory_kind == "pinned_host"   # the last program copies the actions back
         assert (options or {}).get("xla_gpu_command_buffer_scheduling_mode") is None
         if overlap == "on":
             options, first = compiled.pop("policy_act_first")
