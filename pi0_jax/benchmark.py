@@ -212,7 +212,7 @@ def bench_engine(engine: Engine, args, batch: int) -> list[dict]:
                "attention": str(engine.attention.at_batch(batch, suffix_mask=not cfg.pi05)),
                "kernels": engine.kernels_for(batch), "vision_norm": vision_norm(engine.kernels, batch * len(cameras)),
                "gemm": engine.gemm,
-               "gemm_library": {s: engine.gemm_library(s, batch, steps) for s in engine.call_stages(batch, steps)},
+               "gemm_library": {s: engine.gemm_library(s, batch) for s in engine.call_stages(batch, steps)},
                "overlap": engine.overlaps(batch), "call_stages": list(engine.call_stages(batch, steps)),
                "vision": t_vis, "prefix": t_pre, "denoise": t_den,
                "denoise_per_step_ms": t_den["median_ms"] / steps}

@@ -479,8 +479,6 @@ class Policy:
                 return last(loop, norm, *first(rest, norm, encode(images), *args))
 
             return call
-        if core.num_steps == 1:   # the prefix fill with one step: cuBLAS at a small batch, as `Engine._library`
-            options = matmul.compiler_options(rest, core.gemm, prefix_batch=spec[-1].shape[0])
         act = compile_("act", _to_host(functools.partial(core.act, peel_first=peel)),
                        (rest, self._norm, tokens, *spec[1:]), programs.overlap_options(options, peel))
 

@@ -463,10 +463,9 @@ def test_gemm_library_per_program():
     small, large = matmul.PREFIX_CUBLAS_MAX_BATCH, matmul.PREFIX_CUBLAS_MAX_BATCH + 1
     assert lib(plain, "auto", prefix_batch=small) == "cublas" and lib(plain, "auto", prefix_batch=large) == "xla"
     assert lib(plain, "xla", prefix_batch=1) == "xla"
-    assert Engine._library("prefix_first_step", 1, 10) == {"vision_tower": False, "prefix_batch": 1}
-    assert Engine._library("denoise_rest", 1, 10)["prefix_batch"] is None
-    assert Engine._library("prefix_denoise", 1, 10)["prefix_batch"] is None   # the loop's GEMMs: slower on cuBLAS
-    assert Engine._library("prefix_denoise", 2, 1)["prefix_batch"] == 2      # the prefix and one step
+    assert Engine._library("prefix_first_step", 1) == {"vision_tower": False, "prefix_batch": 1}
+    assert Engine._library("denoise_rest", 1)["prefix_batch"] is None
+    assert Engine._library("prefix_denoise", 1)["prefix_batch"] is None   # the loop's XLA GEMMs: slower on cuBLAS
     assert matmul.library(plain, "cublas", platform="cpu") == "xla"
     assert matmul.compiler_options(plain, "auto", platform="gpu", vision_tower=True) == {
         "xla_gpu_enable_triton_gemm": False}

@@ -14,11 +14,10 @@ That is faster in the vision tower at every batch (its kernels 2.32 -> 1.98 ms a
 slower in the denoise step, and level or slower in the prefix from B = 8 (docs/BENCHMARKS.md, "cuBLAS for every
 GEMM", "The call as two programs"); one option holds for a whole program. "auto" (the default) is therefore cuBLAS
 for a program that runs only the vision tower (`vision_tower=True`: the engine's call runs it as a program of its
-own) and for the prefix fill with at most one denoise step at batch <= PREFIX_CUBLAS_MAX_BATCH (`prefix_batch`:
-the call's prefix program with its first step, a 1-step call's second program, or the prefix alone), where XLA
-gives the prefix's q/k/v and out-projection Triton GEMMs slower than cuBLAS's (the call 0.03-0.20 ms faster at
-B = 1 and 2 on H200s: "π0 under 14 ms, the call's host times, and `Policy`'s copy back"); XLA's choice for any
-other. The simulator's rollout
+own) and for the prefix fill without the denoise loop at batch <= PREFIX_CUBLAS_MAX_BATCH (`prefix_batch`: the
+call's prefix program with its first step, or the prefix alone), where XLA gives the prefix's q/k/v and
+out-projection Triton GEMMs slower than cuBLAS's (the call 0.03-0.20 ms faster at B = 1 and 2 on H200s: "π0 under
+14 ms, the call's host times, and `Policy`'s copy back"); XLA's choice for any other. The simulator's rollout
 (`pi0-jax eval`), one program, defaults to "cublas", 5 % faster there ("cuBLAS in the simulator"). Programs with
 FP8 weights always get cuBLAS: XLA's autotuner compiles Triton FP8 GEMMs for minutes, then picks cuBLASLt anyway.
 """
@@ -38,7 +37,7 @@ from pi0_jax.ops import formats
 from pi0_jax.ops.formats import QArray, has_fp8, qmatmul
 
 GEMMS = ("auto", "xla", "cublas")
-PREFIX_CUBLAS_MAX_BATCH = 2   # measured at B = 1 and 2; at B = 8 and 64 it was level or slower (2026-11-25)
+PREFIX_CUBLAS_MAX_BATCH = 2   # measured at B = 1; at B = 8 and 64 cuBLAS was level or slower in the prefix (2026-11-25)
 _RECORDER: dict | None = None
 
 
@@ -52,8 +51,7 @@ def library(tree, gemm: str = "auto", platform: str | None = None, *, vision_tow
             prefix_batch: int | None = None) -> str:
     """Which GEMM library a program over the weights `tree` gets (module doc): "xla" (XLA's choice; always off a
     GPU) or "cublas". vision_tower: the program runs SigLIP alone; prefix_batch: the program fills the prefix cache
-    (with at most one denoise step) at this batch; gemm="auto" is cuBLAS for the first and for the second at a small
-    batch."""
+    (with at most the first denoise step) at this batch; gemm="auto" is cuBLAS for either at a small batch."""
     if (platform or jax.default_backend()) != "gpu":
         return "xla"
     gemm = check_gemm(gemm)
