@@ -37,7 +37,7 @@ from pi0_jax.ops import formats
 from pi0_jax.ops.formats import QArray, has_fp8, qmatmul
 
 GEMMS = ("auto", "xla", "cublas")
-PREFIX_CUBLAS_MAX_BATCH = 2   # measured at B = 1; at B = 8 and 64 cuBLAS was level or slower in the prefix (2026-11-25)
+PREFIX_CUBLAS_MAX_BATCH = 2   # measured at B = 1 and 2; at B = 8 and 64 it was level or slower (2026-11-25)
 _RECORDER: dict | None = None
 
 
