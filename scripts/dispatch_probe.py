@@ -94,7 +94,7 @@ def first_dispatch(calls: dict, iters: int) -> dict:
     for name, fn in calls.items():
         times = {"after_block": [], "after_spin": [], "back_to_back": []}
         for i in range(iters + 3):
-            prev = jax.block_until_ready(fn())
+            jax.block_until_ready(fn())
             start = time.perf_counter()
             out = fn()
             mid = time.perf_counter()
