@@ -451,7 +451,11 @@ class Policy:
             return functools.partial(exe, core.model)
         vision, rest = core.split_model(core.model)
         images = spec[0]
-        vision_options = matmul.compiler_options(vision, core.gemm, vision_tower=True)
+
+        def options_for(stage, tree):   # the engine's library for the stage this program runs
+            return matmul.compiler_options(tree, core.gemm, **runtime.library_keywords(stage, spec[-1].shape[0]))
+
+        vision_options = options_for("vision_head", vision)
         if runtime.splits_vision(core.config, core.unroll):   # the tower as two programs, as `Engine.call_stages`
             head_w, tail_w = ({"weights": runtime.stage_tree(vision["weights"], s)} for s in ("vision_head",
                                                                                                "vision_tail"))
@@ -466,11 +470,11 @@ class Policy:
             encode = functools.partial(tail, vision)
         tokens = shapes(tail.out_info)   # the image tokens, read off the tower's last program
         peel = programs.first_step_overlap(core.overlap, core.kernels, spec[-1].shape[0], rest["weights"]["expert"])
-        options = matmul.compiler_options(rest, core.gemm)
+        options = options_for("prefix_denoise", rest)
         if peel and core.num_steps > 1:   # the loop as a program of its own, as `Engine.call_stages`
             first_args = (rest, self._norm, tokens, *spec[1:])
-            first_options = matmul.compiler_options(rest, core.gemm, prefix_batch=spec[-1].shape[0])
-            first = compile_("act_first", core.act_first, first_args, programs.overlap_options(first_options, True))
+            first = compile_("act_first", core.act_first, first_args,
+                             programs.overlap_options(options_for("prefix_first_step", rest), True))
             loop = {**rest, "weights": {k: rest["weights"][k] for k in STAGE_WEIGHTS["denoise_rest"]
                                         if k in rest["weights"]}}
             last = compile_("act_rest", _to_host(core.act_rest), (loop, self._norm, *shapes(first.out_info)), options)

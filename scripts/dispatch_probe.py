@@ -128,21 +128,15 @@ def dispatch_calls(engine, args, w, sched, noise, cameras, bucket, inputs) -> di
     vision head's weights as arguments (its buffers without its kernels), a one-op program, and the call."""
     progs = engine.call_programs(args.batch, args.steps, cameras, bucket)
     calls, x = {}, inputs[0]
-    for prog in progs:
+    for prog in progs:   # each on the one before's outputs, as `Engine.sample_packed` chains them
         if prog.stage in ("vision_head", "encode_images"):
             head_w = runtime.stage_tree(w, prog.stage, prog.split)
             kept = jax.jit(lambda w, x: x * 2.0, keep_unused=True).lower(head_w, noise).compile()
-            calls[prog.stage] = functools.partial(prog, w, x)
             calls["one_op_with_its_weights"] = functools.partial(kept, head_w, noise)
-            x = prog(w, x)
-        elif prog.stage == "vision_tail":
-            calls[prog.stage] = functools.partial(prog, w, *x)
-            x = prog(w, *x)
-        else:
-            out = prog(w, sched, x, *inputs[1:], noise) if prog.stage != "denoise_rest" else prog(w, sched, *x)
-            calls[prog.stage] = (functools.partial(prog, w, sched, x, *inputs[1:], noise)
-                                 if prog.stage != "denoise_rest" else functools.partial(prog, w, sched, *x))
-            x = out
+        given = {"vision_head": (w, x), "encode_images": (w, x), "vision_tail": (w, *x),
+                 "denoise_rest": (w, sched, *x)}.get(prog.stage, (w, sched, x, *inputs[1:], noise))
+        calls[prog.stage] = functools.partial(prog, *given)
+        x = prog(*given)
     null = jax.jit(lambda x: x * 2.0).lower(noise).compile()
     calls["one_op"] = functools.partial(null, noise)
     calls["call"] = functools.partial(engine.sample_packed, inputs, noise, args.steps, cameras, bucket)

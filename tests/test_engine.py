@@ -453,6 +453,7 @@ def test_gemm_library_per_program():
     """gemm="auto": cuBLAS for the program that runs the vision tower alone and for the prefix fill without the
     denoise loop at a small batch, XLA's choice for the others; FP8 weights always cuBLAS; off a GPU always XLA's
     ops."""
+    from pi0_jax.engine import runtime
     from pi0_jax.ops import formats, matmul
 
     plain, fp8 = {"w": jnp.ones((4, 4))}, {"w": formats.quantize_fp8(jnp.ones((4, 4)))}
@@ -463,9 +464,9 @@ def test_gemm_library_per_program():
     small, large = matmul.PREFIX_CUBLAS_MAX_BATCH, matmul.PREFIX_CUBLAS_MAX_BATCH + 1
     assert lib(plain, "auto", prefix_batch=small) == "cublas" and lib(plain, "auto", prefix_batch=large) == "xla"
     assert lib(plain, "xla", prefix_batch=1) == "xla"
-    assert Engine._library("prefix_first_step", 1) == {"vision_tower": False, "prefix_batch": 1}
-    assert Engine._library("denoise_rest", 1)["prefix_batch"] is None
-    assert Engine._library("prefix_denoise", 1)["prefix_batch"] is None   # the loop's XLA GEMMs: slower on cuBLAS
+    assert runtime.library_keywords("prefix_first_step", 1) == {"vision_tower": False, "prefix_batch": 1}
+    assert runtime.library_keywords("denoise_rest", 1)["prefix_batch"] is None
+    assert runtime.library_keywords("prefix_denoise", 1)["prefix_batch"] is None   # the loop: slower on cuBLAS
     assert matmul.library(plain, "cublas", platform="cpu") == "xla"
     assert matmul.compiler_options(plain, "auto", platform="gpu", vision_tower=True) == {
         "xla_gpu_enable_triton_gemm": False}

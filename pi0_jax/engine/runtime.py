@@ -47,6 +47,13 @@ STAGE_WEIGHTS = {"encode_images": ("img",), "vision_head": ("img",), "vision_tai
 STAGES = tuple(STAGE_WEIGHTS)
 VISION_STAGES = ("encode_images", "vision_head", "vision_tail")
 PREFIX_STAGES = ("fill_prefix_cache", "prefix_first_step")   # the prefix fill, with at most the first step
+
+
+def library_keywords(stage: str, batch: int) -> dict:
+    """`matmul.library`'s keywords for a stage's program (the engine's and `Policy`'s alike): the vision tower's
+    programs, and the prefix fill's without the denoise loop (`PREFIX_STAGES`)."""
+    return {"vision_tower": stage in VISION_STAGES, "prefix_batch": batch if stage in PREFIX_STAGES else None}
+
 # The call's vision tower as two programs, the first with this many blocks (`Engine.splits_vision`): the host
 # dispatches the second while the GPU runs the first, and the first, with a third of the tower's weight buffers,
 # starts sooner. π0's call at B = 1 took 14.03 against 15.18 ms (H200, one process; 6 blocks 14.19, 13 blocks
@@ -204,7 +211,7 @@ class Engine:
             weights = self.stage_weights(stage)
             fn, args = self._stage(stage, shapes(weights), batch, num_steps, cameras, prompt_len)
             options = programs.overlap_options(
-                matmul.compiler_options(weights, self.gemm, **self._library(stage, batch)),
+                matmul.compiler_options(weights, self.gemm, **library_keywords(stage, batch)),
                 stage == "prefix_first_step" or (stage == "prefix_denoise" and self.overlaps(batch)))
             # everything the traced program depends on besides its arguments and options
             parts = (key, repr(self.config), self.unroll, self.unroll_steps, repr(self.attention), self.kernels,
@@ -220,13 +227,7 @@ class Engine:
 
     def gemm_library(self, stage: str, batch: int) -> str:
         """The GEMM library of a stage's program at this batch on this device: "xla" (XLA's choice) or "cublas"."""
-        return matmul.library(self.stage_weights(stage), self.gemm, **self._library(stage, batch))
-
-    @staticmethod
-    def _library(stage: str, batch: int) -> dict:
-        """`matmul.library`'s keywords for a stage: the vision tower's programs, and the prefix fill's without the
-        denoise loop (`PREFIX_STAGES`)."""
-        return {"vision_tower": stage in VISION_STAGES, "prefix_batch": batch if stage in PREFIX_STAGES else None}
+        return matmul.library(self.stage_weights(stage), self.gemm, **library_keywords(stage, batch))
 
     @staticmethod
     def key(stage: str, batch: int, num_steps: int, cameras: Sequence[str], prompt_len: int) -> tuple:
