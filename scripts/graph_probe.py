@@ -144,8 +144,13 @@ def main() -> None:
             calls = profile_engine.stage_calls(engine, batch, args.steps, cameras, bucket,
                                                engine.pack(obs, cameras, bucket), noise)
             calls = {k: v for k, v in calls.items() if k in (args.stage or calls)}
-            for fn in calls.values():   # compile every program while this variant's options are set
-                jax.block_until_ready(fn())
+            try:
+                for fn in calls.values():   # compile every program while this variant's options are set
+                    jax.block_until_ready(fn())
+            except Exception as e:   # an option this jaxlib does not define
+                print(json.dumps({"variant": name, "batch": batch, "error": str(e)[:400]}), flush=True)
+                report.setdefault("errors", []).append({"variant": name, "batch": batch, "error": str(e)[:2000]})
+                continue
             row = {"variant": name, "options": extra, "batch": batch, "kernels_per_call": {}, "span_ms": {},
                    "idle_ms": {}, "compile_s": {k[0]: round(v, 2) for k, v in engine.compile_seconds.items()}}
             if batch <= 8:

@@ -165,7 +165,7 @@ def _partials_kernel(y_ref, mod_ref, w_ref, o_ref, *side, m, bm, bn, bk, chunk, 
 
     def body(kk, acc):
         ks = pl.ds(s * chunk + kk * bk, bk)
-        w = w_ref[ks, cols]
+        w = w_ref[ks, cols].astype(dtype)   # an e4m3 weight (weight-only FP8) widens exactly
         if not scaled:
             return (acc[0] + dot(y_ref[rows, ks], w),)
         x, h = _scaled(y_ref, mod_ref, rows, ks, mod_row, dtype)
