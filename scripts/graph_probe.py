@@ -110,6 +110,9 @@ def main() -> None:
     p.add_argument("--marks", action="store_true",
                    help="with the call stage: the host's untraced time to each program's dispatch and to the call's "
                         "end (`profile_engine.call_marks`, medians in µs)")
+    p.add_argument("--host-events", action="store_true",
+                   help="also the host's traced events in each stage's lead (`profile_engine.edges`: summed by "
+                        "name, and the first call's in order)")
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args()
     config = get_config(args.preset, dtype="bfloat16")
@@ -155,7 +158,10 @@ def main() -> None:
                    "idle_ms": {}, "compile_s": {k[0]: round(v, 2) for k, v in engine.compile_seconds.items()}}
             if batch <= 8:
                 for stage, fn in calls.items():
-                    t = profile_engine.kernel_times(fn, 3, sequence=args.sequence)
+                    t = profile_engine.kernel_times(fn, 3, sequence=args.sequence, host=args.host_events)
+                    if args.host_events:
+                        row.setdefault("lead", {})[stage] = {k: t.get(k) for k in ("lead_us", "tail_us", "gaps_us",
+                                                                                   "lead_events", "lead_timeline")}
                     row["kernels_per_call"][stage] = t["kernels_per_call"]
                     row["span_ms"][stage], row["idle_ms"][stage] = t["span_ms"], t["idle_ms"]
                     row.setdefault("kernel_ms", {})[stage] = t["kernel_ms"]

@@ -118,18 +118,23 @@ def edges(events, kernels, gpu=frozenset(), host: bool = False) -> dict:
     its last kernel's end up to the host's return from block_until_ready; `gaps_us`, the device's idle between them
     (every gap, long or short, unlike `idle`). Medians over the calls; empty when the trace has no annotation.
     host: also `lead_events`, the host's traced events (not those of the `gpu` pids) that overlap the lead, summed by
-    name over the calls (nested events each count: read them as a profile's inclusive times)."""
+    name over the calls (nested events each count: read them as a profile's inclusive times), and `lead_timeline`,
+    the first call's events that start in its lead: (µs from the call's start, duration, name)."""
     spans = sorted((float(e["ts"]), float(e["ts"]) + float(e.get("dur", 0.0))) for e in events
                    if e.get("ph") == "X" and e.get("name") == CALL)
     lead, tail, gaps = [], [], []
     on_host = [(float(e["ts"]), float(e.get("dur", 0.0)), e["name"]) for e in events
                if e.get("ph") == "X" and e["pid"] not in gpu and e.get("name") != CALL] if host else []
     during = collections.defaultdict(lambda: [0, 0.0])
+    timeline = []
     for start, end in spans:
         inside = [(ts, ts + dur) for ts, dur, _ in kernels if start <= ts <= end]
         if not inside:
             continue
         lead.append(inside[0][0] - start)
+        if host and not timeline:   # the first call's lead, event by event (µs from the call's start)
+            timeline = [(round(ts - start, 1), round(dur, 1), name) for ts, dur, name in sorted(on_host)
+                        if start <= ts < inside[0][0]][:300]
         for ts, dur, name in on_host:   # clipped to the lead [start, first kernel)
             overlap = min(ts + dur, inside[0][0]) - max(ts, start)
             if overlap > 0:
@@ -146,7 +151,7 @@ def edges(events, kernels, gpu=frozenset(), host: bool = False) -> dict:
     top = sorted(during.items(), key=lambda kv: -kv[1][1])[:40]
     return {"lead_us": float(np.median(lead)), "tail_us": float(np.median(tail)), "gaps_us": float(np.median(gaps)),
             **({"lead_events": [{"name": n, "per_call": c / len(lead), "us_per_call": t / len(lead)}
-                                for n, (c, t) in top]} if host else {})}
+                                for n, (c, t) in top], "lead_timeline": timeline} if host else {})}
 
 
 def idle(kernels, calls: int, between_calls_us: float = 100.0) -> dict:
