@@ -2,7 +2,8 @@
 (weight-only FP8: half the bytes each GEMM streams). π0's expert shapes, 64 rows; each program runs a GEMM on
 `--layers` weight copies in a chain (each input depends on the previous product, as the step's layers do), so the
 weights stream from HBM, not L2. Kernel µs per GEMM from a jax.profiler trace (`profile_engine.kernel_times`), and
-each e4m3 product against the same product in f32 of the widened weights. A GPU probe (Hopper), not a test.
+each e4m3 chain's output against the same chain at the engine's launch on the weights widened to bf16 first (the
+kernel's own inputs). A GPU probe (Hopper), not a test.
 
     python scripts/fp8_expert_probe.py --out fp8_expert_probe.json
 """
@@ -63,7 +64,7 @@ def main() -> None:
     p.add_argument("--layers", type=int, default=18, help="weight copies a program (default: %(default)s)")
     p.add_argument("--calls", type=int, default=20, help="traced calls per variant (default: %(default)s)")
     p.add_argument("--gemm", action="append", choices=list(SHAPES), default=None, help="repeatable (default: all)")
-    p.add_argument("--out", type=Path, default=None)
+    p.add_argument("--out", type=Path, default=None, help="JSON of every row")
     args = p.parse_args()
     rows = []
     key = jax.random.PRNGKey(0)

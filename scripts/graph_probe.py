@@ -113,7 +113,7 @@ def main() -> None:
     p.add_argument("--host-events", action="store_true",
                    help="also the host's traced events in each stage's lead (`profile_engine.edges`: summed by "
                         "name, and the first call's in order)")
-    p.add_argument("--out", type=Path, default=None)
+    p.add_argument("--out", type=Path, default=None, help="JSON of every variant's row")
     args = p.parse_args()
     config = get_config(args.preset, dtype="bfloat16")
     params = benchmark.random_params(config, 0)

@@ -44,7 +44,7 @@ def main() -> None:
     p.add_argument("--blocks", action="append", default=None, metavar="Q,KV,WARPS,STAGES",
                    help=f"repeatable Pallas block settings (default: {' '.join(DEFAULT_BLOCKS)})")
     p.add_argument("--calls", type=int, default=30, help="traced calls per variant (default: %(default)s)")
-    p.add_argument("--out", type=Path, default=None)
+    p.add_argument("--out", type=Path, default=None, help="JSON of every row")
     args = p.parse_args()
     rows = []
     for images in args.images or [3]:

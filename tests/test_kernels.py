@@ -176,6 +176,22 @@ def test_mlp_kernels_match_xla(adaptive):
         np.testing.assert_allclose(_unrows(got, CFG.width), want, **TOL)
 
 
+def test_split_k_kernel_widens_an_e4m3_weight_exactly():
+    """An e4m3 weight (weight-only FP8, `scripts/fp8_expert_probe.py`) enters the split-K GEMM widened to the
+    activation dtype: the partials (and the norm's sums of squares) equal those of the same weight widened first."""
+    from pi0_jax.ops.formats import E4M3
+
+    x = _rand(50, 32, 64).astype(jnp.bfloat16)
+    w = _rand(51, 64, 48, scale=0.1)
+    w8 = (w / (jnp.max(jnp.abs(w)) / 448)).astype(E4M3)
+    got = ek.matmul_partials(x, w8, jnp.zeros((1, 64), jnp.bfloat16), scaled=True, gemm=Gemm(16, 2))
+    want = ek.matmul_partials(x, w8.astype(jnp.bfloat16), jnp.zeros((1, 64), jnp.bfloat16), scaled=True,
+                              gemm=Gemm(16, 2))
+    assert got[0].dtype == jnp.float32
+    for g, ww in zip(got[:2], want[:2]):
+        np.testing.assert_array_equal(np.asarray(g), np.asarray(ww))
+
+
 @pytest.fixture(scope="module", params=["dummy", "dummy_pi05"])
 def model(request):
     config = get_config(request.param)
