@@ -3,7 +3,8 @@ compile with extra XLA options on top of the engine's own (`matmul.compiler_opti
 under gemm="auto"), or, for "conv", with SigLIP's patch embedding as cuDNN's convolution (the engine's form until
 2026-11-26) instead of the f32 GEMM, or an Engine built another way (`ENGINE_KW`, `SCHEDULING`, `STAGES`,
 `STEP_ENDS`, `RUNTIME`: the denoise loop unrolled, the first step's overlap and its programs, π0's in-projection
-unfolded, the vision tower as one program); the "vision-" variants set their options on the vision program alone.
+unfolded, the vision tower as one program); the "vision-" variants set their options on the vision programs alone,
+"vhead-" on the first of them.
 Stage medians (round-robin over the variants), kernels per call, device span and idle time (by the kernel that
 waited) from a trace, and the fused program's actions against the first variant.
 
@@ -72,6 +73,10 @@ VARIANTS = {
     "unfolded": {},
     # the call's vision tower as one program (RUNTIME), not two
     "one-vision-program": {},
+    # every GEMM a Triton GEMM (no cuBLAS fallback) in the vision head's program ("vhead-") or both vision programs:
+    # a CUDA graph whose cuBLAS calls are captured child graphs took 250-280 µs to launch (session 49)
+    "vhead-triton": {"xla_gpu_enable_triton_gemm": True, "xla_gpu_cublas_fallback": False},
+    "vision-triton": {"xla_gpu_enable_triton_gemm": True, "xla_gpu_cublas_fallback": False},
 }
 ENGINE_KW = {"unroll-steps": {"unroll_steps": True}, "no-overlap": {"overlap": "off"}, "overlap-on": {"overlap": "on"}}
 SCHEDULING = {"overlap-lhs": {"xla_gpu_command_buffer_scheduling_mode": "LHS"}}
@@ -126,10 +131,11 @@ def main() -> None:
         rows, timed, first = [], {}, None
         for name in args.variant or list(VARIANTS):
             extra = VARIANTS[name]
-            only = name.split("-")[0] if name.startswith(("vision-", "prefix-")) else None
+            only = name.split("-")[0] if name.startswith(("vision-", "prefix-", "vhead-")) else None
 
             def applies(tree, vision_tower=False, only=only):
-                return (only is None or (only == "vision" and vision_tower)
+                head = vision_tower and isinstance(tree, dict) and "embedding" in tree.get("img", {})
+                return (only is None or (only == "vision" and vision_tower) or (only == "vhead" and head)
                         or (only == "prefix" and isinstance(tree, dict) and "vlm" in tree))
 
             runtime.matmul.compiler_options = (
