@@ -74,7 +74,8 @@ VARIANTS = {
     # the call's vision tower as one program (RUNTIME), not two
     "one-vision-program": {},
     # every GEMM a Triton GEMM (no cuBLAS fallback) in the vision head's program ("vhead-") or both vision programs:
-    # a CUDA graph whose cuBLAS calls are captured child graphs took 250-280 µs to launch (session 49)
+    # the head's CUDA graph took 250-280 µs to launch with its cuBLAS calls; with Triton GEMMs longer, the call slower
+    # (a graph's launch grows by 1.4-6 µs a node of any kind: docs/BENCHMARKS.md, session 49)
     "vhead-triton": {"xla_gpu_enable_triton_gemm": True, "xla_gpu_cublas_fallback": False},
     "vision-triton": {"xla_gpu_enable_triton_gemm": True, "xla_gpu_cublas_fallback": False},
 }

@@ -18,6 +18,7 @@ from pi0_jax.engine import Engine, layers
 from pi0_jax.ops import expert_kernels as ek
 from pi0_jax.ops import layout
 from pi0_jax.ops.expert_kernels import Blocks, Gemm
+from pi0_jax.ops.formats import E4M3
 from test_model import make_obs, randomize
 
 CFG = get_config("dummy").action_expert  # width 48, 4 heads x 16 (1 kv head), mlp 96: all padded by the layout
@@ -179,8 +180,6 @@ def test_mlp_kernels_match_xla(adaptive):
 def test_split_k_kernel_widens_an_e4m3_weight_exactly():
     """An e4m3 weight (weight-only FP8, `scripts/fp8_expert_probe.py`) enters the split-K GEMM widened to the
     activation dtype: the partials (and the norm's sums of squares) equal those of the same weight widened first."""
-    from pi0_jax.ops.formats import E4M3
-
     x = _rand(50, 32, 64).astype(jnp.bfloat16)
     w = _rand(51, 64, 48, scale=0.1)
     w8 = (w / (jnp.max(jnp.abs(w)) / 448)).astype(E4M3)
