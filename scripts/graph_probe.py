@@ -29,7 +29,6 @@ import profile_engine  # noqa: E402
 from pi0_jax import benchmark  # noqa: E402
 from pi0_jax.config import get_config  # noqa: E402
 from pi0_jax.engine import Engine, programs, runtime, vision  # noqa: E402
-from pi0_jax.ops import formats  # noqa: E402
 
 GRAPHS = {"xla_gpu_graph_min_graph_size": 1}
 COMMANDS = "FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN"
@@ -79,8 +78,6 @@ VARIANTS = {
     # (a graph's launch grows by 1.4-6 µs a node of any kind: docs/BENCHMARKS.md, session 49)
     "vhead-triton": {"xla_gpu_enable_triton_gemm": True, "xla_gpu_cublas_fallback": False},
     "vision-triton": {"xla_gpu_enable_triton_gemm": True, "xla_gpu_cublas_fallback": False},
-    # SigLIP's out-projection and fc2 biases added after the residual (`add_norm_bias_after`), not in cuBLAS's epilogue
-    "bias-in-norm": {},
 }
 ENGINE_KW = {"unroll-steps": {"unroll_steps": True}, "no-overlap": {"overlap": "off"}, "overlap-on": {"overlap": "on"}}
 SCHEDULING = {"overlap-lhs": {"xla_gpu_command_buffer_scheduling_mode": "LHS"}}
@@ -88,19 +85,6 @@ STAGES = {"one-loop-program": lambda self, batch, num_steps: (
     *(s for s in Engine.call_stages(self, batch, num_steps) if s in runtime.VISION_STAGES), "prefix_denoise")}
 STEP_ENDS = {"unfolded": {"FOLD_ACTION_IN": False}}
 RUNTIME = {"one-vision-program": {"VISION_SPLIT": 0}}
-OWN_ADD_NORM = vision.add_norm
-
-
-def add_norm_bias_after(x, f, norm_vectors, dtype, norm, quantise=None):
-    """`vision.add_norm` with a bf16 Dense's bias added after the residual, (x + y) + b, where the engine adds
-    x + (y + b): XLA then leaves the bias out of the cuBLAS epilogue, whose bias needs the table's f32 row cast by a
-    kernel of its own (27 a call at B = 1), and adds it in the LayerNorm's fusion. Within bf16 rounding of it."""
-    if f is None or norm != "xla" or any(v is not None for v in f[2:]):
-        return OWN_ADD_NORM(x, f, norm_vectors, dtype, norm, quantise)
-    (y, (f_table, f_row)), (table, rows) = f[:2], norm_vectors
-    x = (x + y) + f_table[f_row].astype(x.dtype)
-    h = vision.layer_norm(x, table, rows, dtype)
-    return x, (h if quantise is None else formats.quantise(h, quantise))
 
 
 def conv_patch_embed(images, kernel, bias, p: int):
@@ -159,7 +143,6 @@ def main() -> None:
                 lambda *a, o=extra, f=applies, **kw: {**(own_options(*a, **kw) or {}),
                                                       **(o if f(a[0], kw.get("vision_tower", False)) else {})} or None)
             vision.patch_embed = conv_patch_embed if name == "conv" else own_embed
-            vision.add_norm = add_norm_bias_after if name == "bias-in-norm" else OWN_ADD_NORM
             programs.CONCURRENT = SCHEDULING.get(name, own_concurrent)
             for k, v in {**own_ends, **STEP_ENDS.get(name, {})}.items():
                 setattr(programs, k, v)
@@ -203,7 +186,7 @@ def main() -> None:
                 row["rel_l2_vs_first"] = float(np.linalg.norm(out - first) / np.linalg.norm(first))
             rows.append(row)
             timed.update({(name, stage): fn for stage, fn in calls.items()})
-        runtime.matmul.compiler_options, vision.patch_embed, vision.add_norm = own_options, own_embed, OWN_ADD_NORM
+        runtime.matmul.compiler_options, vision.patch_embed = own_options, own_embed
         programs.CONCURRENT, runtime.VISION_SPLIT = own_concurrent, own_split
         for k, v in own_ends.items():
             setattr(programs, k, v)
