@@ -4,7 +4,7 @@ under gemm="auto"), or, for "conv", with SigLIP's patch embedding as cuDNN's con
 2026-11-26) instead of the f32 GEMM, or an Engine built another way (`ENGINE_KW`, `SCHEDULING`, `STAGES`,
 `STEP_ENDS`, `RUNTIME`: the denoise loop unrolled, the first step's overlap and its programs, π0's in-projection
 unfolded, the vision tower as one program); the "vision-" variants set their options on the vision programs alone,
-"vhead-" on the first of them.
+"vhead-" on the first of them, "loop-" on the denoise programs without the prefix (the expert's weights alone).
 Stage medians (round-robin over the variants), kernels per call, device span and idle time (by the kernel that
 waited) from a trace, and the fused program's actions against the first variant.
 
@@ -29,6 +29,8 @@ import profile_engine  # noqa: E402
 from pi0_jax import benchmark  # noqa: E402
 from pi0_jax.config import get_config  # noqa: E402
 from pi0_jax.engine import Engine, programs, runtime, vision  # noqa: E402
+from pi0_jax.quant import schemes  # noqa: E402
+from pi0_jax.quant.schemes import SCHEMES  # noqa: E402
 
 GRAPHS = {"xla_gpu_graph_min_graph_size": 1}
 COMMANDS = "FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN"
@@ -78,6 +80,8 @@ VARIANTS = {
     # (a graph's launch grows by 1.4-6 µs a node of any kind: docs/BENCHMARKS.md, session 49)
     "vhead-triton": {"xla_gpu_enable_triton_gemm": True, "xla_gpu_cublas_fallback": False},
     "vision-triton": {"xla_gpu_enable_triton_gemm": True, "xla_gpu_cublas_fallback": False},
+    # the denoise loop's GEMMs on cuBLAS, as `Policy`'s loop program chose them under an FP8 prefix until session 50
+    "loop-cublas": {"xla_gpu_enable_triton_gemm": False},
 }
 ENGINE_KW = {"unroll-steps": {"unroll_steps": True}, "no-overlap": {"overlap": "off"}, "overlap-on": {"overlap": "on"}}
 SCHEDULING = {"overlap-lhs": {"xla_gpu_command_buffer_scheduling_mode": "LHS"}}
@@ -119,11 +123,17 @@ def main() -> None:
     p.add_argument("--host-events", action="store_true",
                    help="also the host's traced events in each stage's lead (`profile_engine.edges`: summed by "
                         "name, and the first call's in order)")
+    p.add_argument("--quant", default=None, choices=sorted(SCHEMES),
+                   help="FP8 weights of this scheme for every variant, calibrated as the benchmark's --quant")
     p.add_argument("--out", type=Path, default=None, help="JSON of every variant's row")
     args = p.parse_args()
     config = get_config(args.preset, dtype="bfloat16")
     params = benchmark.random_params(config, 0)
-    report = {"preset": args.preset, "env": benchmark.environment(), "rows": []}
+    if args.quant:
+        stats = schemes.calibrate(config, params, schemes.sample_observations(config, 4, seed=0), args.quant,
+                                  percentile=None, num_steps=args.steps)
+        params = schemes.quantize_params(params, args.quant, stats["amax"])
+    report = {"preset": args.preset, "quant": args.quant, "env": benchmark.environment(), "rows": []}
     own_options, own_embed, own_concurrent = runtime.matmul.compiler_options, vision.patch_embed, programs.CONCURRENT
     own_ends = {k: getattr(programs, k) for k in ("FOLD_ACTION_IN",)}
     own_split = runtime.VISION_SPLIT
@@ -132,12 +142,14 @@ def main() -> None:
         rows, timed, first = [], {}, None
         for name in args.variant or list(VARIANTS):
             extra = VARIANTS[name]
-            only = name.split("-")[0] if name.startswith(("vision-", "prefix-", "vhead-")) else None
+            only = name.split("-")[0] if name.startswith(("vision-", "prefix-", "vhead-", "loop-")) else None
 
             def applies(tree, vision_tower=False, only=only):
                 head = vision_tower and isinstance(tree, dict) and "embedding" in tree.get("img", {})
+                keys = tree if isinstance(tree, dict) else {}
                 return (only is None or (only == "vision" and vision_tower) or (only == "vhead" and head)
-                        or (only == "prefix" and isinstance(tree, dict) and "vlm" in tree))
+                        or (only == "prefix" and "vlm" in keys) or (only == "loop" and "expert" in keys
+                                                                     and "vlm" not in keys))
 
             runtime.matmul.compiler_options = (
                 lambda *a, o=extra, f=applies, **kw: {**(own_options(*a, **kw) or {}),
@@ -168,7 +180,8 @@ def main() -> None:
                     t = profile_engine.kernel_times(fn, 3, sequence=args.sequence, host=args.host_events)
                     if args.host_events:
                         row.setdefault("lead", {})[stage] = {k: t.get(k) for k in ("lead_us", "tail_us", "gaps_us",
-                                                                                   "lead_events", "lead_timeline")}
+                                                                                   "lead_events", "lead_timeline",
+                                                                                   "call_events")}
                     row["kernels_per_call"][stage] = t["kernels_per_call"]
                     row["span_ms"][stage], row["idle_ms"][stage] = t["span_ms"], t["idle_ms"]
                     row.setdefault("kernel_ms", {})[stage] = t["kernel_ms"]

@@ -119,13 +119,16 @@ def edges(events, kernels, gpu=frozenset(), host: bool = False) -> dict:
     (every gap, long or short, unlike `idle`). Medians over the calls; empty when the trace has no annotation.
     host: also `lead_events`, the host's traced events (not those of the `gpu` pids) that overlap the lead, summed by
     name over the calls (nested events each count: read them as a profile's inclusive times), and `lead_timeline`,
-    the first call's events that start in its lead: (µs from the call's start, duration, name)."""
+    the first call's events that start in its lead: (µs from the call's start, duration, name); and `call_events`,
+    the host's events inside the whole call, summed by name (the driver's launches: one `cuGraphLaunch` a CUDA graph,
+    one `cuLaunchKernel(Ex)` a kernel outside the graphs)."""
     spans = sorted((float(e["ts"]), float(e["ts"]) + float(e.get("dur", 0.0))) for e in events
                    if e.get("ph") == "X" and e.get("name") == CALL)
     lead, tail, gaps = [], [], []
     on_host = [(float(e["ts"]), float(e.get("dur", 0.0)), e["name"]) for e in events
                if e.get("ph") == "X" and e["pid"] not in gpu and e.get("name") != CALL] if host else []
     during = collections.defaultdict(lambda: [0, 0.0])
+    whole = collections.defaultdict(lambda: [0, 0.0])
     timeline = []
     for start, end in spans:
         inside = [(ts, ts + dur) for ts, dur, _ in kernels if start <= ts <= end]
@@ -140,6 +143,9 @@ def edges(events, kernels, gpu=frozenset(), host: bool = False) -> dict:
             if overlap > 0:
                 during[name][0] += 1
                 during[name][1] += overlap
+            if start <= ts < end:
+                whole[name][0] += 1
+                whole[name][1] += dur
         last, idle_us = inside[0][1], 0.0
         for ts, stop in inside[1:]:
             idle_us += max(0.0, ts - last)
@@ -148,10 +154,13 @@ def edges(events, kernels, gpu=frozenset(), host: bool = False) -> dict:
         gaps.append(idle_us)
     if not lead:
         return {}
-    top = sorted(during.items(), key=lambda kv: -kv[1][1])[:40]
+    def rows(sums, by):
+        top = sorted(sums.items(), key=lambda kv: -kv[1][by])[:40]
+        return [{"name": n, "per_call": c / len(lead), "us_per_call": t / len(lead)} for n, (c, t) in top]
+
     return {"lead_us": float(np.median(lead)), "tail_us": float(np.median(tail)), "gaps_us": float(np.median(gaps)),
-            **({"lead_events": [{"name": n, "per_call": c / len(lead), "us_per_call": t / len(lead)}
-                                for n, (c, t) in top], "lead_timeline": timeline} if host else {})}
+            **({"lead_events": rows(during, 1), "lead_timeline": timeline, "call_events": rows(whole, 0)}
+               if host else {})}
 
 
 def idle(kernels, calls: int, between_calls_us: float = 100.0) -> dict:
