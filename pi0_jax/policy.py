@@ -477,7 +477,8 @@ class Policy:
                              programs.overlap_options(options_for("prefix_first_step", rest), True))
             loop = {**rest, "weights": {k: rest["weights"][k] for k in STAGE_WEIGHTS["denoise_rest"]
                                         if k in rest["weights"]}}
-            last = compile_("act_rest", _to_host(core.act_rest), (loop, self._norm, *shapes(first.out_info)), options)
+            last = compile_("act_rest", _to_host(core.act_rest), (loop, self._norm, *shapes(first.out_info)),
+                            options_for("denoise_rest", loop))
 
             def call(norm, images, *args):
                 return last(loop, norm, *first(rest, norm, encode(images), *args))

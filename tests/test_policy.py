@@ -162,6 +162,51 @@ def test_the_first_step_beside_the_prefix_in_the_policy(pi0_ckpt, pi0_policy, mo
         Policy.from_checkpoint(pi0_ckpt[0], cache_dir=False, overlap="always")
 
 
+def test_each_policy_program_takes_the_engines_gemm_library_for_its_stage(pi0_ckpt, monkeypatch):
+    """`Policy`'s programs get the GEMM library (`matmul.library`) of the engine's program for the same stage, from
+    the weights that program takes: with an FP8 prefix and a bf16 expert (simulated here: the VLM's weights count
+    as FP8, the library decides as on a GPU) the vision tower and the prefix fill run on cuBLAS, and the loop over
+    the other denoise steps on XLA's choice, as the engine's `denoise_rest` (until session 50 it took cuBLAS from
+    the whole VLM-and-expert tree)."""
+    from pi0_jax.engine import runtime
+    from pi0_jax.engine.store import ProgramStore
+    from pi0_jax.ops import matmul
+
+    own_library = matmul.library
+    monkeypatch.setattr(matmul, "has_fp8", _has_vlm)
+    monkeypatch.setattr(matmul, "library", lambda tree, gemm="auto", platform=None, **kw: own_library(
+        tree, gemm, "gpu", **kw))
+    compiled = {}
+
+    class Traced:   # shapes only: nothing is compiled or run
+        def __init__(self, fn, args):
+            self.out_info = jax.eval_shape(fn, *args)
+
+        def __call__(self, *args):
+            raise AssertionError("not run")
+
+    def compile(self, name, parts, fn, args, options=None):
+        compiled[name] = options
+        return Traced(fn, args)
+
+    monkeypatch.setattr(ProgramStore, "compile", compile)
+    policy = Policy.from_checkpoint(pi0_ckpt[0], cache_dir=False, overlap="on")
+    p = policy.prepare(libero_obs())
+    host = (tuple(p.images[c][None] for c in p.cameras), np.ones((len(p.cameras), 1), bool), p.tokens[None],
+            p.token_mask[None], p.state[None], p.noise[None])
+    policy.executable(host, p.cameras)
+    cublas = {"xla_gpu_enable_triton_gemm": False}
+    loop = {k: 0 for k in runtime.STAGE_WEIGHTS["denoise_rest"]}
+    assert compiled["policy_act_rest"] == matmul.compiler_options(loop, "auto", **runtime.library_keywords(
+        "denoise_rest", 1)) is None
+    assert compiled["policy_act_first"]["xla_gpu_enable_triton_gemm"] is False
+    assert all(compiled[k] == cublas for k in compiled if "encode" in k)
+
+
+def _has_vlm(tree) -> bool:
+    return isinstance(tree, dict) and any(k == "vlm" or _has_vlm(v) for k, v in tree.items())
+
+
 def test_the_vision_tower_as_two_programs_in_the_policy(pi0_ckpt, monkeypatch):
     """Where the engine's call cuts the vision tower in two (`runtime.VISION_SPLIT` blocks first), `Policy` compiles
     the same two programs, each on its own blocks' weights; the actions are the same bit for bit."""
