@@ -127,6 +127,12 @@ def main() -> int:
     on_device = jax.device_put(host)
     rows["policy_call_device_inputs"] = timed(lambda: policy_call(policy._norm, *on_device), args.iters, args.warmup)
     rows["policy_call_numpy"] = timed(lambda: np.asarray(policy_call(policy._norm, *host)), args.iters, args.warmup)
+    # which inputs' transfers cost: the images (the vision program's, at the call's start) or the small arrays (the
+    # prefix program's, dispatched while the GPU runs the tower)
+    rows["policy_call_images_on_device"] = timed(lambda: np.asarray(policy_call(policy._norm, on_device[0], *host[1:])),
+                                                 args.iters, args.warmup)
+    rows["policy_call_rest_on_device"] = timed(lambda: np.asarray(policy_call(policy._norm, host[0], *on_device[1:])),
+                                               args.iters, args.warmup)
     # where the transfers' time goes: the actions' copy back alone; that copy queued behind the call at its dispatch;
     # the inputs as one host buffer (one transfer, unpacked on the device by a program of its own)
     rows["policy_call_device_inputs_copy_back"] = timed(lambda: np.asarray(policy_call(policy._norm, *on_device)),
