@@ -135,6 +135,23 @@ def main() -> int:
                                                args.iters, args.warmup)
     # where the transfers' time goes: the actions' copy back alone; that copy queued behind the call at its dispatch;
     # the inputs as one host buffer (one transfer, unpacked on the device by a program of its own)
+    # Policy.infer's steps one by one on top of the compiled call: the host arrays rebuilt from a fresh `prepare`
+    # (its state and noise are new arrays each time), then `Policy.run` without its result dicts
+    def rebuilt(p):
+        return (tuple(p.images[c][None] for c in p.cameras), np.ones((len(p.cameras), 1), bool), p.tokens[None, :n],
+                p.token_mask[None, :n], p.state[None], p.noise[None])
+
+    rows["policy_call_prepared_each_call"] = timed(
+        lambda: np.asarray(policy_call(policy._norm, *rebuilt(policy.prepare(obs[0])))), args.iters, args.warmup)
+    rows["policy_run_group"] = timed(lambda: policy._run_group([policy.prepare(obs[0])])[0], args.iters, args.warmup)
+    # the images as one array a camera (today's call) against one array of all cameras, into a program that only
+    # reads them: what a transfer costs at the call's start
+    cams = host[0]
+    stacked = np.stack(cams)
+    touch = jax.jit(lambda *xs: sum(x[..., :1, :1, :].astype(jnp.float32).sum() for x in xs))
+    rows["images_one_array_a_camera"] = timed(lambda: touch(*cams), args.iters, args.warmup)
+    rows["images_one_array"] = timed(lambda: touch(stacked), args.iters, args.warmup)
+    rows["images_on_device"] = timed(lambda: touch(*on_device[0]), args.iters, args.warmup)
     rows["policy_call_device_inputs_copy_back"] = timed(lambda: np.asarray(policy_call(policy._norm, *on_device)),
                                                         args.iters, args.warmup)
 
