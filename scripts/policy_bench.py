@@ -143,6 +143,16 @@ def main() -> int:
 
     rows["policy_call_prepared_each_call"] = timed(
         lambda: np.asarray(policy_call(policy._norm, *rebuilt(policy.prepare(obs[0])))), args.iters, args.warmup)
+    # which fresh inputs cost (a robot's frames are new buffers each call): new view objects of the same frames, new
+    # copies of the small arrays, new copies of the frames (the copies' own host time is in `host_copies`)
+    def fresh(images, small):
+        return (tuple(x[0][None] if images == "views" else x.copy() if images == "copies" else x for x in host[0]),
+                *(x.copy() if small else x for x in host[1:]))
+
+    rows["host_copies"] = timed(lambda: fresh("copies", True), args.iters, args.warmup)
+    for images, small in (("views", False), ("same", True), ("copies", False), ("copies", True)):
+        rows[f"policy_call_fresh_images_{images}_small_{'copies' if small else 'same'}"] = timed(
+            lambda: np.asarray(policy_call(policy._norm, *fresh(images, small))), args.iters, args.warmup)
     rows["policy_run_group"] = timed(lambda: policy._run_group([policy.prepare(obs[0])])[0], args.iters, args.warmup)
     # the images as one array a camera (today's call) against one array of all cameras, into a program that only
     # reads them: what a transfer costs at the call's start
