@@ -4,8 +4,7 @@
 Engine alone: `Engine.sample_packed` on already packed, device-resident inputs (the benchmark's `total`).
 Policy.infer: one observation dict of uint8 HWC frames, a float state and a prompt string -> un-normalised actions
 as numpy (validation, cached tokenisation, one host-to-device transfer, the compiled pipeline, the device-to-host
-copy). infer_batch: B observations through one batched call. The rows at batch 1 are timed in turns, one call of
-each a round (`profile_engine.round_robin`).
+copy). infer_batch: B observations through one batched call.
 
     python scripts/policy_bench.py --preset pi0_base --out policy_bench.json          # random full-size weights
     python scripts/policy_bench.py --embedded --dtype float32 --out cpu.json          # the embedded pi0_small
@@ -15,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from importlib import resources
 from pathlib import Path
@@ -24,23 +22,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).parent))
-import profile_engine  # noqa: E402
-
-from pi0_jax import benchmark, checkpoint  # noqa: E402
-from pi0_jax import normalize as nz  # noqa: E402
-from pi0_jax import policy as policy_module  # noqa: E402
-from pi0_jax.config import IMAGE_KEYS, get_config  # noqa: E402
-from pi0_jax.engine import Engine, prompt_bucket  # noqa: E402
-from pi0_jax.policy import Policy, find_tokenizer  # noqa: E402
-from pi0_jax.tokenizer import PaligemmaTokenizer  # noqa: E402
+from pi0_jax import benchmark, checkpoint
+from pi0_jax import normalize as nz
+from pi0_jax import policy as policy_module
+from pi0_jax.config import IMAGE_KEYS, get_config
+from pi0_jax.engine import Engine, prompt_bucket
+from pi0_jax.policy import Policy, find_tokenizer
+from pi0_jax.tokenizer import PaligemmaTokenizer
 
 EMBEDDED = resources.files("pi0_jax") / "assets" / "pi0_small"
-
-
-def summary(times) -> dict:
-    return {"median_ms": float(np.median(times)), "p90_ms": float(np.percentile(times, 90)),
-            "min_ms": float(np.min(times))}
 
 
 def timed(fn, iters: int, warmup: int) -> dict:
@@ -51,7 +41,8 @@ def timed(fn, iters: int, warmup: int) -> dict:
         start = time.perf_counter()
         jax.block_until_ready(fn())
         times.append((time.perf_counter() - start) * 1e3)
-    return summary(times)
+    return {"median_ms": float(np.median(times)), "p90_ms": float(np.percentile(times, 90)),
+            "min_ms": float(np.min(times))}
 
 
 def observations(policy: Policy, n: int, cameras: int) -> list[dict]:
@@ -117,13 +108,16 @@ def main() -> int:
     def call():
         return engine.sample_packed(packed, noise, args.steps, cams, bucket)
 
+    engine_t = timed(call, args.iters, args.warmup)
     engine_actions = np.asarray(call())[0]
+
+    i = iter(range(10**9))
+    policy_t = timed(lambda: policy.infer(obs[next(i) % len(obs)])["actions"], args.iters, args.warmup)
     got = policy.infer(obs[0], noise=prepared.noise)["actions"]
     want = normalizer.unnormalize(nz.ACTIONS, engine_actions[:, : policy.action_dims]) if normalizer.stats else \
         engine_actions[:, : policy.action_dims]
     rel = float(np.linalg.norm(got - want) / np.linalg.norm(want))
-    i = iter(range(10**9))
-    calls = {"engine_alone": call, "policy_infer": lambda: policy.infer(obs[next(i) % len(obs)])["actions"]}
+    rows = {"engine_alone": engine_t, "policy_infer": policy_t}
     # Policy's compiled call alone, on the host arrays `Policy._run_group` makes for obs[0]: with them already on the
     # device (its programs against the engine's), then as numpy with the actions copied back (the transfers)
     n = prompt_bucket(prepared.valid_tokens, config.max_token_len)
@@ -131,51 +125,52 @@ def main() -> int:
             prepared.tokens[None, :n], prepared.token_mask[None, :n], prepared.state[None], prepared.noise[None])
     policy_call = policy.executable(host, prepared.cameras)
     on_device = jax.device_put(host)
-    calls["policy_call_device_inputs"] = lambda: policy_call(policy._norm, *on_device)
-    calls["policy_call_numpy"] = lambda: np.asarray(policy_call(policy._norm, *host))
+    rows["policy_call_device_inputs"] = timed(lambda: policy_call(policy._norm, *on_device), args.iters, args.warmup)
+    rows["policy_call_numpy"] = timed(lambda: np.asarray(policy_call(policy._norm, *host)), args.iters, args.warmup)
     # which inputs' transfers cost: the images (the vision program's, at the call's start) or the small arrays (the
     # prefix program's, dispatched while the GPU runs the tower)
-    calls["policy_call_images_on_device"] = lambda: np.asarray(policy_call(policy._norm, on_device[0], *host[1:]))
-    calls["policy_call_rest_on_device"] = lambda: np.asarray(policy_call(policy._norm, host[0], *on_device[1:]))
-
+    rows["policy_call_images_on_device"] = timed(lambda: np.asarray(policy_call(policy._norm, on_device[0], *host[1:])),
+                                                 args.iters, args.warmup)
+    rows["policy_call_rest_on_device"] = timed(lambda: np.asarray(policy_call(policy._norm, host[0], *on_device[1:])),
+                                               args.iters, args.warmup)
+    # where the transfers' time goes: the actions' copy back alone; that copy queued behind the call at its dispatch;
+    # the inputs as one host buffer (one transfer, unpacked on the device by a program of its own)
     # Policy.infer's steps one by one on top of the compiled call: the host arrays rebuilt from a fresh `prepare`
-    # (its state and noise are new arrays each time), then `Policy._run_group` (`Policy.run` without its result dicts)
+    # (its state and noise are new arrays each time), then `Policy.run` without its result dicts
     def rebuilt(p):
         return (tuple(p.images[c][None] for c in p.cameras), np.ones((len(p.cameras), 1), bool), p.tokens[None, :n],
                 p.token_mask[None, :n], p.state[None], p.noise[None])
 
-    calls["policy_call_prepared_each_call"] = lambda: np.asarray(policy_call(policy._norm,
-                                                                             *rebuilt(policy.prepare(obs[0]))))
-    calls["policy_run_group"] = lambda: policy._run_group([policy.prepare(obs[0])])[0]
-
+    rows["policy_call_prepared_each_call"] = timed(
+        lambda: np.asarray(policy_call(policy._norm, *rebuilt(policy.prepare(obs[0])))), args.iters, args.warmup)
     # which fresh inputs cost (a robot's frames are new buffers each call): new view objects of the same frames, new
     # copies of the small arrays, new copies of the frames (the copies' own host time is in `host_copies`)
     def fresh(images, small):
         return (tuple(x[0][None] if images == "views" else x.copy() if images == "copies" else x for x in host[0]),
                 *(x.copy() if small else x for x in host[1:]))
 
-    calls["host_copies"] = lambda: fresh("copies", True)
+    rows["host_copies"] = timed(lambda: fresh("copies", True), args.iters, args.warmup)
     for images, small in (("views", False), ("same", True), ("copies", False), ("copies", True)):
-        calls[f"policy_call_fresh_images_{images}_small_{'copies' if small else 'same'}"] = (
-            lambda images=images, small=small: np.asarray(policy_call(policy._norm, *fresh(images, small))))
+        rows[f"policy_call_fresh_images_{images}_small_{'copies' if small else 'same'}"] = timed(
+            lambda: np.asarray(policy_call(policy._norm, *fresh(images, small))), args.iters, args.warmup)
+    rows["policy_run_group"] = timed(lambda: policy._run_group([policy.prepare(obs[0])])[0], args.iters, args.warmup)
     # the images as one array a camera (today's call) against one array of all cameras, into a program that only
     # reads them: what a transfer costs at the call's start
-    stacked = np.stack(host[0])
+    cams = host[0]
+    stacked = np.stack(cams)
     touch = jax.jit(lambda *xs: sum(x[..., :1, :1, :].astype(jnp.float32).sum() for x in xs))
-    calls["images_one_array_a_camera"] = lambda: touch(*host[0])
-    calls["images_one_array"] = lambda: touch(stacked)
-    calls["images_on_device"] = lambda: touch(*on_device[0])
-
-    # where the transfers' time goes: the actions' copy back alone; that copy queued behind the call at its dispatch;
-    # the inputs as one host buffer (one transfer, unpacked on the device by a program of its own)
-    calls["policy_call_device_inputs_copy_back"] = lambda: np.asarray(policy_call(policy._norm, *on_device))
+    rows["images_one_array_a_camera"] = timed(lambda: touch(*cams), args.iters, args.warmup)
+    rows["images_one_array"] = timed(lambda: touch(stacked), args.iters, args.warmup)
+    rows["images_on_device"] = timed(lambda: touch(*on_device[0]), args.iters, args.warmup)
+    rows["policy_call_device_inputs_copy_back"] = timed(lambda: np.asarray(policy_call(policy._norm, *on_device)),
+                                                        args.iters, args.warmup)
 
     def queued(*inputs):
         out = policy_call(policy._norm, *inputs)
         out.copy_to_host_async()
         return np.asarray(out)
 
-    calls["policy_call_numpy_copy_queued"] = lambda: queued(*host)
+    rows["policy_call_numpy_copy_queued"] = timed(lambda: queued(*host), args.iters, args.warmup)
     leaves, tree = jax.tree.flatten(host)
     flat = [np.ascontiguousarray(x).reshape(-1).view(np.uint8) for x in leaves]
     ends = np.cumsum([0] + [f.size for f in flat])
@@ -188,12 +183,8 @@ def main() -> int:
         buf = np.concatenate(flat)
         return queued(*unpack(buf))
 
-    calls["policy_call_one_transfer"] = one_transfer
+    rows["policy_call_one_transfer"] = timed(one_transfer, args.iters, args.warmup)
     assert np.array_equal(one_transfer(), np.asarray(policy_call(policy._norm, *host)))
-    # one call of each a round, in turns (`profile_engine.round_robin`): a machine's drift during the run moves every
-    # row alike
-    rows = {k: summary(t) for k, t in profile_engine.round_robin(calls, args.iters, args.warmup).items()}
-    engine_t, policy_t = rows["engine_alone"], rows["policy_infer"]
     if args.batch:
         batch_obs = [obs[k % len(obs)] for k in range(args.batch)]
         rows[f"infer_batch_{args.batch}"] = timed(lambda: policy.infer_batch(batch_obs)[-1]["actions"], args.iters,
