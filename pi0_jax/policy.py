@@ -117,6 +117,7 @@ class PolicyCore:
         if params is None:   # the transforms alone (`preprocess`, tokenisation)
             self.model = None
         elif sampler == "engine":
+            runtime.check_allocator()
             self._sched_params = weights_lib.schedule_params(config, params)
             self.model = {"weights": engine_weights(config, params, unroll=self.unroll, kernels=kernels),
                           "sched": jax.jit(weights_lib.precompute_schedule, static_argnums=(0, 2))(

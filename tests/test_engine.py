@@ -475,6 +475,29 @@ def test_gemm_library_per_program():
         matmul.library(plain, "triton", platform="gpu")
 
 
+def test_a_slow_gpu_allocator_is_named_in_a_warning(monkeypatch):
+    """XLA_PYTHON_CLIENT_ALLOCATOR=vmm or platform slows every call (measured on an H200): on a GPU the engine says
+    so, naming the allocator; jax's default allocator, or any allocator off a GPU, passes without a word."""
+    import warnings
+
+    from pi0_jax.engine import runtime
+
+    for allocator in ("vmm", "Platform"):
+        monkeypatch.setenv("XLA_PYTHON_CLIENT_ALLOCATOR", allocator)
+        with pytest.warns(RuntimeWarning, match=f"XLA_PYTHON_CLIENT_ALLOCATOR={allocator.lower()}: .* slower"):
+            assert runtime.check_allocator("gpu") == allocator.lower()
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            assert runtime.check_allocator("cpu") is None
+    for allocator in ("bfc", "default", ""):
+        monkeypatch.setenv("XLA_PYTHON_CLIENT_ALLOCATOR", allocator)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            assert runtime.check_allocator("gpu") is None
+    monkeypatch.delenv("XLA_PYTHON_CLIENT_ALLOCATOR")
+    assert runtime.check_allocator("gpu") is None
+
+
 def test_no_recompilation_when_only_values_change(model, monkeypatch):
     """New input values reuse the call's programs, and a call after the first does not walk the weights to choose
     them (`Engine.call_programs`: the walk cost the host 0.12 ms before every call's first kernel)."""

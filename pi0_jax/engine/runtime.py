@@ -22,6 +22,7 @@ import dataclasses
 import functools
 import os
 import time
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -101,6 +102,26 @@ def default_cache_dir() -> Path:
     return Path(os.environ.get("PI0_JAX_CACHE_DIR", Path.home() / ".cache" / "pi0_jax" / "xla"))
 
 
+# jax's GPU allocators under which the engine's calls run much slower (π0's `Policy.infer` at B = 1, 10 steps on an
+# H200: 14.6 ms with the default BFC allocator): "vmm" moves every program's buffers each call, so XLA re-records
+# their CUDA graphs first (16-19 ms); "platform" allocates and frees each buffer through the driver (26 ms; CUDA's
+# free synchronises with the device, the likely cause, not traced). docs/BENCHMARKS.md, session 50.
+SLOW_ALLOCATORS = {"vmm": "16-19 ms", "platform": "26 ms"}
+
+
+def check_allocator(platform: str | None = None) -> str | None:
+    """Warn (once per process and value, `warnings`' default) where `XLA_PYTHON_CLIENT_ALLOCATOR` names an allocator
+    the engine's calls are slow under, on a GPU; -> the allocator warned about, or None."""
+    allocator = os.environ.get("XLA_PYTHON_CLIENT_ALLOCATOR", "").strip().lower()
+    if allocator not in SLOW_ALLOCATORS or (platform or jax.default_backend()) != "gpu":
+        return None
+    warnings.warn(f"XLA_PYTHON_CLIENT_ALLOCATOR={allocator}: the engine's calls are much slower under this allocator "
+                  f"(π0 Policy.infer on an H200: {SLOW_ALLOCATORS[allocator]} against 14.6 ms with jax's default; "
+                  "pi0-jax docs/BENCHMARKS.md, session 50). Unset it unless you need it.", RuntimeWarning,
+                  stacklevel=3)
+    return allocator
+
+
 def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path:
     """Turn on XLA's persistent compilation cache at `path` (default: $PI0_JAX_CACHE_DIR or ~/.cache/pi0_jax/xla)."""
     path = Path(path) if path is not None else default_cache_dir()
@@ -168,6 +189,7 @@ class Engine:
         self.kernels = programs.check_kernels(kernels)
         self.gemm = matmul.check_gemm(gemm)
         self.overlap = programs.check_overlap(overlap)
+        check_allocator()
         if cache_dir is not False:
             self.cache_dir = enable_compilation_cache(None if cache_dir in (None, True) else cache_dir)
         self.store = ProgramStore(self.cache_dir / "programs" if cache_dir is not False else None)
