@@ -121,6 +121,12 @@ STEP_SWEEPS = {
     "kv_splits": {"default": {}, "kv splits 7": dict(kv_splits=7), "kv splits 10": dict(kv_splits=10),
                   "kv splits 16": dict(kv_splits=16), "kv 32 splits 13": dict(kv=32),
                   "kv 32 splits 26": dict(kv=32, kv_splits=26), "attention warps 4": dict(attention_warps=4)},
+    # π0.5 with a 200-token prompt (run it with --presets pi05_base first): 1,024 prefix keys are 16 blocks of 64, so
+    # the default 13 splits take two blocks each in 8 programs and leave 5 empty (session 50)
+    "kv_splits_long": {"default": {}, "kv splits 8": dict(kv_splits=8), "kv splits 16": dict(kv_splits=16),
+                       "kv splits 16 w4": dict(kv_splits=16, attention_warps=4),
+                       "kv 32 splits 32": dict(kv=32, kv_splits=32),
+                       "kv 32 splits 32 s2 w4": dict(kv=32, kv_splits=32, attention_stages=2, attention_warps=4)},
 }
 
 
