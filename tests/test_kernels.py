@@ -136,6 +136,21 @@ def test_attention_matches_xla_with_masked_camera_and_padded_prompt(pi05):
         assert not np.allclose(_pallas_attention(q, k, v, ck, cv, pmask, _suffix_mask(True)), want, **TOL)
 
 
+def test_the_attention_launches_no_split_past_the_cache(monkeypatch):
+    """The prefix's key blocks are shared out so that no split is empty: 6 blocks of 32 keys asked into 4 splits run
+    as 3 splits of 2 (and the suffix's part), 16 blocks into 13 as 8 of 2 (π0.5's 1,024 prefix keys)."""
+    assert [ek.key_splits(n, s) for n, s in ((16, 13), (13, 13), (6, 4), (6, 3), (6, 1), (2, 13), (0, 13))] == [
+        (8, 2), (13, 1), (3, 2), (3, 2), (1, 6), (2, 1), (1, 1)]
+    parts = []
+    own_merge = ek.merge
+    monkeypatch.setattr(ek, "merge", lambda o, lse, *, parts_=parts, **kw: parts_.append(kw["parts"]) or own_merge(
+        o, lse, **kw))
+    q, k, v, ck, cv, pmask, smask = _attention_inputs(False)
+    want = layers._attend(q, [ck, k], [cv, v], [jnp.broadcast_to(pmask[:, None], (B, S, P)), smask], jnp.float32)
+    np.testing.assert_allclose(_pallas_attention(q, k, v, ck, cv, pmask, smask, 4), want, **TOL)
+    assert parts == [3 + 1]
+
+
 @pytest.mark.parametrize("pi05", [False, True])
 def test_xla_experts_call_of_the_attention_kernel_folds_query_heads(pi05, monkeypatch):
     """`layers._attend_kernel` (the XLA expert on the kernel) with a kv head's 4 query heads folded into its rows

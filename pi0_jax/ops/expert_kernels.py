@@ -336,6 +336,16 @@ def attention(qkv, cache_k, cache_v, prefix_mask, suffix_mask, *, batch: int, nu
                         num_kv_heads, kv_cols, blocks)
 
 
+def key_splits(key_blocks: int, wanted: int) -> tuple[int, int]:
+    """(splits, key blocks a split) for the prefix's key blocks shared out over at most `wanted` splits: each split
+    takes the same count and none lies wholly past the cache. π0.5's 200-token prompt makes 1,024 prefix keys, 16
+    blocks: asked into 13 splits they run as 8 of 2 blocks, not 8 of 2 and 5 empty programs whose parts the merge
+    reads too (its 10-step denoise 0.9-1.8 % faster on an H200, bit-equal: docs/BENCHMARKS.md, session 50)."""
+    key_blocks = max(1, key_blocks)
+    per_split = -(-key_blocks // max(1, min(wanted, key_blocks)))
+    return -(-key_blocks // per_split), per_split
+
+
 def _attention(q, kv, cache_k, cache_v, prefix_mask, suffix_mask, batch, num_heads, num_kv_heads, kv_cols, blocks):
     (m, sk), hd = suffix_mask.shape, (kv_cols[1] - kv_cols[0]) // num_kv_heads
     sq, pp = m // batch, prefix_mask.shape[1]
@@ -347,8 +357,7 @@ def _attention(q, kv, cache_k, cache_v, prefix_mask, suffix_mask, batch, num_hea
                                             splits=blocks.kv_splits + 1)   # the Triton kernel's parts
     else:
         bq, bkv = fit(blocks.q, sq), fit(blocks.kv, pp)
-        splits = max(1, min(blocks.kv_splits, pp // bkv))
-        per_split = -(-(pp // bkv) // splits)
+        splits, per_split = key_splits(pp // bkv, blocks.kv_splits)
         kernel = functools.partial(_attention_kernel, m=m, bq=bq, bkv=bkv, sq=sq, sk=sk, pp=pp, hd=hd,
                                    num_heads=num_heads, num_kv_heads=num_kv_heads, splits=splits,
                                    per_split=per_split, kv_cols=kv_cols)
