@@ -124,6 +124,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of weights and inputs")
 
 
+def fp8_params(config: Pi0Config, params: dict, scheme: str, *, seed: int = 0, num_steps: int = 10) -> dict:
+    """`params` in FP8 by `scheme`, calibrated on 4 sample observations (static scales), as --quant does."""
+    from pi0_jax.quant import schemes
+
+    stats = schemes.calibrate(config, params, schemes.sample_observations(config, 4, seed=seed), scheme,
+                              percentile=None, num_steps=num_steps)
+    return schemes.quantize_params(params, scheme, stats["amax"])
+
+
 def make_inputs(config: Pi0Config, batch: int, cameras: int, prompt_tokens: int, seed: int):
     rng = np.random.default_rng(seed)
     s, keys = config.image_size, IMAGE_KEYS[: config.num_cameras]
@@ -390,11 +399,7 @@ def run(args: argparse.Namespace, save=None) -> dict:
             config = get_config(args.preset, dtype=dtype)
             params = random_params(config, args.seed)
         if args.quant:
-            from pi0_jax.quant import schemes
-
-            stats = schemes.calibrate(config, params, schemes.sample_observations(config, 4, seed=args.seed),
-                                      args.quant, percentile=None, num_steps=max(args.steps))
-            params = schemes.quantize_params(params, args.quant, stats["amax"])
+            params = fp8_params(config, params, args.quant, seed=args.seed, num_steps=max(args.steps))
         engine = Engine(config, params, unroll=not args.no_unroll, unroll_steps=args.unroll_steps,
                         attention=args.attention, kernels=args.kernels, gemm=args.gemm, overlap=args.overlap,
                         cache_dir=cache_dir)

@@ -29,7 +29,6 @@ import profile_engine  # noqa: E402
 from pi0_jax import benchmark  # noqa: E402
 from pi0_jax.config import get_config  # noqa: E402
 from pi0_jax.engine import Engine, programs, runtime, vision  # noqa: E402
-from pi0_jax.quant import schemes  # noqa: E402
 from pi0_jax.quant.schemes import SCHEMES  # noqa: E402
 
 GRAPHS = {"xla_gpu_graph_min_graph_size": 1}
@@ -130,9 +129,7 @@ def main() -> None:
     config = get_config(args.preset, dtype="bfloat16")
     params = benchmark.random_params(config, 0)
     if args.quant:
-        stats = schemes.calibrate(config, params, schemes.sample_observations(config, 4, seed=0), args.quant,
-                                  percentile=None, num_steps=args.steps)
-        params = schemes.quantize_params(params, args.quant, stats["amax"])
+        params = benchmark.fp8_params(config, params, args.quant, num_steps=args.steps)
     report = {"preset": args.preset, "quant": args.quant, "env": benchmark.environment(), "rows": []}
     own_options, own_embed, own_concurrent = runtime.matmul.compiler_options, vision.patch_embed, programs.CONCURRENT
     own_ends = {k: getattr(programs, k) for k in ("FOLD_ACTION_IN",)}
@@ -145,8 +142,8 @@ def main() -> None:
             only = name.split("-")[0] if name.startswith(("vision-", "prefix-", "vhead-", "loop-")) else None
 
             def applies(tree, vision_tower=False, only=only):
-                head = vision_tower and isinstance(tree, dict) and "embedding" in tree.get("img", {})
                 keys = tree if isinstance(tree, dict) else {}
+                head = vision_tower and "embedding" in keys.get("img", {})
                 return (only is None or (only == "vision" and vision_tower) or (only == "vhead" and head)
                         or (only == "prefix" and "vlm" in keys) or (only == "loop" and "expert" in keys
                                                                      and "vlm" not in keys))

@@ -133,8 +133,6 @@ def main() -> int:
                                                  args.iters, args.warmup)
     rows["policy_call_rest_on_device"] = timed(lambda: np.asarray(policy_call(policy._norm, host[0], *on_device[1:])),
                                                args.iters, args.warmup)
-    # where the transfers' time goes: the actions' copy back alone; that copy queued behind the call at its dispatch;
-    # the inputs as one host buffer (one transfer, unpacked on the device by a program of its own)
     # Policy.infer's steps one by one on top of the compiled call: the host arrays rebuilt from a fresh `prepare`
     # (its state and noise are new arrays each time), then `Policy.run` without its result dicts
     def rebuilt(p):
@@ -162,6 +160,8 @@ def main() -> int:
     rows["images_one_array_a_camera"] = timed(lambda: touch(*cams), args.iters, args.warmup)
     rows["images_one_array"] = timed(lambda: touch(stacked), args.iters, args.warmup)
     rows["images_on_device"] = timed(lambda: touch(*on_device[0]), args.iters, args.warmup)
+    # where the transfers' time goes: the actions' copy back alone; that copy queued behind the call at its dispatch;
+    # the inputs as one host buffer (one transfer, unpacked on the device by a program of its own)
     rows["policy_call_device_inputs_copy_back"] = timed(lambda: np.asarray(policy_call(policy._norm, *on_device)),
                                                         args.iters, args.warmup)
 

@@ -351,9 +351,7 @@ def main() -> None:
     config = get_config(args.preset, dtype=args.dtype)
     params = benchmark.random_params(config, 0)
     if args.quant:
-        stats = schemes.calibrate(config, params, schemes.sample_observations(config, 4, seed=0), args.quant,
-                                  percentile=None, num_steps=args.steps)
-        params = schemes.quantize_params(params, args.quant, stats["amax"])
+        params = benchmark.fp8_params(config, params, args.quant, num_steps=args.steps)
     obs, noise = benchmark.make_inputs(config, args.batch, args.cameras, args.prompt_tokens, 0)
     report = {"preset": args.preset, "batch": args.batch, "steps": args.steps, "quant": args.quant,
               "env": benchmark.environment(),
