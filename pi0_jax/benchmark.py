@@ -199,6 +199,15 @@ def source_digest(root: Path | None = None) -> str:
     return (store.source_digest() if root is None else store.tree_digest(root))[:12]
 
 
+def denoise_attention(engine: Engine, batch: int) -> str:
+    """Each stage's attention in a program of this batch, as it runs: where the Pallas expert runs the step (B <= 2 on
+    a GPU), its own split-key kernel ("pallas"), which `Attention.at_batch` leaves to the XLA expert's choice."""
+    attention = engine.attention.at_batch(batch, suffix_mask=not engine.config.pi05)
+    if engine.kernels_for(batch) == "pallas":
+        attention = dataclasses.replace(attention, denoise="pallas")
+    return str(attention)
+
+
 def bench_engine(engine: Engine, args, batch: int) -> list[dict]:
     cfg = engine.config
     sets = [make_inputs(cfg, batch, args.cameras, args.prompt_tokens, args.seed + i) for i in range(args.input_sets)]
@@ -218,16 +227,15 @@ def bench_engine(engine: Engine, args, batch: int) -> list[dict]:
         t_den = time_calls(lambda c, p, n: den(w, sched, c, p[4], n),
                            [(c, p, n) for c, p, (_, n) in zip(caches, packed, sets)], args.iters, args.warmup)
         row = {"dtype": cfg.dtype, "batch": batch, "steps": steps, "cameras": len(cameras), "prompt_bucket": bucket,
-               "attention": str(engine.attention.at_batch(batch, suffix_mask=not cfg.pi05)),
-               "kernels": engine.kernels_for(batch), "vision_norm": vision_norm(engine.kernels, batch * len(cameras)),
+               "attention": denoise_attention(engine, batch), "kernels": engine.kernels_for(batch), "vision_norm": vision_norm(engine.kernels, batch * len(cameras)),
                "gemm": engine.gemm,
                "gemm_library": {s: engine.gemm_library(s, batch) for s in engine.call_stages(batch, steps)},
                "overlap": engine.overlaps(batch), "call_stages": list(engine.call_stages(batch, steps)),
                "vision": t_vis, "prefix": t_pre, "denoise": t_den,
                "denoise_per_step_ms": t_den["median_ms"] / steps}
-        if row["kernels"] == "xla" and "denoise=pallas" in row["attention"]:   # the XLA expert on the kernel attention
-            launch = expert_kernels.blocks_at(batch)
-            row["denoise_attention_launch"] = {k: getattr(launch, k) for k in ("kv_splits", "attention_warps", "fold")}
+        if "denoise=pallas" in row["attention"]:   # the Pallas expert's, or the XLA expert's on the kernel attention
+            launch = expert_kernels.default_blocks() if row["kernels"] == "pallas" else expert_kernels.blocks_at(batch)
+            row["denoise_attention_launch"] = expert_kernels.attention_launch(launch, caches[0].mask.shape[-1])
         if args.fused_steps is None or steps in args.fused_steps:
             row["total"] = time_calls(lambda p, n: engine.sample_packed(p, n, steps, cameras, bucket),
                                       [(p, n) for p, (_, n) in zip(packed, sets)], args.iters, args.warmup)

@@ -346,6 +346,15 @@ def key_splits(key_blocks: int, wanted: int) -> tuple[int, int]:
     return -(-key_blocks // per_split), per_split
 
 
+def attention_launch(blocks: Blocks, prefix_keys: int) -> dict:
+    """The Triton attention's launch over a cache of `prefix_keys` (its kernel layout's padded length), as `_attention`
+    makes it: the key splits asked for, the splits and key blocks a split it runs (`key_splits`), for a JSON."""
+    bkv = fit(blocks.kv, prefix_keys)
+    splits, per_split = key_splits(prefix_keys // bkv, blocks.kv_splits)
+    return {"kv_splits": blocks.kv_splits, "splits": splits, "key_blocks_per_split": per_split, "kv_block": bkv,
+            "attention_warps": blocks.attention_warps, "fold": blocks.fold, "mosaic": blocks.mosaic_attention}
+
+
 def _attention(q, kv, cache_k, cache_v, prefix_mask, suffix_mask, batch, num_heads, num_kv_heads, kv_cols, blocks):
     (m, sk), hd = suffix_mask.shape, (kv_cols[1] - kv_cols[0]) // num_kv_heads
     sq, pp = m // batch, prefix_mask.shape[1]
