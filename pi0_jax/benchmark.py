@@ -35,7 +35,7 @@ from pi0_jax import pi0
 from pi0_jax.pi0 import random_params
 from pi0_jax.config import IMAGE_KEYS, PRESETS, Pi0Config, get_config
 from pi0_jax.engine import Engine, store
-from pi0_jax.engine.programs import KERNELS, OVERLAPS, attention_spec, vision_norm
+from pi0_jax.engine.paths import KERNELS, OVERLAPS, attention_spec, vision_norm
 from pi0_jax.ops import expert_kernels, formats, pallas_base
 from pi0_jax.ops.matmul import GEMMS
 from pi0_jax.quant.schemes import SCHEMES
@@ -227,7 +227,8 @@ def bench_engine(engine: Engine, args, batch: int) -> list[dict]:
         t_den = time_calls(lambda c, p, n: den(w, sched, c, p[4], n),
                            [(c, p, n) for c, p, (_, n) in zip(caches, packed, sets)], args.iters, args.warmup)
         row = {"dtype": cfg.dtype, "batch": batch, "steps": steps, "cameras": len(cameras), "prompt_bucket": bucket,
-               "attention": denoise_attention(engine, batch), "kernels": engine.kernels_for(batch), "vision_norm": vision_norm(engine.kernels, batch * len(cameras)),
+               "attention": denoise_attention(engine, batch), "kernels": engine.kernels_for(batch),
+               "vision_norm": vision_norm(engine.kernels, batch * len(cameras)),
                "gemm": engine.gemm,
                "gemm_library": {s: engine.gemm_library(s, batch) for s in engine.call_stages(batch, steps)},
                "overlap": engine.overlaps(batch), "call_stages": list(engine.call_stages(batch, steps)),
@@ -277,7 +278,7 @@ t0 = time.perf_counter()
 from pi0_jax import benchmark
 from pi0_jax.config import get_config
 from pi0_jax.engine import Engine
-from pi0_jax.engine.programs import attention_spec
+from pi0_jax.engine.paths import attention_spec
 cfg = get_config(sys.argv[1], dtype=sys.argv[2])
 params = benchmark.random_params(cfg, 0)
 engine = Engine(cfg, params, unroll=sys.argv[4] == "1", kernels=sys.argv[8], attention=sys.argv[9],

@@ -40,7 +40,7 @@ import numpy as np
 # scripts/ is on the path when this runs as a script
 from profile_engine import kernel_times, probe_arguments, probe_engine, round_robin, write_json
 
-from pi0_jax.engine.programs import CONCURRENT
+from pi0_jax.engine.paths import CONCURRENT
 from pi0_jax.engine.runtime import Program
 from pi0_jax.engine.store import shapes
 from pi0_jax.ops import matmul

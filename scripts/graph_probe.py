@@ -28,7 +28,7 @@ import profile_engine  # noqa: E402
 
 from pi0_jax import benchmark  # noqa: E402
 from pi0_jax.config import get_config  # noqa: E402
-from pi0_jax.engine import Engine, programs, runtime, vision  # noqa: E402
+from pi0_jax.engine import Engine, paths, programs, runtime, vision  # noqa: E402
 from pi0_jax.quant.schemes import SCHEMES  # noqa: E402
 
 GRAPHS = {"xla_gpu_graph_min_graph_size": 1}
@@ -131,7 +131,7 @@ def main() -> None:
     if args.quant:
         params = benchmark.fp8_params(config, params, args.quant, num_steps=args.steps)
     report = {"preset": args.preset, "quant": args.quant, "env": benchmark.environment(), "rows": []}
-    own_options, own_embed, own_concurrent = runtime.matmul.compiler_options, vision.patch_embed, programs.CONCURRENT
+    own_options, own_embed, own_concurrent = runtime.matmul.compiler_options, vision.patch_embed, paths.CONCURRENT
     own_ends = {k: getattr(programs, k) for k in ("FOLD_ACTION_IN",)}
     own_split = runtime.VISION_SPLIT
     for batch in args.batch or [1]:
@@ -152,7 +152,7 @@ def main() -> None:
                 lambda *a, o=extra, f=applies, **kw: {**(own_options(*a, **kw) or {}),
                                                       **(o if f(a[0], kw.get("vision_tower", False)) else {})} or None)
             vision.patch_embed = conv_patch_embed if name == "conv" else own_embed
-            programs.CONCURRENT = SCHEDULING.get(name, own_concurrent)
+            paths.CONCURRENT = SCHEDULING.get(name, own_concurrent)
             for k, v in {**own_ends, **STEP_ENDS.get(name, {})}.items():
                 setattr(programs, k, v)
             runtime.VISION_SPLIT = RUNTIME.get(name, {}).get("VISION_SPLIT", own_split)
@@ -197,7 +197,7 @@ def main() -> None:
             rows.append(row)
             timed.update({(name, stage): fn for stage, fn in calls.items()})
         runtime.matmul.compiler_options, vision.patch_embed = own_options, own_embed
-        programs.CONCURRENT, runtime.VISION_SPLIT = own_concurrent, own_split
+        paths.CONCURRENT, runtime.VISION_SPLIT = own_concurrent, own_split
         for k, v in own_ends.items():
             setattr(programs, k, v)
         times = profile_engine.round_robin(timed, args.iters)

@@ -70,7 +70,7 @@ def main() -> int:
     p.add_argument("--warmup", type=int, default=3, help="untimed calls first (default: %(default)s)")
     p.add_argument("--overlap", choices=("auto", "on", "off"), default="auto",
                    help="the first denoise step beside the prefix fill, in the policy and the engine alike "
-                        "(`programs.first_step_overlap`; default: %(default)s)")
+                        "(`paths.first_step_overlap`; default: %(default)s)")
     p.add_argument("--copy-back-ab", action="store_true",
                    help="also time, in turns, a Policy whose actions are copied back after the call instead of by its "
                         "last program (`policy._to_host`)")

@@ -35,7 +35,7 @@ import numpy as np
 
 from pi0_jax import benchmark
 from pi0_jax.config import get_config
-from pi0_jax.engine import Engine, programs
+from pi0_jax.engine import Engine, paths
 from pi0_jax.ops import expert_kernels, matmul, pallas_base
 from pi0_jax.quant import schemes
 
@@ -306,7 +306,7 @@ def main() -> None:
     p.add_argument("--prompt-tokens", type=int, default=20)
     p.add_argument("--no-unroll", action="store_true")
     p.add_argument("--unroll-steps", action="store_true")
-    p.add_argument("--kernels", choices=programs.KERNELS, action="append", default=None,
+    p.add_argument("--kernels", choices=paths.KERNELS, action="append", default=None,
                    help="Engine's `kernels` (the expert's layers: XLA, Pallas, or auto by batch size); repeat it to "
                         "compare, like --attention (default: auto)")
     p.add_argument("--attention", action="append", default=None,
@@ -315,7 +315,7 @@ def main() -> None:
     p.add_argument("--gemm", choices=matmul.GEMMS, action="append", default=None,
                    help="the library of XLA's GEMMs on a GPU (Engine's `gemm`); repeat it to compare (default: auto)")
     p.add_argument("--vision-norm", choices=("auto", "xla", "pallas"), action="append", default=None,
-                   help="SigLIP's LayerNorm (`programs.vision_norm`; auto: as the kernels choose); repeat it to "
+                   help="SigLIP's LayerNorm (`paths.vision_norm`; auto: as the kernels choose); repeat it to "
                         "compare (default: auto)")
     p.add_argument("--triton", choices=("on", "off"), action="append", default=None,
                    help="off: trace the variant's programs as on a jax without Pallas's Triton backend "
@@ -357,7 +357,7 @@ def main() -> None:
               "env": benchmark.environment(),
               "variants": []}
     outputs, timed = {}, []
-    vision_norm = programs.vision_norm
+    vision_norm = paths.vision_norm
     has_triton, default_blocks = pallas_base.TRITON, expert_kernels.default_blocks
     for attention, kernels, gemm, norm, triton, blocks in itertools.product(
             args.attention or ["auto"], args.kernels or ["auto"], args.gemm or ["auto"], args.vision_norm or ["auto"],
@@ -366,14 +366,14 @@ def main() -> None:
         expert_kernels.default_blocks = lambda fields=json.loads(blocks): expert_kernels.Blocks.from_dict(
             dataclasses.asdict(default_blocks()) | fields)
         # the programs are traced below, inside this variant: its LayerNorm choice holds for all of them
-        programs.vision_norm = vision_norm if norm == "auto" else (lambda kernels, images, platform=None, n=norm: n)
+        paths.vision_norm = vision_norm if norm == "auto" else (lambda kernels, images, platform=None, n=norm: n)
         engine = Engine(config, params, unroll=not args.no_unroll, unroll_steps=args.unroll_steps,
                         kernels=kernels, attention=attention, gemm=gemm, cache_dir=False)
         cameras, bucket = engine.plan(obs)
         packed = engine.pack(obs, cameras, bucket)
         var = {"attention": str(engine.attention), "kernels": engine.kernels_for(args.batch), "gemm": gemm,
                "triton": pallas_base.TRITON, "blocks": json.loads(blocks),
-               "vision_norm": programs.vision_norm(kernels, args.batch * len(cameras)),
+               "vision_norm": paths.vision_norm(kernels, args.batch * len(cameras)),
                "counts": {}, "median_ms": {}, "trace": {}}
         print(f"== attention {var['attention']}, kernels {var['kernels']}, gemm {gemm}, vision norm "
               f"{var['vision_norm']}, triton {triton}, blocks {blocks}", flush=True)
@@ -419,7 +419,7 @@ def main() -> None:
                 for _ in range(3):
                     jax.block_until_ready(fn())
         del engine
-    programs.vision_norm = vision_norm
+    paths.vision_norm = vision_norm
     pallas_base.TRITON, expert_kernels.default_blocks = has_triton, default_blocks
     if args.time:   # round-robin: one call of each variant's stage per round, so drift hits all variants alike;
         # the order flips every round: a program timed right after another runs 1-3 % slower (docs/BENCHMARKS.md)

@@ -36,7 +36,7 @@ from profile_engine import count_ops, kernel_times  # noqa: E402
 
 from pi0_jax import benchmark  # noqa: E402
 from pi0_jax.config import get_config  # noqa: E402
-from pi0_jax.engine import programs, weights as weights_lib  # noqa: E402
+from pi0_jax.engine import paths, programs, weights as weights_lib  # noqa: E402
 from pi0_jax.ops import layer_norm, matmul, vision_attention  # noqa: E402
 from pi0_jax.quant import schemes  # noqa: E402
 
@@ -57,7 +57,7 @@ def new_encoder(config, img: dict, attention: str = "cudnn", blocks: vision_atte
     place of their defaults."""
     w = weights_lib.vision_weights(img, jnp.dtype(config.dtype))
     w["blocks"] = weights_lib.unstack(w["blocks"], config.siglip.depth)
-    spec = programs.Attention(vision=attention)
+    spec = paths.Attention(vision=attention)
 
     def run(w, x):
         kernels = vision_attention.attention, layer_norm.layer_norm
@@ -82,7 +82,7 @@ def main() -> None:
     p.add_argument("--pallas-blocks", action="append", default=[], metavar="Q,KV,WARPS,STAGES",
                    help="one more engine/pallas variant with these `ops.vision_attention.Blocks`; repeatable")
     p.add_argument("--norm", action="append", choices=("xla", "pallas"), default=None,
-                   help="the tower's LayerNorm (`programs.vision_norm`); repeat it to compare (default: xla)")
+                   help="the tower's LayerNorm (`paths.vision_norm`); repeat it to compare (default: xla)")
     p.add_argument("--norm-blocks", action="append", default=[], metavar="ROWS,COLS,WARPS",
                    help="one more engine/pallas variant with the Pallas LayerNorm and these `ops.layer_norm.Blocks` "
                         "(the first --attention's); repeatable")

@@ -89,7 +89,7 @@ def test_committed_actions_match_reference_and_come_back_exactly(model):
     """Training-time action conditioning: actions i < d ride clean at t = 0 (π0: the time-MLP input; π0.5: the
     per-token adaRMS modulation), the rest is sampled given them. The engine's denoise equals the reference sampler's,
     the committed actions come back bit for bit, and d = 0 is the plain sampler."""
-    from pi0_jax.engine import programs
+    from pi0_jax.engine import paths, programs
 
     config, params = model
     obs = make_obs(config)
@@ -117,7 +117,7 @@ def test_committed_actions_match_reference_and_come_back_exactly(model):
     # the committed actions condition the rest: the same noise without them samples something else
     assert np.abs(got[0, 3:] - plain[0, 3:]).max() > 1e-3
     # the XLA expert on the Pallas attention: its cache in the kernels' layout
-    attention = programs.Attention(denoise="pallas")
+    attention = paths.Attention(denoise="pallas")
     kernel = Engine(config, params, attention=attention, cache_dir=False)
     cache = kernel.executable("fill_prefix_cache", 2, 3, cameras, bucket)(w, image_tokens, image_masks, tokens,
                                                                            token_mask)
@@ -135,9 +135,9 @@ def test_fused_attention_matches_reference_with_holes_in_the_prefix(model, atten
     the prompts are padded to different lengths: without the move the lengths would cut valid keys. "denoise=auto"
     is the fused kernel from CUDNN_DENOISE_MIN_BATCH on: lowered to this test's batch of 2, the prefix fill must see
     it too (the move). π0's state token then runs once a call, its keys in the fused attention's first slot."""
-    from pi0_jax.engine import programs
+    from pi0_jax.engine import paths
 
-    monkeypatch.setattr(programs, "CUDNN_DENOISE_MIN_BATCH", 2)
+    monkeypatch.setattr(paths, "CUDNN_DENOISE_MIN_BATCH", 2)
     config, params = model
     obs = make_obs(config, valid_lens=(13, 21))
     noise = jax.random.normal(jax.random.key(1), (2, config.action_horizon, config.action_dim))
@@ -147,7 +147,7 @@ def test_fused_attention_matches_reference_with_holes_in_the_prefix(model, atten
     _, cache, staged = engine.run_stages(obs, jnp.array(noise), 3)
     np.testing.assert_allclose(staged, ref, rtol=1e-5, atol=1e-5)
     mask = np.asarray(cache.mask)
-    resolved = programs.Attention.parse(attention).at_batch(2, suffix_mask=not config.pi05)
+    resolved = paths.Attention.parse(attention).at_batch(2, suffix_mask=not config.pi05)
     moved = (np.diff(mask.astype(np.int8), axis=1) <= 0).all()  # valid keys first: each row one run from the front
     assert moved == ("cudnn" in (resolved.prefix, resolved.denoise))
     assert mask.sum(1).tolist() == [3 * 256 + 13, 2 * 256 + 21]
@@ -206,7 +206,7 @@ def test_choices_on_a_jax_without_pallas_triton(monkeypatch):
     that every lowering raises is filtered once a kernel is called on a GPU, and only that warning."""
     import warnings
 
-    from pi0_jax.engine import programs
+    from pi0_jax.engine import paths
     from pi0_jax.ops import expert_kernels as ek
     from pi0_jax.ops import pallas_base, vision_attention
 
@@ -214,12 +214,12 @@ def test_choices_on_a_jax_without_pallas_triton(monkeypatch):
             "import pi0_jax.benchmark, pi0_jax.engine, pi0_jax.policy\n"
             "from pi0_jax.ops import pallas_base\n"
             "assert not pallas_base.TRITON\n"
-            "print(pi0_jax.engine.programs.Attention.parse('auto', platform='gpu'))")
+            "print(pi0_jax.engine.paths.Attention.parse('auto', platform='gpu'))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "vision=cudnn,prefix=cudnn,denoise=auto"
 
     layers = [{k: jnp.zeros((4, 4)) for k in ("qkv", "attn_out", "gate_up", "down")}]
-    assert pallas_base.TRITON and programs.expert_path("auto", 1, layers, platform="gpu") == "pallas"
+    assert pallas_base.TRITON and paths.expert_path("auto", 1, layers, platform="gpu") == "pallas"
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
     with warnings.catch_warnings():
         pallas_base._quiet_deprecation.cache_clear()
@@ -233,57 +233,57 @@ def test_choices_on_a_jax_without_pallas_triton(monkeypatch):
     pallas_base._quiet_deprecation.cache_clear()
 
     monkeypatch.setattr(pallas_base, "TRITON", False)
-    auto = programs.Attention.parse("auto", platform="gpu")
-    assert auto.vision == "cudnn" and auto.prefix == programs.AUTO_GPU.prefix
+    auto = paths.Attention.parse("auto", platform="gpu")
+    assert auto.vision == "cudnn" and auto.prefix == paths.AUTO_GPU.prefix
     assert {auto.at_batch(b, suffix_mask=m).denoise for b in range(1, 65) for m in (True, False)} == {"xla", "cudnn"}
     for m in (True, False):   # π0 (its state token once a call) as π0.5: cuDNN's measured faster than XLA's from B = 3
         assert [auto.at_batch(b, suffix_mask=m).denoise for b in (2, 3)] == ["xla", "cudnn"]
-    monkeypatch.setattr(programs.mosaic_gemm, "hopper", lambda: True)   # the kernel attention on Mosaic GPU
-    for m, batches in ((True, programs.PALLAS_DENOISE_BATCHES_MASKED), (False, programs.PALLAS_DENOISE_BATCHES)):
+    monkeypatch.setattr(paths.mosaic_gemm, "hopper", lambda: True)   # the kernel attention on Mosaic GPU
+    for m, batches in ((True, paths.PALLAS_DENOISE_BATCHES_MASKED), (False, paths.PALLAS_DENOISE_BATCHES)):
         assert {b for b in range(1, 65) if auto.at_batch(b, suffix_mask=m).denoise == "pallas"} == set(batches)
-    monkeypatch.setattr(programs.mosaic_gemm, "hopper", lambda: False)
-    assert programs.expert_path("auto", 1, layers, platform="gpu") == "xla"   # f32: no Mosaic GPU kernel takes it
+    monkeypatch.setattr(paths.mosaic_gemm, "hopper", lambda: False)
+    assert paths.expert_path("auto", 1, layers, platform="gpu") == "xla"   # f32: no Mosaic GPU kernel takes it
     # bf16 on a Hopper GPU: the Pallas expert on its Mosaic GPU kernels alone (`expert_kernels.TRITON_FREE`)
     bf16 = [{k: v.astype(jnp.bfloat16) for k, v in layers[0].items()}]
     for hopper in (True, False):
-        monkeypatch.setattr(programs.mosaic_gemm, "hopper", lambda hopper=hopper: hopper)
-        assert programs.expert_path("auto", 1, bf16, platform="gpu") == ("pallas" if hopper else "xla")
-        assert programs.expert_path("auto", programs.PALLAS_MAX_BATCH + 1, bf16, platform="gpu") == "xla"
-        assert programs.expert_path("auto", 1, bf16[0], platform="gpu") == "xla"   # stacked (scanned) layers
+        monkeypatch.setattr(paths.mosaic_gemm, "hopper", lambda hopper=hopper: hopper)
+        assert paths.expert_path("auto", 1, bf16, platform="gpu") == ("pallas" if hopper else "xla")
+        assert paths.expert_path("auto", paths.PALLAS_MAX_BATCH + 1, bf16, platform="gpu") == "xla"
+        assert paths.expert_path("auto", 1, bf16[0], platform="gpu") == "xla"   # stacked (scanned) layers
     assert ek.default_blocks() == ek.TRITON_FREE
     assert all(getattr(ek.TRITON_FREE, f"mosaic_{g}") for g in ("qkv", "mlp", "out", "down", "attention"))
     assert ek.TRITON_FREE.xla_merge
-    assert programs.vision_norm("auto", 192, platform="gpu") == "xla"
+    assert paths.vision_norm("auto", 192, platform="gpu") == "xla"
     with pytest.raises(RuntimeError, match="'vision_attention' runs on Pallas's Triton backend"):
         vision_attention.attention(jnp.zeros((32, 48)), images=1, num_heads=1)
 
 
 def test_attention_and_kernel_choices(monkeypatch):
-    from pi0_jax.engine import guidance, programs
+    from pi0_jax.engine import guidance, paths
     from pi0_jax.ops import formats
 
-    A = programs.Attention
-    assert A.parse("auto", platform="cpu") == A() and A.parse("auto", platform="gpu") == programs.AUTO_GPU
+    A = paths.Attention
+    assert A.parse("auto", platform="cpu") == A() and A.parse("auto", platform="gpu") == paths.AUTO_GPU
     assert A.parse("auto", platform="gpu", dtype="float32") == A()  # cuDNN's flash kernel takes no float32
     assert A.parse("cudnn") == A("cudnn", "cudnn", "cudnn") and A.parse("prefix=cudnn") == A(prefix="cudnn")
-    assert str(A.parse(str(programs.AUTO_GPU))) == str(programs.AUTO_GPU)
-    big, small = programs.CUDNN_DENOISE_MIN_BATCH, programs.CUDNN_DENOISE_MIN_BATCH - 1   # measured: 3 faster, 1 slower
-    assert programs.AUTO_GPU.at_batch(big) == A("pallas", "cudnn", "cudnn") and big <= 8
-    assert programs.AUTO_GPU.at_batch(small) == A("pallas", "cudnn", "xla") and small >= 1
+    assert str(A.parse(str(paths.AUTO_GPU))) == str(paths.AUTO_GPU)
+    big, small = paths.CUDNN_DENOISE_MIN_BATCH, paths.CUDNN_DENOISE_MIN_BATCH - 1   # measured: 3 faster, 1 slower
+    assert paths.AUTO_GPU.at_batch(big) == A("pallas", "cudnn", "cudnn") and big <= 8
+    assert paths.AUTO_GPU.at_batch(small) == A("pallas", "cudnn", "xla") and small >= 1
     assert A.parse("vision=pallas") == A(vision="pallas")
-    at = functools.partial(programs.AUTO_GPU.at_batch, suffix_mask=True)   # π0: cuDNN's from the same batch on
-    assert at(max(programs.PALLAS_DENOISE_BATCHES_MASKED) + 1).denoise == "cudnn"
-    kernel = programs.PALLAS_DENOISE_BATCHES_MASKED   # π0: measured faster at 3-16, slower at 64
+    at = functools.partial(paths.AUTO_GPU.at_batch, suffix_mask=True)   # π0: cuDNN's from the same batch on
+    assert at(max(paths.PALLAS_DENOISE_BATCHES_MASKED) + 1).denoise == "cudnn"
+    kernel = paths.PALLAS_DENOISE_BATCHES_MASKED   # π0: measured faster at 3-16, slower at 64
     assert {3, 4, 8, 16} <= set(kernel) and 64 not in kernel and A.parse("denoise=pallas") == A(denoise="pallas")
-    assert [programs.AUTO_GPU.at_batch(b, suffix_mask=True).denoise for b in (2, 3, 16, 64)] == [
+    assert [paths.AUTO_GPU.at_batch(b, suffix_mask=True).denoise for b in (2, 3, 16, 64)] == [
         "xla", "pallas", "pallas", "cudnn"]
     # π0.5: measured faster at 4 and 8, slower at 16 and 64
-    assert [programs.AUTO_GPU.at_batch(b).denoise for b in (2, 3, 4, 8, 16, 64)] == [
+    assert [paths.AUTO_GPU.at_batch(b).denoise for b in (2, 3, 4, 8, 16, 64)] == [
         "xla", "cudnn", "pallas", "pallas", "cudnn", "cudnn"]
     # real-time chunking differentiates the velocity: XLA's attention at every batch (the Pallas kernel has no VJP;
     # cuDNN's flash backward failed on a GPU at the suffix's lengths, "Unsupported sequence length Q 40, KV 171")
     for mask in (True, False):
-        assert {programs.AUTO_GPU.at_batch(b, suffix_mask=mask, differentiable=True).denoise
+        assert {paths.AUTO_GPU.at_batch(b, suffix_mask=mask, differentiable=True).denoise
                 for b in range(1, 65)} == {"xla"}
     with pytest.raises(ValueError, match="differentiates"):   # the Pallas kernel has no VJP
         guidance.guided_denoise(get_config("dummy"), None, None, None, None, jnp.zeros((4, 2, 2)), None, None,
@@ -298,16 +298,16 @@ def test_attention_and_kernel_choices(monkeypatch):
         with pytest.raises(ValueError, match="attention"):
             A.parse(bad)
     layers = [{"qkv": jnp.zeros((4, 4))}]
-    assert programs.expert_path("auto", 1, layers, platform="gpu") == "pallas"
-    assert programs.expert_path("auto", 2, layers, platform="gpu") == "pallas"
-    assert programs.expert_path("auto", 4, layers, platform="gpu") == "xla"      # measured slower at B = 4 and 8
-    assert programs.expert_path("auto", 1, layers, platform="cpu") == "xla"      # interpreted on a CPU
-    assert programs.expert_path("auto", 1, layers[0], platform="gpu") == "xla"   # scanned layers
+    assert paths.expert_path("auto", 1, layers, platform="gpu") == "pallas"
+    assert paths.expert_path("auto", 2, layers, platform="gpu") == "pallas"
+    assert paths.expert_path("auto", 4, layers, platform="gpu") == "xla"      # measured slower at B = 4 and 8
+    assert paths.expert_path("auto", 1, layers, platform="cpu") == "xla"      # interpreted on a CPU
+    assert paths.expert_path("auto", 1, layers[0], platform="gpu") == "xla"   # scanned layers
     quantised = [{"qkv": formats.quantize_fp8(jnp.ones((4, 4)))}]
-    assert programs.expert_path("auto", 1, quantised, platform="gpu") == "xla"
-    assert programs.expert_path("pallas", 8, layers, platform="cpu") == "pallas"
+    assert paths.expert_path("auto", 1, quantised, platform="gpu") == "xla"
+    assert paths.expert_path("pallas", 8, layers, platform="cpu") == "pallas"
     with pytest.raises(ValueError, match="kernels must be"):
-        programs.expert_path("triton", 1, layers)
+        paths.expert_path("triton", 1, layers)
 
 
 def test_the_first_step_beside_the_prefix_is_the_same_call(model, monkeypatch):
@@ -317,7 +317,7 @@ def test_the_first_step_beside_the_prefix_is_the_same_call(model, monkeypatch):
     for bit; "auto" only at batch 1 and 2 on a GPU, where the expert runs its Pallas kernels."""
     import re
 
-    from pi0_jax.engine import programs, runtime
+    from pi0_jax.engine import paths, runtime
 
     config, params = model
     obs = make_obs(config)
@@ -354,8 +354,8 @@ def test_the_first_step_beside_the_prefix_is_the_same_call(model, monkeypatch):
     assert trips == {"on": ["2"], "off": ["3"]}
     assert not Engine(config, params, cache_dir=False).overlaps(1)   # auto: a CPU runs XLA's expert
     layers = [{"qkv": jnp.zeros((4, 4))}]
-    gpu = functools.partial(programs.first_step_overlap, platform="gpu")
-    assert gpu("auto", "auto", 1, layers) and programs.OVERLAP_MAX_BATCH == 2   # measured faster at 1 and 2
+    gpu = functools.partial(paths.first_step_overlap, platform="gpu")
+    assert gpu("auto", "auto", 1, layers) and paths.OVERLAP_MAX_BATCH == 2   # measured faster at 1 and 2
     assert gpu("auto", "auto", 2, layers) and not gpu("auto", "auto", 3, layers) and not gpu("auto", "xla", 1, layers)
     assert gpu("on", "xla", 64, layers) and not gpu("off", "auto", 1, layers)
     with pytest.raises(ValueError, match="overlap must be"):
@@ -368,7 +368,7 @@ def test_the_state_token_runs_once_a_call(monkeypatch):
     runs the action rows alone: the same actions as with the state's row in every step, in float32, with XLA's and
     with the fused attention; π0.5 (state in the prompt), the Pallas expert and the Pallas attention keep their
     layout."""
-    from pi0_jax.engine import programs
+    from pi0_jax.engine import paths, programs
 
     config = get_config("dummy")
     params = randomize(pi0.param_shapes(config))
@@ -381,11 +381,11 @@ def test_the_state_token_runs_once_a_call(monkeypatch):
     for once, attention in ((True, "xla"), (True, "denoise=cudnn"), (False, "xla")):
         with monkeypatch.context() as m:
             if not once:
-                m.setattr(programs, "cached_state", lambda *a, **k: False)
+                m.setattr(paths, "cached_state", lambda *a, **k: False)
             engine = Engine(config, params, cache_dir=False, attention=attention)
             got[once, attention] = np.asarray(engine.sample_actions(obs, noise, 3))
             fixed = programs.step_invariants(config, engine.weights, cache, jnp.zeros((2, config.action_dim)), 2,
-                                             "xla", programs.Attention.parse(attention), unroll=True)
+                                             "xla", paths.Attention.parse(attention), unroll=True)
             rows[once, attention] = fixed["positions"].shape[1], fixed["state_kv"] is not None
             if not once:   # the fused attention has no suffix mask: it needs the state out of the steps
                 with pytest.raises(ValueError, match="cached_state"):
@@ -394,11 +394,11 @@ def test_the_state_token_runs_once_a_call(monkeypatch):
         np.testing.assert_allclose(got[True, attention], got[False, "xla"], rtol=1e-5, atol=1e-5)
     h = config.action_horizon
     assert rows == {(True, "xla"): (h, True), (True, "denoise=cudnn"): (h, True), (False, "xla"): (h + 1, False)}
-    A = programs.Attention
-    assert programs.cached_state(config, A(), "xla", 2, None)
-    assert not programs.cached_state(get_config("dummy_pi05"), A(), "xla", 2, None)
-    assert not programs.cached_state(config, A(), "pallas", 1, None)
-    assert not programs.cached_state(config, A(denoise="pallas"), "xla", 8, None)
+    A = paths.Attention
+    assert paths.cached_state(config, A(), "xla", 2, None)
+    assert not paths.cached_state(get_config("dummy_pi05"), A(), "xla", 2, None)
+    assert not paths.cached_state(config, A(), "pallas", 1, None)
+    assert not paths.cached_state(config, A(denoise="pallas"), "xla", 8, None)
 
 
 def test_the_in_projection_is_folded_into_the_time_mlp(monkeypatch):
@@ -501,15 +501,15 @@ def test_a_slow_gpu_allocator_is_named_in_a_warning(monkeypatch):
 def test_no_recompilation_when_only_values_change(model, monkeypatch):
     """New input values reuse the call's programs, and a call after the first does not walk the weights to choose
     them (`Engine.call_programs`: the walk cost the host 0.12 ms before every call's first kernel)."""
-    from pi0_jax.engine import programs
+    from pi0_jax.engine import paths
 
     config, params = model
     engine = Engine(config, params, cache_dir=False)
     compiles, walks = [], []
     jax.monitoring.register_event_duration_secs_listener(
         lambda name, *_, **__: compiles.append(name) if name == "/jax/core/compile/backend_compile_duration" else None)
-    choose = programs.first_step_overlap   # on a GPU it walks the expert's weights (`expert_path`)
-    monkeypatch.setattr(programs, "first_step_overlap", lambda *a, **k: walks.append(1) or choose(*a, **k))
+    choose = paths.first_step_overlap   # on a GPU it walks the expert's weights (`expert_path`)
+    monkeypatch.setattr(paths, "first_step_overlap", lambda *a, **k: walks.append(1) or choose(*a, **k))
     for seed in range(3):
         obs = make_obs(config, seed=seed)
         noise = jax.random.normal(jax.random.key(seed), (2, config.action_horizon, config.action_dim))
@@ -525,7 +525,7 @@ def test_each_program_takes_only_its_own_weights_and_the_call_equals_the_fused_p
     """Every buffer a call takes costs the host before the first kernel runs: each stage program is compiled on its
     own weights (`STAGE_WEIGHTS`; the vision tower's halves on part of "img", `runtime.stage_tree`), and the call
     (vision, then prefix and denoise) equals the fused program."""
-    from pi0_jax.engine import programs
+    from pi0_jax.engine import paths
     from pi0_jax.engine.runtime import STAGE_WEIGHTS
 
     config, params = model
@@ -547,7 +547,7 @@ def test_each_program_takes_only_its_own_weights_and_the_call_equals_the_fused_p
         engine.weights, engine.schedule(2), *engine.pack(obs, cameras, bucket), jnp.array(noise))
     np.testing.assert_array_equal(engine.sample_actions(obs, jnp.array(noise), 2), fused)
     with pytest.raises(ValueError, match="chooses the expert's path by its weights"):
-        programs.expert_path("auto", 1, None)
+        paths.expert_path("auto", 1, None)
 
 
 def test_prompt_buckets():

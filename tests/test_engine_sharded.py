@@ -15,7 +15,7 @@ CHILD = textwrap.dedent("""
     from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
     from pi0_jax import pi0
     from pi0_jax.config import get_config
-    from pi0_jax.engine import programs, weights
+    from pi0_jax.engine import paths, programs, weights
     from pi0_jax.engine.runtime import engine_weights
     from pi0_jax.sim.batching import collectives
 
@@ -31,7 +31,7 @@ CHILD = textwrap.dedent("""
     args = (images, jnp.ones((c, b), bool), jnp.zeros((b, n), jnp.int32), jnp.ones((b, n), bool),
             jnp.zeros((b, cfg.action_dim)), jnp.zeros((b, cfg.action_horizon, cfg.action_dim)))
     shardings = (sh(), sh(), sh(None, "batch"), sh(None, "batch"), *(sh("batch"),) * 4)
-    for attention in (programs.Attention(), programs.Attention(vision="pallas")):
+    for attention in (paths.Attention(), paths.Attention(vision="pallas")):
         fn = jax.jit(lambda w, sc, *a: programs.infer(cfg, w, sc, *a, num_steps=2, unroll=True, unroll_steps=False,
                                                       attention=attention), in_shardings=shardings)
         print(attention.vision, "collectives", collectives(fn.lower(w, sched, *args).compile().as_text()))
@@ -48,7 +48,7 @@ CHILD = textwrap.dedent("""
     args0 = (*args[:2], jnp.zeros((b, n0), jnp.int32), jnp.ones((b, n0), bool), jnp.zeros((b, cfg0.action_dim)),
              jax.random.normal(jax.random.key(1), (b, cfg0.action_horizon, cfg0.action_dim)))
     run = lambda w, sc, *a: programs.infer(cfg0, w, sc, *a, num_steps=2, unroll=True, unroll_steps=False,
-                                           attention=programs.Attention(denoise="pallas"))
+                                           attention=paths.Attention(denoise="pallas"))
     fn = jax.jit(run, in_shardings=shardings)
     print("denoise collectives", collectives(fn.lower(w0, sched0, *args0).compile().as_text()))
     alone0 = jax.jit(run)(w0, sched0, *args0)
@@ -64,7 +64,7 @@ CHILD = textwrap.dedent("""
     ek.blocks_at = at
     # SigLIP's LayerNorm kernel (kernels="pallas"; the expert's GEMM kernels are for B <= 2 and not partitioned)
     enc = lambda w, im: programs.encode_images(cfg, w, im, unroll=True, kernels="pallas",
-                                               attention=programs.Attention(vision="pallas"))
+                                               attention=paths.Attention(vision="pallas"))
     sharded = jax.jit(enc, in_shardings=(None, sh(None, "batch")))
     print("layer_norm collectives", collectives(sharded.lower(w, images).compile().as_text()))
     np.testing.assert_allclose(sharded(w, images), jax.jit(enc)(w, images), rtol=1e-5, atol=1e-5)

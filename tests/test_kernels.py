@@ -327,13 +327,13 @@ def test_layer_norm_kernel_reads_the_block_tables_in_place():
     import functools
 
     from pi0_jax import benchmark
-    from pi0_jax.engine import programs
+    from pi0_jax.engine import paths, programs
 
     config = get_config("dummy", dtype="float32")
     engine = Engine(config, benchmark.random_params(config, 0), cache_dir=False)
     images = jax.ShapeDtypeStruct((2, 1, config.image_size, config.image_size, 3), jnp.float32)
     fn = functools.partial(programs.encode_images, config, unroll=True,
-                           attention=programs.Attention(vision="pallas"), kernels="pallas")
+                           attention=paths.Attention(vision="pallas"), kernels="pallas")
     jaxpr = jax.make_jaxpr(fn)(engine.weights, images).jaxpr
     norms = [e for e in jaxpr.eqns
              if e.primitive.name == "custom_partitioning" and "name=layer_norm" in str(e.params["call"])]
@@ -394,7 +394,7 @@ def test_fp8_vision_quantises_only_the_mlp_in_xla_with_the_kernels():
     import functools
 
     from pi0_jax import benchmark
-    from pi0_jax.engine import programs
+    from pi0_jax.engine import paths, programs
     from pi0_jax.quant import schemes
 
     config = get_config("dummy", dtype="float32")
@@ -416,7 +416,7 @@ def test_fp8_vision_quantises_only_the_mlp_in_xla_with_the_kernels():
 
     counts = {}
     for attention, kernels in (("xla", "xla"), ("pallas", "pallas")):
-        fn = functools.partial(programs.encode_images, config, unroll=True, attention=programs.Attention(
+        fn = functools.partial(programs.encode_images, config, unroll=True, attention=paths.Attention(
             vision=attention), kernels=kernels)
         counts[kernels] = outside_kernels(jax.make_jaxpr(fn)(engine.weights, images).jaxpr)
     depth = config.siglip.depth   # + 1: the head's input
@@ -426,12 +426,12 @@ def test_fp8_vision_quantises_only_the_mlp_in_xla_with_the_kernels():
 def test_vision_norm_choice():
     """SigLIP's LayerNorm kernel: as asked, or with kernels="auto" on a GPU from 24 images a call (on a CPU it runs
     interpreted)."""
-    from pi0_jax.engine import programs
+    from pi0_jax.engine import paths
 
-    n = programs.VISION_NORM_MIN_IMAGES
-    assert programs.vision_norm("pallas", 3, "cpu") == "pallas" and programs.vision_norm("xla", n, "gpu") == "xla"
-    assert programs.vision_norm("auto", n, "gpu") == "pallas" and programs.vision_norm("auto", n, "cpu") == "xla"
-    assert programs.vision_norm("auto", n - 1, "gpu") == "xla"
+    n = paths.VISION_NORM_MIN_IMAGES
+    assert paths.vision_norm("pallas", 3, "cpu") == "pallas" and paths.vision_norm("xla", n, "gpu") == "xla"
+    assert paths.vision_norm("auto", n, "gpu") == "pallas" and paths.vision_norm("auto", n, "cpu") == "xla"
+    assert paths.vision_norm("auto", n - 1, "gpu") == "xla"
 
 
 def test_engine_with_vision_kernel_matches_reference(model):

@@ -11,7 +11,7 @@ import pytest
 
 from pi0_jax import benchmark, checkpoint, pi0
 from pi0_jax.config import get_config
-from pi0_jax.engine import Engine, programs
+from pi0_jax.engine import Engine, paths, programs
 from pi0_jax.ops import formats, matmul
 from pi0_jax.quant import report, schemes
 
@@ -161,7 +161,7 @@ def test_engine_fp8_equals_the_reference_with_the_same_weights_and_hands_xla_fp8
     assert np.linalg.norm(got - want) / np.linalg.norm(want) < 1e-5
     assert np.linalg.norm(want - plain) / np.linalg.norm(plain) > 1e-3  # FP8 is in use
     for norm in ("xla", "pallas"):   # the vision kernels between FP8 GEMMs: attention, and the LayerNorm too
-        monkeypatch.setattr(programs, "vision_norm", lambda kernels, images, platform=None, n=norm: n)
+        monkeypatch.setattr(paths, "vision_norm", lambda kernels, images, platform=None, n=norm: n)
         kernel = Engine(config, qp, attention="vision=pallas", cache_dir=False)
         np.testing.assert_allclose(kernel.sample_actions(calib[1], noise, num_steps=2), got, rtol=1e-5,
                                    atol=1e-5)

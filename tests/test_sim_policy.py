@@ -67,7 +67,7 @@ def test_state_prompt_bound_holds_every_state(demo_ckpt):
     beyond (bins -1 and 255), for every task of the suite."""
     from pi0_jax import checkpoint
     from pi0_jax import normalize as nz
-    from pi0_jax.policy import PolicyCore
+    from pi0_jax.pipeline import PolicyCore
     from pi0_jax.sim.tasks import STATE_DIM, TASKS
     from pi0_jax.tokenizer import PaligemmaTokenizer
 

@@ -8,7 +8,8 @@ import jax.numpy as jnp
 
 from pi0_jax.config import Pi0Config
 from pi0_jax.engine import programs
-from pi0_jax.engine.programs import Attention, PrefixCache
+from pi0_jax.engine.paths import Attention
+from pi0_jax.engine.programs import PrefixCache
 
 
 def guided_denoise(config: Pi0Config, weights: dict, sched: dict, cache: PrefixCache, state, noise, target,

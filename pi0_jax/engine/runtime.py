@@ -32,7 +32,7 @@ import numpy as np
 
 from pi0_jax import pi0
 from pi0_jax.config import IMAGE_KEYS, Pi0Config
-from pi0_jax.engine import programs, weights as weights_lib
+from pi0_jax.engine import paths, programs, weights as weights_lib
 from pi0_jax.engine.store import ProgramStore, shapes
 from pi0_jax.ops import matmul
 
@@ -157,7 +157,7 @@ def engine_weights(config: Pi0Config, params: dict, *, unroll: bool = True, kern
     if kernels == "pallas":
         if not unroll:
             raise ValueError("kernels='pallas' needs unroll=True")
-        if programs.is_quantised(w["expert"]):
+        if paths.is_quantised(w["expert"]):
             raise ValueError("kernels='pallas' needs unquantised expert weights")
     return w
 
@@ -169,12 +169,12 @@ class Engine:
     >>> actions = engine.sample_actions(observation, noise, num_steps=10)   # picks cameras / bucket, compiles once
 
     unroll: layers unrolled (separate per-layer weight buffers) instead of `lax.scan`; unroll_steps: the denoise
-    loop unrolled; attention: each stage's attention (`programs.Attention.parse`: "xla", "cudnn", "auto" = the
+    loop unrolled; attention: each stage's attention (`paths.Attention.parse`: "xla", "cudnn", "auto" = the
     faster per stage on a GPU, XLA elsewhere, or "vision=cudnn,prefix=cudnn,denoise=xla"); kernels: the action
     expert's layers as XLA ops ("xla"), as the fused Pallas kernels of `pi0_jax.ops` ("pallas": Triton on GPU,
     interpret mode on CPU; needs unrolled layers and unquantised expert weights), or "auto" (per batch size,
-    `programs.expert_path`: the kernels at B <= 2 on a GPU, XLA otherwise); the same choice for SigLIP's LayerNorm
-    (`programs.vision_norm`: "auto" is the kernel on a GPU from 24 images a call); gemm: the library of XLA's GEMMs on a
+    `paths.expert_path`: the kernels at B <= 2 on a GPU, XLA otherwise); the same choice for SigLIP's LayerNorm
+    (`paths.vision_norm`: "auto" is the kernel on a GPU from 24 images a call); gemm: the library of XLA's GEMMs on a
     GPU (`pi0_jax.ops.matmul.compiler_options`: "auto", cuBLAS in the vision program and XLA's autotuned choice in
     the others; "xla" or "cublas" in every program); cache_dir: where compiled programs are kept (`store`, beside
     XLA's persistent cache; None: $PI0_JAX_CACHE_DIR or ~/.cache/pi0_jax/xla, False: nothing kept); overlap: the
@@ -183,12 +183,12 @@ class Engine:
     """
 
     def __init__(self, config: Pi0Config, params: dict, *, unroll: bool = True, unroll_steps: bool = False,
-                 attention: str | programs.Attention = "auto", kernels: str = "auto",
+                 attention: str | paths.Attention = "auto", kernels: str = "auto",
                  gemm: str = "auto", cache_dir: str | os.PathLike | None | bool = None, overlap: str = "auto"):
-        self.attention = programs.Attention.parse(attention, dtype=config.dtype)
-        self.kernels = programs.check_kernels(kernels)
+        self.attention = paths.Attention.parse(attention, dtype=config.dtype)
+        self.kernels = paths.check_kernels(kernels)
         self.gemm = matmul.check_gemm(gemm)
-        self.overlap = programs.check_overlap(overlap)
+        self.overlap = paths.check_overlap(overlap)
         check_allocator()
         if cache_dir is not False:
             self.cache_dir = enable_compilation_cache(None if cache_dir in (None, True) else cache_dir)
@@ -216,13 +216,13 @@ class Engine:
         return len(self._executables)
 
     def kernels_for(self, batch: int) -> str:
-        """The expert's path at this batch size: "xla" or "pallas" (`programs.expert_path`)."""
-        return programs.expert_path(self.kernels, batch, self.weights["expert"])
+        """The expert's path at this batch size: "xla" or "pallas" (`paths.expert_path`)."""
+        return paths.expert_path(self.kernels, batch, self.weights["expert"])
 
     def overlaps(self, batch: int) -> bool:
         """Whether the call's second program at this batch runs its first denoise step beside the prefix fill
-        (`programs.first_step_overlap`)."""
-        return programs.first_step_overlap(self.overlap, self.kernels, batch, self.weights["expert"])
+        (`paths.first_step_overlap`)."""
+        return paths.first_step_overlap(self.overlap, self.kernels, batch, self.weights["expert"])
 
     def executable(self, stage: str, batch: int, num_steps: int, cameras: Sequence[str], prompt_len: int) -> Program:
         """The compiled program for a stage and static shape (compiled on first use, then kept). Call it with the
@@ -232,7 +232,7 @@ class Engine:
             start = time.perf_counter()
             weights = self.stage_weights(stage)
             fn, args = self._stage(stage, shapes(weights), batch, num_steps, cameras, prompt_len)
-            options = programs.overlap_options(
+            options = paths.overlap_options(
                 matmul.compiler_options(weights, self.gemm, **library_keywords(stage, batch)),
                 stage == "prefix_first_step" or (stage == "prefix_denoise" and self.overlaps(batch)))
             # everything the traced program depends on besides its arguments and options

@@ -105,7 +105,7 @@ def add_serve_parser(subparsers) -> None:
 
 
 def _attention(spec: str) -> str:
-    from pi0_jax.engine.programs import attention_spec   # jax on use: --help stays light
+    from pi0_jax.engine.paths import attention_spec   # jax on use: --help stays light
 
     return attention_spec(spec)
 

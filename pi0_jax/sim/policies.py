@@ -11,7 +11,7 @@ batched observation ({"agentview", "wrist": (B, H, W, 3) uint8, "state": (B, 8)}
 look at images (`needs_images` False: the rollout then skips rendering). The expert acts from privileged state
 every step, so it ignores replanning; chunked policies return chunk[:, k].
 
-The pi0-jax policy runs `pi0_jax.policy.PolicyCore.program` inside the rollout's jit, the same pipeline as
+The pi0-jax policy runs `pi0_jax.pipeline.PolicyCore.program` inside the rollout's jit, the same pipeline as
 `Policy.infer` and the server: agent view -> `base_0_rgb`, wrist -> `left_wrist_0_rgb` (a right wrist slot is not
 encoded at all, as openpi's LIBERO example masks it); the task's prompt tokenised once on the host (or, for π0.5
 with the state in the prompt, by a host callback per plan), cut to its prompt bucket; the engine's stages.
@@ -149,20 +149,20 @@ def model_policy(config, params, tok, normalizer, env, *, num_steps: int = 10, d
                  replan_steps: int | None = None, quant: str | None = None, gemm: str = "xla",
                  attention: str = "auto") -> SimPolicy:
     """A π0 / π0.5 with its tokenizer and normaliser as a batched in-jit policy for `env`'s tasks, through the one
-    policy pipeline (`pi0_jax.policy.PolicyCore.program`: the engine, or the reference sampler when asked).
+    policy pipeline (`pi0_jax.pipeline.PolicyCore.program`: the engine, or the reference sampler when asked).
 
     dynamic_steps: the flow-step count travels in the policy's params ({..., "num_steps": int32}) instead of the
     program, so one compiled rollout serves every step count up to `PolicyCore.max_dynamic_steps` (same numerics).
     params None: the transforms only (`observation`), e.g. for calibration batches. quant: the number format the
     params were quantised to (`quantize_for_suite`), recorded in the policy's info. gemm: the library of the
     rollout's GEMMs on a GPU (`pi0_jax.ops.matmul.compiler_options`; the rollout compiles with `info["gemm"]`).
-    attention: each stage's attention (`pi0_jax.engine.programs.Attention.parse`), recorded in the info.
+    attention: each stage's attention (`pi0_jax.engine.paths.Attention.parse`), recorded in the info.
     realtime: a `pi0_jax.sim.realtime.Realtime` (latency, sync / naive / rtc / conditioned execution, prefix reuse;
     needs replan_steps); the policy state is then a dict (chunk, previous chunk, cached prefix, counters) instead of the
     chunk itself."""
     from pi0_jax import pi0
     from pi0_jax.engine import prompt_bucket
-    from pi0_jax.policy import PolicyCore
+    from pi0_jax.pipeline import PolicyCore
 
     from pi0_jax import normalize as nz
 
