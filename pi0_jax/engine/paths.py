@@ -206,7 +206,7 @@ def kernel_cache(kernels: str, attention: Attention, batch: int, expert_weights)
 def fused_suffix_attention(config: Pi0Config, attention: Attention, kernels: str, batch: int,
                            expert_weights) -> bool:
     """Whether the denoise step at this batch runs the XLA expert with the fused (cuDNN) attention, which reads the
-    suffix-first key / value buffers of `suffix_kv`."""
+    suffix-first key / value buffers of `programs.suffix_kv`."""
     fused = attention.at_batch(batch, suffix_mask=not config.pi05).denoise == "cudnn"
     return fused and expert_path(kernels, batch, expert_weights) != "pallas"
 
