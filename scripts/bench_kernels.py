@@ -126,7 +126,11 @@ STEP_SWEEPS = {
     "kv_splits_long": {"default": {}, "kv splits 8": dict(kv_splits=8), "kv splits 16": dict(kv_splits=16),
                        "kv splits 16 w4": dict(kv_splits=16, attention_warps=4),
                        "kv 32 splits 32": dict(kv=32, kv_splits=32),
-                       "kv 32 splits 32 s2 w4": dict(kv=32, kv_splits=32, attention_stages=2, attention_warps=4)},
+                       "kv 32 splits 32 s2 w4": dict(kv=32, kv_splits=32, attention_stages=2, attention_warps=4),
+                       # one 128-key block a split (π0's 832 keys do not split into 128s and keep 64: `fit`)
+                       "kv 128 splits 8 s1": dict(kv=128, kv_splits=8, attention_stages=1),
+                       "kv 128 splits 8 s2": dict(kv=128, kv_splits=8, attention_stages=2),
+                       "kv 128 splits 8 s1 w4": dict(kv=128, kv_splits=8, attention_stages=1, attention_warps=4)},
 }
 
 
