@@ -349,7 +349,8 @@ def key_splits(key_blocks: int, wanted: int) -> tuple[int, int]:
 def attention_launch(blocks: Blocks, prefix_keys: int) -> dict:
     """The Triton attention's launch over a cache of `prefix_keys` (its kernel layout's padded length), as `_attention`
     makes it: the key splits asked for, the splits and key blocks a split it runs (`key_splits`), for a JSON. With
-    `mosaic` the Mosaic GPU kernel runs instead where it applies (`mosaic_attention.applies`), in kv_splits + 1 parts."""
+    `mosaic` the Mosaic GPU kernel runs instead where it applies (`mosaic_attention.applies`), in kv_splits + 1
+    parts."""
     bkv = fit(blocks.kv, prefix_keys)
     splits, per_split = key_splits(prefix_keys // bkv, blocks.kv_splits)
     return {"kv_splits": blocks.kv_splits, "splits": splits, "key_blocks_per_split": per_split, "kv_block": bkv,
