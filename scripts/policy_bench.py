@@ -160,6 +160,25 @@ def main() -> int:
     rows["images_one_array_a_camera"] = timed(lambda: touch(*cams), args.iters, args.warmup)
     rows["images_one_array"] = timed(lambda: touch(stacked), args.iters, args.warmup)
     rows["images_on_device"] = timed(lambda: touch(*on_device[0]), args.iters, args.warmup)
+    # the frames staged through pinned host memory first (a host copy, then a DMA), where the device has it: into the
+    # program that only reads them, and into the policy's call with the small arrays as numpy
+    dev = jax.devices()[0]
+    if "pinned_host" in {m.kind for m in dev.addressable_memories()}:
+        pinned = jax.sharding.SingleDeviceSharding(dev, memory_kind="pinned_host")
+        device = jax.sharding.SingleDeviceSharding(dev, memory_kind="device")
+
+        def via_pinned(xs):
+            return jax.device_put(jax.device_put(xs, pinned), device)
+
+        rows["images_to_pinned_host"] = timed(lambda: jax.device_put(cams, pinned), args.iters, args.warmup)
+        rows["images_via_pinned_host"] = timed(lambda: touch(*via_pinned(cams)), args.iters, args.warmup)
+        rows["images_device_put"] = timed(lambda: touch(*jax.device_put(cams, device)), args.iters, args.warmup)
+        rows["policy_call_images_via_pinned_host"] = timed(
+            lambda: np.asarray(policy_call(policy._norm, via_pinned(host[0]), *host[1:])), args.iters, args.warmup)
+        rows["policy_call_numpy_again"] = timed(lambda: np.asarray(policy_call(policy._norm, *host)), args.iters,
+                                                args.warmup)
+        assert np.array_equal(np.asarray(policy_call(policy._norm, via_pinned(host[0]), *host[1:])),
+                              np.asarray(policy_call(policy._norm, *host)))
     # where the transfers' time goes: the actions' copy back alone; that copy queued behind the call at its dispatch;
     # the inputs as one host buffer (one transfer, unpacked on the device by a program of its own)
     rows["policy_call_device_inputs_copy_back"] = timed(lambda: np.asarray(policy_call(policy._norm, *on_device)),
