@@ -1,5 +1,5 @@
-"""The one policy pipeline on device, `PolicyCore`: a model plus its transforms as pure functions, which `Policy`,
-the policy server and the simulator's rollout all run.
+"""The one policy pipeline, `PolicyCore`: a model plus its transforms (the prompt's tokenisation on the host, the
+rest as pure device functions), which `Policy`, the policy server and the simulator's rollout all run.
 
 `PolicyCore.program`: uint8 -> [-1, 1] and resize-with-pad to the model's size, state normalised and zero-padded,
 the engine's vision -> prefix cache -> denoise (masked cameras not encoded, the prompt cut to its bucket), actions
