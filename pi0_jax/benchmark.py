@@ -235,7 +235,7 @@ def bench_engine(engine: Engine, args, batch: int) -> list[dict]:
                "vision": t_vis, "prefix": t_pre, "denoise": t_den,
                "denoise_per_step_ms": t_den["median_ms"] / steps}
         if "denoise=pallas" in row["attention"]:   # the Pallas expert's, or the XLA expert's on the kernel attention
-            launch = expert_kernels.default_blocks() if row["kernels"] == "pallas" else expert_kernels.blocks_at(batch)
+            launch = expert_kernels.attention_blocks(batch, xla_expert=row["kernels"] == "xla")
             row["denoise_attention_launch"] = expert_kernels.attention_launch(launch, caches[0].mask.shape[-1])
         if args.fused_steps is None or steps in args.fused_steps:
             row["total"] = time_calls(lambda p, n: engine.sample_packed(p, n, steps, cameras, bucket),

@@ -171,7 +171,7 @@ def step_invariants(config: Pi0Config, weights: dict, cache: PrefixCache, state,
     if paths.kernel_cache(kernels, attention.at_batch(batch, suffix_mask=not config.pi05), batch, weights["expert"]):
         xla_expert = paths.expert_path(kernels, batch, weights["expert"]) == "xla"   # the kernel's launch in its layers
         tables = layers.pallas_tables(config.action_expert, positions, cache.mask, suffix_mask,
-                                      expert_kernels.blocks_at(batch) if xla_expert else None)
+                                      expert_kernels.attention_blocks(batch, xla_expert))
     state_token = None if config.pi05 else _dense(weights["top"]["state_proj"], state)
     state_kv = None
     if paths.cached_state(config, attention, kernels, batch, weights["expert"]):

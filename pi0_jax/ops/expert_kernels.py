@@ -125,6 +125,12 @@ def blocks_at(batch: int, blocks: Blocks | None = None) -> Blocks:
     return dataclasses.replace(blocks, kv_splits=max(1, splits), attention_warps=4, fold=batch >= 8)
 
 
+def attention_blocks(batch: int, xla_expert: bool) -> Blocks:
+    """The launch the denoise attention takes in a program of this batch: the XLA expert's (`blocks_at`), or the
+    Pallas expert's own (`default_blocks`)."""
+    return blocks_at(batch) if xla_expert else default_blocks()
+
+
 # An expert with no Triton kernel: every GEMM on Mosaic GPU at its fastest launch alone (docs/BENCHMARKS.md, "A Mosaic
 # GPU GEMM"), the attention on `ops.mosaic_attention`, the splits' merge as XLA's ops (bf16 on Hopper: elsewhere a
 # GEMM falls back to the Triton kernel)
