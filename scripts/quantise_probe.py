@@ -12,6 +12,10 @@ pass of the same size, so a slow form shows as a fraction of the bandwidth:
            GELU and the product in f32, rounded to bf16 once
   gelu-*   SigLIP's fc1 epilogue (--hidden wide): per-column scale, bias, GELU-tanh in bf16 (gelu-bf16: no
            quantisation after it), in f32 (gelu-f32-div), or as x sigmoid(2 z) (gelu-sigmoid-div); then div
+  halfsum  gate + up in bf16 (reads gate/up's output, writes half of it: GeGLU's bandwidth reference in bf16)
+  geglu-sigmoid-div  geglu-div with GELU-tanh written as x sigmoid(2 z)
+  geglu-pallas:R:C:W  geglu-div as a Pallas Triton kernel, R rows and C columns a program, W warps: scale, GELU,
+           product and quantisation in f32 registers, one rounding to bf16 where XLA's path rounds
 
     python scripts/quantise_probe.py --rows 51200 --out quantise.json
     python scripts/quantise_probe.py --rows 49152 --width 1152 --hidden 4304 --forms copy gelu-bf16 gelu-div
@@ -45,6 +49,39 @@ def _geglu(y, col, f32: bool):
     return jax.nn.gelu(gate, approximate=True) * up
 
 
+def _geglu_sigmoid(y, col):
+    h = (y.astype(F32) * col).astype(BF16)
+    gate, up = jnp.split(h, 2, axis=-1)
+    z = jnp.asarray(1.5957691, BF16) * (gate + jnp.asarray(0.044715, BF16) * gate * gate * gate)
+    return gate * jax.nn.sigmoid(z) * up
+
+
+def _geglu_pallas(rows: int, cols: int, warps: int):
+    """y (R, 2F) as [gate | up] -> e4m3 (R, F), one (rows, cols) block of gate and of up a program."""
+    from jax.experimental import pallas as pl
+    from jax.experimental.pallas import triton as plgpu
+
+    def kernel(y_ref, col_ref, s_ref, o_ref):
+        f = o_ref.shape[1]
+        r = pl.ds(pl.program_id(0) * rows, rows)
+        g_cols, u_cols = pl.ds(pl.program_id(1) * cols, cols), pl.ds(f + pl.program_id(1) * cols, cols)
+        g = (y_ref[r, g_cols].astype(F32) * col_ref[pl.ds(0, 1), g_cols]).astype(BF16).astype(F32)
+        u = (y_ref[r, u_cols].astype(F32) * col_ref[pl.ds(0, 1), u_cols]).astype(BF16).astype(F32)
+        z = 1.5957691216057308 * (g + 0.044715 * g * g * g)
+        h = (g / (1.0 + jnp.exp(-z))).astype(BF16).astype(F32) * u
+        h = h.astype(BF16).astype(F32) / s_ref[0, 0]
+        o_ref[r, g_cols] = jnp.clip(h, -448.0, 448.0).astype(E4M3)
+
+    def fn(y, col, s, inv):
+        n, f = y.shape[0], y.shape[1] // 2
+        cpu = jax.default_backend() == "cpu"
+        return pl.pallas_call(kernel, grid=(n // rows, f // cols), out_shape=jax.ShapeDtypeStruct((n, f), E4M3),
+                              interpret=cpu, name="geglu_quantise",
+                              compiler_params=None if cpu else plgpu.CompilerParams(num_warps=warps, num_stages=1),
+                              )(y, col[None], jnp.reshape(s, (1, 1)))
+    return fn
+
+
 def _gelu(y, col, form: str):
     """SigLIP's fc1 epilogue before fc2's quantisation: per-column scale, the bias (here 0.5), GELU-tanh."""
     h = (y.astype(F32) * col).astype(BF16) + jnp.asarray(0.5, BF16)
@@ -62,6 +99,8 @@ FORMS = {
     "geglu-div": lambda y, col, s, inv: quantise(_geglu(y, col, False), s),
     "geglu-mul": lambda y, col, s, inv: _clip(_geglu(y, col, False).astype(F32) * inv),
     "geglu-f32-mul": lambda y, col, s, inv: _clip(_geglu(y, col, True).astype(F32) * inv),
+    "geglu-sigmoid-div": lambda y, col, s, inv: quantise(_geglu_sigmoid(y, col), s),
+    "halfsum": lambda y, col, s, inv: y[:, : y.shape[1] // 2] + y[:, y.shape[1] // 2 :],
     "gelu-bf16": lambda y, col, s, inv: _gelu(y, col, "bf16"),
     "gelu-div": lambda y, col, s, inv: quantise(_gelu(y, col, "bf16"), s),
     "gelu-f32-div": lambda y, col, s, inv: quantise(_gelu(y, col, "f32"), s),
@@ -75,19 +114,20 @@ def main() -> None:
                                                            "at B = 64)")
     p.add_argument("--width", type=int, default=2048, help="a GEMM input's width (default: %(default)s)")
     p.add_argument("--hidden", type=int, default=16384, help="the MLP hidden width (default: %(default)s)")
-    p.add_argument("--forms", nargs="+", default=list(FORMS), choices=list(FORMS), help="forms to time (default: "
-                                                                                       "all)")
+    p.add_argument("--forms", nargs="+", default=list(FORMS), help="forms to time (default: all but the Pallas "
+                                                                   "ones): " + ", ".join(FORMS) + ", geglu-pallas:R:C:W")
     p.add_argument("--iters", type=int, default=20, help="calls per timing, median of 5 (default: %(default)s)")
     p.add_argument("--out", default=None, help="write the rows as JSON here")
     args = p.parse_args()
-    rng = np.random.default_rng(0)
     s = jnp.float32(0.05)
     inv = 1 / s
-    rows = []
+    rows, outs = [], {}
     for name in args.forms:
-        fn = FORMS[name]
-        width = {"geglu": 2 * args.hidden, "gelu": args.hidden}.get(name.split("-")[0], args.width)
-        y = jnp.asarray(rng.standard_normal((args.rows, width), np.float32), BF16)
+        fn = _geglu_pallas(*map(int, name.split(":")[1:])) if name.startswith("geglu-pallas") else FORMS[name]
+        width = {"geglu": 2 * args.hidden, "gelu": args.hidden, "halfsum": 2 * args.hidden}.get(
+            name.split("-")[0], args.width)
+        rng = np.random.default_rng(0)   # the same inputs for every form of a width
+        y = jax.random.normal(jax.random.key(0), (args.rows, width), BF16)
         col = jnp.asarray(rng.uniform(0.5, 1.5, width), F32)
         exe = jax.jit(fn).lower(y, col, s, inv).compile()
         out = exe(y, col, s, inv)
@@ -103,6 +143,12 @@ def main() -> None:
         t = float(np.median(times))
         rows.append({"form": name, "shape": list(y.shape), "out": str(out.dtype), "ms": t * 1e3,
                      "bytes": moved, "gb_s": moved / t / 1e9})
+        if name.startswith("geglu") and out.dtype == E4M3:   # against the first e4m3 GeGLU form timed
+            got = np.asarray(out.astype(F32))
+            ref = outs.setdefault("geglu", got)
+            rows[-1]["vs_first_geglu"] = {"differing": float(np.mean(got != ref)),
+                                          "max_abs": float(np.max(np.abs(got - ref))),
+                                          "nan": int(np.isnan(got).sum())}
         print(json.dumps(rows[-1]), flush=True)
         del y, out
     if args.out:
