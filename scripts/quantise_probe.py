@@ -14,8 +14,10 @@ pass of the same size, so a slow form shows as a fraction of the bandwidth:
            quantisation after it), in f32 (gelu-f32-div), or as x sigmoid(2 z) (gelu-sigmoid-div); then div
   halfsum  gate + up in bf16 (reads gate/up's output, writes half of it: GeGLU's bandwidth reference in bf16)
   geglu-sigmoid-div  geglu-div with GELU-tanh written as x sigmoid(2 z)
-  geglu-pallas:R:C:W  geglu-div as a Pallas Triton kernel, R rows and C columns a program, W warps: scale, GELU,
-           product and quantisation in f32 registers, one rounding to bf16 where XLA's path rounds
+  halfsum-e4m3  the same quantised: e4m3's conversion alone; geglu-bf16: GeGLU without the quantisation
+  geglu-pallas:R:C:W[:V]  geglu-div as a Pallas Triton kernel, R rows and C columns a program, W warps: scale,
+           GELU, product and quantisation in f32 registers, rounded to bf16 where XLA's path rounds; V a variant
+           (`_geglu_pallas`)
 
     python scripts/quantise_probe.py --rows 51200 --out quantise.json
     python scripts/quantise_probe.py --rows 49152 --width 1152 --hidden 4304 --forms copy gelu-bf16 gelu-div
@@ -56,27 +58,42 @@ def _geglu_sigmoid(y, col):
     return gate * jax.nn.sigmoid(z) * up
 
 
-def _geglu_pallas(rows: int, cols: int, warps: int):
-    """y (R, 2F) as [gate | up] -> e4m3 (R, F), one (rows, cols) block of gate and of up a program."""
+def _geglu_pallas(rows: int, cols: int, warps: int, variant: str = "full"):
+    """y (R, 2F) as [gate | up] -> e4m3 (R, F), one (rows, cols) block of gate and of up a program. variant: "full"
+    (XLA's roundings, GELU as x sigmoid(2 z), x / s); "bf16out" (no quantisation: a bf16 output); "nogelu" (gate *
+    up quantised); "lean" (no bf16 roundings between the ops, x * (1 / s)); "tanh" (full with GELU's tanh)."""
     from jax.experimental import pallas as pl
     from jax.experimental.pallas import triton as plgpu
+
+    def rnd(x):
+        return x if variant == "lean" else x.astype(BF16).astype(F32)
 
     def kernel(y_ref, col_ref, s_ref, o_ref):
         f = o_ref.shape[1]
         r = pl.ds(pl.program_id(0) * rows, rows)
         g_cols, u_cols = pl.ds(pl.program_id(1) * cols, cols), pl.ds(f + pl.program_id(1) * cols, cols)
-        g = (y_ref[r, g_cols].astype(F32) * col_ref[pl.ds(0, 1), g_cols]).astype(BF16).astype(F32)
-        u = (y_ref[r, u_cols].astype(F32) * col_ref[pl.ds(0, 1), u_cols]).astype(BF16).astype(F32)
-        z = 1.5957691216057308 * (g + 0.044715 * g * g * g)
-        h = (g / (1.0 + jnp.exp(-z))).astype(BF16).astype(F32) * u
-        h = h.astype(BF16).astype(F32) / s_ref[0, 0]
+        g = rnd(y_ref[r, g_cols].astype(F32) * col_ref[pl.ds(0, 1), g_cols])
+        u = rnd(y_ref[r, u_cols].astype(F32) * col_ref[pl.ds(0, 1), u_cols])
+        z = 0.7978845608028654 * (g + 0.044715 * g * g * g)
+        if variant == "nogelu":
+            act = g
+        elif variant == "tanh":
+            act = 0.5 * g * (1.0 + jnp.tanh(z))
+        else:
+            act = g / (1.0 + jnp.exp(-2.0 * z))
+        h = rnd(rnd(act) * u)
+        if variant == "bf16out":
+            o_ref[r, g_cols] = h.astype(BF16)
+            return
+        h = h * (1.0 / s_ref[0, 0]) if variant == "lean" else h / s_ref[0, 0]
         o_ref[r, g_cols] = jnp.clip(h, -448.0, 448.0).astype(E4M3)
 
     def fn(y, col, s, inv):
         n, f = y.shape[0], y.shape[1] // 2
         cpu = jax.default_backend() == "cpu"
-        return pl.pallas_call(kernel, grid=(n // rows, f // cols), out_shape=jax.ShapeDtypeStruct((n, f), E4M3),
-                              interpret=cpu, name="geglu_quantise",
+        out = jax.ShapeDtypeStruct((n, f), BF16 if variant == "bf16out" else E4M3)
+        return pl.pallas_call(kernel, grid=(n // rows, f // cols), out_shape=out, interpret=cpu,
+                              name="geglu_quantise",
                               compiler_params=None if cpu else plgpu.CompilerParams(num_warps=warps, num_stages=1),
                               )(y, col[None], jnp.reshape(s, (1, 1)))
     return fn
@@ -101,6 +118,8 @@ FORMS = {
     "geglu-f32-mul": lambda y, col, s, inv: _clip(_geglu(y, col, True).astype(F32) * inv),
     "geglu-sigmoid-div": lambda y, col, s, inv: quantise(_geglu_sigmoid(y, col), s),
     "halfsum": lambda y, col, s, inv: y[:, : y.shape[1] // 2] + y[:, y.shape[1] // 2 :],
+    "halfsum-e4m3": lambda y, col, s, inv: quantise(y[:, : y.shape[1] // 2] + y[:, y.shape[1] // 2 :], s),
+    "geglu-bf16": lambda y, col, s, inv: _geglu(y, col, False),
     "gelu-bf16": lambda y, col, s, inv: _gelu(y, col, "bf16"),
     "gelu-div": lambda y, col, s, inv: quantise(_gelu(y, col, "bf16"), s),
     "gelu-f32-div": lambda y, col, s, inv: quantise(_gelu(y, col, "f32"), s),
@@ -123,7 +142,7 @@ def main() -> None:
     inv = 1 / s
     rows, outs = [], {}
     for name in args.forms:
-        fn = _geglu_pallas(*map(int, name.split(":")[1:])) if name.startswith("geglu-pallas") else FORMS[name]
+        fn = _geglu_pallas(*map(int, name.split(":")[1:4]), *name.split(":")[4:]) if name.startswith("geglu-pallas") else FORMS[name]
         width = {"geglu": 2 * args.hidden, "gelu": args.hidden, "halfsum": 2 * args.hidden}.get(
             name.split("-")[0], args.width)
         rng = np.random.default_rng(0)   # the same inputs for every form of a width
