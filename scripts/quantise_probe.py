@@ -14,6 +14,8 @@ pass of the same size, so a slow form shows as a fraction of the bandwidth:
            quantisation after it), in f32 (gelu-f32-div), or as x sigmoid(2 z) (gelu-sigmoid-div); then div
   halfsum  gate + up in bf16 (reads gate/up's output, writes half of it: GeGLU's bandwidth reference in bf16)
   geglu-sigmoid-div  geglu-div with GELU-tanh written as x sigmoid(2 z)
+  geglu-blocks  geglu-div on the engine's fused gate/up product (`layout.gate_up_block` pairs: `ops.geglu.geglu_xla`)
+  geglu-kernel:R:U:W  the same as the engine's kernel (`ops.geglu.geglu`, Blocks(R, U, W))
   halfsum-e4m3  the same quantised: e4m3's conversion alone; geglu-bf16: GeGLU without the quantisation
   geglu-pallas:R:C:W[:V]  geglu-div as a Pallas Triton kernel, R rows and C columns a program, W warps: scale,
            GELU, product and quantisation in f32 registers, rounded to bf16 where XLA's path rounds; V a variant
@@ -26,6 +28,7 @@ pass of the same size, so a slow form shows as a fraction of the bandwidth:
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import time
 
@@ -33,6 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from pi0_jax.ops import geglu
 from pi0_jax.ops.formats import quantise
 
 E4M3, F32, BF16 = jnp.float8_e4m3fn, jnp.float32, jnp.bfloat16
@@ -99,6 +103,10 @@ def _geglu_pallas(rows: int, cols: int, warps: int, variant: str = "full"):
     return fn
 
 
+def _geglu_kernel(y, col, s, inv, blocks):
+    return geglu.geglu(y, col, s, blocks=blocks)
+
+
 def _gelu(y, col, form: str):
     """SigLIP's fc1 epilogue before fc2's quantisation: per-column scale, the bias (here 0.5), GELU-tanh."""
     h = (y.astype(F32) * col).astype(BF16) + jnp.asarray(0.5, BF16)
@@ -117,6 +125,7 @@ FORMS = {
     "geglu-mul": lambda y, col, s, inv: _clip(_geglu(y, col, False).astype(F32) * inv),
     "geglu-f32-mul": lambda y, col, s, inv: _clip(_geglu(y, col, True).astype(F32) * inv),
     "geglu-sigmoid-div": lambda y, col, s, inv: quantise(_geglu_sigmoid(y, col), s),
+    "geglu-blocks": lambda y, col, s, inv: geglu.geglu_xla(y, col, s),
     "halfsum": lambda y, col, s, inv: y[:, : y.shape[1] // 2] + y[:, y.shape[1] // 2 :],
     "halfsum-e4m3": lambda y, col, s, inv: quantise(y[:, : y.shape[1] // 2] + y[:, y.shape[1] // 2 :], s),
     "geglu-bf16": lambda y, col, s, inv: _geglu(y, col, False),
@@ -142,7 +151,13 @@ def main() -> None:
     inv = 1 / s
     rows, outs = [], {}
     for name in args.forms:
-        fn = _geglu_pallas(*map(int, name.split(":")[1:4]), *name.split(":")[4:]) if name.startswith("geglu-pallas") else FORMS[name]
+        fields = name.split(":")
+        if name.startswith("geglu-kernel"):
+            fn = functools.partial(_geglu_kernel, blocks=geglu.Blocks(*map(int, fields[1:])))
+        elif name.startswith("geglu-pallas"):
+            fn = _geglu_pallas(*map(int, fields[1:4]), *fields[4:])
+        else:
+            fn = FORMS[name]
         width = {"geglu": 2 * args.hidden, "gelu": args.hidden, "halfsum": 2 * args.hidden}.get(
             name.split("-")[0], args.width)
         rng = np.random.default_rng(0)   # the same inputs for every form of a width
@@ -164,8 +179,9 @@ def main() -> None:
                      "bytes": moved, "gb_s": moved / t / 1e9})
         if name.startswith("geglu") and out.dtype == E4M3:   # against the first e4m3 GeGLU form timed
             got = np.asarray(out.astype(F32))
-            ref = outs.setdefault("geglu", got)
-            rows[-1]["vs_first_geglu"] = {"differing": float(np.mean(got != ref)),
+            layout = "blocks" if name.startswith(("geglu-blocks", "geglu-kernel")) else "halves"
+            ref = outs.setdefault(layout, got)
+            rows[-1]["vs_first_geglu_" + layout] = {"differing": float(np.mean(got != ref)),
                                           "max_abs": float(np.max(np.abs(got - ref))),
                                           "nan": int(np.isnan(got).sum())}
         print(json.dumps(rows[-1]), flush=True)
