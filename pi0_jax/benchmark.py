@@ -35,7 +35,7 @@ from pi0_jax import pi0
 from pi0_jax.pi0 import random_params
 from pi0_jax.config import IMAGE_KEYS, PRESETS, Pi0Config, get_config
 from pi0_jax.engine import Engine, store
-from pi0_jax.engine.paths import KERNELS, OVERLAPS, attention_spec, prefix_geglu, vision_norm
+from pi0_jax.engine.paths import KERNELS, OVERLAPS, attention_spec, vision_norm
 from pi0_jax.ops import expert_kernels, formats, pallas_base
 from pi0_jax.ops.matmul import GEMMS
 from pi0_jax.quant.schemes import SCHEMES
@@ -229,7 +229,7 @@ def bench_engine(engine: Engine, args, batch: int) -> list[dict]:
         row = {"dtype": cfg.dtype, "batch": batch, "steps": steps, "cameras": len(cameras), "prompt_bucket": bucket,
                "attention": denoise_attention(engine, batch), "kernels": engine.kernels_for(batch),
                "vision_norm": vision_norm(engine.kernels, batch * len(cameras)),
-               "prefix_geglu": prefix_geglu(engine.kernels, engine.weights["vlm"]), "gemm": engine.gemm,
+               "gemm": engine.gemm,
                "gemm_library": {s: engine.gemm_library(s, batch) for s in engine.call_stages(batch, steps)},
                "overlap": engine.overlaps(batch), "call_stages": list(engine.call_stages(batch, steps)),
                "vision": t_vis, "prefix": t_pre, "denoise": t_den,

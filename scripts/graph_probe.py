@@ -2,8 +2,8 @@
 compile with extra XLA options on top of the engine's own (`matmul.compiler_options`: cuBLAS in the vision program
 under gemm="auto"), or, for "conv", with SigLIP's patch embedding as cuDNN's convolution (the engine's form until
 2026-11-26) instead of the f32 GEMM, or an Engine built another way (`ENGINE_KW`, `SCHEDULING`, `STAGES`,
-`STEP_ENDS`, `RUNTIME`, `PATHS`: the denoise loop unrolled, the first step's overlap and its programs, π0's
-in-projection unfolded, the vision tower as one program, the prefix's GeGLU as XLA's fusion); the "vision-" variants set their options on the vision programs alone,
+`STEP_ENDS`, `RUNTIME`: the denoise loop unrolled, the first step's overlap and its programs, π0's in-projection
+unfolded, the vision tower as one program); the "vision-" variants set their options on the vision programs alone,
 "vhead-" on the first of them, "loop-" on the denoise programs without the prefix (the expert's weights alone).
 Stage medians (round-robin over the variants), kernels per call, device span and idle time (by the kernel that
 waited) from a trace, and the fused program's actions against the first variant.
@@ -81,8 +81,6 @@ VARIANTS = {
     "vision-triton": {"xla_gpu_enable_triton_gemm": True, "xla_gpu_cublas_fallback": False},
     # the denoise loop's GEMMs on cuBLAS, as `Policy`'s loop program chose them under an FP8 prefix until session 50
     "loop-cublas": {"xla_gpu_enable_triton_gemm": False},
-    # the prefix MLP's GeGLU as XLA's fusion (PATHS), not the kernel that "auto" takes between FP8 GEMMs
-    "geglu-xla": {},
 }
 ENGINE_KW = {"unroll-steps": {"unroll_steps": True}, "no-overlap": {"overlap": "off"}, "overlap-on": {"overlap": "on"}}
 SCHEDULING = {"overlap-lhs": {"xla_gpu_command_buffer_scheduling_mode": "LHS"}}
@@ -90,7 +88,6 @@ STAGES = {"one-loop-program": lambda self, batch, num_steps: (
     *(s for s in Engine.call_stages(self, batch, num_steps) if s in runtime.VISION_STAGES), "prefix_denoise")}
 STEP_ENDS = {"unfolded": {"FOLD_ACTION_IN": False}}
 RUNTIME = {"one-vision-program": {"VISION_SPLIT": 0}}
-PATHS = {"geglu-xla": lambda kernels, vlm_weights, platform=None: "xla"}   # `paths.prefix_geglu`
 
 
 def conv_patch_embed(images, kernel, bias, p: int):
@@ -136,7 +133,7 @@ def main() -> None:
     report = {"preset": args.preset, "quant": args.quant, "env": benchmark.environment(), "rows": []}
     own_options, own_embed, own_concurrent = runtime.matmul.compiler_options, vision.patch_embed, paths.CONCURRENT
     own_ends = {k: getattr(programs, k) for k in ("FOLD_ACTION_IN",)}
-    own_split, own_geglu = runtime.VISION_SPLIT, paths.prefix_geglu
+    own_split = runtime.VISION_SPLIT
     for batch in args.batch or [1]:
         obs, noise = benchmark.make_inputs(config, batch, 3, args.prompt_tokens, 0)
         rows, timed, first = [], {}, None
@@ -159,7 +156,6 @@ def main() -> None:
             for k, v in {**own_ends, **STEP_ENDS.get(name, {})}.items():
                 setattr(programs, k, v)
             runtime.VISION_SPLIT = RUNTIME.get(name, {}).get("VISION_SPLIT", own_split)
-            paths.prefix_geglu = PATHS.get(name, own_geglu)
             engine = Engine(config, params, cache_dir=False, **ENGINE_KW.get(name, {}))
             if name in STAGES:   # this engine's calls only
                 engine.call_stages = types.MethodType(STAGES[name], engine)
@@ -201,7 +197,7 @@ def main() -> None:
             rows.append(row)
             timed.update({(name, stage): fn for stage, fn in calls.items()})
         runtime.matmul.compiler_options, vision.patch_embed = own_options, own_embed
-        paths.CONCURRENT, runtime.VISION_SPLIT, paths.prefix_geglu = own_concurrent, own_split, own_geglu
+        paths.CONCURRENT, runtime.VISION_SPLIT = own_concurrent, own_split
         for k, v in own_ends.items():
             setattr(programs, k, v)
         times = profile_engine.round_robin(timed, args.iters)

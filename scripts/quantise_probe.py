@@ -14,8 +14,7 @@ pass of the same size, so a slow form shows as a fraction of the bandwidth:
            quantisation after it), in f32 (gelu-f32-div), or as x sigmoid(2 z) (gelu-sigmoid-div); then div
   halfsum  gate + up in bf16 (reads gate/up's output, writes half of it: GeGLU's bandwidth reference in bf16)
   geglu-sigmoid-div  geglu-div with GELU-tanh written as x sigmoid(2 z)
-  geglu-blocks  geglu-div on the engine's fused gate/up product (`layout.gate_up_block` pairs: `ops.geglu.geglu_xla`)
-  geglu-kernel:R:U:W  the same as the engine's kernel (`ops.geglu.geglu`, Blocks(R, U, W))
+  geglu-blocks  geglu-div on the engine's fused gate/up product (gate and up in `layout.gate_up_block` pairs)
   halfsum-e4m3  the same quantised: e4m3's conversion alone; geglu-bf16: GeGLU without the quantisation
   geglu-pallas:R:C:W[:V]  geglu-div as a Pallas Triton kernel, R rows and C columns a program, W warps: scale,
            GELU, product and quantisation in f32 registers, rounded to bf16 where XLA's path rounds; V a variant
@@ -28,7 +27,6 @@ pass of the same size, so a slow form shows as a fraction of the bandwidth:
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import time
 
@@ -36,7 +34,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pi0_jax.ops import geglu
+from pi0_jax.ops import layout
 from pi0_jax.ops.formats import quantise
 
 E4M3, F32, BF16 = jnp.float8_e4m3fn, jnp.float32, jnp.bfloat16
@@ -46,9 +44,9 @@ def _clip(x):   # the "mul" forms' end; the "div" forms call the project's own `
     return jnp.clip(x, -448.0, 448.0).astype(E4M3)
 
 
-def _geglu(y, col, f32: bool):
+def _geglu(y, col, f32: bool, split=lambda h: jnp.split(h, 2, axis=-1)):
     h = (y.astype(F32) * col).astype(BF16)
-    gate, up = jnp.split(h, 2, axis=-1)
+    gate, up = split(h)
     if f32:
         gate, up = gate.astype(F32), up.astype(F32)
         return (jax.nn.gelu(gate, approximate=True) * up).astype(BF16)
@@ -103,10 +101,6 @@ def _geglu_pallas(rows: int, cols: int, warps: int, variant: str = "full"):
     return fn
 
 
-def _geglu_kernel(y, col, s, inv, blocks):
-    return geglu.geglu(y, col, s, blocks=blocks)
-
-
 def _gelu(y, col, form: str):
     """SigLIP's fc1 epilogue before fc2's quantisation: per-column scale, the bias (here 0.5), GELU-tanh."""
     h = (y.astype(F32) * col).astype(BF16) + jnp.asarray(0.5, BF16)
@@ -125,7 +119,7 @@ FORMS = {
     "geglu-mul": lambda y, col, s, inv: _clip(_geglu(y, col, False).astype(F32) * inv),
     "geglu-f32-mul": lambda y, col, s, inv: _clip(_geglu(y, col, True).astype(F32) * inv),
     "geglu-sigmoid-div": lambda y, col, s, inv: quantise(_geglu_sigmoid(y, col), s),
-    "geglu-blocks": lambda y, col, s, inv: geglu.geglu_xla(y, col, s),
+    "geglu-blocks": lambda y, col, s, inv: quantise(_geglu(y, col, False, layout.split_gate_up), s),
     "halfsum": lambda y, col, s, inv: y[:, : y.shape[1] // 2] + y[:, y.shape[1] // 2 :],
     "halfsum-e4m3": lambda y, col, s, inv: quantise(y[:, : y.shape[1] // 2] + y[:, y.shape[1] // 2 :], s),
     "geglu-bf16": lambda y, col, s, inv: _geglu(y, col, False),
@@ -152,9 +146,7 @@ def main() -> None:
     rows, outs = [], {}
     for name in args.forms:
         fields = name.split(":")
-        if name.startswith("geglu-kernel"):
-            fn = functools.partial(_geglu_kernel, blocks=geglu.Blocks(*map(int, fields[1:])))
-        elif name.startswith("geglu-pallas"):
+        if name.startswith("geglu-pallas"):
             fn = _geglu_pallas(*map(int, fields[1:4]), *fields[4:])
         else:
             fn = FORMS[name]
@@ -179,9 +171,9 @@ def main() -> None:
                      "bytes": moved, "gb_s": moved / t / 1e9})
         if name.startswith("geglu") and out.dtype == E4M3:   # against the first e4m3 GeGLU form timed
             got = np.asarray(out.astype(F32))
-            layout = "blocks" if name.startswith(("geglu-blocks", "geglu-kernel")) else "halves"
-            ref = outs.setdefault(layout, got)
-            rows[-1]["vs_first_geglu_" + layout] = {"differing": float(np.mean(got != ref)),
+            cols = "blocks" if name == "geglu-blocks" else "halves"
+            ref = outs.setdefault(cols, got)
+            rows[-1]["vs_first_geglu_" + cols] = {"differing": float(np.mean(got != ref)),
                                           "max_abs": float(np.max(np.abs(got - ref))),
                                           "nan": int(np.isnan(got).sum())}
         print(json.dumps(rows[-1]), flush=True)

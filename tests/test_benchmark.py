@@ -26,7 +26,6 @@ def test_benchmark_dummy_writes_every_stage(tmp_path):
             assert row[stage]["median_ms"] > 0 and row[stage]["p90_ms"] >= row[stage]["median_ms"]
         assert row["prompt_bucket"] == 32 and row["cameras"] == 3
         assert row["kernels"] == "xla" and row["attention"] == "vision=xla,prefix=xla,denoise=xla"  # auto, CPU
-        assert row["vision_norm"] == row["prefix_geglu"] == "xla"
         assert row["gemm"] == "auto" and set(row["gemm_library"].values()) == {"xla"}
         assert "denoise_attention_launch" not in row   # only where the XLA expert runs the kernel attention
         assert row["overlap"] is False and row["quantised_leaves"] == 0   # auto: only on a GPU
@@ -83,7 +82,6 @@ def test_the_pallas_experts_own_attention_is_named_with_its_launch(tmp_path):
                          "1", "--kernels", "pallas")
     (row,) = results["rows"]
     assert row["kernels"] == "pallas" and row["attention"] == "vision=xla,prefix=xla,denoise=pallas"
-    assert row["vision_norm"] == row["prefix_geglu"] == "pallas"   # the same flag's kernels
     launch = expert_kernels.attention_launch(expert_kernels.default_blocks(), 832)
     assert row["denoise_attention_launch"] == launch and launch["splits"] == 13   # the dummy's cache: 832 keys
     blocks = expert_kernels.Blocks()

@@ -388,46 +388,6 @@ def test_fp8_ends_in_the_vision_kernels_match_xla():
         va.attention(qkv, images=2, num_heads=heads, col_scale=q_scale)
 
 
-@pytest.mark.parametrize("hidden", [96, 40])
-def test_geglu_kernel_matches_xla(hidden):
-    """The GeGLU kernel between the prefix MLP's GEMMs equals XLA's ops (`geglu_xla`, as the layers run them) to f32
-    rounding, on the fused gate/up product's block pairs (96: three pairs of 32 units; 40: one block, [gate | up]),
-    with rows that no power-of-two block divides evenly past 2: plain, and with an FP8 GEMM's column scale and the
-    down GEMM's e4m3 input."""
-    from pi0_jax.ops import geglu
-
-    y = _rand(90, 2, 5, 2 * hidden, scale=3.0)
-    col, act = jnp.abs(_rand(91, 2 * hidden)) * 0.5 + 0.5, jnp.float32(8.0 / 448)
-    small = geglu.Blocks(rows=4, units=32)   # several programs a dimension at these sizes
-    for blocks in (geglu.Blocks(), small):
-        np.testing.assert_allclose(geglu.geglu(y, blocks=blocks), geglu.geglu_xla(y), **TOL)
-        got, want = geglu.geglu(y, col, act, blocks=blocks), geglu.geglu_xla(y, col, act)
-        assert got.shape == (2, 5, hidden)
-        _e4m3_close(got, want)
-    unscaled = np.asarray(geglu.geglu(y, None, act), np.float32)
-    assert np.mean(unscaled != np.asarray(want, np.float32)) > 0.3   # the column scale is applied
-    with pytest.raises(ValueError, match="one scale"):
-        geglu.geglu(y, col, jnp.ones(2))
-    with pytest.raises(ValueError, match="col_scale must be"):
-        geglu.geglu(y, col[:hidden], act)
-
-
-def test_prefix_geglu_choice(monkeypatch):
-    """The prefix's GeGLU kernel: as asked, or with kernels="auto" on a GPU with Pallas's Triton backend where the
-    prefix's GEMMs are FP8 x FP8 (the down GEMM takes an e4m3 input); XLA's fusion for bf16 weights and on a CPU."""
-    from pi0_jax.engine import paths
-    from pi0_jax.ops import formats
-
-    plain = [{"down": jnp.ones((4, 2))}]
-    fp8 = [{"down": formats.QArray(q=jnp.ones((2, 4), E4M3), scale=jnp.ones((2,)), act_scale=jnp.float32(1.0),
-                                   contract=(-1,))}]
-    assert paths.prefix_geglu("auto", fp8, "gpu") == "pallas" and paths.prefix_geglu("auto", plain, "gpu") == "xla"
-    assert paths.prefix_geglu("auto", fp8, "cpu") == "xla"
-    assert paths.prefix_geglu("pallas", plain, "cpu") == "pallas" and paths.prefix_geglu("xla", fp8, "gpu") == "xla"
-    monkeypatch.setattr(paths.pallas_base, "TRITON", False)   # a jax without Pallas's Triton backend
-    assert paths.prefix_geglu("auto", fp8, "gpu") == "xla"
-
-
 def test_fp8_vision_quantises_only_the_mlp_in_xla_with_the_kernels():
     """The engine's FP8 tower with the LayerNorm and attention kernels leaves XLA one e4m3 conversion per block
     (the GELU output, fc2's input) where XLA's path has four (before q/k/v, the out-projection, fc1 and fc2)."""

@@ -4,7 +4,6 @@ import functools
 import re
 
 import jax
-import jax.extend
 import jax.numpy as jnp
 import ml_dtypes
 import numpy as np
@@ -151,9 +150,8 @@ def _engine_and_reference(config, qp, params, obs, steps):
 
 def test_engine_fp8_equals_the_reference_with_the_same_weights_and_hands_xla_fp8_dots(monkeypatch):
     """The engine's FP8 path (fused, re-laid-out QArrays) computes what the reference model computes with the same
-    quantised params, with the kernels between its FP8 GEMMs too; its prefix (with the GeGLU kernel too) and its
-    SigLIP hand XLA e4m3 x e4m3 dots that contract the weight's last axis (the (out, in) layout cuBLASLt's FP8 GEMM
-    reads without transposing the weight)."""
+    quantised params; its prefix and its SigLIP hand XLA e4m3 x e4m3 dots that contract the weight's last axis (the
+    (out, in) layout cuBLASLt's FP8 GEMM reads without transposing the weight)."""
     config = get_config("dummy", dtype="float32")
     params = benchmark.random_params(config, 0)
     calib = schemes.sample_observations(config, 2, seed=1)
@@ -168,41 +166,19 @@ def test_engine_fp8_equals_the_reference_with_the_same_weights_and_hands_xla_fp8
         np.testing.assert_allclose(kernel.sample_actions(calib[1], noise, num_steps=2), got, rtol=1e-5,
                                    atol=1e-5)
     monkeypatch.undo()
-    # the prefix's GeGLU kernel between its FP8 GEMMs (`ops.geglu`), in the call and in the prefix's own program
-    monkeypatch.setattr(paths, "prefix_geglu", lambda kernels, weights, platform=None: "pallas")
-    kernel = Engine(config, qp, cache_dir=False)
-    np.testing.assert_allclose(kernel.sample_actions(calib[1], noise, num_steps=2), got, rtol=1e-5, atol=1e-5)
-    monkeypatch.undo()
 
     cameras, bucket = engine.plan(calib[1])
     spec = jax.ShapeDtypeStruct
     weights = jax.tree.map(lambda x: spec(x.shape, x.dtype), engine.weights)
     image_tokens = spec((1, len(cameras) * config.siglip.num_patches, config.paligemma.width), jnp.float32)
-    prefix_args = (weights, image_tokens, spec((len(cameras), 1), bool), spec((1, bucket), jnp.int32),
-                   spec((1, bucket), bool))
-    prefix, prefix_kernel = (jax.jit(functools.partial(programs.fill_prefix_cache, config, unroll=True, geglu=g))
-                             .lower(*prefix_args) for g in ("xla", "pallas"))
-
-    def kernels(jaxpr):   # the Pallas kernels' names, nested calls included
-        for e in jaxpr.eqns:
-            if e.primitive.name == "pallas_call":
-                yield str(e.params["name"])
-            for sub in jax.extend.core.jaxprs_in_params(e.params):
-                yield from kernels(sub)
-
-    for geglu, n in (("pallas", config.paligemma.depth), ("xla", 0)):
-        fill = functools.partial(programs.fill_prefix_cache, config, unroll=True, geglu=geglu)
-        assert sum(name.startswith("geglu") for name in kernels(jax.make_jaxpr(fill)(*prefix_args).jaxpr)) == n
+    prefix = jax.jit(functools.partial(programs.fill_prefix_cache, config, unroll=True)).lower(
+        weights, image_tokens, spec((len(cameras), 1), bool), spec((1, bucket), jnp.int32), spec((1, bucket), bool))
     size = config.image_size
     vision = jax.jit(functools.partial(programs.encode_images, config, unroll=True)).lower(
         weights, spec((len(cameras), 1, size, size, 3), jnp.float32))
     depth = config.paligemma.depth  # q/k/v, attention out, gate/up, down per layer; the last layer's K/V is all
     # the prefix returns, so the rest of that layer is dead code. SigLIP: q/k/v, out, MLP in and out, the head.
-    # jax keeps a Pallas call whose output is dead (its DCE rule keeps every call), so the GeGLU kernel keeps the
-    # last layer's out-projection and gate/up in the lowered program; XLA removes them on a GPU, where the Triton
-    # call has no side effect
-    for lowered, expected in ((prefix, depth + 3 * (depth - 1)), (prefix_kernel, depth + 3 * (depth - 1) + 2),
-                              (vision, 4 * config.siglip.depth + 1)):
+    for lowered, expected in ((prefix, depth + 3 * (depth - 1)), (vision, 4 * config.siglip.depth + 1)):
         dots = [line for line in lowered.as_text().splitlines() if "dot_general" in line and "f8E4M3FN" in line]
         assert len(dots) == expected
         for line in dots:

@@ -17,9 +17,9 @@ import jax.numpy as jnp
 
 from pi0_jax.config import GemmaConfig
 from pi0_jax.gemma import _BIG_NEG, apply_rope
-from pi0_jax.ops import attention, expert_kernels, geglu, layout
+from pi0_jax.ops import attention, expert_kernels, layout
 from pi0_jax.ops.formats import QArray
-from pi0_jax.ops.matmul import input_scale, matmul, raw_matmul
+from pi0_jax.ops.matmul import matmul, raw_matmul
 
 
 def rms_norm(x, scale=None, mod=None):
@@ -63,13 +63,9 @@ def _qkv(h, w, cfg: GemmaConfig, positions):
     return einops.rearrange(q, "B T (K G) H -> B T K G H", K=cfg.num_kv_heads), k, v
 
 
-def _mlp(h, w, kernel: bool = False):
-    """GeGLU's MLP, its two GEMMs' FP8 ends (`raw_mm`: output scales, the down GEMM's input quantisation) inside the
-    pass between them: XLA's ops, or with kernel the Pallas kernel (`ops.geglu`)."""
-    y, scale = raw_mm(h, w["gate_up"], h.dtype)
-    a = (geglu.geglu if kernel else geglu.geglu_xla)(y, scale, input_scale(w["down"]))
-    y, scale = raw_mm(a, w["down"], h.dtype)
-    return y if scale is None else (y.astype(jnp.float32) * scale).astype(h.dtype)
+def _mlp(h, w):
+    gate, up = layout.split_gate_up(_mm(h, w["gate_up"]))
+    return _mm(jax.nn.gelu(gate, approximate=True) * up, w["down"])
 
 
 def _attend(q, ks, vs, masks, dtype):
@@ -96,13 +92,12 @@ def _attend_fused(q, keys, values, kv_len):
     return einops.rearrange(out, "B (T G) K H -> B T (K G H)", G=g)
 
 
-def prefix_layer(cfg: GemmaConfig, w, x, positions, mask, kv_len=None, keys: int | None = None,
-                 geglu_kernel: bool = False):
+def prefix_layer(cfg: GemmaConfig, w, x, positions, mask, kv_len=None, keys: int | None = None):
     """One VLM layer over the prefix. x (B,P,D); mask (B,P,P). Returns (x, k, v) with k, v (B,P,K,H) post-RoPE.
     kv_len: None for XLA attention under `mask`, else (B,) lengths for the fused kernel (the valid tokens are then
     each element's first kv_len, see `programs.fill_prefix_cache`). keys: with kv_len, k and v are zero-padded to
     this many keys first (the Pallas expert's cache length) and returned so; the fused kernel reads them padded,
-    cut off by kv_len, so the cache needs no copy of its own. geglu_kernel: the MLP's GeGLU as `ops.geglu`'s kernel."""
+    cut off by kv_len, so the cache needs no copy of its own."""
     h, _ = rms_norm(x, w["pre_attn"])
     q, k, v = _qkv(h, w["qkv"], cfg, positions)
     if keys is not None and kv_len is not None:
@@ -110,7 +105,7 @@ def prefix_layer(cfg: GemmaConfig, w, x, positions, mask, kv_len=None, keys: int
     y = _attend(q, [k], [v], [mask], x.dtype) if kv_len is None else _attend_fused(q, k, v, kv_len)
     x = x + _mm(y, w["attn_out"])
     h, _ = rms_norm(x, w["pre_ffw"])
-    return x + _mlp(h, w, geglu_kernel), k, v
+    return x + _mlp(h, w), k, v
 
 
 def _attend_suffix_fused(q, k, v, buf_k, buf_v, kv_len, slot: int = 0):

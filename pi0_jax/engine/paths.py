@@ -1,6 +1,6 @@
 """Which path each compiled program takes, chosen per batch size and platform from measurements (docs/BENCHMARKS.md):
 the action expert's kernels ("xla" or the fused Pallas kernels, `expert_path`), each stage's attention (`Attention`),
-SigLIP's LayerNorm (`vision_norm`), the prefix's GeGLU (`prefix_geglu`), the first denoise step beside the prefix fill (`first_step_overlap`), and what
+SigLIP's LayerNorm (`vision_norm`), the first denoise step beside the prefix fill (`first_step_overlap`), and what
 those choices make of the prefix cache and π0's state token (`kernel_cache`, `cached_state`). `programs` builds the
 programs these name.
 """
@@ -109,18 +109,6 @@ def first_step_overlap(overlap: str, kernels: str, batch: int, expert_weights, p
 def overlap_options(options: dict | None, overlap: bool) -> dict | None:
     """A call's second program's compiler options: `options`, with `CONCURRENT` where it overlaps its first step."""
     return {**(options or {}), **CONCURRENT} if overlap else options
-
-
-def prefix_geglu(kernels: str, vlm_weights, platform: str | None = None) -> str:
-    """The prefix MLP's GeGLU pass between its gate/up and down GEMMs: "xla" or "pallas" (`ops.geglu`: the output
-    scale, GELU-tanh(gate) * up and the quantisation in f32 registers, where XLA's fusion is bound by GELU's
-    arithmetic) as asked; "auto" the kernel on a GPU where those GEMMs are FP8 x FP8 (its output e4m3), XLA's
-    fusion otherwise (and on a CPU, and on a jax without Pallas's Triton backend)."""
-    if check_kernels(kernels) != "auto":
-        return kernels
-    gpu = (platform or jax.default_backend()) == "gpu" and pallas_base.TRITON
-    layer = vlm_weights[0] if isinstance(vlm_weights, (list, tuple)) else vlm_weights
-    return "pallas" if gpu and quant.input_scale(layer["down"]) is not None else "xla"
 
 
 def vision_norm(kernels: str, images: int, platform: str | None = None) -> str:

@@ -69,10 +69,8 @@ def encode_images_tail(config: Pi0Config, weights: dict, x, f, *, cameras: int, 
 
 
 def fill_prefix_cache(config: Pi0Config, weights: dict, image_tokens, image_masks, tokens, token_mask, *,
-                      unroll: bool, kernels: str = "xla", attention: Attention = Attention(),
-                      geglu: str | None = None) -> PrefixCache:
+                      unroll: bool, kernels: str = "xla", attention: Attention = Attention()) -> PrefixCache:
     """image_tokens (B, C*256, D); image_masks (C, B) bool; tokens / token_mask (B, L). The prefix is bidirectional.
-    geglu: the MLP's GeGLU pass ("xla" or "pallas"); None: `paths.prefix_geglu(kernels, ...)`.
 
     With a fused attention in the prefix or the denoise step (masks by lengths), each element's valid tokens are
     moved to the front first, in order: positions are computed before and travel with them, and attention does
@@ -95,9 +93,8 @@ def fill_prefix_cache(config: Pi0Config, weights: dict, image_tokens, image_mask
     attn_mask = mask[:, None, :] & mask[:, :, None]
     kernel = paths.kernel_cache(kernels, attention, x.shape[0], weights.get("expert"))
     keys = layout.cache_len(x.shape[1]) if kernel else None   # each layer writes its cache padded
-    geglu = geglu or paths.prefix_geglu(kernels, weights["vlm"])
     layer = functools.partial(layers.prefix_layer, config.paligemma, positions=positions, mask=attn_mask,
-                              kv_len=kv_len, keys=keys, geglu_kernel=geglu == "pallas")
+                              kv_len=kv_len, keys=keys)
     _, (k, v) = layers.run_layers(layer, weights["vlm"], x, unroll=unroll)
     if kernel:  # once per call: no step pads
         head_dim = config.paligemma.head_dim

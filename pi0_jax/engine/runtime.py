@@ -174,8 +174,7 @@ class Engine:
     expert's layers as XLA ops ("xla"), as the fused Pallas kernels of `pi0_jax.ops` ("pallas": Triton on GPU,
     interpret mode on CPU; needs unrolled layers and unquantised expert weights), or "auto" (per batch size,
     `paths.expert_path`: the kernels at B <= 2 on a GPU, XLA otherwise); the same choice for SigLIP's LayerNorm
-    (`paths.vision_norm`: "auto" is the kernel on a GPU from 24 images a call) and the prefix's GeGLU
-    (`paths.prefix_geglu`: "auto" is the kernel on a GPU where the prefix's GEMMs are FP8 x FP8); gemm: the library of XLA's GEMMs on a
+    (`paths.vision_norm`: "auto" is the kernel on a GPU from 24 images a call); gemm: the library of XLA's GEMMs on a
     GPU (`pi0_jax.ops.matmul.compiler_options`: "auto", cuBLAS in the vision program and XLA's autotuned choice in
     the others; "xla" or "cublas" in every program); cache_dir: where compiled programs are kept (`store`, beside
     XLA's persistent cache; None: $PI0_JAX_CACHE_DIR or ~/.cache/pi0_jax/xla, False: nothing kept); overlap: the
@@ -312,8 +311,7 @@ class Engine:
             return functools.partial(programs.encode_images_tail, cfg, cameras=c, **vision_kw), (w, *outs)
         image_tokens = spec((batch, c * cfg.siglip.num_patches, cfg.paligemma.width), dtype)
         # the prefix program alone has no expert weights to choose the cache's layout by: it is given the choice
-        fill = functools.partial(programs.fill_prefix_cache, cfg, **kw, kernels=self.kernels_for(batch),
-                                 geglu=paths.prefix_geglu(self.kernels, self.weights["vlm"]))
+        fill = functools.partial(programs.fill_prefix_cache, cfg, **kw, kernels=self.kernels_for(batch))
         if stage == "fill_prefix_cache":
             return fill, (w, image_tokens, image_masks, tokens, token_mask)
         if stage == "denoise":
