@@ -2,8 +2,8 @@
 compile with extra XLA options on top of the engine's own (`matmul.compiler_options`: cuBLAS in the vision program
 under gemm="auto"), or, for "conv", with SigLIP's patch embedding as cuDNN's convolution (the engine's form until
 2026-11-26) instead of the f32 GEMM, or an Engine built another way (`ENGINE_KW`, `SCHEDULING`, `STAGES`,
-`STEP_ENDS`, `RUNTIME`: the denoise loop unrolled, the first step's overlap and its programs, π0's in-projection
-unfolded, the vision tower as one program); the "vision-" variants set their options on the vision programs alone,
+`STEP_ENDS`, `RUNTIME`, `LAYERS`: the denoise loop unrolled, the first step's overlap and its programs, π0's
+in-projection unfolded, the vision tower as one program, GELU-tanh as jax writes it); the "vision-" variants set their options on the vision programs alone,
 "vhead-" on the first of them, "loop-" on the denoise programs without the prefix (the expert's weights alone).
 Stage medians (round-robin over the variants), kernels per call, device span and idle time (by the kernel that
 waited) from a trace, and the fused program's actions against the first variant.
@@ -28,7 +28,7 @@ import profile_engine  # noqa: E402
 
 from pi0_jax import benchmark  # noqa: E402
 from pi0_jax.config import get_config  # noqa: E402
-from pi0_jax.engine import Engine, paths, programs, runtime, vision  # noqa: E402
+from pi0_jax.engine import Engine, layers, paths, programs, runtime, vision  # noqa: E402
 from pi0_jax.quant.schemes import SCHEMES  # noqa: E402
 
 GRAPHS = {"xla_gpu_graph_min_graph_size": 1}
@@ -81,6 +81,8 @@ VARIANTS = {
     "vision-triton": {"xla_gpu_enable_triton_gemm": True, "xla_gpu_cublas_fallback": False},
     # the denoise loop's GEMMs on cuBLAS, as `Policy`'s loop program chose them under an FP8 prefix until session 50
     "loop-cublas": {"xla_gpu_enable_triton_gemm": False},
+    # the engine's GeGLU with jax's GELU-tanh (LAYERS), where `layers.gelu_tanh` writes it as x sigmoid(2 z)
+    "gelu-tanh": {},
 }
 ENGINE_KW = {"unroll-steps": {"unroll_steps": True}, "no-overlap": {"overlap": "off"}, "overlap-on": {"overlap": "on"}}
 SCHEDULING = {"overlap-lhs": {"xla_gpu_command_buffer_scheduling_mode": "LHS"}}
@@ -88,6 +90,7 @@ STAGES = {"one-loop-program": lambda self, batch, num_steps: (
     *(s for s in Engine.call_stages(self, batch, num_steps) if s in runtime.VISION_STAGES), "prefix_denoise")}
 STEP_ENDS = {"unfolded": {"FOLD_ACTION_IN": False}}
 RUNTIME = {"one-vision-program": {"VISION_SPLIT": 0}}
+LAYERS = {"gelu-tanh": {"gelu_tanh": lambda x: jax.nn.gelu(x, approximate=True)}}
 
 
 def conv_patch_embed(images, kernel, bias, p: int):
@@ -133,7 +136,7 @@ def main() -> None:
     report = {"preset": args.preset, "quant": args.quant, "env": benchmark.environment(), "rows": []}
     own_options, own_embed, own_concurrent = runtime.matmul.compiler_options, vision.patch_embed, paths.CONCURRENT
     own_ends = {k: getattr(programs, k) for k in ("FOLD_ACTION_IN",)}
-    own_split = runtime.VISION_SPLIT
+    own_split, own_layers = runtime.VISION_SPLIT, {k: getattr(layers, k) for k in ("gelu_tanh",)}
     for batch in args.batch or [1]:
         obs, noise = benchmark.make_inputs(config, batch, 3, args.prompt_tokens, 0)
         rows, timed, first = [], {}, None
@@ -156,6 +159,8 @@ def main() -> None:
             for k, v in {**own_ends, **STEP_ENDS.get(name, {})}.items():
                 setattr(programs, k, v)
             runtime.VISION_SPLIT = RUNTIME.get(name, {}).get("VISION_SPLIT", own_split)
+            for k, v in {**own_layers, **LAYERS.get(name, {})}.items():
+                setattr(layers, k, v)
             engine = Engine(config, params, cache_dir=False, **ENGINE_KW.get(name, {}))
             if name in STAGES:   # this engine's calls only
                 engine.call_stages = types.MethodType(STAGES[name], engine)
@@ -200,6 +205,8 @@ def main() -> None:
         paths.CONCURRENT, runtime.VISION_SPLIT = own_concurrent, own_split
         for k, v in own_ends.items():
             setattr(programs, k, v)
+        for k, v in own_layers.items():
+            setattr(layers, k, v)
         times = profile_engine.round_robin(timed, args.iters)
         if args.loop:
             loops = {(row["variant"], stage): profile_engine.looping(timed[row["variant"], stage], args.loop)

@@ -13,7 +13,7 @@ pass of the same size, so a slow form shows as a fraction of the bandwidth:
   gelu-*   SigLIP's fc1 epilogue (--hidden wide): per-column scale, bias, GELU-tanh in bf16 (gelu-bf16: no
            quantisation after it), in f32 (gelu-f32-div), or as x sigmoid(2 z) (gelu-sigmoid-div); then div
   halfsum  gate + up in bf16 (reads gate/up's output, writes half of it: GeGLU's bandwidth reference in bf16)
-  geglu-sigmoid-div  geglu-div with GELU-tanh written as x sigmoid(2 z)
+  geglu-sigmoid-div  geglu-div with GELU-tanh written as x sigmoid(2 z); geglu-sigmoid-bf16 the same unquantised
   geglu-blocks  geglu-div on the engine's fused gate/up product (gate and up in `layout.gate_up_block` pairs)
   halfsum-e4m3  the same quantised: e4m3's conversion alone; geglu-bf16: GeGLU without the quantisation
   geglu-pallas:R:C:W[:V]  geglu-div as a Pallas Triton kernel, R rows and C columns a program, W warps: scale,
@@ -123,6 +123,7 @@ FORMS = {
     "halfsum": lambda y, col, s, inv: y[:, : y.shape[1] // 2] + y[:, y.shape[1] // 2 :],
     "halfsum-e4m3": lambda y, col, s, inv: quantise(y[:, : y.shape[1] // 2] + y[:, y.shape[1] // 2 :], s),
     "geglu-bf16": lambda y, col, s, inv: _geglu(y, col, False),
+    "geglu-sigmoid-bf16": lambda y, col, s, inv: _geglu_sigmoid(y, col),
     "gelu-bf16": lambda y, col, s, inv: _gelu(y, col, "bf16"),
     "gelu-div": lambda y, col, s, inv: quantise(_gelu(y, col, "bf16"), s),
     "gelu-f32-div": lambda y, col, s, inv: quantise(_gelu(y, col, "f32"), s),
