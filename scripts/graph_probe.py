@@ -3,8 +3,9 @@ compile with extra XLA options on top of the engine's own (`matmul.compiler_opti
 under gemm="auto"), or, for "conv", with SigLIP's patch embedding as cuDNN's convolution (the engine's form until
 2026-11-26) instead of the f32 GEMM, or an Engine built another way (`ENGINE_KW`, `SCHEDULING`, `STAGES`,
 `STEP_ENDS`, `RUNTIME`, `LAYERS`: the denoise loop unrolled, the first step's overlap and its programs, π0's
-in-projection unfolded, the vision tower as one program, GELU-tanh as jax writes it); the "vision-" variants set their options on the vision programs alone,
-"vhead-" on the first of them, "loop-" on the denoise programs without the prefix (the expert's weights alone).
+in-projection unfolded, the vision tower as one program, GELU-tanh as jax writes it); the "vision-" variants set
+their options on the vision programs alone, "vhead-" on the first of them, "loop-" on the denoise programs without
+the prefix (the expert's weights alone).
 Stage medians (round-robin over the variants), kernels per call, device span and idle time (by the kernel that
 waited) from a trace, and the fused program's actions against the first variant.
 

@@ -65,8 +65,9 @@ def _qkv(h, w, cfg: GemmaConfig, positions):
 
 def gelu_tanh(x):
     """GELU-tanh (`jax.nn.gelu(x, approximate=True)`) written as x sigmoid(2 z), z = sqrt(2 / pi) (x + 0.044715 x^3):
-    the same function (1 + tanh z = 2 sigmoid(2 z)), in x's dtype as jax's. XLA's fusion of it is arithmetic-bound
-    where tanh's form is, and shorter: the prefix's GeGLU pass X % faster (H200, docs/BENCHMARKS.md)."""
+    the same function (1 + tanh z = 2 sigmoid(2 z)), in x's dtype as jax's. XLA's GeGLU pass is bound by GELU's
+    arithmetic, and this form is shorter: the pass alone 9-10 % faster at 6,528 rows (π0's prefix at B = 8), the
+    prefix's kernels 0.5-2.5 % shorter at B = 1 (H200s, docs/BENCHMARKS.md, session 52)."""
     z = jnp.asarray(2 * 0.7978845608028654, x.dtype) * (x + jnp.asarray(0.044715, x.dtype) * x * x * x)
     return x * jax.nn.sigmoid(z)
 
