@@ -15,7 +15,7 @@ import pytest
 
 from pi0_jax import pi0
 from pi0_jax.config import IMAGE_KEYS, get_config
-from pi0_jax.engine import Engine, prompt_bucket
+from pi0_jax.engine import Engine, layers, prompt_bucket
 from pi0_jax.engine import weights as weights_lib
 from test_model import make_obs, randomize
 
@@ -592,3 +592,15 @@ def test_a_second_process_loads_the_programs_without_compiling(tmp_path):
     assert runs[1]["hits"] >= 1 and runs[1]["misses"] == 0, runs
     assert len(list((tmp_path / "xla" / "programs").glob("*.pkl"))) == 2
     np.testing.assert_array_equal(runs[0]["actions"], runs[1]["actions"])
+
+
+def test_the_engines_gelu_is_jaxs_tanh_gelu():
+    """`layers.gelu_tanh` (x sigmoid(2 z), the engine's GeGLU) is jax's GELU-tanh to f32 rounding, saturating alike
+    (0 far left, x far right, no NaN from x³ overflowing); in bf16 within a rounding step of the f32 value of the
+    same inputs (where jax's form, 1 + tanh z, cancels to 0 on the far left)."""
+    x = jnp.concatenate([jnp.linspace(-12, 12, 20001, dtype=jnp.float32), jnp.array([-3e38, -1e20, 1e20, 3e38])])
+    want = jax.nn.gelu(x, approximate=True)
+    np.testing.assert_allclose(layers.gelu_tanh(x), want, rtol=1e-6, atol=1e-6)
+    xb = x.astype(jnp.bfloat16)
+    exact = jax.nn.gelu(xb.astype(jnp.float32), approximate=True)
+    np.testing.assert_allclose(np.asarray(layers.gelu_tanh(xb), np.float32), exact, rtol=2.0**-7, atol=2.0**-9)
