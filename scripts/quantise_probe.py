@@ -12,10 +12,11 @@ pass of the same size, so a slow form shows as a fraction of the bandwidth:
            GELU and the product in f32, rounded to bf16 once
   gelu-*   SigLIP's fc1 epilogue (--hidden wide): per-column scale, bias, GELU-tanh in bf16 (gelu-bf16: no
            quantisation after it), in f32 (gelu-f32-div), or as x sigmoid(2 z) (gelu-sigmoid-div); then div
-  halfsum  gate + up in bf16 (reads gate/up's output, writes half of it: GeGLU's bandwidth reference in bf16)
+  halfsum  gate + up in bf16 (reads gate/up's output, writes half of it: GeGLU's bandwidth reference in bf16);
+           halfsum-e4m3 the same quantised: e4m3's conversion alone
+  geglu-bf16  geglu-div without the quantisation
   geglu-sigmoid-div  geglu-div with GELU-tanh written as x sigmoid(2 z); geglu-sigmoid-bf16 the same unquantised
   geglu-blocks  geglu-div on the engine's fused gate/up product (gate and up in `layout.gate_up_block` pairs)
-  halfsum-e4m3  the same quantised: e4m3's conversion alone; geglu-bf16: GeGLU without the quantisation
   geglu-pallas:R:C:W[:V]  geglu-div as a Pallas Triton kernel, R rows and C columns a program, W warps: scale,
            GELU, product and quantisation in f32 registers, rounded to bf16 where XLA's path rounds; V a variant
            (`_geglu_pallas`)
