@@ -16,7 +16,8 @@ pass of the same size, so a slow form shows as a fraction of the bandwidth:
            halfsum-e4m3 the same quantised: e4m3's conversion alone
   geglu-bf16  geglu-div without the quantisation
   geglu-sigmoid-div  geglu-div with GELU-tanh written as x sigmoid(2 z); geglu-sigmoid-bf16 the same unquantised
-  geglu-blocks  geglu-div on the engine's fused gate/up product (gate and up in `layout.gate_up_block` pairs)
+  geglu-blocks  geglu-div on the engine's fused gate/up product (gate and up in `layout.gate_up_block` pairs);
+           geglu-blocks-bf16 geglu-bf16 on it
   geglu-pallas:R:C:W[:V]  geglu-div as a Pallas Triton kernel, R rows and C columns a program, W warps: scale,
            GELU, product and quantisation in f32 registers, rounded to bf16 where XLA's path rounds; V a variant
            (`_geglu_pallas`)
@@ -121,6 +122,7 @@ FORMS = {
     "geglu-f32-mul": lambda y, col, s, inv: _clip(_geglu(y, col, True).astype(F32) * inv),
     "geglu-sigmoid-div": lambda y, col, s, inv: quantise(_geglu_sigmoid(y, col), s),
     "geglu-blocks": lambda y, col, s, inv: quantise(_geglu(y, col, False, layout.split_gate_up), s),
+    "geglu-blocks-bf16": lambda y, col, s, inv: _geglu(y, col, False, layout.split_gate_up),
     "halfsum": lambda y, col, s, inv: y[:, : y.shape[1] // 2] + y[:, y.shape[1] // 2 :],
     "halfsum-e4m3": lambda y, col, s, inv: quantise(y[:, : y.shape[1] // 2] + y[:, y.shape[1] // 2 :], s),
     "geglu-bf16": lambda y, col, s, inv: _geglu(y, col, False),
