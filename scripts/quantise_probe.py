@@ -15,7 +15,8 @@ pass of the same size, so a slow form shows as a fraction of the bandwidth:
   halfsum  gate + up in bf16 (reads gate/up's output, writes half of it: GeGLU's bandwidth reference in bf16);
            halfsum-e4m3 the same quantised: e4m3's conversion alone
   geglu-bf16  geglu-div without the quantisation
-  geglu-sigmoid-div  geglu-div with GELU-tanh written as x sigmoid(2 z); geglu-sigmoid-bf16 the same unquantised
+  geglu-sigmoid-div  geglu-div with the engine's GELU-tanh, x sigmoid(2 z) (`engine.layers.gelu_tanh`);
+           geglu-sigmoid-bf16 the same unquantised
   geglu-blocks  geglu-div on the engine's fused gate/up product (gate and up in `layout.gate_up_block` pairs);
            geglu-blocks-bf16 geglu-bf16 on it
   geglu-pallas:R:C:W[:V]  geglu-div as a Pallas Triton kernel, R rows and C columns a program, W warps: scale,
@@ -36,6 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from pi0_jax.engine import layers
 from pi0_jax.ops import layout
 from pi0_jax.ops.formats import quantise
 
@@ -46,20 +48,18 @@ def _clip(x):   # the "mul" forms' end; the "div" forms call the project's own `
     return jnp.clip(x, -448.0, 448.0).astype(E4M3)
 
 
-def _geglu(y, col, f32: bool, split=lambda h: jnp.split(h, 2, axis=-1)):
+def _tanh_gelu(x):
+    return jax.nn.gelu(x, approximate=True)
+
+
+def _geglu(y, col, f32: bool, split=lambda h: jnp.split(h, 2, axis=-1), gelu=_tanh_gelu):
+    """gelu: jax's GELU-tanh, or the engine's x sigmoid(2 z) form (`engine.layers.gelu_tanh`)."""
     h = (y.astype(F32) * col).astype(BF16)
     gate, up = split(h)
     if f32:
         gate, up = gate.astype(F32), up.astype(F32)
-        return (jax.nn.gelu(gate, approximate=True) * up).astype(BF16)
-    return jax.nn.gelu(gate, approximate=True) * up
-
-
-def _geglu_sigmoid(y, col):
-    h = (y.astype(F32) * col).astype(BF16)
-    gate, up = jnp.split(h, 2, axis=-1)
-    z = jnp.asarray(1.5957691, BF16) * (gate + jnp.asarray(0.044715, BF16) * gate * gate * gate)
-    return gate * jax.nn.sigmoid(z) * up
+        return (gelu(gate) * up).astype(BF16)
+    return gelu(gate) * up
 
 
 def _geglu_pallas(rows: int, cols: int, warps: int, variant: str = "full"):
@@ -120,13 +120,13 @@ FORMS = {
     "geglu-div": lambda y, col, s, inv: quantise(_geglu(y, col, False), s),
     "geglu-mul": lambda y, col, s, inv: _clip(_geglu(y, col, False).astype(F32) * inv),
     "geglu-f32-mul": lambda y, col, s, inv: _clip(_geglu(y, col, True).astype(F32) * inv),
-    "geglu-sigmoid-div": lambda y, col, s, inv: quantise(_geglu_sigmoid(y, col), s),
+    "geglu-sigmoid-div": lambda y, col, s, inv: quantise(_geglu(y, col, False, gelu=layers.gelu_tanh), s),
     "geglu-blocks": lambda y, col, s, inv: quantise(_geglu(y, col, False, layout.split_gate_up), s),
     "geglu-blocks-bf16": lambda y, col, s, inv: _geglu(y, col, False, layout.split_gate_up),
     "halfsum": lambda y, col, s, inv: y[:, : y.shape[1] // 2] + y[:, y.shape[1] // 2 :],
     "halfsum-e4m3": lambda y, col, s, inv: quantise(y[:, : y.shape[1] // 2] + y[:, y.shape[1] // 2 :], s),
     "geglu-bf16": lambda y, col, s, inv: _geglu(y, col, False),
-    "geglu-sigmoid-bf16": lambda y, col, s, inv: _geglu_sigmoid(y, col),
+    "geglu-sigmoid-bf16": lambda y, col, s, inv: _geglu(y, col, False, gelu=layers.gelu_tanh),
     "gelu-bf16": lambda y, col, s, inv: _gelu(y, col, "bf16"),
     "gelu-div": lambda y, col, s, inv: quantise(_gelu(y, col, "bf16"), s),
     "gelu-f32-div": lambda y, col, s, inv: quantise(_gelu(y, col, "f32"), s),
@@ -178,8 +178,8 @@ def main() -> None:
             cols = "blocks" if name == "geglu-blocks" else "halves"
             ref = outs.setdefault(cols, got)
             rows[-1]["vs_first_geglu_" + cols] = {"differing": float(np.mean(got != ref)),
-                                          "max_abs": float(np.max(np.abs(got - ref))),
-                                          "nan": int(np.isnan(got).sum())}
+                                                  "max_abs": float(np.max(np.abs(got - ref))),
+                                                  "nan": int(np.isnan(got).sum())}
         print(json.dumps(rows[-1]), flush=True)
         del y, out
     if args.out:
