@@ -12,7 +12,14 @@ Also timed: cuBLAS's GEMM alone, and jax's stock Mosaic GPU Hopper matmul (the G
 The Mosaic GPU kernel won here and lost in the engine, where cuBLAS ran faster (docs/BENCHMARKS.md, "GeGLU in the
 gate/up GEMM's epilogue"), so the engine keeps XLA's path.
 
+The "xla:" forms are XLA programs of the same step laid out other ways (`XLA_FORMS`), bf16 and FP8 (e4m3 out, as the
+down-projection takes it): the engine's gate/up in 32-unit block pairs, in [gate | up] halves, and gate and up as two
+GEMMs, whose gate GEMM can take GELU-tanh as a cuBLASLt epilogue (XLA's gemm rewriter matches jax's form of it on a
+cuBLASLt GEMM, in FP8 only with per-tensor scales), leaving the pass after it no GELU to compute. Each row says
+whether the compiled program has a GELU epilogue and how many kernels it runs. Timed back to back (--chain calls).
+
   python3 scripts/geglu_probe.py --rows 8192,51200,143616 --iters 15 --out OUT.json
+  python3 scripts/geglu_probe.py --rows 816,6528,51200 --only xla: --out OUT.json
 """
 
 from __future__ import annotations
@@ -20,6 +27,7 @@ from __future__ import annotations
 import argparse
 import functools
 import json
+import re
 import time
 
 import jax
@@ -29,6 +37,11 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 from jax.experimental.pallas import triton as pltriton
+
+from pi0_jax.engine import layers
+from pi0_jax.ops import formats, layout
+
+BF16, F32 = jnp.bfloat16, jnp.float32
 
 
 def _geglu(g, u, dtype):
@@ -186,6 +199,138 @@ VARIANTS = {
 }
 
 
+def _halves(y):
+    return jnp.split(y, 2, axis=-1)
+
+
+def _bf16(split, gelu=layers.gelu_tanh):
+    """One gate/up GEMM, its product split by `split`, GELU(gate) * up."""
+    def fn(x, ws):
+        gate, up = split(x @ ws["blocks" if split is layout.split_gate_up else "halves"])
+        return gelu(gate) * up
+    return fn
+
+
+def _bf16_two(gelu):
+    """Gate and up as two GEMMs."""
+    return lambda x, ws: gelu(x @ ws["gate"]) * (x @ ws["up"])
+
+
+def _jax_gelu(x):
+    return jax.nn.gelu(x, approximate=True)
+
+
+def _fp8(split):
+    """The engine's FP8 path (`layers._mlp` up to the down GEMM's input): x quantised, one e4m3 gate/up GEMM with
+    per-column weight scales, split, GELU(gate) * up, quantised for the down GEMM."""
+    def fn(x, ws):
+        w = ws["q_blocks" if split is layout.split_gate_up else "q_halves"]
+        gate, up = split(formats.qmatmul("...D,FD->...F", x, w))
+        return formats.quantise(layers.gelu_tanh(gate) * up, ws["s_down"])
+    return fn
+
+
+def _fp8_two(gelu):
+    """Gate and up as two e4m3 GEMMs: gate's weight with one scale, written as a dequantised product (the form XLA's
+    rewriter turns into a scaled cuBLASLt FP8 GEMM, which can then take GELU as its epilogue); up's per column."""
+    def fn(x, ws):
+        g, u = ws["q_gate"], ws["q_up"]
+        xq = formats.quantise(x, g.act_scale)
+        gate = jnp.einsum("...D,FD->...F", xq.astype(BF16) * g.act_scale.astype(BF16),
+                          g.q.astype(BF16) * g.scale.reshape(()).astype(BF16))
+        up = formats.fp8_product("...D,FD->...F", xq, u, BF16)
+        up = (up.astype(F32) * formats.output_scale("...D,FD->...F", u)).astype(BF16)
+        return formats.quantise(gelu(gate) * up, ws["s_down"])
+    return fn
+
+
+LT = {"xla_gpu_enable_cublaslt": True}
+# name: (fn(x, ws), compiler options)
+XLA_FORMS = {
+    "xla: gate/up gemm alone (bf16)": (lambda x, ws: x @ ws["halves"], {}),
+    "xla: gate gemm alone (bf16)": (lambda x, ws: x @ ws["gate"], {}),
+    "xla: block pairs (the engine, bf16)": (_bf16(layout.split_gate_up), {}),
+    "xla: halves (bf16)": (_bf16(_halves), {}),
+    "xla: two gemms, x sigmoid(2z) (bf16)": (_bf16_two(layers.gelu_tanh), {}),
+    "xla: two gemms, jax gelu (bf16)": (_bf16_two(_jax_gelu), {}),
+    "xla: two gemms, jax gelu, cublaslt (bf16)": (_bf16_two(_jax_gelu), LT),
+    "xla: two gemms, jax gelu, cublaslt, no triton (bf16)": (_bf16_two(_jax_gelu),
+                                                           {**LT, "xla_gpu_enable_triton_gemm": False}),
+    "xla: gate/up gemm alone (fp8)": (lambda x, ws: formats.fp8_product(
+        "...D,FD->...F", formats.quantise(x, ws["q_halves"].act_scale), ws["q_halves"], BF16), {}),
+    "xla: block pairs (the engine, fp8)": (_fp8(layout.split_gate_up), {}),
+    "xla: halves (fp8)": (_fp8(_halves), {}),
+    "xla: two gemms, x sigmoid(2z) (fp8)": (_fp8_two(layers.gelu_tanh), {}),
+    "xla: two gemms, jax gelu (fp8)": (_fp8_two(_jax_gelu), {}),
+}
+
+
+def xla_weights(x, w):
+    """Every layout the XLA forms read, from w (K, 2F) = [gate | up], and their FP8 scales from x."""
+    f = w.shape[1] // 2
+    gate, up = w[:, :f], w[:, f:]
+    blocks = jnp.stack([gate, up], axis=1).reshape(w.shape[0], 2, -1, layout.gate_up_block(f))
+    blocks = blocks.transpose(0, 2, 1, 3).reshape(w.shape)
+    sx = jnp.asarray(formats.act_scale_from_amax(jnp.max(jnp.abs(x.astype(F32)))))
+    exact = jax.lax.Precision.HIGHEST
+    ref = (jax.nn.gelu(jnp.matmul(x.astype(F32), gate.astype(F32), precision=exact), approximate=True)
+           * jnp.matmul(x.astype(F32), up.astype(F32), precision=exact))
+    s_down = jnp.asarray(formats.act_scale_from_amax(jnp.max(jnp.abs(ref))))
+
+    def q(a, per_channel=True):   # (K, N) -> e4m3 laid out (N, K), as the engine's FP8 weights
+        return formats.quantize_fp8(a.T.astype(F32), contract=(-1,), per_channel=per_channel, act_scale=sx)
+
+    return {"halves": w, "blocks": blocks, "gate": gate, "up": up, "q_halves": q(w), "q_blocks": q(blocks),
+            "q_gate": q(gate, per_channel=False), "q_up": q(up), "s_down": s_down}, ref
+
+
+def _chain(fn, args, iters, chain):
+    """ms a call: `chain` calls dispatched back to back, then one wait; the median of `iters` such runs."""
+    for _ in range(2):
+        jax.block_until_ready(fn(*args))
+    ts = []
+    for _ in range(iters):
+        t0 = time.perf_counter()
+        for _ in range(chain):
+            out = fn(*args)
+        jax.block_until_ready(out)
+        ts.append((time.perf_counter() - t0) * 1e3 / chain)
+    return float(np.median(ts))
+
+
+def _compiled_facts(compiled) -> dict:
+    """Whether cuBLASLt took GELU as an epilogue, and the entry computation's kernels (fusions and library calls)."""
+    text = compiled.as_text()
+    entry = text[text.index("ENTRY"):]
+    kernels = len(re.findall(r"= \S+ (?:fusion|custom-call)\(", entry))
+    return {"gelu_epilogue": bool(re.search(r'"epilogue":"GELU', text)), "kernels": kernels,
+            "library_calls": re.findall(r'custom_call_target="([^"]+)"', entry),
+            "epilogues": re.findall(r'"epilogue":"(\w+)"', text)}
+
+
+def run_xla_forms(x, w, iters, chain, only):
+    ws, ref = xla_weights(x, w)
+    row = {}
+    for name, (fn, options) in XLA_FORMS.items():
+        if only and not any(o in name for o in only):
+            continue
+        try:
+            compiled = jax.jit(fn).lower(x, ws).compile(compiler_options=options or None)
+            got = compiled(x, ws)
+            r = {"ms": _chain(compiled, (x, ws), iters, chain), **_compiled_facts(compiled), "options": options}
+            if "alone" not in name:
+                g = got.astype(F32) * (ws["s_down"] if got.dtype == formats.E4M3 else 1.0)
+                r["rel_l2_vs_f32"] = float(jnp.linalg.norm(g - ref) / jnp.linalg.norm(ref))
+        except Exception as e:  # noqa: BLE001  (a probe: report the form that fails and go on)
+            r = {"error": f"{type(e).__name__}: {str(e)[:300]}"}
+        row[name] = r
+        print(f"   {name:52s} " + (f"{r['ms']:8.4f} ms  kernels {r['kernels']:3d}  GELU epilogue "
+                                    f"{'yes' if r['gelu_epilogue'] else 'no '}"
+                                    + (f"  rel L2 {r['rel_l2_vs_f32']:.1e}" if "rel_l2_vs_f32" in r else "")
+                                    if "ms" in r else r["error"]), flush=True)
+    return row
+
+
 def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--rows", default="8192,51200",
@@ -193,6 +338,10 @@ def main():
     p.add_argument("--width", type=int, default=2048, help="K: Gemma 2B's width")
     p.add_argument("--hidden", type=int, default=16384, help="F: Gemma 2B's MLP width")
     p.add_argument("--iters", type=int, default=15, help="timed calls per variant (median reported)")
+    p.add_argument("--chain", type=int, default=20,
+                   help="the XLA forms: calls dispatched back to back per timed run (default: %(default)s)")
+    p.add_argument("--only", action="append", default=None,
+                   help="repeatable: only the variants and forms whose name contains this (e.g. 'xla:')")
     p.add_argument("--out", default=None, help="write the results as JSON here")
     args = p.parse_args()
     key = jax.random.key(0)
@@ -205,6 +354,8 @@ def main():
         row = res["rows"][m] = {}
         print(f"M={m}", flush=True)
         for name, fn in VARIANTS.items():
+            if args.only and not any(o in name for o in args.only):
+                continue
             try:
                 fn = jax.jit(fn)
                 got = fn(x, w)
@@ -218,6 +369,7 @@ def main():
             print(f"   {name:42s} " + (f"{r['ms']:8.3f} ms {r['tflops']:5.0f} TFLOP/s"
                                          + (f"  rel L2 {r['rel_l2']:.1e}" if "rel_l2" in r else "")
                                          if "ms" in r else r["error"]), flush=True)
+        row.update(run_xla_forms(x, w, args.iters, args.chain, args.only))
     if args.out:
         with open(args.out, "w") as f:
             json.dump(res, f, indent=1)
