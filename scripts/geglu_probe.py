@@ -230,14 +230,19 @@ def _fp8(split):
     return fn
 
 
-def _fp8_two(gelu):
-    """Gate and up as two e4m3 GEMMs: gate's weight with one scale, written as a dequantised product (the form XLA's
-    rewriter turns into a scaled cuBLASLt FP8 GEMM, which can then take GELU as its epilogue); up's per column."""
+def _dequantised_gate(xq, g, dtype):
+    """x @ gate written as a product of two dequantised e4m3 operands with scalar scales, in `dtype`: the form XLA's
+    rewriter turns into a scaled cuBLASLt FP8 GEMM, which can then take GELU as its epilogue."""
+    return jnp.einsum("...D,FD->...F", xq.astype(dtype) * g.act_scale.astype(dtype),
+                      g.q.astype(dtype) * g.scale.reshape(()).astype(dtype), preferred_element_type=BF16)
+
+
+def _fp8_two(gelu, dtype=BF16):
+    """Gate and up as two e4m3 GEMMs: gate's weight with one scale, as `_dequantised_gate`; up's per column."""
     def fn(x, ws):
         g, u = ws["q_gate"], ws["q_up"]
         xq = formats.quantise(x, g.act_scale)
-        gate = jnp.einsum("...D,FD->...F", xq.astype(BF16) * g.act_scale.astype(BF16),
-                          g.q.astype(BF16) * g.scale.reshape(()).astype(BF16))
+        gate = _dequantised_gate(xq, g, dtype)
         up = formats.fp8_product("...D,FD->...F", xq, u, BF16)
         up = (up.astype(F32) * formats.output_scale("...D,FD->...F", u)).astype(BF16)
         return formats.quantise(gelu(gate) * up, ws["s_down"])
@@ -262,6 +267,13 @@ XLA_FORMS = {
     "xla: halves (fp8)": (_fp8(_halves), {}),
     "xla: two gemms, x sigmoid(2z) (fp8)": (_fp8_two(layers.gelu_tanh), {}),
     "xla: two gemms, jax gelu (fp8)": (_fp8_two(_jax_gelu), {}),
+    "xla: two gemms, jax gelu, f32 dequantised (fp8)": (_fp8_two(_jax_gelu, F32), {}),
+    "xla: gate gemm alone, dequantised (fp8)": (lambda x, ws: _dequantised_gate(
+        formats.quantise(x, ws["q_gate"].act_scale), ws["q_gate"], BF16), {}),
+    "xla: gate gemm alone, f32 dequantised (fp8)": (lambda x, ws: _dequantised_gate(
+        formats.quantise(x, ws["q_gate"].act_scale), ws["q_gate"], F32), {}),
+    "xla: gate gemm + jax gelu, f32 dequantised (fp8)": (lambda x, ws: _jax_gelu(_dequantised_gate(
+        formats.quantise(x, ws["q_gate"].act_scale), ws["q_gate"], F32)), {}),
 }
 
 
@@ -308,7 +320,7 @@ def _compiled_facts(compiled) -> dict:
             "epilogues": re.findall(r'"epilogue":"(\w+)"', text)}
 
 
-def run_xla_forms(x, w, iters, chain, only):
+def run_xla_forms(x, w, iters, chain, only, hlo=None):
     ws, ref = xla_weights(x, w)
     row = {}
     for name, (fn, options) in XLA_FORMS.items():
@@ -318,6 +330,10 @@ def run_xla_forms(x, w, iters, chain, only):
             compiled = jax.jit(fn).lower(x, ws).compile(compiler_options=options or None)
             got = compiled(x, ws)
             r = {"ms": _chain(compiled, (x, ws), iters, chain), **_compiled_facts(compiled), "options": options}
+            if hlo:
+                with open(hlo, "a") as f:
+                    text = compiled.as_text()
+                    f.write(f"### {name}, M = {x.shape[0]}\n{text[text.index('ENTRY'):]}\n")
             if "alone" not in name:
                 g = got.astype(F32) * (ws["s_down"] if got.dtype == formats.E4M3 else 1.0)
                 r["rel_l2_vs_f32"] = float(jnp.linalg.norm(g - ref) / jnp.linalg.norm(ref))
@@ -342,6 +358,7 @@ def main():
                    help="the XLA forms: calls dispatched back to back per timed run (default: %(default)s)")
     p.add_argument("--only", action="append", default=None,
                    help="repeatable: only the variants and forms whose name contains this (e.g. 'xla:')")
+    p.add_argument("--hlo", default=None, help="append each XLA form's optimized entry computation to this file")
     p.add_argument("--out", default=None, help="write the results as JSON here")
     args = p.parse_args()
     key = jax.random.key(0)
@@ -369,7 +386,7 @@ def main():
             print(f"   {name:42s} " + (f"{r['ms']:8.3f} ms {r['tflops']:5.0f} TFLOP/s"
                                          + (f"  rel L2 {r['rel_l2']:.1e}" if "rel_l2" in r else "")
                                          if "ms" in r else r["error"]), flush=True)
-        row.update(run_xla_forms(x, w, args.iters, args.chain, args.only))
+        row.update(run_xla_forms(x, w, args.iters, args.chain, args.only, args.hlo))
     if args.out:
         with open(args.out, "w") as f:
             json.dump(res, f, indent=1)
