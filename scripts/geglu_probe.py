@@ -17,6 +17,9 @@ down-projection takes it): the engine's gate/up in 32-unit block pairs, in [gate
 GEMMs, whose gate GEMM can take GELU-tanh as a cuBLASLt epilogue (XLA's gemm rewriter matches jax's form of it on a
 cuBLASLt GEMM, in FP8 only with per-tensor scales), leaving the pass after it no GELU to compute. Each row says
 whether the compiled program has a GELU epilogue and how many kernels it runs. Timed back to back (--chain calls).
+On an H200 (docs/BENCHMARKS.md, session 53) halves were within 1 % of block pairs at B = 8 and 64 and slower at
+B = 1; XLA took the GELU epilogue only in bf16 with Triton GEMMs off, and left the dequantised FP8 gate as a bf16
+GEMM: the engine keeps its layout.
 
   python3 scripts/geglu_probe.py --rows 8192,51200,143616 --iters 15 --out OUT.json
   python3 scripts/geglu_probe.py --rows 816,6528,51200 --only xla: --out OUT.json
@@ -350,7 +353,7 @@ def run_xla_forms(x, w, iters, chain, only, hlo=None):
 def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--rows", default="8192,51200",
-                   help="comma-separated M values (multiples of 256): B x prefix tokens")
+                   help="comma-separated M values: B x prefix tokens (the Pallas kernels need multiples of 256)")
     p.add_argument("--width", type=int, default=2048, help="K: Gemma 2B's width")
     p.add_argument("--hidden", type=int, default=16384, help="F: Gemma 2B's MLP width")
     p.add_argument("--iters", type=int, default=15, help="timed calls per variant (median reported)")
