@@ -33,6 +33,7 @@ import json
 import re
 import time
 
+import einops
 import jax
 import jax.experimental.pallas as pl
 import jax.experimental.pallas.mosaic_gpu as plgpu
@@ -206,11 +207,11 @@ def _halves(y):
     return jnp.split(y, 2, axis=-1)
 
 
-def _bf16(split, gelu=layers.gelu_tanh):
-    """One gate/up GEMM, its product split by `split`, GELU(gate) * up."""
+def _bf16(key, split):
+    """One gate/up GEMM on the weight ws[key], its product split by `split`, GELU(gate) * up."""
     def fn(x, ws):
-        gate, up = split(x @ ws["blocks" if split is layout.split_gate_up else "halves"])
-        return gelu(gate) * up
+        gate, up = split(x @ ws[key])
+        return layers.gelu_tanh(gate) * up
     return fn
 
 
@@ -223,12 +224,11 @@ def _jax_gelu(x):
     return jax.nn.gelu(x, approximate=True)
 
 
-def _fp8(split):
-    """The engine's FP8 path (`layers._mlp` up to the down GEMM's input): x quantised, one e4m3 gate/up GEMM with
-    per-column weight scales, split, GELU(gate) * up, quantised for the down GEMM."""
+def _fp8(key, split):
+    """The engine's FP8 path (`layers._mlp` up to the down GEMM's input) on the weight ws[key]: x quantised, one
+    e4m3 gate/up GEMM with per-column weight scales, split, GELU(gate) * up, quantised for the down GEMM."""
     def fn(x, ws):
-        w = ws["q_blocks" if split is layout.split_gate_up else "q_halves"]
-        gate, up = split(formats.qmatmul("...D,FD->...F", x, w))
+        gate, up = split(formats.qmatmul("...D,FD->...F", x, ws[key]))
         return formats.quantise(layers.gelu_tanh(gate) * up, ws["s_down"])
     return fn
 
@@ -258,8 +258,8 @@ LT = {"xla_gpu_enable_cublaslt": True}
 XLA_FORMS = {
     "xla: gate/up gemm alone (bf16)": (lambda x, ws: x @ ws["halves"], {}),
     "xla: gate gemm alone (bf16)": (lambda x, ws: x @ ws["gate"], {}),
-    "xla: block pairs (the engine, bf16)": (_bf16(layout.split_gate_up), {}),
-    "xla: halves (bf16)": (_bf16(_halves), {}),
+    "xla: block pairs (the engine, bf16)": (_bf16("blocks", layout.split_gate_up), {}),
+    "xla: halves (bf16)": (_bf16("halves", _halves), {}),
     "xla: two gemms, x sigmoid(2z) (bf16)": (_bf16_two(layers.gelu_tanh), {}),
     "xla: two gemms, jax gelu (bf16)": (_bf16_two(_jax_gelu), {}),
     "xla: two gemms, jax gelu, cublaslt (bf16)": (_bf16_two(_jax_gelu), LT),
@@ -267,8 +267,8 @@ XLA_FORMS = {
                                                            {**LT, "xla_gpu_enable_triton_gemm": False}),
     "xla: gate/up gemm alone (fp8)": (lambda x, ws: formats.fp8_product(
         "...D,FD->...F", formats.quantise(x, ws["q_halves"].act_scale), ws["q_halves"], BF16), {}),
-    "xla: block pairs (the engine, fp8)": (_fp8(layout.split_gate_up), {}),
-    "xla: halves (fp8)": (_fp8(_halves), {}),
+    "xla: block pairs (the engine, fp8)": (_fp8("q_blocks", layout.split_gate_up), {}),
+    "xla: halves (fp8)": (_fp8("q_halves", _halves), {}),
     "xla: two gemms, x sigmoid(2z) (fp8)": (_fp8_two(layers.gelu_tanh), {}),
     "xla: two gemms, jax gelu (fp8)": (_fp8_two(_jax_gelu), {}),
     "xla: two gemms, jax gelu, f32 dequantised (fp8)": (_fp8_two(_jax_gelu, F32), {}),
@@ -285,8 +285,8 @@ def xla_weights(x, w):
     """Every layout the XLA forms read, from w (K, 2F) = [gate | up], and their FP8 scales from x."""
     f = w.shape[1] // 2
     gate, up = w[:, :f], w[:, f:]
-    blocks = jnp.stack([gate, up], axis=1).reshape(w.shape[0], 2, -1, layout.gate_up_block(f))
-    blocks = blocks.transpose(0, 2, 1, 3).reshape(w.shape)
+    # the engine's layout (`engine.weights`'s gate_up pattern)
+    blocks = einops.rearrange(jnp.stack([gate, up]), "two D (Fb u) -> D (Fb two u)", u=layout.gate_up_block(f))
     sx = jnp.asarray(formats.act_scale_from_amax(jnp.max(jnp.abs(x.astype(F32)))))
     exact = jax.lax.Precision.HIGHEST
     ref = (jax.nn.gelu(jnp.matmul(x.astype(F32), gate.astype(F32), precision=exact), approximate=True)
