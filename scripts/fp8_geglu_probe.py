@@ -19,9 +19,13 @@ Timed against the engine's XLA form (`geglu_probe.XLA_FORMS`' FP8 block pairs) a
 calls back to back; actions compared as the dequantised e4m3 outputs, against each other and against f32.
 
     python3 scripts/fp8_geglu_probe.py --rows 816,6528,51200 --out OUT.json
+    python3 scripts/fp8_geglu_probe.py --cpu-check     # Mosaic GPU's interpreter, a small shape
 
-GPU only: jax 0.10.2's Mosaic GPU interpreter has no transposed wgmma operand, which e4m3 needs (both operands
-K-major), so the check is the GPU run's comparison with `reference`, the same numerics in XLA.
+On a GPU every kernel's output is compared with `reference` (the same numerics in XLA). The CPU check runs the kernel
+in Mosaic GPU's interpreter with the weight N-major (`geglu_fp8(interpret=True)`), as jax 0.10.2's interpreter has
+no transposed wgmma operand, which e4m3 needs on the GPU (both operands K-major).
+Written in session 54 (2026-12-04), which was lent no GPU: the interpreter check passes (bit-equal to `reference`),
+and the kernel has not yet been compiled for or timed on a GPU.
 """
 
 from __future__ import annotations
@@ -43,6 +47,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 import geglu_probe  # noqa: E402
 
 from pi0_jax.ops import formats, layout  # noqa: E402
+from pi0_jax.ops.mosaic_gemm import _interpret  # noqa: E402
 
 BF16, F32, E4M3 = jnp.bfloat16, jnp.float32, formats.E4M3
 
@@ -63,10 +68,14 @@ def _gelu_tanh(g):
 
 
 def geglu_fp8(xq, wq, col_scale, s_down: float, *, tile_m=128, tile_n=256, tile_k=128, stages=4, snake=8,
-              minor=0, block=32):
+              minor=0, block=32, interpret=False):
     """xq (M, K) e4m3, wq (2F, K) e4m3 in gate/up block pairs of `block` units, col_scale (2F,) f32 -> e4m3 (M, F):
     quantise(GELU-tanh(gate) * up, s_down) with gate and up the scaled product's halves of each pair. M, 2F and K
-    must tile by (tile_m, tile_n, tile_k); each compute warpgroup's tile_n / 2 columns hold whole pairs."""
+    must tile by (tile_m, tile_n, tile_k); each compute warpgroup's tile_n / 2 columns hold whole pairs.
+
+    interpret: Mosaic GPU's CPU interpreter (jax 0.10.2), which has neither a transposed wgmma operand nor
+    `plgpu.load`: the weight then streams as its (K, 2F) transpose and the scales are read as a plain ref, so the
+    check covers the tiling, the pipeline and the epilogue's layout, not the K-major operand."""
     m, k = xq.shape
     n2 = wq.shape[0]
     wg_n = tile_n // 2
@@ -74,6 +83,8 @@ def geglu_fp8(xq, wq, col_scale, s_down: float, *, tile_m=128, tile_n=256, tile_
     if m % tile_m or n2 % tile_n or k % tile_k or wg_n % (2 * block) or wq.shape[1] != k:
         raise ValueError(f"{xq.shape} @ {wq.shape}.T does not tile by ({tile_m}, {tile_n}, {tile_k}, pairs of {block})")
     m_iters, n_iters, k_iters = m // tile_m, n2 // tile_n, k // tile_k
+    if interpret:
+        wq = wq.T
     in_tr, out_tr = _transforms(tile_k), _transforms(block)
     down = np.float32(s_down)
 
@@ -81,7 +92,9 @@ def geglu_fp8(xq, wq, col_scale, s_down: float, *, tile_m=128, tile_n=256, tile_
         spec = functools.partial(plgpu.BlockSpec, memory_space=plgpu.SMEM, transforms=in_tr)
         return plgpu.emit_pipeline_warp_specialized(
             body, grid=(k_iters,), memory_registers=40,
-            in_specs=[spec((tile_m, tile_k), lambda kk: (0, kk)), spec((tile_n, tile_k), lambda kk: (0, kk))],
+            in_specs=[spec((tile_m, tile_k), lambda kk: (0, kk)),
+                      spec((tile_k, tile_n), lambda kk: (kk, 0), transforms=_transforms(tile_n)) if interpret
+                      else spec((tile_n, tile_k), lambda kk: (0, kk))],
             wg_axis="wg", num_compute_wgs=2, max_concurrent_steps=stages, compute_context=context)
 
     def kernel(x_gmem, w_gmem, s_gmem, out_gmem):
@@ -108,7 +121,8 @@ def geglu_fp8(xq, wq, col_scale, s_down: float, *, tile_m=128, tile_n=256, tile_
                     def _(acc):
                         run(acc)
                         plgpu.barrier_wait(s_bar.at[wg])
-                        s = plgpu.load(s_smem.at[wg], (), layout=plgpu.Layout.WGMMA.reduce(0))
+                        s = (s_smem[wg] if interpret
+                             else plgpu.load(s_smem.at[wg], (), layout=plgpu.Layout.WGMMA.reduce(0)))
                         y = _round(_round(acc[...]) * s[None, :])
                         plgpu.wait_smem_to_gmem(0, wait_read_only=True)
                         for p in range(pairs):
@@ -121,19 +135,22 @@ def geglu_fp8(xq, wq, col_scale, s_down: float, *, tile_m=128, tile_n=256, tile_
                                                     out_gmem.at[rows, pl.ds(col0 // 2 + p * block, block)])
 
                 def body(_, a_smem, b_smem, acc):
-                    plgpu.wgmma(acc, a_smem, plgpu.transpose_ref(b_smem.at[pl.ds(wg * wg_n, wg_n)], (1, 0)))
+                    cols = pl.ds(wg * wg_n, wg_n)
+                    plgpu.wgmma(acc, a_smem, b_smem.at[:, cols] if interpret
+                                else plgpu.transpose_ref(b_smem.at[cols], (1, 0)))
                     plgpu.wgmma_wait(0)
                     return acc
 
-                pipeline(body, context)(x_gmem.at[rows, :], w_gmem.at[pl.ds(ni * tile_n, tile_n), :],
+                w_cols = pl.ds(ni * tile_n, tile_n)
+                pipeline(body, context)(x_gmem.at[rows, :], w_gmem.at[:, w_cols] if interpret else w_gmem.at[w_cols, :],
                                         allocations=allocs)
         plgpu.wait_smem_to_gmem(0, wait_read_only=True)
 
-    sms = jax.devices()[0].core_count
+    sms = 1 if interpret else jax.devices()[0].core_count
     params = plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup)
     call = plgpu.kernel(kernel, out_type=jax.ShapeDtypeStruct((m, n2 // 2), E4M3), grid=(sms,),
                         grid_names=("cluster_grid",), num_threads=3, thread_name="wg", compiler_params=params,
-                        kernel_name="fp8_geglu")
+                        kernel_name="fp8_geglu", **({"interpret": _interpret()} if interpret else {}))
     return call(xq, wq, col_scale)
 
 
@@ -163,6 +180,18 @@ def _rel(a, b):
     return float(jnp.linalg.norm(a - b) / jnp.linalg.norm(b))
 
 
+def cpu_check() -> dict:
+    """The kernel in Mosaic GPU's interpreter against `reference`: one CTA over 2 x 2 tiles of two pairs a
+    warpgroup."""
+    m, k, f = 256, 256, 256
+    _, _, _, xq, wq, cs, s_down = _operands(m, k, f)
+    got = geglu_fp8(xq, wq, cs, s_down, tile_m=128, tile_n=256, tile_k=128, stages=2, interpret=True)
+    g, w = (np.asarray(a.astype(F32)) for a in (got, reference(xq, wq, cs, s_down)))
+    out = {"shape": [m, k, f], "rel_l2": _rel(g, w), "elements_differing": int(np.sum(g != w)), "elements": g.size}
+    print(json.dumps(out), flush=True)
+    return out
+
+
 CONFIGS = {   # name: geglu_fp8 keywords
     "128x256x128, 4 stages, snake 8": {},
     "128x256x128, 4 stages, snake 8 on N": {"minor": 1},
@@ -179,12 +208,16 @@ def main():
     p.add_argument("--hidden", type=int, default=16384, help="F: Gemma 2B's MLP width")
     p.add_argument("--iters", type=int, default=15, help="timed runs per form (median reported)")
     p.add_argument("--chain", type=int, default=20, help="calls dispatched back to back per timed run")
-    p.add_argument("--only", action="append", default=None, help="repeatable: only kernel configs with this in the name")
+    p.add_argument("--only", action="append", default=None,
+                   help="repeatable: only the kernel configs whose name contains this")
+    p.add_argument("--cpu-check", action="store_true", help="only the interpreter check (a CPU is enough)")
     p.add_argument("--out", default=None, help="write the results as JSON here")
     args = p.parse_args()
-    res = {"jax": jax.__version__, "device": str(jax.devices()[0])}
-    res["rows"] = {}
-    for m in map(int, args.rows.split(",")):
+    res = {"jax": jax.__version__, "device": str(jax.devices()[0]), "rows": {}}
+    if args.cpu_check:
+        res["cpu_check"] = cpu_check()
+        args.rows = ""
+    for m in (int(r) for r in args.rows.split(",") if r):
         x, ws, ref, xq, wq, cs, s_down = _operands(m, args.width, args.hidden)
         flops = 2 * m * args.width * 2 * args.hidden
         engine_fn, _ = geglu_probe.XLA_FORMS["xla: block pairs (the engine, fp8)"]
