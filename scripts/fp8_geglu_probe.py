@@ -52,10 +52,10 @@ from pi0_jax.ops.mosaic_gemm import _interpret  # noqa: E402
 BF16, F32, E4M3 = jnp.bfloat16, jnp.float32, formats.E4M3
 
 
-def _transforms(minor: int):
-    """TMA tiles of 8 rows of a 1-byte operand, swizzled by the row's width (at most 128 bytes)."""
-    swizzle = plgpu.find_swizzle(minor * 8)
-    return plgpu.TilingTransform((8, swizzle)), plgpu.SwizzleTransform(swizzle)
+def _transforms(minor: int, itemsize: int = 1):
+    """TMA tiles of 8 rows, swizzled by the row's width in bytes (at most 128)."""
+    swizzle = plgpu.find_swizzle(minor * itemsize * 8)
+    return plgpu.TilingTransform((8, swizzle // itemsize)), plgpu.SwizzleTransform(swizzle)
 
 
 def _round(a):
@@ -68,10 +68,12 @@ def _gelu_tanh(g):
 
 
 def geglu_fp8(xq, wq, col_scale, s_down: float, *, tile_m=128, tile_n=256, tile_k=128, stages=4, snake=8,
-              minor=0, block=32, interpret=False):
+              minor=0, block=32, delay=0, geglu=True, interpret=False):
     """xq (M, K) e4m3, wq (2F, K) e4m3 in gate/up block pairs of `block` units, col_scale (2F,) f32 -> e4m3 (M, F):
     quantise(GELU-tanh(gate) * up, s_down) with gate and up the scaled product's halves of each pair. M, 2F and K
-    must tile by (tile_m, tile_n, tile_k); each compute warpgroup's tile_n / 2 columns hold whole pairs.
+    must tile by (tile_m, tile_n, tile_k); each compute warpgroup's tile_n / 2 columns hold whole pairs. delay:
+    wgmma steps left in flight when the next is issued (their tiles released that many steps later). geglu=False:
+    the GEMM alone, its product rounded to bf16 (M, 2F), unscaled: the mainloop's speed without the epilogue.
 
     interpret: Mosaic GPU's CPU interpreter (jax 0.10.2), which has neither a transposed wgmma operand nor
     `plgpu.load`: the weight then streams as its (K, 2F) transpose and the scales are read as a plain ref, so the
@@ -89,7 +91,7 @@ def geglu_fp8(xq, wq, col_scale, s_down: float, *, tile_m=128, tile_n=256, tile_
     down = np.float32(s_down)
 
     def pipeline(body, context):
-        spec = functools.partial(plgpu.BlockSpec, memory_space=plgpu.SMEM, transforms=in_tr)
+        spec = functools.partial(plgpu.BlockSpec, memory_space=plgpu.SMEM, transforms=in_tr, delay_release=delay)
         return plgpu.emit_pipeline_warp_specialized(
             body, grid=(k_iters,), memory_registers=40,
             in_specs=[spec((tile_m, tile_k), lambda kk: (0, kk)),
@@ -101,7 +103,8 @@ def geglu_fp8(xq, wq, col_scale, s_down: float, *, tile_m=128, tile_n=256, tile_
         nothing = lambda *_, **__: None   # noqa: E731
 
         @functools.partial(pl.run_scoped, allocs=pipeline(nothing, nothing).get_allocations(x_gmem, w_gmem),
-                           out_smem=plgpu.SMEM((2, pairs, tile_m, block), E4M3, transforms=out_tr),
+                           out_smem=(plgpu.SMEM((2, pairs, tile_m, block), E4M3, transforms=out_tr) if geglu
+                                     else plgpu.SMEM((2, tile_m, block), BF16, transforms=_transforms(block, 2))),
                            s_smem=plgpu.SMEM((2, wg_n), F32), s_bar=plgpu.Barrier(num_barriers=2),
                            collective_axes="wg")
         def scope(allocs, out_smem, s_smem, s_bar):
@@ -121,6 +124,15 @@ def geglu_fp8(xq, wq, col_scale, s_down: float, *, tile_m=128, tile_n=256, tile_
                     def _(acc):
                         run(acc)
                         plgpu.barrier_wait(s_bar.at[wg])
+                        if not geglu:   # bf16 out in column chunks of `block` (shared memory is full)
+                            y = acc[...].astype(BF16)
+                            for c in range(wg_n // block):
+                                plgpu.wait_smem_to_gmem(0, wait_read_only=True)
+                                out_smem[wg] = y[:, c * block:(c + 1) * block]
+                                plgpu.commit_smem()
+                                plgpu.copy_smem_to_gmem(out_smem.at[wg],
+                                                        out_gmem.at[rows, pl.ds(col0 + c * block, block)])
+                            return
                         s = (s_smem[wg] if interpret
                              else plgpu.load(s_smem.at[wg], (), layout=plgpu.Layout.WGMMA.reduce(0)))
                         y = _round(_round(acc[...]) * s[None, :])
@@ -138,7 +150,7 @@ def geglu_fp8(xq, wq, col_scale, s_down: float, *, tile_m=128, tile_n=256, tile_
                     cols = pl.ds(wg * wg_n, wg_n)
                     plgpu.wgmma(acc, a_smem, b_smem.at[:, cols] if interpret
                                 else plgpu.transpose_ref(b_smem.at[cols], (1, 0)))
-                    plgpu.wgmma_wait(0)
+                    plgpu.wgmma_wait(delay)
                     return acc
 
                 w_cols = pl.ds(ni * tile_n, tile_n)
@@ -148,17 +160,22 @@ def geglu_fp8(xq, wq, col_scale, s_down: float, *, tile_m=128, tile_n=256, tile_
 
     sms = 1 if interpret else jax.devices()[0].core_count
     params = plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup)
-    call = plgpu.kernel(kernel, out_type=jax.ShapeDtypeStruct((m, n2 // 2), E4M3), grid=(sms,),
+    out = jax.ShapeDtypeStruct((m, n2 // 2), E4M3) if geglu else jax.ShapeDtypeStruct((m, n2), BF16)
+    call = plgpu.kernel(kernel, out_type=out, grid=(sms,),
                         grid_names=("cluster_grid",), num_threads=3, thread_name="wg", compiler_params=params,
                         kernel_name="fp8_geglu", **({"interpret": _interpret()} if interpret else {}))
     return call(xq, wq, col_scale)
 
 
+def _product(xq, wq):
+    """The kernel's GEMM alone (geglu=False): e4m3 x e4m3 into bf16, unscaled."""
+    return jnp.einsum("md,nd->mn", xq, wq, preferred_element_type=BF16)
+
+
 def reference(xq, wq, col_scale, s_down):
     """The kernel's numerics in XLA: the engine's FP8 gate/up form (`formats.qmatmul`, `layout.split_gate_up`, GeGLU,
     `formats.quantise`), with GELU-tanh as the kernel writes it."""
-    y = jnp.einsum("md,nd->mn", xq, wq, preferred_element_type=BF16)
-    y = (y.astype(F32) * col_scale).astype(BF16)
+    y = (_product(xq, wq).astype(F32) * col_scale).astype(BF16)
     gate, up = layout.split_gate_up(y.astype(F32))
     h = (_gelu_tanh(gate) * up).astype(BF16)
     return formats.quantise(h, jnp.float32(s_down))
@@ -185,15 +202,23 @@ def cpu_check() -> dict:
     warpgroup."""
     m, k, f = 256, 256, 256
     _, _, _, xq, wq, cs, s_down = _operands(m, k, f)
-    got = geglu_fp8(xq, wq, cs, s_down, tile_m=128, tile_n=256, tile_k=128, stages=2, interpret=True)
-    g, w = (np.asarray(a.astype(F32)) for a in (got, reference(xq, wq, cs, s_down)))
-    out = {"shape": [m, k, f], "rel_l2": _rel(g, w), "elements_differing": int(np.sum(g != w)), "elements": g.size}
+    out = {}
+    for geglu in (True, False):
+        got = geglu_fp8(xq, wq, cs, s_down, tile_m=128, tile_n=256, tile_k=128, stages=2, geglu=geglu,
+                        interpret=True)
+        want = reference(xq, wq, cs, s_down) if geglu else _product(xq, wq)
+        g, w = (np.asarray(a.astype(F32)) for a in (got, want))
+        out["geglu" if geglu else "gemm alone"] = {"shape": [m, k, f], "rel_l2": _rel(g, w),
+                                                   "elements_differing": int(np.sum(g != w)), "elements": g.size}
     print(json.dumps(out), flush=True)
     return out
 
 
 CONFIGS = {   # name: geglu_fp8 keywords
+    "GEMM alone, 128x256x128, 4 stages, snake 8": {"geglu": False},
+    "GEMM alone, 128x256x128, 4 stages, delay 1, snake 8": {"geglu": False, "delay": 1},
     "128x256x128, 4 stages, snake 8": {},
+    "128x256x128, 4 stages, delay 1, snake 8": {"delay": 1},
     "128x256x128, 4 stages, snake 8 on N": {"minor": 1},
     "128x256x128, 3 stages, snake 16": {"stages": 3, "snake": 16},
     "128x256x64, 6 stages, snake 8": {"tile_k": 64, "stages": 6},
@@ -240,7 +265,9 @@ def main():
                 got = fn(*fargs)
                 r = {"ms": geglu_probe._chain(fn, fargs, args.iters, args.chain)}
                 r["tflops"] = flops / r["ms"] / 1e9
-                if name.startswith("kernel"):
+                if name.startswith("kernel GEMM alone"):
+                    r["vs_reference_numerics"] = _rel(got[:m], _product(xq, wq))
+                elif name.startswith("kernel"):
                     g = got[:m].astype(F32) * s_down
                     r["rel_l2_vs_engine"] = _rel(g, want)
                     r["rel_l2_vs_f32"] = _rel(g, ref)
