@@ -68,12 +68,14 @@ def _gelu_tanh(g):
 
 
 def geglu_fp8(xq, wq, col_scale, s_down: float, *, tile_m=128, tile_n=256, tile_k=128, stages=4, snake=8,
-              minor=0, block=32, delay=0, geglu=True, interpret=False):
+              minor=0, block=32, delay=0, geglu=True, ragged=False, interpret=False):
     """xq (M, K) e4m3, wq (2F, K) e4m3 in gate/up block pairs of `block` units, col_scale (2F,) f32 -> e4m3 (M, F):
     quantise(GELU-tanh(gate) * up, s_down) with gate and up the scaled product's halves of each pair. M, 2F and K
     must tile by (tile_m, tile_n, tile_k); each compute warpgroup's tile_n / 2 columns hold whole pairs. delay:
     wgmma steps left in flight when the next is issued (their tiles released that many steps later). geglu=False:
     the GEMM alone, its product rounded to bf16 (M, 2F), unscaled: the mainloop's speed without the epilogue.
+    ragged: M need not tile; the last row tile reads zeros past the end and its stores there are dropped (TMA on a
+    GPU; the interpreter refuses such reads), so the engine's 816 rows at B = 1 need no padded copy.
 
     interpret: Mosaic GPU's CPU interpreter (jax 0.10.2), which has neither a transposed wgmma operand nor
     `plgpu.load`: the weight then streams as its (K, 2F) transpose and the scales are read as a plain ref, so the
@@ -82,9 +84,9 @@ def geglu_fp8(xq, wq, col_scale, s_down: float, *, tile_m=128, tile_n=256, tile_
     n2 = wq.shape[0]
     wg_n = tile_n // 2
     pairs = wg_n // (2 * block)
-    if m % tile_m or n2 % tile_n or k % tile_k or wg_n % (2 * block) or wq.shape[1] != k:
+    if (m % tile_m and not ragged) or n2 % tile_n or k % tile_k or wg_n % (2 * block) or wq.shape[1] != k:
         raise ValueError(f"{xq.shape} @ {wq.shape}.T does not tile by ({tile_m}, {tile_n}, {tile_k}, pairs of {block})")
-    m_iters, n_iters, k_iters = m // tile_m, n2 // tile_n, k // tile_k
+    m_iters, n_iters, k_iters = -(-m // tile_m), n2 // tile_n, k // tile_k
     if interpret:
         wq = wq.T
     in_tr, out_tr = _transforms(tile_k), _transforms(block)
@@ -260,6 +262,9 @@ def main():
                 continue
             fn = jax.jit(functools.partial(geglu_fp8, s_down=s_down, **kw))
             forms["kernel " + name + (f" (x padded to {mp} rows)" if mp != m else "")] = (fn, (xp, wq, cs))
+            if mp != m and not kw:   # the default launch on the rows as they are
+                fn = jax.jit(functools.partial(geglu_fp8, s_down=s_down, ragged=True))
+                forms["kernel " + name + f" ({m} rows, the last tile ragged)"] = (fn, (xq, wq, cs))
         for name, (fn, fargs) in forms.items():
             try:
                 got = fn(*fargs)
