@@ -68,12 +68,13 @@ def _gelu_tanh(g):
 
 
 def geglu_fp8(xq, wq, col_scale, s_down: float, *, tile_m=128, tile_n=256, tile_k=128, stages=4, snake=8,
-              minor=0, block=32, delay=0, geglu=True, ragged=False, interpret=False):
+              minor=0, block=32, delay=0, geglu=True, e4m3=True, ragged=False, interpret=False):
     """xq (M, K) e4m3, wq (2F, K) e4m3 in gate/up block pairs of `block` units, col_scale (2F,) f32 -> e4m3 (M, F):
     quantise(GELU-tanh(gate) * up, s_down) with gate and up the scaled product's halves of each pair. M, 2F and K
     must tile by (tile_m, tile_n, tile_k); each compute warpgroup's tile_n / 2 columns hold whole pairs. delay:
     wgmma steps left in flight when the next is issued (their tiles released that many steps later). geglu=False:
     the GEMM alone, its product rounded to bf16 (M, 2F), unscaled: the mainloop's speed without the epilogue.
+    e4m3=False: GeGLU's product in bf16 (M, F), not quantised (a check of the kernel without its e4m3 stores).
     ragged: M need not tile; the last row tile reads zeros past the end and its stores there are dropped (TMA on a
     GPU; the interpreter refuses such reads), so the engine's 816 rows at B = 1 need no padded copy.
 
@@ -89,7 +90,8 @@ def geglu_fp8(xq, wq, col_scale, s_down: float, *, tile_m=128, tile_n=256, tile_
     m_iters, n_iters, k_iters = -(-m // tile_m), n2 // tile_n, k // tile_k
     if interpret:
         wq = wq.T
-    in_tr, out_tr = _transforms(tile_k), _transforms(block)
+    out_dtype = E4M3 if e4m3 else BF16
+    in_tr, out_tr = _transforms(tile_k), _transforms(block, jnp.dtype(out_dtype).itemsize)
     down = np.float32(s_down)
 
     def pipeline(body, context):
@@ -105,7 +107,7 @@ def geglu_fp8(xq, wq, col_scale, s_down: float, *, tile_m=128, tile_n=256, tile_
         nothing = lambda *_, **__: None   # noqa: E731
 
         @functools.partial(pl.run_scoped, allocs=pipeline(nothing, nothing).get_allocations(x_gmem, w_gmem),
-                           out_smem=(plgpu.SMEM((2, pairs, tile_m, block), E4M3, transforms=out_tr) if geglu
+                           out_smem=(plgpu.SMEM((2, pairs, tile_m, block), out_dtype, transforms=out_tr) if geglu
                                      else plgpu.SMEM((2, tile_m, block), BF16, transforms=_transforms(block, 2))),
                            s_smem=plgpu.SMEM((2, wg_n), F32), s_bar=plgpu.Barrier(num_barriers=2),
                            collective_axes="wg")
@@ -142,7 +144,8 @@ def geglu_fp8(xq, wq, col_scale, s_down: float, *, tile_m=128, tile_n=256, tile_
                         for p in range(pairs):
                             g = y[:, 2 * p * block:(2 * p + 1) * block]
                             u = y[:, (2 * p + 1) * block:(2 * p + 2) * block]
-                            out_smem[wg, p] = (_round(_gelu_tanh(g) * u) / down).astype(E4M3)
+                            h = _round(_gelu_tanh(g) * u)
+                            out_smem[wg, p] = (h / down).astype(E4M3) if e4m3 else h.astype(BF16)
                         plgpu.commit_smem()
                         for p in range(pairs):
                             plgpu.copy_smem_to_gmem(out_smem.at[wg, p],
@@ -162,7 +165,7 @@ def geglu_fp8(xq, wq, col_scale, s_down: float, *, tile_m=128, tile_n=256, tile_
 
     sms = 1 if interpret else jax.devices()[0].core_count
     params = plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup)
-    out = jax.ShapeDtypeStruct((m, n2 // 2), E4M3) if geglu else jax.ShapeDtypeStruct((m, n2), BF16)
+    out = jax.ShapeDtypeStruct((m, n2 // 2), out_dtype) if geglu else jax.ShapeDtypeStruct((m, n2), BF16)
     call = plgpu.kernel(kernel, out_type=out, grid=(sms,),
                         grid_names=("cluster_grid",), num_threads=3, thread_name="wg", compiler_params=params,
                         kernel_name="fp8_geglu", **({"interpret": _interpret()} if interpret else {}))
@@ -174,13 +177,13 @@ def _product(xq, wq):
     return jnp.einsum("md,nd->mn", xq, wq, preferred_element_type=BF16)
 
 
-def reference(xq, wq, col_scale, s_down):
+def reference(xq, wq, col_scale, s_down, e4m3=True):
     """The kernel's numerics in XLA: the engine's FP8 gate/up form (`formats.qmatmul`, `layout.split_gate_up`, GeGLU,
-    `formats.quantise`), with GELU-tanh as the kernel writes it."""
+    `formats.quantise`; e4m3=False: GeGLU's bf16 product), with GELU-tanh as the kernel writes it."""
     y = (_product(xq, wq).astype(F32) * col_scale).astype(BF16)
     gate, up = layout.split_gate_up(y.astype(F32))
     h = (_gelu_tanh(gate) * up).astype(BF16)
-    return formats.quantise(h, jnp.float32(s_down))
+    return formats.quantise(h, jnp.float32(s_down)) if e4m3 else h
 
 
 def _operands(m, k, f, seed=0):
@@ -205,12 +208,11 @@ def cpu_check() -> dict:
     m, k, f = 256, 256, 256
     _, _, _, xq, wq, cs, s_down = _operands(m, k, f)
     out = {}
-    for geglu in (True, False):
-        got = geglu_fp8(xq, wq, cs, s_down, tile_m=128, tile_n=256, tile_k=128, stages=2, geglu=geglu,
-                        interpret=True)
-        want = reference(xq, wq, cs, s_down) if geglu else _product(xq, wq)
+    for name, kw in {"geglu": {}, "geglu, bf16 out": {"e4m3": False}, "gemm alone": {"geglu": False}}.items():
+        got = geglu_fp8(xq, wq, cs, s_down, tile_m=128, tile_n=256, tile_k=128, stages=2, interpret=True, **kw)
+        want = _product(xq, wq) if name == "gemm alone" else reference(xq, wq, cs, s_down, kw.get("e4m3", True))
         g, w = (np.asarray(a.astype(F32)) for a in (got, want))
-        out["geglu" if geglu else "gemm alone"] = {"shape": [m, k, f], "rel_l2": _rel(g, w),
+        out[name] = {"shape": [m, k, f], "rel_l2": _rel(g, w),
                                                    "elements_differing": int(np.sum(g != w)), "elements": g.size}
     print(json.dumps(out), flush=True)
     return out
@@ -220,6 +222,7 @@ CONFIGS = {   # name: geglu_fp8 keywords
     "GEMM alone, 128x256x128, 4 stages, snake 8": {"geglu": False},
     "GEMM alone, 128x256x128, 4 stages, delay 1, snake 8": {"geglu": False, "delay": 1},
     "128x256x128, 4 stages, snake 8": {},
+    "128x256x128, 4 stages, snake 8, bf16 out": {"e4m3": False},
     "128x256x128, 4 stages, delay 1, snake 8": {"delay": 1},
     "128x256x128, 4 stages, snake 8 on N": {"minor": 1},
     "128x256x128, 3 stages, snake 16": {"stages": 3, "snake": 16},
@@ -273,11 +276,11 @@ def main():
                 if name.startswith("kernel GEMM alone"):
                     r["vs_reference_numerics"] = _rel(got[:m], _product(xq, wq))
                 elif name.startswith("kernel"):
-                    g = got[:m].astype(F32) * s_down
+                    e4m3 = got.dtype == E4M3
+                    g = got[:m].astype(F32) * (s_down if e4m3 else 1.0)
                     r["rel_l2_vs_engine"] = _rel(g, want)
                     r["rel_l2_vs_f32"] = _rel(g, ref)
-                    r["vs_reference_numerics"] = _rel(got[:m].astype(F32), reference(xq, wq, cs, s_down)
-                                                      .astype(F32))
+                    r["vs_reference_numerics"] = _rel(got[:m], reference(xq, wq, cs, s_down, e4m3))
                 elif "engine" in name:
                     r["rel_l2_vs_f32"] = _rel(want, ref)
             except Exception as e:  # noqa: BLE001  (a probe: report the form that fails and go on)
