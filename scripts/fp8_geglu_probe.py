@@ -70,13 +70,14 @@ def _gelu_tanh(g):
 
 
 def geglu_fp8(xq, wq, col_scale, s_down: float, *, tile_m=128, tile_n=256, tile_k=128, stages=4, snake=8,
-              minor=0, block=32, delay=0, geglu=True, e4m3=True, ragged=False, interpret=False):
+              minor=0, block=32, delay=0, geglu=True, e4m3=True, ragged=False, approx=False, interpret=False):
     """xq (M, K) e4m3, wq (2F, K) e4m3 in gate/up block pairs of `block` units, col_scale (2F,) f32 -> e4m3 (M, F):
     quantise(GELU-tanh(gate) * up, s_down) with gate and up the scaled product's halves of each pair. M, 2F and K
     must tile by (tile_m, tile_n, tile_k); each compute warpgroup's tile_n / 2 columns hold whole pairs. delay:
     wgmma steps left in flight when the next is issued (their tiles released that many steps later). geglu=False:
     the GEMM alone, its product rounded to bf16 (M, 2F), unscaled: the mainloop's speed without the epilogue.
     e4m3=False: GeGLU's product in bf16 (M, F), not quantised (a check of the kernel without its e4m3 stores).
+    approx: Mosaic GPU's approximate math (tanh.approx.f32 for GELU's tanh, within bf16 rounding of the exact one).
     ragged: M need not tile; the last row tile reads zeros past the end and its stores there are dropped (TMA on a
     GPU; the interpreter refuses such reads), so the engine's 816 rows at B = 1 need no padded copy.
 
@@ -166,7 +167,8 @@ def geglu_fp8(xq, wq, col_scale, s_down: float, *, tile_m=128, tile_n=256, tile_
         plgpu.wait_smem_to_gmem(0, wait_read_only=True)
 
     sms = 1 if interpret else jax.devices()[0].core_count
-    params = plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup)
+    params = plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup,
+                                  **({"approx_math": True} if approx else {}))
     out = jax.ShapeDtypeStruct((m, n2 // 2), out_dtype) if geglu else jax.ShapeDtypeStruct((m, n2), BF16)
     call = plgpu.kernel(kernel, out_type=out, grid=(sms,),
                         grid_names=("cluster_grid",), num_threads=3, thread_name="wg", compiler_params=params,
@@ -225,6 +227,7 @@ CONFIGS = {   # name: geglu_fp8 keywords
     "GEMM alone, 128x256x128, 4 stages, delay 1, snake 8": {"geglu": False, "delay": 1},
     "128x256x128, 4 stages, snake 8": {},
     "128x256x128, 4 stages, snake 8, bf16 out": {"e4m3": False},
+    "128x256x128, 4 stages, snake 8, approximate tanh": {"approx": True},
     "128x256x128, 4 stages, delay 1, snake 8": {"delay": 1},
     "128x256x128, 4 stages, snake 8 on N": {"minor": 1},
     "128x256x128, 3 stages, snake 16": {"stages": 3, "snake": 16},
