@@ -1,0 +1,236 @@
+"""An FP8 MLP's gate/up GEMM, GeGLU and the down GEMM's e4m3 input as one Pallas Mosaic GPU kernel (Hopper).
+
+XLA runs an FP8 Gemma MLP (`engine.layers._mlp` on `QArray` weights) as cuBLASLt's e4m3 GEMM into the activation
+dtype, then one fusion that scales gate and up per column, computes GELU-tanh(gate) * up and quantises it for the
+down GEMM. That fusion is a pass over the GEMM's whole output: in π0's FP8 prefix it costs a third of the gate/up
+GEMM's time at B >= 8 and a quarter at B = 1 (H200, docs/BENCHMARKS.md, session 53). cuBLASLt takes only scalar
+scales in an FP8 GEMM's epilogue, so the pass cannot join it there. Here it is the GEMM's epilogue.
+
+The kernel is persistent: a CTA per SM walks (tile_m x tile_n) tiles of the output in a snake order; a producer
+warpgroup streams x and weight tiles by TMA, `stages` deep; `wgs` compute warpgroups each own tile_n / wgs weight
+columns (whole gate/up block pairs, `ops.layout.gate_up_block`) as an f32 wgmma accumulator over the whole K. e4m3
+wgmma needs both operands K-major: x is (M, K) and the weight (2F, K), as the engine lays out FP8 weights.
+
+Numerics: the accumulator times its column's f32 scale (act_scale x the weight's scale; up's columns also divided by
+the down GEMM's activation scale, folded in), GELU-tanh(gate) * up in f32 as `engine.layers.gelu_tanh` writes it (x
+sigmoid(2 z)), converted to e4m3 (nearest even, saturating at ±448). XLA's path rounds gate and up to the activation
+dtype and divides after the product: in bf16 the two agree to that rounding, so an e4m3 output near a rounding
+boundary may take the next e4m3 value.
+
+On a GPU the last row tile may be ragged (TMA reads zeros past the end and drops stores there). Mosaic GPU's CPU
+interpreter (the tests) refuses both, and has no transposed wgmma operand: there the rows are padded and the
+weight streams as its (K, 2F) transpose, so the CPU checks the tiling, the pipeline and the epilogue, not the
+K-major operand. Not partitioned: under a sharded jit XLA would gather its operands (the engine asks for it only
+where `applies`, and `engine.layers.FP8_GEGLU` leaves it off until it is measured).
+
+Axis legend: M rows, K contraction, N2 = 2F fused gate/up columns, F hidden units.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.experimental.pallas as pl
+import jax.experimental.pallas.mosaic_gpu as plgpu
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+from pi0_jax.ops import formats, layout, mosaic_gemm
+from pi0_jax.ops.formats import E4M3, QArray
+
+F32 = jnp.float32
+MIN_K = 32   # an e4m3 wgmma's contraction
+
+
+@dataclasses.dataclass(frozen=True)
+class Launch:
+    """Rows and weight columns a CTA takes (tile_n: `wgs` compute warpgroups of whole gate/up block pairs), the
+    contraction a pipeline step brings (128: one 128-byte swizzled row of e4m3), the TMA pipeline's depth, wgmma
+    steps left in flight when the next is issued (`delay`; their tiles are released that many steps later), the tile
+    order (`plgpu.planar_snake`: bands of `snake` tiles along dimension `minor`, 0 rows, 1 columns), and Mosaic GPU's
+    approximate math (`approx`: tanh.approx.f32 inside GELU's sigmoid)."""
+
+    tile_m: int = 128
+    tile_n: int = 256
+    tile_k: int = 128
+    stages: int = 4
+    wgs: int = 2
+    delay: int = 0
+    snake: int = 8
+    minor: int = 0
+    approx: bool = False
+
+
+def fit(launch: Launch, k: int, n2: int) -> Launch | None:
+    """The launch for a (K, 2F) weight: tile_k halved until it divides K (not below an e4m3 wgmma's 32), then
+    fewer compute warpgroups and fewer block pairs each until tile_n divides 2F (small shapes: the tests). None
+    where nothing fits."""
+    pair = 2 * layout.gate_up_block(n2 // 2)
+    tile_k = launch.tile_k
+    while k % tile_k and tile_k > MIN_K:
+        tile_k //= 2
+    if k % tile_k or tile_k % MIN_K or n2 % pair:
+        return None
+    for wgs in range(launch.wgs, 0, -1):
+        wg_n = launch.tile_n // launch.wgs // pair * pair
+        while wg_n >= pair and (n2 % (wgs * wg_n) or wg_n % pair):
+            wg_n -= pair
+        if wg_n >= pair:
+            stages = min(launch.stages, k // tile_k)
+            return dataclasses.replace(launch, tile_k=tile_k, tile_n=wgs * wg_n, wgs=wgs, stages=stages,
+                                       delay=min(launch.delay, stages - 1))
+    return None
+
+
+def applies(w, down) -> bool:
+    """Whether the kernel can take the MLP whose fused gate/up weight is `w` and down weight `down`: both FP8 x FP8
+    (`QArray`s with activation scales), w K-major (2F, K), a launch fits, and on a GPU a Hopper one."""
+    if not (isinstance(w, QArray) and isinstance(down, QArray) and w.act_scale is not None
+            and down.act_scale is not None and w.q.ndim == 2 and w.contract == (-1,)):
+        return False
+    if fit(Launch(), w.q.shape[1], w.q.shape[0]) is None:
+        return False
+    return jax.default_backend() == "cpu" or mosaic_gemm.hopper()
+
+
+def column_scales(w: QArray, down_scale) -> jax.Array:
+    """(2F,) f32: each weight column's output scale (act_scale x the weight's scale), up's columns divided by the
+    down GEMM's activation scale, so that the kernel's GELU(gate) * up is the down GEMM's input before e4m3."""
+    n2 = w.q.shape[0]
+    scale = jnp.broadcast_to(formats.output_scale("...D,FD->...F", w).reshape(-1), (n2,))
+    up = (jnp.arange(n2) // layout.gate_up_block(n2 // 2)) % 2 == 1
+    return jnp.where(up, scale / jnp.asarray(down_scale, F32), scale)
+
+
+def gelu_product(g, u):
+    """GELU-tanh(g) * u in f32, GELU as x sigmoid(2 z) (`engine.layers.gelu_tanh`'s form)."""
+    z = np.float32(2 * 0.7978845608028654) * (g + np.float32(0.044715) * g * g * g)
+    return g * jax.nn.sigmoid(z) * u
+
+
+def reference(xq, w: QArray, down_scale) -> jax.Array:
+    """The kernel's numerics as XLA ops: f32 product, column scales, GeGLU in f32, e4m3."""
+    y = jnp.einsum("md,nd->mn", xq, w.q, preferred_element_type=F32) * column_scales(w, down_scale)
+    gate, up = layout.split_gate_up(y)
+    return jnp.clip(gelu_product(gate, up), -formats.E4M3_MAX, formats.E4M3_MAX).astype(E4M3)
+
+
+def geglu(xq, w: QArray, down_scale, launch: Launch = Launch()) -> jax.Array:
+    """xq (M, K) e4m3 @ w (2F, K) e4m3 in gate/up block pairs -> (M, F) e4m3: GELU-tanh(gate) * up quantised with
+    `down_scale` (the down GEMM's activation scale), as `reference` computes it. `applies(w, down)` must hold."""
+    k, n2 = w.q.shape[1], w.q.shape[0]
+    launch = fit(launch, k, n2)
+    if launch is None or xq.shape[1] != k:
+        raise ValueError(f"x {xq.shape} @ w {w.q.shape}.T: no launch of the FP8 GeGLU kernel fits")
+    scales = column_scales(w, down_scale)
+    m = xq.shape[0]
+    if jax.default_backend() == "cpu":   # the interpreter: whole row tiles, the weight N-major
+        mp = -(-m // launch.tile_m) * launch.tile_m
+        xp = jnp.pad(xq, ((0, mp - m), (0, 0))) if mp != m else xq
+        return _call(mp, k, n2, launch, True)(xp, w.q.T, scales)[:m]
+    return _call(m, k, n2, launch, False)(xq, w.q, scales)
+
+
+def _transforms(minor: int, itemsize: int = 1):
+    """TMA tiles of 8 rows, swizzled by the row's width in bytes (at most 128)."""
+    swizzle = plgpu.find_swizzle(minor * itemsize * 8)
+    return plgpu.TilingTransform((8, swizzle // itemsize)), plgpu.SwizzleTransform(swizzle)
+
+
+@functools.lru_cache(maxsize=None)
+def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "e4m3"):
+    """The kernel for x (m, k), a (n2, k) weight ((k, n2) when `interpret`) and (n2,) column scales. out: "e4m3"
+    (the down GEMM's input), or, to tell a GPU run's parts apart (`scripts/fp8_geglu_probe.py`), "bf16" (GeGLU's
+    product unquantised) or "product" (the raw GEMM in bf16, (m, n2), no epilogue but the store)."""
+    tm, tn, tk, wgs = launch.tile_m, launch.tile_n, launch.tile_k, launch.wgs
+    wg_n = tn // wgs
+    block = layout.gate_up_block(n2 // 2)
+    pairs = wg_n // (2 * block)
+    m_iters, n_iters, k_iters = -(-m // tm), n2 // tn, k // tk
+    out_dtype = {"e4m3": E4M3, "bf16": jnp.bfloat16, "product": jnp.bfloat16}[out]
+    item = jnp.dtype(out_dtype).itemsize
+    in_tr, out_tr = _transforms(tk), _transforms(block, item)
+
+    def pipeline(body, context):
+        spec = functools.partial(plgpu.BlockSpec, memory_space=plgpu.SMEM, transforms=in_tr,
+                                 delay_release=launch.delay)
+        w_spec = (spec((tk, tn), lambda kk: (kk, 0), transforms=_transforms(tn)) if interpret
+                  else spec((tn, tk), lambda kk: (0, kk)))
+        return plgpu.emit_pipeline_warp_specialized(
+            body, grid=(k_iters,), memory_registers=40, in_specs=[spec((tm, tk), lambda kk: (0, kk)), w_spec],
+            wg_axis="wg", num_compute_wgs=wgs, max_concurrent_steps=launch.stages, compute_context=context)
+
+    def kernel(x_gmem, w_gmem, s_gmem, o_gmem):
+        nothing = lambda *_, **__: None   # noqa: E731
+        out_smem = (plgpu.SMEM((wgs, tm, block), out_dtype, transforms=out_tr) if out == "product"
+                    else plgpu.SMEM((wgs, pairs, tm, block), out_dtype, transforms=out_tr))
+
+        @functools.partial(pl.run_scoped, allocs=pipeline(nothing, nothing).get_allocations(x_gmem, w_gmem),
+                           out_smem=out_smem, s_smem=plgpu.SMEM((wgs, wg_n), F32),
+                           s_bar=plgpu.Barrier(num_barriers=wgs), collective_axes="wg")
+        def scope(allocs, out_smem, s_smem, s_bar):
+            wg = lax.axis_index("wg")
+
+            @plgpu.nd_loop((m_iters * n_iters,), collective_axes="cluster_grid")
+            def tiles(info):
+                (lin,) = info.index
+                mi, ni = plgpu.planar_snake(lin, (m_iters, n_iters), launch.minor, launch.snake)
+                rows = pl.ds(mi * tm, tm)
+                col0 = ni * tn + wg * wg_n
+
+                def context(run):
+                    plgpu.copy_gmem_to_smem(s_gmem.at[pl.ds(col0, wg_n)], s_smem.at[wg], s_bar.at[wg])
+
+                    @functools.partial(pl.run_scoped, acc=plgpu.ACC((tm, wg_n), F32))
+                    def _(acc):
+                        run(acc)
+                        plgpu.barrier_wait(s_bar.at[wg])
+                        if out == "product":   # in column chunks of one block (shared memory is full)
+                            y = acc[...].astype(out_dtype)
+                            for c in range(wg_n // block):
+                                plgpu.wait_smem_to_gmem(0, wait_read_only=True)
+                                out_smem[wg] = y[:, c * block:(c + 1) * block]
+                                plgpu.commit_smem()
+                                plgpu.copy_smem_to_gmem(out_smem.at[wg],
+                                                        o_gmem.at[rows, pl.ds(col0 + c * block, block)])
+                            return
+                        # the interpreter has no plgpu.load; on a GPU it gives the scales the accumulator's columns'
+                        # layout
+                        s = (s_smem[wg] if interpret
+                             else plgpu.load(s_smem.at[wg], (), layout=plgpu.Layout.WGMMA.reduce(0)))
+                        y = acc[...] * lax.broadcast_in_dim(s, (tm, wg_n), [1])   # as jax's Mosaic kernels do
+                        plgpu.wait_smem_to_gmem(0, wait_read_only=True)
+                        for p in range(pairs):
+                            h = gelu_product(y[:, 2 * p * block:(2 * p + 1) * block],
+                                             y[:, (2 * p + 1) * block:(2 * p + 2) * block])
+                            if out == "e4m3":   # saturating, as `formats.quantise` (the interpreter's cast is not)
+                                h = jnp.minimum(jnp.maximum(h, -formats.E4M3_MAX), formats.E4M3_MAX)
+                            out_smem[wg, p] = h.astype(out_dtype)
+                        plgpu.commit_smem()
+                        for p in range(pairs):
+                            plgpu.copy_smem_to_gmem(out_smem.at[wg, p],
+                                                    o_gmem.at[rows, pl.ds(col0 // 2 + p * block, block)])
+
+                def body(_, x_smem, w_smem, acc):
+                    cols = pl.ds(wg * wg_n, wg_n)
+                    plgpu.wgmma(acc, x_smem, w_smem.at[:, cols] if interpret
+                                else plgpu.transpose_ref(w_smem.at[cols], (1, 0)))
+                    plgpu.wgmma_wait(launch.delay)
+                    return acc
+
+                w_cols = pl.ds(ni * tn, tn)
+                pipeline(body, context)(x_gmem.at[rows, :], w_gmem.at[:, w_cols] if interpret
+                                        else w_gmem.at[w_cols, :], allocations=allocs)
+        plgpu.wait_smem_to_gmem(0, wait_read_only=True)
+
+    params = plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup,
+                                  **({"approx_math": True} if launch.approx else {}))
+    shape = (m, n2) if out == "product" else (m, n2 // 2)
+    sms = 1 if interpret else jax.devices()[0].core_count
+    return plgpu.kernel(kernel, out_type=jax.ShapeDtypeStruct(shape, out_dtype), grid=(sms,),
+                        grid_names=("cluster_grid",), num_threads=wgs + 1, thread_name="wg", compiler_params=params,
+                        kernel_name="fp8_geglu",
+                        **({"interpret": mosaic_gemm._interpret()} if interpret else {}))
