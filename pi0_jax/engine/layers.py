@@ -17,7 +17,7 @@ import jax.numpy as jnp
 
 from pi0_jax.config import GemmaConfig
 from pi0_jax.gemma import _BIG_NEG, apply_rope
-from pi0_jax.ops import attention, expert_kernels, layout
+from pi0_jax.ops import attention, expert_kernels, formats, fp8_geglu, layout
 from pi0_jax.ops.formats import QArray
 from pi0_jax.ops.matmul import matmul, raw_matmul
 
@@ -72,9 +72,22 @@ def gelu_tanh(x):
     return x * jax.nn.sigmoid(z)
 
 
+# An FP8 x FP8 MLP's gate/up GEMM, GeGLU and the down GEMM's e4m3 input as one Mosaic GPU kernel (`ops.fp8_geglu`)
+# where it applies (Hopper, or the interpreter on a CPU). Off: written in session 54, which had no GPU; it stays off
+# until a GPU run measures it against XLA's GEMM and pass (`scripts/fp8_geglu_probe.py`, `graph_probe.py`'s variant
+# "fp8-geglu").
+FP8_GEGLU = False
+
+
 def _mlp(h, w):
-    gate, up = layout.split_gate_up(_mm(h, w["gate_up"]))
-    return _mm(gelu_tanh(gate) * up, w["down"])
+    gate_up, down = w["gate_up"], w["down"]
+    if FP8_GEGLU and fp8_geglu.applies(gate_up, down):
+        xq = formats.quantise(h, gate_up.act_scale)
+        y = fp8_geglu.geglu(xq.reshape(-1, xq.shape[-1]), gate_up, down.act_scale)
+        z, scale = raw_mm(y.reshape(*h.shape[:-1], -1), down, h.dtype)
+        return (z.astype(jnp.float32) * scale).astype(h.dtype)   # `formats.qmatmul`'s end
+    gate, up = layout.split_gate_up(_mm(h, gate_up))
+    return _mm(gelu_tanh(gate) * up, down)
 
 
 def _attend(q, ks, vs, masks, dtype):
