@@ -3,9 +3,9 @@ compile with extra XLA options on top of the engine's own (`matmul.compiler_opti
 under gemm="auto"), or, for "conv", with SigLIP's patch embedding as cuDNN's convolution (the engine's form until
 2026-11-26) instead of the f32 GEMM, or an Engine built another way (`ENGINE_KW`, `SCHEDULING`, `STAGES`,
 `STEP_ENDS`, `RUNTIME`, `LAYERS`: the denoise loop unrolled, the first step's overlap and its programs, π0's
-in-projection unfolded, the vision tower as one program, GELU-tanh as jax writes it); the "vision-" variants set
-their options on the vision programs alone, "vhead-" on the first of them, "loop-" on the denoise programs without
-the prefix (the expert's weights alone).
+in-projection unfolded, the vision tower as one program, GELU-tanh as jax writes it, the FP8 MLP's kernel); the
+"vision-" variants set their options on the vision programs alone, "vhead-" on the first of them, "loop-" on the
+denoise programs without the prefix (the expert's weights alone).
 Stage medians (round-robin over the variants), kernels per call, device span and idle time (by the kernel that
 waited) from a trace, and the fused program's actions against the first variant.
 
@@ -84,6 +84,9 @@ VARIANTS = {
     "loop-cublas": {"xla_gpu_enable_triton_gemm": False},
     # the engine's GeGLU with jax's GELU-tanh (LAYERS), where `layers.gelu_tanh` writes it as x sigmoid(2 z)
     "gelu-tanh": {},
+    # with FP8 weights (--quant): each FP8 MLP's gate/up GEMM, GeGLU and the down GEMM's e4m3 input as one Mosaic GPU
+    # kernel (`ops.fp8_geglu`, LAYERS), where XLA runs cuBLASLt's GEMM and a pass of its own
+    "fp8-geglu": {},
 }
 ENGINE_KW = {"unroll-steps": {"unroll_steps": True}, "no-overlap": {"overlap": "off"}, "overlap-on": {"overlap": "on"}}
 SCHEDULING = {"overlap-lhs": {"xla_gpu_command_buffer_scheduling_mode": "LHS"}}
@@ -91,7 +94,8 @@ STAGES = {"one-loop-program": lambda self, batch, num_steps: (
     *(s for s in Engine.call_stages(self, batch, num_steps) if s in runtime.VISION_STAGES), "prefix_denoise")}
 STEP_ENDS = {"unfolded": {"FOLD_ACTION_IN": False}}
 RUNTIME = {"one-vision-program": {"VISION_SPLIT": 0}}
-LAYERS = {"gelu-tanh": {"gelu_tanh": lambda x: jax.nn.gelu(x, approximate=True)}}
+LAYERS = {"gelu-tanh": {"gelu_tanh": lambda x: jax.nn.gelu(x, approximate=True)},
+          "fp8-geglu": {"FP8_GEGLU": True}}
 
 
 def conv_patch_embed(images, kernel, bias, p: int):
@@ -137,7 +141,7 @@ def main() -> None:
     report = {"preset": args.preset, "quant": args.quant, "env": benchmark.environment(), "rows": []}
     own_options, own_embed, own_concurrent = runtime.matmul.compiler_options, vision.patch_embed, paths.CONCURRENT
     own_ends = {k: getattr(programs, k) for k in ("FOLD_ACTION_IN",)}
-    own_split, own_layers = runtime.VISION_SPLIT, {k: getattr(layers, k) for k in ("gelu_tanh",)}
+    own_split, own_layers = runtime.VISION_SPLIT, {k: getattr(layers, k) for k in ("gelu_tanh", "FP8_GEGLU")}
     for batch in args.batch or [1]:
         obs, noise = benchmark.make_inputs(config, batch, 3, args.prompt_tokens, 0)
         rows, timed, first = [], {}, None
