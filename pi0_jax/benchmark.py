@@ -34,7 +34,7 @@ import numpy as np
 from pi0_jax import pi0
 from pi0_jax.pi0 import random_params
 from pi0_jax.config import IMAGE_KEYS, PRESETS, Pi0Config, get_config
-from pi0_jax.engine import Engine, store
+from pi0_jax.engine import Engine, layers, store
 from pi0_jax.engine.paths import KERNELS, OVERLAPS, attention_spec, vision_norm
 from pi0_jax.ops import expert_kernels, formats, pallas_base
 from pi0_jax.ops.matmul import GEMMS
@@ -392,7 +392,8 @@ def run(args: argparse.Namespace, save=None) -> dict:
     cache_dir = args.cache_dir or Path(tempfile.mkdtemp(prefix="pi0-jax-xla-"))
     results = {"preset": args.preset, "env": {**environment(), "kernels": args.kernels, "attention": args.attention,
                                                "gemm": args.gemm, "overlap": args.overlap, "quant": quant,
-                                               "expert_blocks": dataclasses.asdict(expert_kernels.Blocks())},
+                                               "expert_blocks": dataclasses.asdict(expert_kernels.Blocks()),
+                                               "fp8_mlp_kernel": layers.FP8_GEGLU},
                "complete": False, "rows": [], "peers": [],
                "compile": {},
                "args": {k: str(v) for k, v in vars(args).items() if k != "func"}}
