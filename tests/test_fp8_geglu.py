@@ -24,7 +24,7 @@ def _operands(m, k, f, down_scale):
     return formats.quantise(x, gate_up.act_scale), gate_up, down
 
 
-@pytest.mark.parametrize("m,k,f,launch", [(200, 256, 128, Launch()),   # 2 warpgroups, 2 K steps, rows ragged
+@pytest.mark.parametrize("m,k,f,launch", [(200, 256, 128, Launch()),   # 2 warpgroups, 2 K steps, a partial row tile
                                           (128, 64, 160, Launch()),    # the dummy prefix's MLP: one warpgroup
                                           (130, 128, 256, Launch(stages=2, delay=1, minor=1, snake=2))])
 def test_kernel_equals_its_xla_form(m, k, f, launch):
