@@ -141,7 +141,7 @@ def main() -> None:
     report = {"preset": args.preset, "quant": args.quant, "env": benchmark.environment(), "rows": []}
     own_options, own_embed, own_concurrent = runtime.matmul.compiler_options, vision.patch_embed, paths.CONCURRENT
     own_ends = {k: getattr(programs, k) for k in ("FOLD_ACTION_IN",)}
-    own_split, own_layers = runtime.VISION_SPLIT, {k: getattr(layers, k) for k in ("gelu_tanh", "FP8_GEGLU")}
+    own_split, own_layers = runtime.VISION_SPLIT, {k: getattr(layers, k) for d in LAYERS.values() for k in d}
     for batch in args.batch or [1]:
         obs, noise = benchmark.make_inputs(config, batch, 3, args.prompt_tokens, 0)
         rows, timed, first = [], {}, None

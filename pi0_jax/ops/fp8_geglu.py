@@ -74,8 +74,9 @@ def fit(launch: Launch, k: int, n2: int) -> Launch | None:
         tile_k //= 2
     if k % tile_k or tile_k % MIN_K or n2 % pair:
         return None
+    widest = launch.tile_n // launch.wgs // pair * pair   # a warpgroup's columns: whole block pairs
     for wgs in range(launch.wgs, 0, -1):
-        wg_n = launch.tile_n // launch.wgs // pair * pair
+        wg_n = widest
         while wg_n >= pair and (n2 % (wgs * wg_n) or wg_n % pair):
             wg_n -= pair
         if wg_n >= pair:
@@ -134,12 +135,6 @@ def geglu(xq, w: QArray, down_scale, launch: Launch = Launch()) -> jax.Array:
     return _call(m, k, n2, launch, False)(xq, w.q, scales)
 
 
-def _transforms(minor: int, itemsize: int = 1):
-    """TMA tiles of 8 rows, swizzled by the row's width in bytes (at most 128)."""
-    swizzle = plgpu.find_swizzle(minor * itemsize * 8)
-    return plgpu.TilingTransform((8, swizzle // itemsize)), plgpu.SwizzleTransform(swizzle)
-
-
 @functools.lru_cache(maxsize=None)
 def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "e4m3"):
     """The kernel for x (m, k), a (n2, k) weight ((k, n2) when `interpret`) and (n2,) column scales. out: "e4m3"
@@ -151,13 +146,12 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
     pairs = wg_n // (2 * block)
     m_iters, n_iters, k_iters = -(-m // tm), n2 // tn, k // tk
     out_dtype = {"e4m3": E4M3, "bf16": jnp.bfloat16, "product": jnp.bfloat16}[out]
-    item = jnp.dtype(out_dtype).itemsize
-    in_tr, out_tr = _transforms(tk), _transforms(block, item)
+    in_tr, out_tr = mosaic_gemm.transforms(tk, E4M3), mosaic_gemm.transforms(block, out_dtype)
 
     def pipeline(body, context):
         spec = functools.partial(plgpu.BlockSpec, memory_space=plgpu.SMEM, transforms=in_tr,
                                  delay_release=launch.delay)
-        w_spec = (spec((tk, tn), lambda kk: (kk, 0), transforms=_transforms(tn)) if interpret
+        w_spec = (spec((tk, tn), lambda kk: (kk, 0), transforms=mosaic_gemm.transforms(tn, E4M3)) if interpret
                   else spec((tn, tk), lambda kk: (0, kk)))
         return plgpu.emit_pipeline_warp_specialized(
             body, grid=(k_iters,), memory_registers=40, in_specs=[spec((tm, tk), lambda kk: (0, kk)), w_spec],
