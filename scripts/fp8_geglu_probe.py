@@ -68,7 +68,8 @@ def _operands(m, k, f, seed=0):
 def _kernel(launch, out, m, q):
     """The kernel as a jitted function of (x (e4m3, m rows: ragged or whole tiles), weight, column scales)."""
     launch = fp8_geglu.fit(launch, q.q.shape[1], q.q.shape[0])
-    return jax.jit(lambda *a: fp8_geglu._call(m, q.q.shape[1], q.q.shape[0], launch, False, out)(*a))
+    return jax.jit(lambda *a: fp8_geglu._call(m, q.q.shape[1], q.q.shape[0], launch, False, out,
+                                                     sms=jax.devices()[0].core_count)(*a))
 
 
 def _rel(a, b):

@@ -19,8 +19,8 @@ boundary may take the next e4m3 value.
 
 On a GPU the last row tile may be ragged (TMA reads zeros past the end and drops stores there). Mosaic GPU's CPU
 interpreter (the tests) refuses both, and has no transposed wgmma operand: there the rows are padded and the
-weight streams as its (K, 2F) transpose, so the CPU checks the tiling, the pipeline and the epilogue, not the
-K-major operand. Not partitioned: under a sharded jit XLA would gather its operands (the engine asks for it only
+weight streams as its (K, 2F) transpose, so the interpreter checks the tiling, the pipeline and the epilogue; the
+GPU form (K-major operand, ragged rows) is lowered for sm_90 on the CPU by the tests (`lowering_platforms`). Not partitioned: under a sharded jit XLA would gather its operands (the engine asks for it only
 where `applies`, and `engine.layers.FP8_GEGLU` leaves it off until it is measured).
 
 Axis legend: M rows, K contraction, N2 = 2F fused gate/up columns, F hidden units.
@@ -132,14 +132,15 @@ def geglu(xq, w: QArray, down_scale, launch: Launch = Launch()) -> jax.Array:
         mp = -(-m // launch.tile_m) * launch.tile_m
         xp = jnp.pad(xq, ((0, mp - m), (0, 0))) if mp != m else xq
         return _call(mp, k, n2, launch, True)(xp, w.q.T, scales)[:m]
-    return _call(m, k, n2, launch, False)(xq, w.q, scales)
+    return _call(m, k, n2, launch, False, sms=jax.devices()[0].core_count)(xq, w.q, scales)
 
 
 @functools.lru_cache(maxsize=None)
-def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "e4m3"):
-    """The kernel for x (m, k), a (n2, k) weight ((k, n2) when `interpret`) and (n2,) column scales. out: "e4m3"
-    (the down GEMM's input), or, to tell a GPU run's parts apart (`scripts/fp8_geglu_probe.py`), "bf16" (GeGLU's
-    product unquantised) or "product" (the raw GEMM in bf16, (m, n2), no epilogue but the store)."""
+def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "e4m3", sms: int = 1):
+    """The kernel for x (m, k), a (n2, k) weight ((k, n2) when `interpret`) and (n2,) column scales, on `sms` CTAs
+    (the GPU's SMs; given, so that it lowers for a GPU on a CPU too: the tests). out: "e4m3" (the down GEMM's input),
+    or, to tell a GPU run's parts apart (`scripts/fp8_geglu_probe.py`), "bf16" (GeGLU's product unquantised) or
+    "product" (the raw GEMM in bf16, (m, n2), no epilogue but the store)."""
     tm, tn, tk, wgs = launch.tile_m, launch.tile_n, launch.tile_k, launch.wgs
     wg_n = tn // wgs
     block = layout.gate_up_block(n2 // 2)
@@ -174,6 +175,9 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
                 mi, ni = plgpu.planar_snake(lin, (m_iters, n_iters), launch.minor, launch.snake)
                 rows = pl.ds(mi * tm, tm)
                 col0 = ni * tn + wg * wg_n
+                # the output's column: no `//` on a traced index (its floor-division selects leave Mosaic GPU's
+                # layout inference without a solution, jax 0.10.2)
+                h_col0 = ni * (tn // 2) + wg * (wg_n // 2)
 
                 def context(run):
                     plgpu.copy_gmem_to_smem(s_gmem.at[pl.ds(col0, wg_n)], s_smem.at[wg], s_bar.at[wg])
@@ -206,7 +210,7 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
                         plgpu.commit_smem()
                         for p in range(pairs):
                             plgpu.copy_smem_to_gmem(out_smem.at[wg, p],
-                                                    o_gmem.at[rows, pl.ds(col0 // 2 + p * block, block)])
+                                                    o_gmem.at[rows, pl.ds(h_col0 + p * block, block)])
 
                 def body(_, x_smem, w_smem, acc):
                     cols = pl.ds(wg * wg_n, wg_n)
@@ -223,8 +227,7 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
     params = plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup,
                                   **({"approx_math": True} if launch.approx else {}))
     shape = (m, n2) if out == "product" else (m, n2 // 2)
-    sms = 1 if interpret else jax.devices()[0].core_count
-    return plgpu.kernel(kernel, out_type=jax.ShapeDtypeStruct(shape, out_dtype), grid=(sms,),
+    return plgpu.kernel(kernel, out_type=jax.ShapeDtypeStruct(shape, out_dtype), grid=(1 if interpret else sms,),
                         grid_names=("cluster_grid",), num_threads=wgs + 1, thread_name="wg", compiler_params=params,
                         kernel_name="fp8_geglu",
                         **({"interpret": mosaic_gemm._interpret()} if interpret else {}))
