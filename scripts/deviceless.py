@@ -1,0 +1,199 @@
+"""Compile the engine's programs for an H200 on a machine with no GPU: XLA's deviceless ahead-of-time compile.
+
+What it shows without a GPU: whether every kernel of the engine compiles for sm_90a (Pallas Triton and Mosaic GPU
+through ptxas; Mosaic GPU's registers and spills), the optimized HLO's kernel counts per program and per denoise step
+(`profile_engine.count_ops`: fusions, library calls and copies, each one GPU kernel), and the GEMMs that are FP8. What
+it cannot show: time. The GEMMs are not autotuned (no device to time them on), so where XLA's autotuner would pick
+another tiling or split-K on a GPU the counts may differ by those kernels: compare them with a GPU run's
+(`profile_engine.py`, `graph_probe.py`) before trusting a difference.
+
+It needs the CUDA plugin of the installed jaxlib (`pip install "jax[cuda12]==$(python -c 'import jax;
+print(jax.__version__)')"`), not a GPU or a driver: the plugin's compiler is used, with the device described by
+`TARGET` (an H200's figures), and jax's own device queries in the engine (`jax.devices()`, `jax.default_backend()`)
+answer as that GPU would. The weights are shapes only (`pi0.param_shapes`; FP8 scales from unit amaxes), so a
+full-size preset compiles in a few GB of host memory.
+
+    python3 scripts/deviceless.py --preset pi0_base --batch 1 --steps 10 --out deviceless.json
+    python3 scripts/deviceless.py --preset pi0_base --quant prefix-all --fp8-mlp-kernel --batch 8
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("JAX_PLATFORMS", "cpu")   # the CUDA plugin is loaded for its compiler, not for a device
+os.environ.setdefault("JAX_SKIP_CUDA_CONSTRAINTS_CHECK", "1")   # its check needs a driver
+
+import argparse  # noqa: E402
+import contextlib  # noqa: E402
+import json  # noqa: E402
+import re  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import jax  # noqa: E402
+import numpy as np  # noqa: E402
+from jax._src.cudnn import fused_attention_stablehlo as cudnn  # noqa: E402
+from jax.experimental import topologies  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).parent))
+from profile_engine import count_ops  # noqa: E402
+
+from pi0_jax import benchmark, pi0  # noqa: E402
+from pi0_jax.config import IMAGE_KEYS, get_config  # noqa: E402
+from pi0_jax.engine import Engine, layers, runtime  # noqa: E402
+from pi0_jax.engine import weights as weights_lib  # noqa: E402
+from pi0_jax.quant import schemes  # noqa: E402
+
+# an H200 SXM as XLA's GPU compiler reads a device (stream_executor.GpuTargetConfigProto, text format); the figures
+# are the device's own (132 SMs, 227 KiB of shared memory a block, 4.8 TB/s, 50 MiB of L2, compute capability 9.0)
+TARGET = """
+gpu_device_info {
+  threads_per_block_limit: 1024 threads_per_warp: 32 shared_memory_per_block: 49152 shared_memory_per_core: 233472
+  threads_per_core_limit: 2048 core_count: 132 fpus_per_core: 128 block_dim_limit_x: 2147483647
+  block_dim_limit_y: 65535 block_dim_limit_z: 65535 memory_bandwidth: 4800000000000 l2_cache_size: 52428800
+  clock_rate_ghz: 1.98 device_memory_size: 151397597184 shared_memory_per_block_optin: 232448
+  cuda_compute_capability { major: 9 minor: 0 } registers_per_core_limit: 65536 registers_per_block_limit: 65536
+  driver_version: "13.0.0" runtime_version: "12.9.0" compile_time_toolkit_version: "12.9.0" dnn_version: "9.8.0"
+}
+platform_name: "CUDA"
+dnn_version_info { major: 9 minor: 8 }
+device_description_str: "NVIDIA H200"
+"""
+
+
+class TargetDevice:
+    """What the engine asks of `jax.devices()[0]` (`ops.mosaic_gemm.hopper`, `ops.fp8_geglu`), as the H200 answers."""
+
+    platform = "gpu"
+    device_kind = "NVIDIA H200"
+    compute_capability = "9.0"
+    core_count = 132
+
+
+@contextlib.contextmanager
+def as_target():
+    """jax's device queries answer as the target GPU while programs are traced and lowered: the engine's, and
+    those of jax's cuDNN attention (it asks the attached GPU's compute capability: 9.0 allows a head dim of 256)."""
+    cc = tuple(map(int, TargetDevice.compute_capability.split(".")))
+    saved = (jax.devices, jax.default_backend, cudnn.check_compute_capability, cudnn.is_cuda_compute_capability_equal)
+    jax.devices, jax.default_backend = (lambda *a, **k: [TargetDevice()]), (lambda: "gpu")
+    cudnn.check_compute_capability = lambda c: cc >= tuple(map(int, c.split(".")))
+    cudnn.is_cuda_compute_capability_equal = lambda c: cc == tuple(map(int, c.split(".")))
+    try:
+        yield
+    finally:
+        jax.devices, jax.default_backend, cudnn.check_compute_capability, cudnn.is_cuda_compute_capability_equal = saved
+
+
+def target_sharding():
+    topology = topologies.get_topology_desc(platform="cuda", topology_name="h200", target_config=TARGET,
+                                            topology="1x1x1")
+    return jax.sharding.SingleDeviceSharding(topology.devices[0])
+
+
+def abstract_engine(config, quant: str | None, sharding, **engine_kw) -> Engine:
+    """An Engine whose weights are shapes, compiling its programs for the target (`store.compile` replaced)."""
+    params = pi0.param_shapes(config)
+    if quant:   # unit amaxes, shaped as `schemes.calibrate` gives them: a layer's each where the weight is stacked
+        depth = {"img": config.siglip.depth, "vlm": config.paligemma.depth, "expert": config.paligemma.depth}
+        amax = {key: np.ones(() if key == "img/head" else depth[key.split("/")[0]], np.float32)
+                for *_, key in schemes._leaves(quant)}
+        params = jax.eval_shape(lambda p: schemes.quantize_params(p, quant, amax), params)
+    build = runtime.engine_weights
+    runtime.engine_weights = lambda cfg, p, **kw: jax.eval_shape(lambda q: build(cfg, q, **kw), p)
+    try:
+        engine = Engine(config, params, cache_dir=False, **engine_kw)
+    finally:
+        runtime.engine_weights = build
+    engine.schedule = lambda n: jax.eval_shape(lambda p: weights_lib.precompute_schedule(config, p, n),
+                                               engine._schedule_params)
+    engine.store.compile = lambda name, parts, fn, args, options=None: (
+        jax.jit(fn, in_shardings=sharding, out_shardings=sharding).lower(*args).compile(options))
+    return engine
+
+
+def ptxas_info(root: Path) -> list[dict]:
+    """Mosaic GPU's kernels as ptxas built them (MOSAIC_GPU_DUMP_PTXAS): registers, spills, barriers."""
+    rows = []
+    for path in sorted(root.glob("*.ptxas")):
+        text = path.read_text()
+        regs = re.search(r"Used (\d+) registers", text)
+        spill = re.search(r"(\d+) bytes spill stores, (\d+) bytes spill loads", text)
+        rows.append({"kernel": path.stem, "registers": int(regs.group(1)) if regs else None,
+                     "spill_store_bytes": int(spill.group(1)) if spill else None,
+                     "spill_load_bytes": int(spill.group(2)) if spill else None,
+                     "serialised_wgmma": "serialized" in text,   # ptxas's "wgmma.mma_async ... serialized"
+                     "notes": re.findall(r"\((C\d+)\) ([^\n]+)", text)})
+    return rows
+
+
+def kinds(hlo: str) -> dict:
+    """Library and kernel calls by kind in an optimized HLO text."""
+    targets = re.findall(r'custom_call_target="([^"]+)"', hlo)
+    return {"fp8_gemms": sum("f8" in t for t in targets), "cublas_gemms": sum("cublas" in t for t in targets),
+            "mosaic_gpu": sum("mosaic_gpu" in t for t in targets), "triton": sum("triton" in t for t in targets),
+            "triton_gemm_fusions": len(re.findall(r'"kind":"__triton_gemm"', hlo))}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--preset", default="pi0_base", help="model preset (default: %(default)s)")
+    p.add_argument("--batch", type=int, default=1, help="batch size (default: %(default)s)")
+    p.add_argument("--steps", type=int, default=10, help="denoise steps (default: %(default)s)")
+    p.add_argument("--cameras", type=int, default=3, help="active cameras (default: %(default)s)")
+    p.add_argument("--prompt", type=int, default=48,
+                   help="prompt tokens, compiled at their bucket (default: %(default)s)")
+    p.add_argument("--quant", default=None, help="FP8 scheme (quant.schemes), e.g. prefix-all, every-gemm; "
+                                                 "scales from unit amaxes (default: bf16)")
+    p.add_argument("--kernels", default="auto", help="the engine's kernels: auto, xla, pallas (default: %(default)s)")
+    p.add_argument("--attention", default="auto", help="the engine's attention (default: %(default)s)")
+    p.add_argument("--fp8-mlp-kernel", action="store_true",
+                   help="FP8 MLPs on `ops.fp8_geglu` (engine.layers.FP8_GEGLU; default: off, as the engine)")
+    p.add_argument("--out", type=Path, default=None, help="JSON of counts per program (default: print only)")
+    p.add_argument("--hlo", type=Path, default=None, help="a folder to write each program's optimized HLO to")
+    args = p.parse_args(argv)
+
+    config = get_config(args.preset)
+    cameras = IMAGE_KEYS[:args.cameras]
+    bucket = runtime.prompt_bucket(args.prompt, config.max_token_len)
+    layers.FP8_GEGLU = args.fp8_mlp_kernel
+    sharding = target_sharding()
+    results = {"target": TargetDevice.device_kind, "jax": jax.__version__, "commit": benchmark._git_commit(),
+               "source": benchmark.source_digest(), "args": {k: str(v) for k, v in vars(args).items()},
+               "programs": []}
+    with tempfile.TemporaryDirectory() as dump, as_target():
+        os.environ.update(MOSAIC_GPU_DUMP_PTXAS="1", MOSAIC_GPU_DUMP_TO=dump)
+        engine = abstract_engine(config, args.quant, sharding, kernels=args.kernels, attention=args.attention)
+        for stage in engine.call_stages(args.batch, args.steps):
+            start = time.perf_counter()
+            program = engine.executable(stage, args.batch, args.steps, cameras, bucket)
+            hlo = program.as_text()
+            if args.hlo:
+                args.hlo.mkdir(parents=True, exist_ok=True)
+                (args.hlo / f"{stage}.hlo").write_text(hlo)
+            counts = count_ops(hlo)
+            loops = set(re.findall(r"while\(.*?body=%([\w.\-]+)", hlo))
+            bodies = {k: v for k, v in counts.items() if k in loops}
+            entry = next(v for k, v in counts.items() if k.startswith("ENTRY"))
+            kernels = lambda c: sum(n for kind, n in c.items() if kind != "while")   # noqa: E731
+            row = {"stage": stage, "compile_s": round(time.perf_counter() - start, 1), **kinds(hlo),
+                   "entry_kernels": kernels(entry), "loop_bodies": {k: kernels(v) for k, v in bodies.items()},
+                   "counts": {"ENTRY": entry, **bodies}}
+            results["programs"].append(row)
+            print(f"{stage}: {row['entry_kernels']} kernels outside loops, loop bodies {row['loop_bodies']}, "
+                  f"FP8 GEMMs {row['fp8_gemms']}, Mosaic GPU {row['mosaic_gpu']}, Triton {row['triton']} "
+                  f"({row['compile_s']} s)", flush=True)
+        results["mosaic_gpu_kernels"] = ptxas_info(Path(dump))
+    for k in results["mosaic_gpu_kernels"]:
+        print(f"  {k['kernel']}: {k['registers']} registers, spills {k['spill_store_bytes']} / "
+              f"{k['spill_load_bytes']} B{', wgmma serialised' if k['serialised_wgmma'] else ''}")
+    if args.out:
+        args.out.write_text(json.dumps(results, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
