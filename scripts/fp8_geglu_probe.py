@@ -18,7 +18,9 @@ spared that pass: one read of x, about 1 % of the GEMM. Outputs are compared as 
 kernel's XLA form (`fp8_geglu.reference`: the same numerics, another summation order), the engine's form and f32.
 
 Written in session 54 (2026-12-04), which was lent no GPU: the kernel passes the CPU tests in Mosaic GPU's
-interpreter (`tests/test_fp8_geglu.py`) and has not yet been compiled for or timed on a GPU.
+interpreter (`tests/test_fp8_geglu.py`). Session 55 (no GPU either) lowered it for sm_90 on a CPU, which found a
+layout-inference failure (fixed), and compiled it through ptxas with `scripts/deviceless.py` (168 registers, no
+spills, as jax's own Hopper matmul example). It has not yet been timed.
 
     python3 scripts/fp8_geglu_probe.py --rows 816,6528,51200 --out OUT.json
 """
