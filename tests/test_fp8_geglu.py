@@ -78,15 +78,17 @@ def test_engine_fp8_call_with_the_kernel_matches_the_call_without(monkeypatch):
     assert np.linalg.norm(got - want) / np.linalg.norm(want) < 5e-3
 
 
-@pytest.mark.parametrize("m,launch", [(816, Launch()), (6528, Launch(tile_k=64, stages=6, delay=1))])
-def test_kernel_lowers_for_hopper(m, launch):
+@pytest.mark.parametrize("m,k,n2,launch", [(816, 2048, 32768, Launch()),   # π0's prefix MLP at B = 1
+                                            (6528, 2048, 32768, Launch(tile_k=64, stages=6, delay=1)),   # B = 8
+                                            (50, 1024, 8192, Launch())])   # the expert's at B = 1: 50 rows
+def test_kernel_lowers_for_hopper(m, k, n2, launch):
     """Mosaic GPU lowers the kernel as a GPU runs it (the weight K-major, a ragged last row tile, 132 SMs) for sm_90
-    on this CPU, at π0's prefix MLP (K 2048, 2F 32768): layout inference and the e4m3 wgmma's operands are checked
-    here, which the interpreter above does not run. (An output column computed with `//` once left layout inference
-    without a solution.)"""
-    k, n2 = 2048, 32768
+    on this CPU: layout inference, the e4m3 wgmma's operands and the TMA copies are checked here, which the
+    interpreter above does not run. (An output column computed with `//` once left layout inference without a
+    solution, and 50 rows failed TMA's row tiling until `run` padded them to 56.)"""
     avals = (jax.ShapeDtypeStruct((m, k), formats.E4M3), jax.ShapeDtypeStruct((n2, k), formats.E4M3),
              jax.ShapeDtypeStruct((n2,), jnp.float32))
-    call = fp8_geglu._call(m, k, n2, fp8_geglu.fit(launch, k, n2), False, sms=132)
-    text = jax.jit(call).trace(*avals).lower(lowering_platforms=("cuda",)).as_text()
-    assert "mosaic_gpu" in text and f"tensor<{m}x16384xf8E4M3FN>" in text
+    launch = fp8_geglu.fit(launch, k, n2)
+    call = jax.jit(lambda x, w, s: fp8_geglu.run(x, w, s, launch, sms=132))
+    text = call.trace(*avals).lower(lowering_platforms=("cuda",)).as_text()
+    assert "mosaic_gpu" in text and f"tensor<{m}x{n2 // 2}xf8E4M3FN>" in text

@@ -17,11 +17,13 @@ sigmoid(2 z)), converted to e4m3 (nearest even, saturating at ±448). XLA's path
 dtype and divides after the product: in bf16 the two agree to that rounding, so an e4m3 output near a rounding
 boundary may take the next e4m3 value.
 
-On a GPU the last row tile may be ragged (TMA reads zeros past the end and drops stores there). Mosaic GPU's CPU
-interpreter (the tests) refuses both, and has no transposed wgmma operand: there the rows are padded and the
-weight streams as its (K, 2F) transpose, so the interpreter checks the tiling, the pipeline and the epilogue; the
-GPU form (K-major operand, ragged rows) is lowered for sm_90 on the CPU by the tests (`lowering_platforms`). Not partitioned: under a sharded jit XLA would gather its operands (the engine asks for it only
-where `applies`, and `engine.layers.FP8_GEGLU` leaves it off until it is measured).
+On a GPU the last row tile may be ragged (TMA reads zeros past the end and drops stores there), once the rows are
+a multiple of 8 (`run` pads them). Mosaic GPU's CPU interpreter (the tests) refuses a ragged tile, and has no
+transposed wgmma operand: there the rows are padded to whole tiles and the weight streams as its (K, 2F) transpose,
+so the interpreter checks the tiling, the pipeline and the epilogue; the GPU form (K-major operand, ragged rows) is
+lowered for sm_90 on the CPU by the tests (`lowering_platforms`). Not partitioned: under a sharded jit XLA would
+gather its operands (the engine asks for it only where `applies`, and `engine.layers.FP8_GEGLU` leaves it off until
+it is measured).
 
 Axis legend: M rows, K contraction, N2 = 2F fused gate/up columns, F hidden units.
 """
@@ -43,6 +45,7 @@ from pi0_jax.ops.formats import E4M3, QArray
 
 F32 = jnp.float32
 MIN_K = 32   # an e4m3 wgmma's contraction
+TMA_ROWS = 8   # a TMA copy's row tiling: a global array's rows are a multiple of it
 
 
 @dataclasses.dataclass(frozen=True)
@@ -127,12 +130,22 @@ def geglu(xq, w: QArray, down_scale, launch: Launch = Launch()) -> jax.Array:
     if launch is None or xq.shape[1] != k:
         raise ValueError(f"x {xq.shape} @ w {w.q.shape}.T: no launch of the FP8 GeGLU kernel fits")
     scales = column_scales(w, down_scale)
-    m = xq.shape[0]
-    if jax.default_backend() == "cpu":   # the interpreter: whole row tiles, the weight N-major
-        mp = -(-m // launch.tile_m) * launch.tile_m
-        xp = jnp.pad(xq, ((0, mp - m), (0, 0))) if mp != m else xq
-        return _call(mp, k, n2, launch, True)(xp, w.q.T, scales)[:m]
-    return _call(m, k, n2, launch, False, sms=jax.devices()[0].core_count)(xq, w.q, scales)
+    if jax.default_backend() == "cpu":   # the interpreter: the weight N-major
+        return run(xq, w.q.T, scales, launch, interpret=True)
+    return run(xq, w.q, scales, launch, sms=jax.devices()[0].core_count)
+
+
+def run(xq, wq, scales, launch: Launch, *, interpret: bool = False, sms: int = 1) -> jax.Array:
+    """The kernel on xq (M, K) e4m3, wq (2F, K) e4m3 ((K, 2F) when `interpret`) and (2F,) column scales
+    (`column_scales`) -> (M, F) e4m3, on `sms` CTAs; `launch` fits the weight (`fit`). Rows are padded with zeros and
+    cut back: to whole row tiles in the interpreter, and on a GPU to TMA's row tiling (its copies take a last row
+    tile that is ragged, but not rows that are not a multiple of 8: the expert's 50 B rows at an odd B)."""
+    m, k = xq.shape
+    step = launch.tile_m if interpret else TMA_ROWS
+    mp = -(-m // step) * step
+    xp = jnp.pad(xq, ((0, mp - m), (0, 0))) if mp != m else xq
+    out = _call(mp, k, wq.shape[1] if interpret else wq.shape[0], launch, interpret, sms=sms)(xp, wq, scales)
+    return out[:m] if mp != m else out
 
 
 @functools.lru_cache(maxsize=None)
