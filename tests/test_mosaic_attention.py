@@ -169,3 +169,17 @@ def test_expert_without_triton_equals_xla(pi05, monkeypatch):
     got = layers.suffix_layers_pallas(CFG, [w], x, positions, cache_k, cache_v, layout.cache_mask(pmask), smask, mods,
                                       blocks=blocks)
     np.testing.assert_allclose(got, want, **TOL)
+
+
+def test_kernel_lowers_for_hopper(monkeypatch):
+    """The GPU form (not the interpreter's) lowers for sm_90 on this CPU, bf16 at π0's denoise shape: 8 heads of 256
+    on one kv head, 64 suffix rows, 832 prefix keys in 4 splits."""
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")   # the kernel picks the GPU form by the backend
+    bf, aval = jnp.bfloat16, jax.ShapeDtypeStruct
+    m, hd, pp, n = 64, 256, 832, 8
+    args = (aval((m, n * hd), bf), aval((m, 2 * hd), bf), aval((pp, hd), bf), aval((pp, hd), bf),
+            aval((1, pp), jnp.int32), aval((m,), jnp.int32))
+    call = functools.partial(mosaic_attention.attention, batch=1, num_heads=n, num_kv_heads=1, kv_cols=(0, hd),
+                             sk=m, splits=4)
+    text = jax.jit(call).trace(*args).lower(lowering_platforms=("cuda",)).as_text()
+    assert "mosaic_gpu" in text and f"tensor<{4 * m}x{n * hd}xbf16>" in text

@@ -136,3 +136,16 @@ def test_expert_layers_on_the_mosaic_gemm_equal_xla(pi05, blocks, monkeypatch):
 def test_blocks_with_launches_round_trip_through_json():
     assert ek.Blocks.from_dict(dataclasses.asdict(GEGLU)) == GEGLU
     assert ek.Blocks.from_dict(dataclasses.asdict(ek.Blocks())) == ek.Blocks()
+
+
+def test_kernels_lower_for_hopper(monkeypatch):
+    """The GPU form (not the interpreter's) lowers for sm_90 on this CPU, bf16 at π0's expert shapes (50 rows, K 1024;
+    q/k/v 2560 columns, gate/up 2 x 4096): Mosaic GPU's layout inference, wgmma operands and TMA copies run here."""
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")   # the kernels pick the GPU form by the backend
+    bf, aval = jnp.bfloat16, jax.ShapeDtypeStruct
+    for fn, w, out in ((lambda x, w: mosaic_gemm.partials(x, w, Launch(64, 2, 2)), (1024, 2560),
+                        "128x2560xf32"),   # 2 K splits' f32 partials of 64 (padded) rows
+                       (lambda x, w: mosaic_gemm.geglu(x, w, Launch(64, 1, 3, geglu=True)), (1024, 8192),
+                        "64x4096xbf16")):
+        text = jax.jit(fn).trace(aval((50, 1024), bf), aval(w, bf)).lower(lowering_platforms=("cuda",)).as_text()
+        assert "mosaic_gpu" in text and f"tensor<{out}>" in text
