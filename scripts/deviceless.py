@@ -11,7 +11,8 @@ It needs the CUDA plugin of the installed jaxlib (`pip install "jax[cuda12]==$(p
 print(jax.__version__)')"`), not a GPU or a driver: the plugin's compiler is used, with the device described by
 `TARGET` (an H200's figures), and jax's own device queries in the engine (`jax.devices()`, `jax.default_backend()`)
 answer as that GPU would. The weights are shapes only (`pi0.param_shapes`; FP8 scales from unit amaxes), so a
-full-size preset compiles in a few GB of host memory.
+full-size preset compiles in a few GB of host memory. Without the plugin, `abstract_engine` lowers the programs for
+CUDA and stops there: `tests/test_hopper_lowering.py` lowers the engine's calls so, with every kernel at its shapes.
 
     python3 scripts/deviceless.py --preset pi0_base --batch 1 --steps 10 --out deviceless.json
     python3 scripts/deviceless.py --preset pi0_base --quant prefix-all --fp8-mlp-kernel --batch 8
@@ -19,24 +20,20 @@ full-size preset compiles in a few GB of host memory.
 
 from __future__ import annotations
 
+import argparse
+import contextlib
+import json
 import os
+import re
+import sys
+import tempfile
+import time
+from pathlib import Path
 
-os.environ.setdefault("JAX_PLATFORMS", "cpu")   # the CUDA plugin is loaded for its compiler, not for a device
-os.environ.setdefault("JAX_SKIP_CUDA_CONSTRAINTS_CHECK", "1")   # its check needs a driver
-
-import argparse  # noqa: E402
-import contextlib  # noqa: E402
-import json  # noqa: E402
-import re  # noqa: E402
-import sys  # noqa: E402
-import tempfile  # noqa: E402
-import time  # noqa: E402
-from pathlib import Path  # noqa: E402
-
-import jax  # noqa: E402
-import numpy as np  # noqa: E402
-from jax._src.cudnn import fused_attention_stablehlo as cudnn  # noqa: E402
-from jax.experimental import topologies  # noqa: E402
+import jax
+import numpy as np
+from jax._src.cudnn import fused_attention_stablehlo as cudnn
+from jax.experimental import topologies
 
 sys.path.insert(0, str(Path(__file__).parent))
 from profile_engine import count_ops  # noqa: E402
@@ -71,21 +68,27 @@ class TargetDevice:
     device_kind = "NVIDIA H200"
     compute_capability = "9.0"
     core_count = 132
+    cudnn_version = 90800   # TARGET's dnn_version
 
 
 @contextlib.contextmanager
 def as_target():
     """jax's device queries answer as the target GPU while programs are traced and lowered: the engine's, and
-    those of jax's cuDNN attention (it asks the attached GPU's compute capability: 9.0 allows a head dim of 256)."""
+    those of jax's cuDNN attention (it asks the attached GPU's compute capability, 9.0 allowing a head dim of 256,
+    and the installed cuDNN's version: `TARGET`'s, so that lowering alone needs no CUDA plugin)."""
     cc = tuple(map(int, TargetDevice.compute_capability.split(".")))
-    saved = (jax.devices, jax.default_backend, cudnn.check_compute_capability, cudnn.is_cuda_compute_capability_equal)
+    names = ("check_compute_capability", "is_cuda_compute_capability_equal", "check_cudnn_version")
+    saved = (jax.devices, jax.default_backend, *(getattr(cudnn, n) for n in names))
     jax.devices, jax.default_backend = (lambda *a, **k: [TargetDevice()]), (lambda: "gpu")
     cudnn.check_compute_capability = lambda c: cc >= tuple(map(int, c.split(".")))
     cudnn.is_cuda_compute_capability_equal = lambda c: cc == tuple(map(int, c.split(".")))
+    cudnn.check_cudnn_version = lambda: TargetDevice.cudnn_version
     try:
         yield
     finally:
-        jax.devices, jax.default_backend, cudnn.check_compute_capability, cudnn.is_cuda_compute_capability_equal = saved
+        jax.devices, jax.default_backend = saved[:2]
+        for n, f in zip(names, saved[2:]):
+            setattr(cudnn, n, f)
 
 
 def target_sharding():
@@ -94,8 +97,10 @@ def target_sharding():
     return jax.sharding.SingleDeviceSharding(topology.devices[0])
 
 
-def abstract_engine(config, quant: str | None, sharding, **engine_kw) -> Engine:
-    """An Engine whose weights are shapes, compiling its programs for the target (`store.compile` replaced)."""
+def abstract_engine(config, quant: str | None, sharding=None, **engine_kw) -> Engine:
+    """An Engine whose weights are shapes (`store.compile` replaced): its programs compiled for the target's device
+    (`sharding`: `target_sharding`, which takes the CUDA plugin), or without one lowered for CUDA only (each program a
+    `jax.stages.Lowered`: no plugin needed, the tests)."""
     params = pi0.param_shapes(config)
     if quant:   # unit amaxes, shaped as `schemes.calibrate` gives them: a layer's each where the weight is stacked
         depth = {"img": config.siglip.depth, "vlm": config.paligemma.depth, "expert": config.paligemma.depth}
@@ -110,8 +115,12 @@ def abstract_engine(config, quant: str | None, sharding, **engine_kw) -> Engine:
         runtime.engine_weights = build
     engine.schedule = lambda n: jax.eval_shape(lambda p: weights_lib.precompute_schedule(config, p, n),
                                                engine._schedule_params)
-    engine.store.compile = lambda name, parts, fn, args, options=None: (
-        jax.jit(fn, in_shardings=sharding, out_shardings=sharding).lower(*args).compile(options))
+    if sharding is None:
+        engine.store.compile = lambda name, parts, fn, args, options=None: (
+            jax.jit(fn).trace(*args).lower(lowering_platforms=("cuda",)))
+    else:
+        engine.store.compile = lambda name, parts, fn, args, options=None: (
+            jax.jit(fn, in_shardings=sharding, out_shardings=sharding).lower(*args).compile(options))
     return engine
 
 
@@ -156,6 +165,8 @@ def main(argv=None) -> int:
     p.add_argument("--hlo", type=Path, default=None, help="a folder to write each program's optimized HLO to")
     args = p.parse_args(argv)
 
+    os.environ.setdefault("JAX_PLATFORMS", "cpu")   # the CUDA plugin is loaded for its compiler, not for a device
+    os.environ.setdefault("JAX_SKIP_CUDA_CONSTRAINTS_CHECK", "1")   # its check needs a driver
     config = get_config(args.preset)
     cameras = IMAGE_KEYS[:args.cameras]
     bucket = runtime.prompt_bucket(args.prompt, config.max_token_len)

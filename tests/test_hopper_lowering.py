@@ -1,0 +1,46 @@
+"""The engine's calls at full size lower for an H200 on this CPU (`scripts/deviceless.py` without the CUDA plugin:
+the weights as shapes, jax's device queries answering as an H200): every Pallas Triton and Mosaic GPU kernel of the
+default paths lowers at its real shapes, through Triton's lowering and Mosaic GPU's layout inference, which the
+CPU interpreter of the other kernel tests does not run. And on a GPU the engine takes the paths it should: the kernel
+calls of each program, by kind, are the design's (a path falling back to XLA, or a kernel added, changes them)."""
+
+import collections
+import re
+import sys
+from pathlib import Path
+
+import pytest
+
+from pi0_jax.config import IMAGE_KEYS, get_config
+from pi0_jax.engine import runtime
+
+sys.path.insert(0, str(Path(__file__).parents[1] / "scripts"))
+import deviceless  # noqa: E402
+
+TRITON, MOSAIC, CUDNN = "__gpu$xla.gpu.triton", "mosaic_gpu_v2", "__cudnn$fmhaSoftmax"
+# B = 1: vision's Pallas LayerNorm and attention (two programs); the prefix's cuDNN attention in 17 layers (the last
+# layer's is dead code) with the first denoise step beside it; each step's expert: five Triton kernels a layer (q/k/v,
+# the attention, its merge, the out-projection, down) and the Mosaic GPU gate/up. B = 8: the XLA expert, with the
+# Pallas split-key attention and its merge
+EXPECTED = {
+    ("pi0_base", 1): {"vision_head": {TRITON: 9}, "vision_tail": {TRITON: 18},
+                      "prefix_first_step": {CUDNN: 17, TRITON: 90, MOSAIC: 18},
+                      "denoise_rest": {TRITON: 90, MOSAIC: 18}},
+    ("pi05_base", 1): {"vision_head": {TRITON: 9}, "vision_tail": {TRITON: 18},
+                       "prefix_first_step": {CUDNN: 17, TRITON: 90, MOSAIC: 18},
+                       "denoise_rest": {TRITON: 90, MOSAIC: 18}},
+    ("pi0_base", 8): {"vision_head": {TRITON: 27}, "vision_tail": {TRITON: 55},
+                      "prefix_denoise": {CUDNN: 17, TRITON: 36}},
+}
+
+
+@pytest.mark.parametrize("preset,batch", list(EXPECTED))
+def test_call_lowers_for_an_h200(preset, batch):
+    config = get_config(preset)
+    got = {}
+    with deviceless.as_target():
+        engine = deviceless.abstract_engine(config, None)
+        for stage in engine.call_stages(batch, 10):
+            program = engine.executable(stage, batch, 10, IMAGE_KEYS, runtime.prompt_bucket(48, config.max_token_len))
+            got[stage] = dict(collections.Counter(re.findall(r"stablehlo.custom_call @([\w$.]+)", program.as_text())))
+    assert got == EXPECTED[preset, batch]
