@@ -147,6 +147,26 @@ def kinds(hlo: str) -> dict:
             "triton_gemm_fusions": len(re.findall(r'"kind":"__triton_gemm"', hlo))}
 
 
+def sequence(hlo: str, computation: str) -> list[list[str]]:
+    """A computation's kernels in order (a loop body: one denoise step), each as [instruction name without its
+    number, what runs it (a custom call's target, else the fusion's kind), the op it came from (jax's name, its
+    last two parts)]: where each of a step's kernels comes from."""
+    lines = hlo.splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith(f"%{computation} "))
+    rows = []
+    for line in lines[start + 1:]:
+        if line.startswith("}"):
+            break
+        m = re.search(r"^\s*(?:ROOT )?%([\w.\-]+) = .*?\b(fusion|custom-call|copy)\(", line)
+        if m:
+            how = (re.search(r'custom_call_target="([^"]+)"', line) or re.search(r'"kind":"(\w+)"', line)
+                   or re.search(r"kind=(k\w+)", line))
+            op = re.search(r'op_name="([^"]+)"', line)
+            rows.append([re.sub(r"[._]\d+", "", m.group(1)), how.group(1) if how else m.group(2),
+                         "/".join(op.group(1).split("/")[-2:]) if op else ""])
+    return rows
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--preset", default="pi0_base", help="model preset (default: %(default)s)")
@@ -163,6 +183,8 @@ def main(argv=None) -> int:
                    help="FP8 MLPs on `ops.fp8_geglu` (engine.layers.FP8_GEGLU; default: off, as the engine)")
     p.add_argument("--out", type=Path, default=None, help="JSON of counts per program (default: print only)")
     p.add_argument("--hlo", type=Path, default=None, help="a folder to write each program's optimized HLO to")
+    p.add_argument("--sequence", action="store_true",
+                   help="print each loop body's kernels in order (the JSON has them either way)")
     args = p.parse_args(argv)
 
     os.environ.setdefault("JAX_PLATFORMS", "cpu")   # the CUDA plugin is loaded for its compiler, not for a device
@@ -192,8 +214,12 @@ def main(argv=None) -> int:
             kernels = lambda c: sum(n for kind, n in c.items() if kind != "while")   # noqa: E731
             row = {"stage": stage, "compile_s": round(time.perf_counter() - start, 1), **kinds(hlo),
                    "entry_kernels": kernels(entry), "loop_bodies": {k: kernels(v) for k, v in bodies.items()},
-                   "counts": {"ENTRY": entry, **bodies}}
+                   "counts": {"ENTRY": entry, **bodies}, "loop_sequences": {k: sequence(hlo, k) for k in bodies}}
             results["programs"].append(row)
+            for body, kernels_in_order in row["loop_sequences"].items() if args.sequence else ():
+                print(f"  {body}:")
+                for name, how, op in kernels_in_order:
+                    print(f"    {name:32} {how:28} {op}")
             print(f"{stage}: {row['entry_kernels']} kernels outside loops, loop bodies {row['loop_bodies']}, "
                   f"FP8 GEMMs {row['fp8_gemms']}, Mosaic GPU {row['mosaic_gpu']}, Triton {row['triton']} "
                   f"({row['compile_s']} s)", flush=True)
