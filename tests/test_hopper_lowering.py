@@ -18,10 +18,11 @@ sys.path.insert(0, str(Path(__file__).parents[1] / "scripts"))
 import deviceless  # noqa: E402
 
 TRITON, MOSAIC, CUDNN = "__gpu$xla.gpu.triton", "mosaic_gpu_v2", "__cudnn$fmhaSoftmax"
-# B = 1: vision's Pallas LayerNorm and attention (two programs); the prefix's cuDNN attention in 17 layers (the last
-# layer's is dead code) with the first denoise step beside it; each step's expert: five Triton kernels a layer (q/k/v,
-# the attention, its merge, the out-projection, down) and the Mosaic GPU gate/up. B = 8: the XLA expert, with the
-# Pallas split-key attention and its merge
+# B = 1: vision's Pallas attention, a block's each over two programs (its LayerNorms are XLA's at 3 images); the
+# prefix's cuDNN attention in 17 layers (the last layer's is dead code) with the first denoise step beside it; each
+# step's expert: five Triton kernels a layer (q/k/v, the attention, its merge, the out-projection, down) and the
+# Mosaic GPU gate/up. B = 8: vision's LayerNorms as kernels too (two a block and the final one); the XLA expert, with
+# the Pallas split-key attention and its merge
 EXPECTED = {
     ("pi0_base", 1): {"vision_head": {TRITON: 9}, "vision_tail": {TRITON: 18},
                       "prefix_first_step": {CUDNN: 17, TRITON: 90, MOSAIC: 18},

@@ -132,19 +132,22 @@ def geglu(xq, w: QArray, down_scale, launch: Launch = Launch()) -> jax.Array:
     scales = column_scales(w, down_scale)
     if jax.default_backend() == "cpu":   # the interpreter: the weight N-major
         return run(xq, w.q.T, scales, launch, interpret=True)
-    return run(xq, w.q, scales, launch, sms=jax.devices()[0].core_count)
+    return run(xq, w.q, scales, launch)
 
 
-def run(xq, wq, scales, launch: Launch, *, interpret: bool = False, sms: int = 1) -> jax.Array:
+def run(xq, wq, scales, launch: Launch, *, interpret: bool = False, sms: int | None = None) -> jax.Array:
     """The kernel on xq (M, K) e4m3, wq (2F, K) e4m3 ((K, 2F) when `interpret`) and (2F,) column scales
-    (`column_scales`) -> (M, F) e4m3, on `sms` CTAs; `launch` fits the weight (`fit`). Rows are padded with zeros and
-    cut back: to whole row tiles in the interpreter, and on a GPU to TMA's row tiling (its copies take a last row
-    tile that is ragged, but not rows that are not a multiple of 8: the expert's 50 B rows at an odd B)."""
+    (`column_scales`) -> (M, F) e4m3, on `sms` CTAs (default: the GPU's SMs); `launch` fits the weight (`fit`). Rows
+    are padded with zeros and cut back: to whole row tiles in the interpreter, and on a GPU to TMA's row tiling (its
+    copies take a last row tile that is ragged, but not rows that are not a multiple of 8: the expert's 50 B rows at
+    an odd B)."""
+    if not interpret and sms is None:
+        sms = jax.devices()[0].core_count
     m, k = xq.shape
     step = launch.tile_m if interpret else TMA_ROWS
     mp = -(-m // step) * step
     xp = jnp.pad(xq, ((0, mp - m), (0, 0))) if mp != m else xq
-    out = _call(mp, k, wq.shape[1] if interpret else wq.shape[0], launch, interpret, sms=sms)(xp, wq, scales)
+    out = _call(mp, k, wq.shape[1] if interpret else wq.shape[0], launch, interpret, sms=sms or 1)(xp, wq, scales)
     return out[:m] if mp != m else out
 
 
