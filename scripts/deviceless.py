@@ -103,7 +103,7 @@ def abstract_engine(config, quant: str | None, sharding=None, **engine_kw) -> En
     `jax.stages.Lowered`: no plugin needed, the tests)."""
     params = pi0.param_shapes(config)
     if quant:   # unit amaxes, shaped as `schemes.calibrate` gives them: a layer's each where the weight is stacked
-        depth = {"img": config.siglip.depth, "vlm": config.paligemma.depth, "expert": config.paligemma.depth}
+        depth = {"img": config.siglip.depth, "vlm": config.paligemma.depth, "expert": config.action_expert.depth}
         amax = {key: np.ones(() if key == "img/head" else depth[key.split("/")[0]], np.float32)
                 for *_, key in schemes._leaves(quant)}
         params = jax.eval_shape(lambda p: schemes.quantize_params(p, quant, amax), params)
