@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from pi0_jax.config import IMAGE_KEYS, get_config
-from pi0_jax.engine import runtime
+from pi0_jax.engine import layers, runtime
 
 sys.path.insert(0, str(Path(__file__).parents[1] / "scripts"))
 import deviceless  # noqa: E402
@@ -22,26 +22,29 @@ TRITON, MOSAIC, CUDNN = "__gpu$xla.gpu.triton", "mosaic_gpu_v2", "__cudnn$fmhaSo
 # prefix's cuDNN attention in 17 layers (the last layer's is dead code) with the first denoise step beside it; each
 # step's expert: five Triton kernels a layer (q/k/v, the attention, its merge, the out-projection, down) and the
 # Mosaic GPU gate/up. B = 8: vision's LayerNorms as kernels too (two a block and the final one); the XLA expert, with
-# the Pallas split-key attention and its merge
-EXPECTED = {
-    ("pi0_base", 1): {"vision_head": {TRITON: 9}, "vision_tail": {TRITON: 18},
-                      "prefix_first_step": {CUDNN: 17, TRITON: 90, MOSAIC: 18},
-                      "denoise_rest": {TRITON: 90, MOSAIC: 18}},
-    ("pi05_base", 1): {"vision_head": {TRITON: 9}, "vision_tail": {TRITON: 18},
-                       "prefix_first_step": {CUDNN: 17, TRITON: 90, MOSAIC: 18},
-                       "denoise_rest": {TRITON: 90, MOSAIC: 18}},
-    ("pi0_base", 8): {"vision_head": {TRITON: 27}, "vision_tail": {TRITON: 55},
-                      "prefix_denoise": {CUDNN: 17, TRITON: 36}},
+# the Pallas split-key attention and its merge. In FP8 (`every-gemm`) the same kernels take e4m3 ends (the
+# LayerNorms quantise, the attention scales its q/k/v and quantises); with `layers.FP8_GEGLU` the prefix's MLPs (the
+# 17 live ones) run `ops.fp8_geglu`
+B1 = {"vision_head": {TRITON: 9}, "vision_tail": {TRITON: 18},
+      "prefix_first_step": {CUDNN: 17, TRITON: 90, MOSAIC: 18}, "denoise_rest": {TRITON: 90, MOSAIC: 18}}
+B8 = {"vision_head": {TRITON: 27}, "vision_tail": {TRITON: 55}, "prefix_denoise": {CUDNN: 17, TRITON: 36}}
+EXPECTED = {   # (preset, batch, FP8 scheme, FP8_GEGLU)
+    ("pi0_base", 1, None, False): B1,
+    ("pi05_base", 1, None, False): B1,
+    ("pi0_base", 8, None, False): B8,
+    ("pi0_base", 8, "every-gemm", False): B8,
+    ("pi0_base", 8, "prefix-all", True): {**B8, "prefix_denoise": {CUDNN: 17, TRITON: 36, MOSAIC: 17}},
 }
 
 
-@pytest.mark.parametrize("preset,batch", list(EXPECTED))
-def test_call_lowers_for_an_h200(preset, batch):
+@pytest.mark.parametrize("preset,batch,quant,fp8_mlp", list(EXPECTED))
+def test_call_lowers_for_an_h200(preset, batch, quant, fp8_mlp, monkeypatch):
+    monkeypatch.setattr(layers, "FP8_GEGLU", fp8_mlp)
     config = get_config(preset)
     got = {}
     with deviceless.as_target():
-        engine = deviceless.abstract_engine(config, None)
+        engine = deviceless.abstract_engine(config, quant)
         for stage in engine.call_stages(batch, 10):
             program = engine.executable(stage, batch, 10, IMAGE_KEYS, runtime.prompt_bucket(48, config.max_token_len))
             got[stage] = dict(collections.Counter(re.findall(r"stablehlo.custom_call @([\w$.]+)", program.as_text())))
-    assert got == EXPECTED[preset, batch]
+    assert got == EXPECTED[preset, batch, quant, fp8_mlp]
