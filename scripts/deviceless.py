@@ -144,7 +144,12 @@ def kinds(hlo: str) -> dict:
     targets = re.findall(r'custom_call_target="([^"]+)"', hlo)
     return {"fp8_gemms": sum("f8" in t for t in targets), "cublas_gemms": sum("cublas" in t for t in targets),
             "mosaic_gpu": sum("mosaic_gpu" in t for t in targets), "triton": sum("triton" in t for t in targets),
-            "triton_gemm_fusions": len(re.findall(r'"kind":"__triton_gemm"', hlo))}
+            "triton_gemm_fusions": len(re.findall(r'"kind":"__triton(?:_nested)?_gemm', hlo))}
+
+
+def kernels(counts: dict) -> int:
+    """The kernels of a computation's `count_ops` row: all but its while loops (a loop's body is counted apart)."""
+    return sum(n for kind, n in counts.items() if kind != "while")
 
 
 def sequence(hlo: str, computation: str) -> list[list[str]]:
@@ -211,7 +216,6 @@ def main(argv=None) -> int:
             loops = set(re.findall(r"while\(.*?body=%([\w.\-]+)", hlo))
             bodies = {k: v for k, v in counts.items() if k in loops}
             entry = next(v for k, v in counts.items() if k.startswith("ENTRY"))
-            kernels = lambda c: sum(n for kind, n in c.items() if kind != "while")   # noqa: E731
             row = {"stage": stage, "compile_s": round(time.perf_counter() - start, 1), **kinds(hlo),
                    "entry_kernels": kernels(entry), "loop_bodies": {k: kernels(v) for k, v in bodies.items()},
                    "counts": {"ENTRY": entry, **bodies}, "loop_sequences": {k: sequence(hlo, k) for k in bodies}}
