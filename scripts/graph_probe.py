@@ -2,8 +2,9 @@
 compile with extra XLA options on top of the engine's own (`matmul.compiler_options`: cuBLAS in the vision program
 under gemm="auto"), or, for "conv", with SigLIP's patch embedding as cuDNN's convolution (the engine's form until
 2026-11-26) instead of the f32 GEMM, or an Engine built another way (`ENGINE_KW`, `SCHEDULING`, `STAGES`,
-`STEP_ENDS`, `RUNTIME`, `LAYERS`: the denoise loop unrolled, the first step's overlap and its programs, π0's
-in-projection unfolded, the vision tower as one program, GELU-tanh as jax writes it, the FP8 MLP's kernel); the
+`STEP_ENDS`, `RUNTIME`, `LAYERS`, `WEIGHTS`: the denoise loop unrolled, the first step's overlap and its programs,
+π0's in-projection unfolded, the vision tower as one program, GELU-tanh as jax writes it, the FP8 MLP's kernel or
+its earlier XLA form, FP8 output scales computed in the programs); the
 "vision-" variants set their options on the vision programs alone, "vhead-" on the first of them, "loop-" on the
 denoise programs without the prefix (the expert's weights alone).
 Stage medians (round-robin over the variants), kernels per call, device span and idle time (by the kernel that
@@ -30,6 +31,7 @@ import profile_engine  # noqa: E402
 from pi0_jax import benchmark  # noqa: E402
 from pi0_jax.config import get_config  # noqa: E402
 from pi0_jax.engine import Engine, layers, paths, programs, runtime, vision  # noqa: E402
+from pi0_jax.ops import formats, layout  # noqa: E402
 from pi0_jax.quant.schemes import SCHEMES  # noqa: E402
 
 GRAPHS = {"xla_gpu_graph_min_graph_size": 1}
@@ -87,6 +89,11 @@ VARIANTS = {
     # with FP8 weights (--quant): each FP8 MLP's gate/up GEMM, GeGLU and the down GEMM's e4m3 input as one Mosaic GPU
     # kernel (`ops.fp8_geglu`, LAYERS), where XLA runs cuBLASLt's GEMM and a pass of its own
     "fp8-geglu": {},
+    # with FP8 weights: the FP8 MLP as the engine ran it until session 56 (LAYERS: gate and up scaled and rounded to
+    # the activation dtype, GeGLU in it), and every FP8 product's output scale computed in the program (WEIGHTS: not
+    # folded into the weights, `formats.fold_scales`)
+    "geglu-bf16": {},
+    "scales-apart": {},
 }
 ENGINE_KW = {"unroll-steps": {"unroll_steps": True}, "no-overlap": {"overlap": "off"}, "overlap-on": {"overlap": "on"}}
 SCHEDULING = {"overlap-lhs": {"xla_gpu_command_buffer_scheduling_mode": "LHS"}}
@@ -94,8 +101,18 @@ STAGES = {"one-loop-program": lambda self, batch, num_steps: (
     *(s for s in Engine.call_stages(self, batch, num_steps) if s in runtime.VISION_STAGES), "prefix_denoise")}
 STEP_ENDS = {"unfolded": {"FOLD_ACTION_IN": False}}
 RUNTIME = {"one-vision-program": {"VISION_SPLIT": 0}}
+
+
+def scaled_geglu(h, w):
+    """The engine's MLP until session 56: FP8 gate and up scaled and rounded to h's dtype (`formats.qmatmul`), GeGLU
+    in h's dtype, the down GEMM quantising its input."""
+    gate, up = layout.split_gate_up(layers._mm(h, w["gate_up"]))
+    return layers._mm(layers.gelu_tanh(gate) * up, w["down"])
+
+
 LAYERS = {"gelu-tanh": {"gelu_tanh": lambda x: jax.nn.gelu(x, approximate=True)},
-          "fp8-geglu": {"FP8_GEGLU": True}}
+          "fp8-geglu": {"FP8_GEGLU": True}, "geglu-bf16": {"_mlp": scaled_geglu}}
+WEIGHTS = {"scales-apart": {"fold_scales": lambda tree: tree}}
 
 
 def conv_patch_embed(images, kernel, bias, p: int):
@@ -142,6 +159,7 @@ def main() -> None:
     own_options, own_embed, own_concurrent = runtime.matmul.compiler_options, vision.patch_embed, paths.CONCURRENT
     own_ends = {k: getattr(programs, k) for k in ("FOLD_ACTION_IN",)}
     own_split, own_layers = runtime.VISION_SPLIT, {k: getattr(layers, k) for d in LAYERS.values() for k in d}
+    own_formats = {k: getattr(formats, k) for d in WEIGHTS.values() for k in d}
     for batch in args.batch or [1]:
         obs, noise = benchmark.make_inputs(config, batch, 3, args.prompt_tokens, 0)
         rows, timed, first = [], {}, None
@@ -166,6 +184,8 @@ def main() -> None:
             runtime.VISION_SPLIT = RUNTIME.get(name, {}).get("VISION_SPLIT", own_split)
             for k, v in {**own_layers, **LAYERS.get(name, {})}.items():
                 setattr(layers, k, v)
+            for k, v in {**own_formats, **WEIGHTS.get(name, {})}.items():
+                setattr(formats, k, v)
             engine = Engine(config, params, cache_dir=False, **ENGINE_KW.get(name, {}))
             if name in STAGES:   # this engine's calls only
                 engine.call_stages = types.MethodType(STAGES[name], engine)
@@ -212,6 +232,8 @@ def main() -> None:
             setattr(programs, k, v)
         for k, v in own_layers.items():
             setattr(layers, k, v)
+        for k, v in own_formats.items():
+            setattr(formats, k, v)
         times = profile_engine.round_robin(timed, args.iters)
         if args.loop:
             loops = {(row["variant"], stage): profile_engine.looping(timed[row["variant"], stage], args.loop)

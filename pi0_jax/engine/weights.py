@@ -6,6 +6,7 @@
 - Per-layer weights split into separate buffers (unrolled layers) or kept stacked (scanned layers).
 - The prefix pass returns only K/V, so XLA drops the VLM's last MLP and final norm as dead code; the VLM's final
   norm weights are not carried at all.
+- An FP8 x FP8 weight carries its product's output scale (act_scale x the weight's scale: `ops.formats.fold_scales`).
 - π0's action in-projection is folded into its time MLP's first product (`fold_action_in`): two f32 products in a
   row with nothing between them are one.
 - The step schedule of a fixed-step sampler is known: its times, the time embeddings and what depends only on them
@@ -147,7 +148,7 @@ def prepare(config: Pi0Config, params: dict) -> dict:
     }
     if not config.pi05:
         out["final_norm_1"] = llm["final_norm_1"]["scale"]
-    return out
+    return quant.fold_scales(out)
 
 
 def fold_action_in(config: Pi0Config, params: dict) -> dict:

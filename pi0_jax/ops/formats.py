@@ -15,6 +15,9 @@ Conventions:
   pass cost more than FP8 saves (docs/BENCHMARKS.md, "FP8 that pays").
 - XLA's GPU autotuner also tries Triton for FP8 GEMMs: ~150 s of compiling per GEMM shape, for cuBLASLt in the end.
   `pi0_jax.ops.matmul.compiler_options` turns Triton GEMMs off for programs that hold FP8 weights.
+- A `folded` QArray (the engine's, `fold_scales`) holds act_scale x the weight's scale in `scale`: the FP8 x FP8
+  product's output scale, made once with the weights. Computed in the program, each such product was a kernel of
+  its own per weight (17 of the 423 in π0's FP8 prefix at B = 1).
 """
 
 from __future__ import annotations
@@ -38,12 +41,14 @@ class QArray:
     """An FP8 weight. q: e4m3 (weight shape); scale: f32 (see module doc); act_scale: f32 () or (L,) or None.
 
     contract: the contracting axes of the weight (negative, static), used for per-channel scales and re-layouts.
+    folded: `scale` is act_scale x the weight's scale (`fold_scales`).
     """
 
     q: jax.Array
     scale: jax.Array
     act_scale: jax.Array | None = None
     contract: tuple[int, ...] = flax.struct.field(pytree_node=False, default=(-2,))
+    folded: bool = flax.struct.field(pytree_node=False, default=False)
 
     @property
     def shape(self) -> tuple[int, ...]:
@@ -61,10 +66,31 @@ class QArray:
         """Index the leading axis (FeedForward's gate/up split of one layer's `gating_einsum`)."""
         scale = self.scale[i] if self.scale.shape[0] == self.q.shape[0] else self.scale[0]
         contract = tuple(c for c in self.contract if c != -self.q.ndim)
-        return QArray(self.q[i], scale, self.act_scale, contract)
+        return QArray(self.q[i], scale, self.act_scale, contract, self.folded)
+
+    def weight_scale(self) -> jax.Array:
+        """The weight's own scale (real value = q x it), folded or not."""
+        return self.scale / _act_against(self.act_scale, self.scale) if self.folded else self.scale
 
     def dequantize(self, dtype=jnp.float32) -> jax.Array:
-        return (self.q.astype(jnp.float32) * self.scale).astype(dtype)
+        return (self.q.astype(jnp.float32) * self.weight_scale()).astype(dtype)
+
+
+def _act_against(act: jax.Array, scale: jax.Array) -> jax.Array:
+    """act_scale (() or (L,): per layer) shaped to broadcast against a scale of the same leading axes."""
+    act = jnp.asarray(act, jnp.float32)
+    return act.reshape(act.shape + (1,) * (scale.ndim - act.ndim))
+
+
+def fold_scales(tree):
+    """Every FP8 x FP8 QArray of a pytree with its output scale folded in (`folded`): for a program's weights,
+    whose products then read their scale as it is. Weight-only and folded QArrays stay as they are."""
+    def fold(w):
+        if not isinstance(w, QArray) or w.act_scale is None or w.folded:
+            return w
+        return QArray(w.q, w.scale * _act_against(w.act_scale, w.scale), w.act_scale, w.contract, True)
+
+    return jax.tree.map(fold, tree, is_leaf=lambda v: isinstance(v, QArray))
 
 
 def _safe_scale(amax, fmt_max):
@@ -148,9 +174,13 @@ def fp8_product(eqn: str, xq: jax.Array, w: QArray, dtype) -> jax.Array:
 def output_scale(eqn: str, w: QArray) -> jax.Array:
     """The f32 factor of an FP8 x FP8 product (`fp8_product`): act_scale x the weight's scale, laid out to broadcast
     against the einsum output."""
-    per_tensor = w.scale.size == 1
-    return w.act_scale.astype(jnp.float32) * (w.scale.reshape(()) if per_tensor
-                                              else _output_scale(eqn, w, jnp.float32))
+    scale = w.scale.reshape(()) if w.scale.size == 1 else _output_scale(eqn, w, jnp.float32)
+    return scale if w.folded else w.act_scale.astype(jnp.float32) * scale
+
+
+def _unfolded(w: QArray) -> None:
+    if w.folded:   # the re-layouts come first (`engine.weights.prepare`); a folded scale holds its act_scale
+        raise ValueError(f"QArray {w.q.shape}: its scale has its act_scale folded in; re-lay it out before folding")
 
 
 def has_fp8(tree) -> bool:
@@ -163,6 +193,7 @@ def rearrange(w: QArray, pattern: str, contract=(-2,), **sizes) -> QArray:
     that re-laid-out weights can be concatenated."""
     import einops
 
+    _unfolded(w)
     shape = [1 if (i - w.q.ndim) in w.contract else n for i, n in enumerate(w.q.shape)]
     scale = jnp.broadcast_to(w.scale, shape)
     return QArray(einops.rearrange(w.q, pattern, **sizes), einops.rearrange(scale, pattern, **sizes), w.act_scale,
@@ -171,6 +202,8 @@ def rearrange(w: QArray, pattern: str, contract=(-2,), **sizes) -> QArray:
 
 def concat(ws, axis: int = -1) -> QArray:
     """Concatenate QArrays along an output axis (fused q/k/v): the inputs share the GEMM input, so one act_scale."""
+    for w in ws:
+        _unfolded(w)
     acts = [w.act_scale for w in ws]
     act = None if acts[0] is None else jnp.max(jnp.stack(acts), axis=0)
     return QArray(jnp.concatenate([w.q for w in ws], axis), jnp.concatenate([w.scale for w in ws], axis), act,
@@ -252,6 +285,7 @@ def to_storage(params: dict) -> tuple[dict, dict]:
     for path in quantized_paths(params):
         keys = tuple(path.split("/"))
         qa = get_leaf(params, keys)
+        _unfolded(qa)
         leaf = {"q": np.asarray(qa.q).view(np.uint8), "scale": np.asarray(qa.scale, np.float32)}
         if qa.act_scale is not None:
             leaf["act_scale"] = np.asarray(qa.act_scale, np.float32)
