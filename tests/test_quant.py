@@ -64,6 +64,33 @@ def test_qmatmul_applies_per_channel_scales_to_the_right_outputs(eqn, shape, con
     np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.parametrize("per_channel", [True, False])
+def test_folded_scales_compute_the_same_products_and_refuse_a_relayout(per_channel, tmp_path):
+    """`formats.fold_scales` (the engine's weights): act_scale x the weight's scale made once, per layer for stacked
+    weights; the same products, the same dequantised weight. A folded scale holds its act_scale, so a re-layout, a
+    concatenation (whose act_scale is the inputs' max) or storing it would be wrong: each refuses, naming it."""
+    rng = np.random.default_rng(2)
+    w = rng.normal(size=(3, 16, 8)).astype(np.float32) * rng.uniform(0.1, 10, 8)
+    qa = formats.quantize_fp8(w, per_channel=per_channel, stacked=True, act_scale=np.float32([0.01, 0.02, 0.05]))
+    folded = formats.fold_scales({"w": qa, "plain": jnp.ones(3), "weight_only": formats.quantize_fp8(w)})
+    assert folded["w"].folded and not folded["weight_only"].folded and not qa.folded
+    assert formats.fold_scales(folded)["w"].scale is folded["w"].scale   # folding twice changes nothing
+    np.testing.assert_allclose(folded["w"].dequantize(), qa.dequantize(), rtol=1e-6)
+    x = jnp.asarray(rng.normal(size=(3, 5, 16)), jnp.float32)
+    for i in range(3):   # a layer of the stack, as the engine's unrolled layers or a scan take it
+        one, ref = (jax.tree.map(lambda a, i=i: a[i], t) for t in (folded["w"], qa))
+        assert one.folded
+        np.testing.assert_allclose(formats.output_scale("TD,DF->TF", one), formats.output_scale("TD,DF->TF", ref),
+                                   rtol=1e-6)
+        np.testing.assert_allclose(formats.qmatmul("TD,DF->TF", x[i], one), formats.qmatmul("TD,DF->TF", x[i], ref),
+                                   rtol=1e-6)
+    for refuse in (lambda: formats.concat([folded["w"], folded["w"]]),
+                   lambda: formats.rearrange(folded["w"], "L D F -> L F D"),
+                   lambda: formats.to_storage({"w": folded["w"]})):
+        with pytest.raises(ValueError, match="act_scale folded in"):
+            refuse()
+
+
 @pytest.mark.parametrize("fmt", ["nvfp4", "mxfp4"])
 def test_fp4_rounds_like_ml_dtypes_and_blocks_are_local(fmt):
     bs = formats.FP4_BLOCK[fmt]
@@ -160,6 +187,9 @@ def test_engine_fp8_equals_the_reference_with_the_same_weights_and_hands_xla_fp8
     engine, noise, got, want, plain = _engine_and_reference(config, qp, params, calib[1], 2)
     assert np.linalg.norm(got - want) / np.linalg.norm(want) < 1e-5
     assert np.linalg.norm(want - plain) / np.linalg.norm(plain) > 1e-3  # FP8 is in use
+    qarrays = [w for w in jax.tree.leaves(engine.weights, is_leaf=lambda v: isinstance(v, formats.QArray))
+               if isinstance(w, formats.QArray) and w.act_scale is not None]
+    assert qarrays and all(w.folded for w in qarrays)   # each product's output scale made with the weights
     for norm in ("xla", "pallas"):   # the vision kernels between FP8 GEMMs: attention, and the LayerNorm too
         monkeypatch.setattr(paths, "vision_norm", lambda kernels, images, platform=None, n=norm: n)
         kernel = Engine(config, qp, attention="vision=pallas", cache_dir=False)
