@@ -101,6 +101,8 @@ def main():
         row = res["rows"][m] = {}
         print(f"M={m}", flush=True)
         forms = {"xla: the engine's form (x quantised, GEMM, pass)": (engine, (x, ws)),
+                 "xla: the engine's form until session 56 (scaled in bf16)": (jax.jit(geglu_probe.XLA_FORMS[
+                     "xla: block pairs, scaled in bf16 (the engine until session 56, fp8)"][0]), (x, ws)),
                  "xla: the GEMM alone (x quantised)": (
                      jax.jit(geglu_probe.XLA_FORMS["xla: gate/up gemm alone (fp8)"][0]), (x, ws))}
         scales = fp8_geglu.column_scales(q, s_down)

@@ -225,10 +225,23 @@ def _jax_gelu(x):
 
 
 def _fp8(key, split):
-    """The engine's FP8 path (`layers._mlp` up to the down GEMM's input) on the weight ws[key]: x quantised, one
-    e4m3 gate/up GEMM with per-column weight scales, split, GELU(gate) * up, quantised for the down GEMM."""
+    """The engine's FP8 path until session 56 on the weight ws[key]: x quantised, one e4m3 gate/up GEMM with
+    per-column weight scales applied and rounded to bf16, split, GELU(gate) * up in bf16, quantised for the down
+    GEMM."""
     def fn(x, ws):
         gate, up = split(formats.qmatmul("...D,FD->...F", x, ws[key]))
+        return formats.quantise(layers.gelu_tanh(gate) * up, ws["s_down"])
+    return fn
+
+
+def _fp8_f32(key, split):
+    """The engine's FP8 path since session 56 (`layers._mlp` up to the down GEMM's input): the GEMM's unscaled
+    product, gate and up scaled in f32 (ws[key]'s output scale folded, as `formats.fold_scales` makes the engine's
+    weights), GeGLU in f32, quantised for the down GEMM."""
+    def fn(x, ws):
+        w = ws[key]
+        y = formats.fp8_product("...D,FD->...F", formats.quantise(x, w.act_scale), w, BF16)
+        gate, up = split(y.astype(F32) * formats.output_scale("...D,FD->...F", w))
         return formats.quantise(layers.gelu_tanh(gate) * up, ws["s_down"])
     return fn
 
@@ -267,7 +280,9 @@ XLA_FORMS = {
                                                            {**LT, "xla_gpu_enable_triton_gemm": False}),
     "xla: gate/up gemm alone (fp8)": (lambda x, ws: formats.fp8_product(
         "...D,FD->...F", formats.quantise(x, ws["q_halves"].act_scale), ws["q_halves"], BF16), {}),
-    "xla: block pairs (the engine, fp8)": (_fp8("q_blocks", layout.split_gate_up), {}),
+    "xla: block pairs (the engine, fp8)": (_fp8_f32("qf_blocks", layout.split_gate_up), {}),
+    "xla: block pairs, scaled in bf16 (the engine until session 56, fp8)": (_fp8("q_blocks", layout.split_gate_up),
+                                                                          {}),
     "xla: halves (fp8)": (_fp8("q_halves", _halves), {}),
     "xla: two gemms, x sigmoid(2z) (fp8)": (_fp8_two(layers.gelu_tanh), {}),
     "xla: two gemms, jax gelu (fp8)": (_fp8_two(_jax_gelu), {}),
@@ -297,7 +312,8 @@ def xla_weights(x, w):
         return formats.quantize_fp8(a.T.astype(F32), contract=(-1,), per_channel=per_channel, act_scale=sx)
 
     return {"halves": w, "blocks": blocks, "gate": gate, "up": up, "q_halves": q(w), "q_blocks": q(blocks),
-            "q_gate": q(gate, per_channel=False), "q_up": q(up), "s_down": s_down}, ref
+            "qf_blocks": formats.fold_scales(q(blocks)), "q_gate": q(gate, per_channel=False), "q_up": q(up),
+            "s_down": s_down}, ref
 
 
 def _chain(fn, args, iters, chain):
