@@ -393,7 +393,7 @@ def run(args: argparse.Namespace, save=None) -> dict:
     results = {"preset": args.preset, "env": {**environment(), "kernels": args.kernels, "attention": args.attention,
                                                "gemm": args.gemm, "overlap": args.overlap, "quant": quant,
                                                "expert_blocks": dataclasses.asdict(expert_kernels.Blocks()),
-                                               "fp8_mlp_kernel": layers.FP8_GEGLU},
+                                               "fp8_mlp_kernel": layers.fp8_mlp_kernel()},
                "complete": False, "rows": [], "peers": [],
                "compile": {},
                "args": {k: str(v) for k, v in vars(args).items() if k != "func"}}

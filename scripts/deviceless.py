@@ -42,6 +42,8 @@ from pi0_jax import benchmark, pi0  # noqa: E402
 from pi0_jax.config import IMAGE_KEYS, get_config  # noqa: E402
 from pi0_jax.engine import Engine, layers, runtime  # noqa: E402
 from pi0_jax.engine import weights as weights_lib  # noqa: E402
+from pi0_jax.ops import fp8_geglu  # noqa: E402
+from pi0_jax.ops.formats import E4M3, QArray  # noqa: E402
 from pi0_jax.quant import schemes  # noqa: E402
 
 # an H200 SXM as XLA's GPU compiler reads a device (stream_executor.GpuTargetConfigProto, text format); the figures
@@ -91,10 +93,38 @@ def as_target():
             setattr(cudnn, n, f)
 
 
+def target_devices(n: int = 1) -> list:
+    """n described H200s of one host (the CUDA plugin's topology)."""
+    return topologies.get_topology_desc(platform="cuda", topology_name="h200", target_config=TARGET,
+                                        topology=f"1x1x{n}").devices
+
+
 def target_sharding():
-    topology = topologies.get_topology_desc(platform="cuda", topology_name="h200", target_config=TARGET,
-                                            topology="1x1x1")
-    return jax.sharding.SingleDeviceSharding(topology.devices[0])
+    return jax.sharding.SingleDeviceSharding(target_devices()[0])
+
+
+COLLECTIVES = ("all-gather", "all-reduce", "reduce-scatter", "collective-permute", "all-to-all")
+
+
+def fp8_mlp_sharded(rows: int = 816, devices: int = 2) -> dict:
+    """The FP8 MLP kernel (`ops.fp8_geglu.geglu`, π0's prefix shapes) compiled on `devices` H200s with its rows
+    split over them, as the simulator's batch mesh runs the engine: the collectives in the program (none: each
+    device runs the kernel on its own rows, `custom_partitioning`) and the rows each device's kernel takes."""
+    spec = jax.ShapeDtypeStruct
+    mesh = jax.sharding.Mesh(np.array(target_devices(devices)), ("batch",))
+    split, full = (jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec(*a)) for a in (("batch", None), ()))
+    k, n2 = 2048, 32768
+
+    def mlp(xq, q, scale, act, down_scale):
+        return fp8_geglu.geglu(xq, QArray(q, scale, act, (-1,), True), down_scale)
+
+    with as_target():
+        hlo = jax.jit(mlp).trace(
+            spec((devices * rows, k), E4M3, sharding=split), spec((n2, k), E4M3, sharding=full),
+            spec((n2, 1), np.float32, sharding=full), *(spec((), np.float32, sharding=full),) * 2).lower().compile()
+        text = hlo.as_text()
+    return {"devices": devices, "collectives": [c for c in COLLECTIVES if f" {c}(" in text or f"{c}-start(" in text],
+            "kernel_rows": sorted(set(int(r) for r in re.findall(r"f8e4m3fn\[(\d+),16384\]", text)))}
 
 
 def abstract_engine(config, quant: str | None, sharding=None, **engine_kw) -> Engine:
@@ -184,10 +214,13 @@ def main(argv=None) -> int:
                                                  "scales from unit amaxes (default: bf16)")
     p.add_argument("--kernels", default="auto", help="the engine's kernels: auto, xla, pallas (default: %(default)s)")
     p.add_argument("--attention", default="auto", help="the engine's attention (default: %(default)s)")
-    p.add_argument("--fp8-mlp-kernel", action="store_true",
-                   help="FP8 MLPs on `ops.fp8_geglu` (engine.layers.FP8_GEGLU; default: off, as the engine)")
+    p.add_argument("--fp8-mlp-kernel", choices=("auto", "on", "off"), default="auto",
+                   help="the prefix's FP8 MLPs on `ops.fp8_geglu` (engine.layers.FP8_GEGLU): auto = as the engine "
+                        "on the target (an H200: on), on, off (default: %(default)s)")
     p.add_argument("--out", type=Path, default=None, help="JSON of counts per program (default: print only)")
     p.add_argument("--hlo", type=Path, default=None, help="a folder to write each program's optimized HLO to")
+    p.add_argument("--fp8-mlp-sharded", action="store_true",
+                   help="also compile the FP8 MLP kernel on two H200s with its rows split (`fp8_mlp_sharded`)")
     p.add_argument("--sequence", action="store_true",
                    help="print each loop body's kernels in order (the JSON has them either way)")
     args = p.parse_args(argv)
@@ -197,7 +230,7 @@ def main(argv=None) -> int:
     config = get_config(args.preset)
     cameras = IMAGE_KEYS[:args.cameras]
     bucket = runtime.prompt_bucket(args.prompt, config.max_token_len)
-    layers.FP8_GEGLU = args.fp8_mlp_kernel
+    layers.FP8_GEGLU = {"auto": "auto", "on": True, "off": False}[args.fp8_mlp_kernel]
     sharding = target_sharding()
     results = {"target": TargetDevice.device_kind, "jax": jax.__version__, "commit": benchmark._git_commit(),
                "source": benchmark.source_digest(), "args": {k: str(v) for k, v in vars(args).items()},
@@ -231,6 +264,9 @@ def main(argv=None) -> int:
     for k in results["mosaic_gpu_kernels"]:
         print(f"  {k['kernel']}: {k['registers']} registers, spills {k['spill_store_bytes']} / "
               f"{k['spill_load_bytes']} B{', wgmma serialised' if k['serialised_wgmma'] else ''}")
+    if args.fp8_mlp_sharded:
+        results["fp8_mlp_sharded"] = fp8_mlp_sharded()
+        print(f"FP8 MLP kernel on 2 devices: {results['fp8_mlp_sharded']}")
     if args.out:
         args.out.write_text(json.dumps(results, indent=1))
     return 0

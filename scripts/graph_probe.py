@@ -3,7 +3,7 @@ compile with extra XLA options on top of the engine's own (`matmul.compiler_opti
 under gemm="auto"), or, for "conv", with SigLIP's patch embedding as cuDNN's convolution (the engine's form until
 2026-11-26) instead of the f32 GEMM, or an Engine built another way (`ENGINE_KW`, `SCHEDULING`, `STAGES`,
 `STEP_ENDS`, `RUNTIME`, `LAYERS`, `WEIGHTS`: the denoise loop unrolled, the first step's overlap and its programs,
-π0's in-projection unfolded, the vision tower as one program, GELU-tanh as jax writes it, the FP8 MLP's kernel or
+π0's in-projection unfolded, the vision tower as one program, GELU-tanh as jax writes it, the FP8 MLP on XLA or in
 its earlier XLA form, FP8 output scales computed in the programs); the
 "vision-" variants set their options on the vision programs alone, "vhead-" on the first of them, "loop-" on the
 denoise programs without the prefix (the expert's weights alone).
@@ -86,9 +86,10 @@ VARIANTS = {
     "loop-cublas": {"xla_gpu_enable_triton_gemm": False},
     # the engine's GeGLU with jax's GELU-tanh (LAYERS), where `layers.gelu_tanh` writes it as x sigmoid(2 z)
     "gelu-tanh": {},
-    # with FP8 weights (--quant): each FP8 MLP's gate/up GEMM, GeGLU and the down GEMM's e4m3 input as one Mosaic GPU
-    # kernel (`ops.fp8_geglu`, LAYERS), where XLA runs cuBLASLt's GEMM and a pass of its own
-    "fp8-geglu": {},
+    # with FP8 weights (--quant): the prefix's FP8 MLPs on XLA's GEMM and a pass of its own (LAYERS), not on the
+    # engine's Mosaic GPU kernel of gate/up GEMM, GeGLU and the down GEMM's e4m3 input (`ops.fp8_geglu`; the
+    # variant "fp8-geglu" of session 56's runs, when the kernel was off by default)
+    "fp8-geglu-off": {},
     # with FP8 weights: the FP8 MLP as the engine ran it until session 56 (LAYERS: gate and up scaled and rounded to
     # the activation dtype, GeGLU in it), and every FP8 product's output scale computed in the program (WEIGHTS: not
     # folded into the weights, `formats.fold_scales`)
@@ -103,7 +104,7 @@ STEP_ENDS = {"unfolded": {"FOLD_ACTION_IN": False}}
 RUNTIME = {"one-vision-program": {"VISION_SPLIT": 0}}
 
 
-def scaled_geglu(h, w):
+def scaled_geglu(h, w, kernel=False):
     """The engine's MLP until session 56: FP8 gate and up scaled and rounded to h's dtype (`formats.qmatmul`), GeGLU
     in h's dtype, the down GEMM quantising its input."""
     gate, up = layout.split_gate_up(layers._mm(h, w["gate_up"]))
@@ -111,7 +112,7 @@ def scaled_geglu(h, w):
 
 
 LAYERS = {"gelu-tanh": {"gelu_tanh": lambda x: jax.nn.gelu(x, approximate=True)},
-          "fp8-geglu": {"FP8_GEGLU": True}, "geglu-bf16": {"_mlp": scaled_geglu}}
+          "fp8-geglu-off": {"FP8_GEGLU": False}, "geglu-bf16": {"_mlp": scaled_geglu}}
 WEIGHTS = {"scales-apart": {"fold_scales": lambda tree: tree}}
 
 

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 
 from pi0_jax.config import GemmaConfig
 from pi0_jax.gemma import _BIG_NEG, apply_rope
-from pi0_jax.ops import attention, expert_kernels, formats, fp8_geglu, layout
+from pi0_jax.ops import attention, expert_kernels, formats, fp8_geglu, layout, mosaic_gemm
 from pi0_jax.ops.formats import QArray
 from pi0_jax.ops.matmul import input_scale, matmul, raw_matmul
 
@@ -72,24 +72,33 @@ def gelu_tanh(x):
     return x * jax.nn.sigmoid(z)
 
 
-# An FP8 x FP8 MLP's gate/up GEMM, GeGLU and the down GEMM's e4m3 input as one Mosaic GPU kernel (`ops.fp8_geglu`)
-# where it applies (Hopper, or the interpreter on a CPU). Off: written in session 54, which had no GPU; it stays off
-# until a GPU run measures it against XLA's GEMM and pass (`scripts/fp8_geglu_probe.py`, `graph_probe.py`'s variant
-# "fp8-geglu").
-FP8_GEGLU = False
+# The prefix's FP8 x FP8 MLPs: gate/up GEMM, GeGLU and the down GEMM's e4m3 input as one Mosaic GPU kernel
+# (`ops.fp8_geglu`). "auto": on a Hopper GPU, where it ran π0's FP8 prefix 8.6 % faster at B = 8 and 2.1 % at B = 1
+# (H200, docs/BENCHMARKS.md, session 56); True: wherever it applies (the CPU tests: Mosaic GPU's interpreter); False:
+# XLA's GEMM and pass. The action expert's MLPs stay on XLA's path: untimed there (408 rows at B = 8; at B = 1 its
+# 50 rows add a pad and a cut).
+FP8_GEGLU = "auto"
 
 
-def _mlp(h, w):
+def fp8_mlp_kernel() -> bool:
+    """Whether the prefix's FP8 MLPs run `ops.fp8_geglu` on this backend (`FP8_GEGLU`)."""
+    if FP8_GEGLU == "auto":
+        return mosaic_gemm.hopper()
+    return bool(FP8_GEGLU)
+
+
+def _mlp(h, w, kernel: bool = False):
     """Gemma's GeGLU MLP. FP8 x FP8: gate and up leave the GEMM unscaled and go through GeGLU in f32 straight into
-    the down GEMM's e4m3 input (the kernel's numerics). Scaled and rounded to h's dtype first (`formats.qmatmul`'s
-    end), XLA wrote the scaled gate half out in a pass of its own before the GeGLU pass: a kernel and a write and
-    read of half the GEMM's output more per layer (π0's FP8 prefix at B = 1: 17 of its 423 kernels)."""
+    the down GEMM's e4m3 input (the kernel's numerics): in `ops.fp8_geglu` where `kernel` and `fp8_mlp_kernel()`
+    allow it, else XLA's GEMM and one pass. Scaled and rounded to h's dtype first (`formats.qmatmul`'s end), XLA
+    wrote the scaled gate half out in a pass of its own before the GeGLU pass: a kernel and a write and read of half
+    the GEMM's output more per layer (π0's FP8 prefix at B = 1: 17 of its 423 kernels)."""
     gate_up, down = w["gate_up"], w["down"]
     if input_scale(gate_up) is None or input_scale(down) is None:
         gate, up = layout.split_gate_up(_mm(h, gate_up))
         return _mm(gelu_tanh(gate) * up, down)
     xq = formats.quantise(h, gate_up.act_scale)
-    if FP8_GEGLU and fp8_geglu.applies(gate_up, down):
+    if kernel and fp8_mlp_kernel() and fp8_geglu.applies(gate_up, down):
         y = fp8_geglu.geglu(xq.reshape(-1, xq.shape[-1]), gate_up, down.act_scale).reshape(*h.shape[:-1], -1)
     else:
         product, scale = raw_mm(xq, gate_up, h.dtype)
@@ -136,7 +145,7 @@ def prefix_layer(cfg: GemmaConfig, w, x, positions, mask, kv_len=None, keys: int
     y = _attend(q, [k], [v], [mask], x.dtype) if kv_len is None else _attend_fused(q, k, v, kv_len)
     x = x + _mm(y, w["attn_out"])
     h, _ = rms_norm(x, w["pre_ffw"])
-    return x + _mlp(h, w), k, v
+    return x + _mlp(h, w, kernel=True), k, v
 
 
 def _attend_suffix_fused(q, k, v, buf_k, buf_v, kv_len, slot: int = 0):

@@ -21,9 +21,9 @@ On a GPU the last row tile may be ragged (TMA reads zeros past the end and drops
 a multiple of 8 (`run` pads them). Mosaic GPU's CPU interpreter (the tests) refuses a ragged tile, and has no
 transposed wgmma operand: there the rows are padded to whole tiles and the weight streams as its (K, 2F) transpose,
 so the interpreter checks the tiling, the pipeline and the epilogue; the GPU form (K-major operand, ragged rows) is
-lowered for sm_90 on the CPU by the tests (`lowering_platforms`). Not partitioned: under a sharded jit XLA would
-gather its operands (the engine asks for it only where `applies`, and `engine.layers.FP8_GEGLU` leaves it off until
-it is measured).
+lowered for sm_90 on the CPU by the tests (`lowering_platforms`). Under a sharded jit each device runs it on its
+own rows (`custom_partitioning`). The engine runs it in the prefix's FP8 MLPs on a Hopper GPU (`engine.layers.
+FP8_GEGLU`): π0's FP8 prefix 8.6 % faster at B = 8 and 2.1 % at B = 1 (H200, docs/BENCHMARKS.md, session 56).
 
 Axis legend: M rows, K contraction, N2 = 2F fused gate/up columns, F hidden units.
 """
@@ -39,6 +39,9 @@ import jax.experimental.pallas.mosaic_gpu as plgpu
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
+from jax.experimental.custom_partitioning import custom_partitioning
+from jax.sharding import NamedSharding
+from jax.sharding import PartitionSpec as P
 
 from pi0_jax.ops import formats, layout, mosaic_gemm
 from pi0_jax.ops.formats import E4M3, QArray
@@ -130,9 +133,34 @@ def geglu(xq, w: QArray, down_scale, launch: Launch = Launch()) -> jax.Array:
     if launch is None or xq.shape[1] != k:
         raise ValueError(f"x {xq.shape} @ w {w.q.shape}.T: no launch of the FP8 GeGLU kernel fits")
     scales = column_scales(w, down_scale)
-    if jax.default_backend() == "cpu":   # the interpreter: the weight N-major
+    if jax.default_backend() == "cpu":   # the interpreter (its host callbacks cannot be partitioned): N-major weight
         return run(xq, w.q.T, scales, launch, interpret=True)
-    return run(xq, w.q, scales, launch)
+    return _partitioned(xq, w.q, scales, launch)
+
+
+@functools.partial(custom_partitioning, static_argnums=(3,))
+def _partitioned(xq, wq, scales, launch: Launch):
+    return run(xq, wq, scales, launch)
+
+
+def _row_shardings(mesh, sharding) -> tuple:
+    """(x's rows and the output's: split as x's rows are, columns whole; the weight's and the scales': replicated)."""
+    axes = sharding.spec[0] if len(sharding.spec) else None
+    return NamedSharding(mesh, P(axes, None)), NamedSharding(mesh, P())
+
+
+def _partition(launch, mesh, arg_shapes, result_shape):
+    rows, full = _row_shardings(mesh, arg_shapes[0].sharding)
+    return mesh, lambda xq, wq, scales: run(xq, wq, scales, launch), rows, (rows, full, full)
+
+
+# Under a sharded jit (the simulator's batch mesh) each device runs the kernel on its own rows: XLA cannot split a
+# kernel it does not know, and would otherwise gather every row onto every device.
+_partitioned.def_partition(
+    partition=_partition,
+    infer_sharding_from_operands=lambda launch, mesh, arg_shapes, result_shape: _row_shardings(
+        mesh, arg_shapes[0].sharding)[0],
+    sharding_rule="m k, n k, n -> m f", need_replication_factors=("k", "n", "f"))
 
 
 def run(xq, wq, scales, launch: Launch, *, interpret: bool = False, sms: int | None = None) -> jax.Array:
