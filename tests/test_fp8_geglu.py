@@ -73,6 +73,10 @@ def test_engine_fp8_call_with_the_kernel_matches_the_call_without(monkeypatch):
     monkeypatch.setattr(fp8_geglu, "geglu", lambda *a, **kw: calls.append(a[0].shape) or own(*a, **kw))
     got = np.asarray(Engine(config, qp, cache_dir=False).sample_actions(calib[1], noise, num_steps=2))
     assert len(calls) >= config.paligemma.depth - 1
+    monkeypatch.setattr(layers, "FP8_GEGLU", "auto")   # the default: on a Hopper GPU only, not the interpreter
+    assert not layers.fp8_mlp_kernel()
+    monkeypatch.setattr(layers.mosaic_gemm, "hopper", lambda: True)
+    assert layers.fp8_mlp_kernel()
     assert np.isfinite(got).all()
     # f32 here: the two paths differ only where the folded division moves a value across an e4m3 rounding boundary
     assert np.linalg.norm(got - want) / np.linalg.norm(want) < 5e-3
