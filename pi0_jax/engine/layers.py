@@ -90,9 +90,9 @@ def fp8_mlp_kernel() -> bool:
 def _mlp(h, w, kernel: bool = False):
     """Gemma's GeGLU MLP. FP8 x FP8: gate and up leave the GEMM unscaled and go through GeGLU in f32 straight into
     the down GEMM's e4m3 input (the kernel's numerics): in `ops.fp8_geglu` where `kernel` and `fp8_mlp_kernel()`
-    allow it, else XLA's GEMM and one pass. Scaled and rounded to h's dtype first (`formats.qmatmul`'s end), XLA
-    wrote the scaled gate half out in a pass of its own before the GeGLU pass: a kernel and a write and read of half
-    the GEMM's output more per layer (π0's FP8 prefix at B = 1: 17 of its 423 kernels)."""
+    allow it, else XLA's GEMM and one pass. Scaled and rounded to h's dtype first (`formats.qmatmul`'s end), gate
+    and up cost the H200's compile (jax 0.11.2) no more kernels and the prefix fill 1.6 % more time; jaxlib 0.10.2's
+    compile for an H200 wrote the scaled gate half out in a pass of its own (docs/BENCHMARKS.md, session 56)."""
     gate_up, down = w["gate_up"], w["down"]
     if input_scale(gate_up) is None or input_scale(down) is None:
         gate, up = layout.split_gate_up(_mm(h, gate_up))
