@@ -40,11 +40,10 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 from jax.experimental.custom_partitioning import custom_partitioning
-from jax.sharding import NamedSharding
-from jax.sharding import PartitionSpec as P
 
 from pi0_jax.ops import formats, layout, mosaic_gemm
 from pi0_jax.ops.formats import E4M3, QArray
+from pi0_jax.ops.pallas_base import row_shardings
 
 F32 = jnp.float32
 MIN_K = 32   # an e4m3 wgmma's contraction
@@ -143,14 +142,8 @@ def _partitioned(xq, wq, scales, launch: Launch):
     return run(xq, wq, scales, launch)
 
 
-def _row_shardings(mesh, sharding) -> tuple:
-    """(x's rows and the output's: split as x's rows are, columns whole; the weight's and the scales': replicated)."""
-    axes = sharding.spec[0] if len(sharding.spec) else None
-    return NamedSharding(mesh, P(axes, None)), NamedSharding(mesh, P())
-
-
 def _partition(launch, mesh, arg_shapes, result_shape):
-    rows, full = _row_shardings(mesh, arg_shapes[0].sharding)
+    rows, full = row_shardings(mesh, arg_shapes[0].sharding)
     return mesh, lambda xq, wq, scales: run(xq, wq, scales, launch), rows, (rows, full, full)
 
 
@@ -158,7 +151,7 @@ def _partition(launch, mesh, arg_shapes, result_shape):
 # kernel it does not know, and would otherwise gather every row onto every device.
 _partitioned.def_partition(
     partition=_partition,
-    infer_sharding_from_operands=lambda launch, mesh, arg_shapes, result_shape: _row_shardings(
+    infer_sharding_from_operands=lambda launch, mesh, arg_shapes, result_shape: row_shardings(
         mesh, arg_shapes[0].sharding)[0],
     sharding_rule="m k, n k, n -> m f", need_replication_factors=("k", "n", "f"))
 

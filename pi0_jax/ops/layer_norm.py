@@ -30,11 +30,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax.experimental import pallas as pl
 from jax.experimental.custom_partitioning import custom_partitioning
-from jax.sharding import NamedSharding
-from jax.sharding import PartitionSpec as P
 
 from pi0_jax.ops.formats import E4M3, E4M3_MAX
-from pi0_jax.ops.pallas_base import call, fit
+from pi0_jax.ops.pallas_base import call, fit, row_shardings
 
 
 @dataclasses.dataclass(frozen=True)
@@ -131,12 +129,6 @@ def _add_norm(x, f, f_vectors, f_scale, vectors, act, eps, dtype, quantised, blo
     return _layer_norm((x, f, f_vectors, f_scale), vectors, act, eps, dtype, quantised, blocks, rows, scaled)
 
 
-def _shardings(mesh, sharding) -> tuple:
-    """(the rows' sharding: as x has them, columns whole; the vectors': replicated)."""
-    axes = sharding.spec[0] if len(sharding.spec) else None
-    return NamedSharding(mesh, P(axes, None)), NamedSharding(mesh, P())
-
-
 def _rule(residual: bool):
     """The partitioning of the kernel over x (and the residual f; as many outputs), the residual's vector table and
     f32 scale, the norm's vector table and the quantisation's (1,) scale: rows split as x's, the rest replicated."""
@@ -144,7 +136,7 @@ def _rule(residual: bool):
 
     def partition(*static_and_shapes):
         *static, mesh, arg_shapes, result_shape = static_and_shapes
-        rows, full = _shardings(mesh, arg_shapes[0].sharding)
+        rows, full = row_shardings(mesh, arg_shapes[0].sharding)
         eps, dtype, quantised, blocks, table_rows, *scaled = static   # scaled: _add_norm's only
 
         def fn(*a):
@@ -155,7 +147,7 @@ def _rule(residual: bool):
 
     def infer(*static_and_shapes):
         mesh, arg_shapes = static_and_shapes[-3:-1]
-        return (_shardings(mesh, arg_shapes[0].sharding)[0],) * n
+        return (row_shardings(mesh, arg_shapes[0].sharding)[0],) * n
 
     # factors in the order they first appear (Shardy): r d, then u (the residual's table rows), v (the norm's), o
     operands = ["r d", "r d", "u d", "d", "v d", "o"] if residual else ["r d", "v d", "o"]

@@ -1,5 +1,6 @@
 """What the Pallas kernels of `pi0_jax.ops` share: Triton's smallest dot, block sizes that divide a dimension, an
-f32-accumulating dot, and the call itself (Triton with its launch parameters on a GPU, interpret mode on a CPU).
+f32-accumulating dot, the call itself (Triton with its launch parameters on a GPU, interpret mode on a CPU), and the
+shardings of a kernel partitioned by rows (`row_shardings`).
 
 JAX 0.11 deprecated Pallas's Triton backend ("will be removed in a future JAX version") and warns at every lowering
 of a Triton kernel. `TRITON` says whether this jax still has it: where it does not, the "auto" choices
@@ -17,6 +18,8 @@ import warnings
 import jax
 import jax.numpy as jnp
 from jax.experimental import pallas as pl
+from jax.sharding import NamedSharding
+from jax.sharding import PartitionSpec as P
 
 try:
     from jax.experimental.pallas import triton as plgpu
@@ -26,6 +29,13 @@ except ImportError:   # a jax without Pallas's Triton backend
 TRITON = plgpu is not None
 TRITON_DEPRECATION = r"The Pallas Triton backend is deprecated"
 ALIGN = 16  # Triton's smallest dot dimension
+
+
+def row_shardings(mesh, sharding) -> tuple:
+    """A kernel partitioned by rows under a sharded jit (`custom_partitioning`): (its row operands' and outputs'
+    sharding: rows split as `sharding`'s first axis, columns whole; its other operands': replicated)."""
+    axes = sharding.spec[0] if len(sharding.spec) else None
+    return NamedSharding(mesh, P(axes, None)), NamedSharding(mesh, P())
 
 
 def fit(block: int, n: int) -> int:
