@@ -217,6 +217,9 @@ def main(argv=None) -> int:
     p.add_argument("--fp8-mlp-kernel", choices=("auto", "on", "off"), default="auto",
                    help="the prefix's FP8 MLPs on `ops.fp8_geglu` (engine.layers.FP8_GEGLU): auto = as the engine "
                         "on the target (an H200: on), on, off (default: %(default)s)")
+    p.add_argument("--fp8-mlp-expert", action="store_true",
+                   help="the action expert's FP8 MLPs on the kernel too (engine.layers.FP8_GEGLU_EXPERT; from "
+                        "FP8_GEGLU_EXPERT_ROWS rows)")
     p.add_argument("--out", type=Path, default=None, help="JSON of counts per program (default: print only)")
     p.add_argument("--hlo", type=Path, default=None, help="a folder to write each program's optimized HLO to")
     p.add_argument("--fp8-mlp-sharded", action="store_true",
@@ -231,6 +234,7 @@ def main(argv=None) -> int:
     cameras = IMAGE_KEYS[:args.cameras]
     bucket = runtime.prompt_bucket(args.prompt, config.max_token_len)
     layers.FP8_GEGLU = {"auto": "auto", "on": True, "off": False}[args.fp8_mlp_kernel]
+    layers.FP8_GEGLU_EXPERT = args.fp8_mlp_expert
     sharding = target_sharding()
     results = {"target": TargetDevice.device_kind, "jax": jax.__version__, "commit": benchmark._git_commit(),
                "source": benchmark.source_digest(), "args": {k: str(v) for k, v in vars(args).items()},

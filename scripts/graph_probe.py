@@ -2,9 +2,10 @@
 compile with extra XLA options on top of the engine's own (`matmul.compiler_options`: cuBLAS in the vision program
 under gemm="auto"), or, for "conv", with SigLIP's patch embedding as cuDNN's convolution (the engine's form until
 2026-11-26) instead of the f32 GEMM, or an Engine built another way (`ENGINE_KW`, `SCHEDULING`, `STAGES`,
-`STEP_ENDS`, `RUNTIME`, `LAYERS`, `WEIGHTS`: the denoise loop unrolled, the first step's overlap and its programs,
-π0's in-projection unfolded, the vision tower as one program, GELU-tanh as jax writes it, the FP8 MLP on XLA or in
-its earlier XLA form, FP8 output scales computed in the programs); the
+`STEP_ENDS`, `RUNTIME`, `LAYERS`, `WEIGHTS`, `KERNELS`: the denoise loop unrolled, the first step's overlap and its
+programs, π0's in-projection unfolded, the vision tower as one program, GELU-tanh as jax writes it, the FP8 MLP on
+XLA, in its earlier XLA form, on the kernel in the expert too or on another launch of it, FP8 output scales computed
+in the programs); the
 "vision-" variants set their options on the vision programs alone, "vhead-" on the first of them, "loop-" on the
 denoise programs without the prefix (the expert's weights alone).
 Stage medians (round-robin over the variants), kernels per call, device span and idle time (by the kernel that
@@ -31,7 +32,7 @@ import profile_engine  # noqa: E402
 from pi0_jax import benchmark  # noqa: E402
 from pi0_jax.config import get_config  # noqa: E402
 from pi0_jax.engine import Engine, layers, paths, programs, runtime, vision  # noqa: E402
-from pi0_jax.ops import formats, layout  # noqa: E402
+from pi0_jax.ops import formats, fp8_geglu, layout  # noqa: E402
 from pi0_jax.quant.schemes import SCHEMES  # noqa: E402
 
 GRAPHS = {"xla_gpu_graph_min_graph_size": 1}
@@ -90,6 +91,10 @@ VARIANTS = {
     # engine's Mosaic GPU kernel of gate/up GEMM, GeGLU and the down GEMM's e4m3 input (`ops.fp8_geglu`; the
     # variant "fp8-geglu" of session 56's runs, when the kernel was off by default)
     "fp8-geglu-off": {},
+    # with FP8 weights: the action expert's FP8 MLPs on the kernel too (`every-gemm`; LAYERS.FP8_GEGLU_EXPERT), and the
+    # kernel's launch with 3 pipeline stages and a snake of 16 tiles (KERNELS; 2-4 % faster alone in session 56)
+    "fp8-geglu-expert": {},
+    "fp8-geglu-3stages": {},
     # with FP8 weights: the FP8 MLP as the engine ran it until session 56 (LAYERS: gate and up scaled and rounded to
     # the activation dtype, GeGLU in it), and every FP8 product's output scale computed in the program (WEIGHTS: not
     # folded into the weights, `formats.fold_scales`)
@@ -112,8 +117,10 @@ def scaled_geglu(h, w, kernel=False):
 
 
 LAYERS = {"gelu-tanh": {"gelu_tanh": lambda x: jax.nn.gelu(x, approximate=True)},
-          "fp8-geglu-off": {"FP8_GEGLU": False}, "geglu-bf16": {"_mlp": scaled_geglu}}
+          "fp8-geglu-off": {"FP8_GEGLU": False}, "geglu-bf16": {"_mlp": scaled_geglu},
+          "fp8-geglu-expert": {"FP8_GEGLU_EXPERT": True}}
 WEIGHTS = {"scales-apart": {"fold_scales": lambda tree: tree}}
+KERNELS = {"fp8-geglu-3stages": {"LAUNCH": fp8_geglu.Launch(stages=3, snake=16)}}
 
 
 def conv_patch_embed(images, kernel, bias, p: int):
@@ -161,6 +168,7 @@ def main() -> None:
     own_ends = {k: getattr(programs, k) for k in ("FOLD_ACTION_IN",)}
     own_split, own_layers = runtime.VISION_SPLIT, {k: getattr(layers, k) for d in LAYERS.values() for k in d}
     own_formats = {k: getattr(formats, k) for d in WEIGHTS.values() for k in d}
+    own_kernels = {k: getattr(fp8_geglu, k) for d in KERNELS.values() for k in d}
     for batch in args.batch or [1]:
         obs, noise = benchmark.make_inputs(config, batch, 3, args.prompt_tokens, 0)
         rows, timed, first = [], {}, None
@@ -187,6 +195,8 @@ def main() -> None:
                 setattr(layers, k, v)
             for k, v in {**own_formats, **WEIGHTS.get(name, {})}.items():
                 setattr(formats, k, v)
+            for k, v in {**own_kernels, **KERNELS.get(name, {})}.items():
+                setattr(fp8_geglu, k, v)
             engine = Engine(config, params, cache_dir=False, **ENGINE_KW.get(name, {}))
             if name in STAGES:   # this engine's calls only
                 engine.call_stages = types.MethodType(STAGES[name], engine)

@@ -91,13 +91,17 @@ def fit(launch: Launch, k: int, n2: int) -> Launch | None:
     return None
 
 
+# The launch `geglu` fits to each weight (the engine's)
+LAUNCH = Launch()
+
+
 def applies(w, down) -> bool:
     """Whether the kernel can take the MLP whose fused gate/up weight is `w` and down weight `down`: both FP8 x FP8
     (`QArray`s with activation scales), w K-major (2F, K), a launch fits, and on a GPU a Hopper one."""
     if not (isinstance(w, QArray) and isinstance(down, QArray) and w.act_scale is not None
             and down.act_scale is not None and w.q.ndim == 2 and w.contract == (-1,)):
         return False
-    if fit(Launch(), w.q.shape[1], w.q.shape[0]) is None:
+    if fit(LAUNCH, w.q.shape[1], w.q.shape[0]) is None:
         return False
     return jax.default_backend() == "cpu" or mosaic_gemm.hopper()
 
@@ -124,11 +128,12 @@ def reference(xq, w: QArray, down_scale) -> jax.Array:
     return jnp.clip(gelu_product(gate, up), -formats.E4M3_MAX, formats.E4M3_MAX).astype(E4M3)
 
 
-def geglu(xq, w: QArray, down_scale, launch: Launch = Launch()) -> jax.Array:
+def geglu(xq, w: QArray, down_scale, launch: Launch | None = None) -> jax.Array:
     """xq (M, K) e4m3 @ w (2F, K) e4m3 in gate/up block pairs -> (M, F) e4m3: GELU-tanh(gate) * up quantised with
-    `down_scale` (the down GEMM's activation scale), as `reference` computes it. `applies(w, down)` must hold."""
+    `down_scale` (the down GEMM's activation scale), as `reference` computes it. `applies(w, down)` must hold.
+    launch: default `LAUNCH`."""
     k, n2 = w.q.shape[1], w.q.shape[0]
-    launch = fit(launch, k, n2)
+    launch = fit(LAUNCH if launch is None else launch, k, n2)
     if launch is None or xq.shape[1] != k:
         raise ValueError(f"x {xq.shape} @ w {w.q.shape}.T: no launch of the FP8 GeGLU kernel fits")
     scales = column_scales(w, down_scale)
