@@ -79,6 +79,58 @@ def _rel(a, b):
     return float(jnp.linalg.norm(a - b) / jnp.linalg.norm(b))
 
 
+def siglip(rows, k, n, iters, chain, out) -> dict:
+    """SigLIP's FP8 fc1 (K = 1,152, N = 4,304) into fc2's e4m3 input: the engine's XLA path (`engine.vision.block`:
+    cuBLASLt's GEMM, then one pass of scale, bias, GELU-tanh and quantisation), its GEMM alone, and the kernel
+    (`fp8_geglu.gelu`, 16-column stores), checked against `fp8_geglu.gelu_reference` and the XLA path."""
+    from pi0_jax.engine import vision   # noqa: PLC0415
+    res = {}
+    for m in rows:
+        key = jax.random.key(m)
+        x = jax.random.normal(key, (m, k), F32)
+        w = jax.random.normal(jax.random.fold_in(key, 1), (n, k), F32) * k**-0.5 * 2
+        fc1 = formats.fold_scales(formats.quantize_fp8(w, contract=(-1,), act_scale=formats.act_scale_from_amax(
+            float(jnp.abs(x).max()))))
+        fc2 = formats.quantize_fp8(jnp.ones((16, n)), contract=(-1,), act_scale=formats.act_scale_from_amax(3.0))
+        bias = (jax.random.normal(jax.random.fold_in(key, 2), (n,)) * 0.5).astype(BF16)
+        xq = formats.quantise(x, fc1.act_scale)
+
+        def xla(xq, fc1, bias):
+            y, scale = vision.layers.raw_mm(xq, fc1, BF16)
+            return formats.quantise(jax.nn.gelu(vision._finish(y, bias, scale), approximate=True), fc2.act_scale)
+
+        forms = {"xla: the engine's path (GEMM, pass)": (jax.jit(xla), (xq, fc1, bias)),
+                 "xla: the GEMM alone": (jax.jit(lambda xq, fc1: vision.layers.raw_mm(xq, fc1, BF16)[0]), (xq, fc1)),
+                 "kernel (3 stages)": (jax.jit(lambda xq, fc1, bias: fp8_geglu.gelu(xq, fc1, bias, fc2.act_scale)),
+                                       (xq, fc1, bias)),
+                 "kernel (4 stages)": (jax.jit(lambda xq, fc1, bias: fp8_geglu.gelu(
+                     xq, fc1, bias, fc2.act_scale, Launch(stages=4))), (xq, fc1, bias))}
+        mine = fp8_geglu.gelu_reference(xq, fc1, bias, fc2.act_scale).astype(F32)
+        engine = forms["xla: the engine's path (GEMM, pass)"][0](xq, fc1, bias).astype(F32)
+        row = res[m] = {"rel_l2_reference_vs_engine": _rel(mine, engine)}
+        print(f"M={m} (SigLIP fc1)", flush=True)
+        for name, (fn, fargs) in forms.items():
+            try:
+                r = {"ms": geglu_probe._chain(fn, fargs, iters, chain)}
+                r["tflops"] = 2 * m * k * n / r["ms"] / 1e9
+                if name.startswith("kernel"):
+                    got = fn(*fargs).astype(F32)
+                    r["equal_to_its_xla_form"] = float(jnp.mean(got == mine))
+                    r["rel_l2_vs_its_xla_form"] = _rel(got, mine)
+                    r["rel_l2_vs_engine"] = _rel(got, engine)
+                    r["finite"] = bool(jnp.isfinite(got).all())
+            except Exception as e:  # noqa: BLE001  (a probe: report the form that fails and go on)
+                r = {"error": f"{type(e).__name__}: {str(e)[:600]}"}
+            row[name] = r
+            facts = " ".join(f"{k} {v:.1e}" for k, v in r.items() if k.startswith(("rel", "equal")))
+            print(f"   {name:40s} " + (f"{r['ms']:8.4f} ms {r['tflops']:6.0f} TFLOP/s {facts}"
+                                        if "ms" in r else r["error"]), flush=True)
+            if out:
+                with open(out, "w") as f:
+                    json.dump({"jax": jax.__version__, "device": str(jax.devices()[0]), "siglip": res}, f, indent=1)
+    return res
+
+
 def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--rows", default="816,6528,51200", help="comma-separated M values (π0's prefix at B = 1, 8, 64)")
@@ -89,7 +141,13 @@ def main():
     p.add_argument("--only", action="append", default=None,
                    help="repeatable: only the kernel configs whose name contains this")
     p.add_argument("--out", default=None, help="write the results as JSON here")
+    p.add_argument("--siglip", default=None,
+                   help="comma-separated M values: SigLIP's FP8 fc1 with GELU (`fp8_geglu.gelu`) instead, e.g. "
+                        "768,6144,49152 (3 cameras at B = 1, 8, 64)")
     args = p.parse_args()
+    if args.siglip:
+        siglip([int(m) for m in args.siglip.split(",")], 1152, 4304, args.iters, args.chain, args.out)
+        return
     res = {"jax": jax.__version__, "device": str(jax.devices()[0]), "rows": {}}
     for m in map(int, args.rows.split(",")):
         x, ws, ref, xq, q, s_down = _operands(m, args.width, args.hidden)

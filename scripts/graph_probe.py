@@ -2,10 +2,10 @@
 compile with extra XLA options on top of the engine's own (`matmul.compiler_options`: cuBLAS in the vision program
 under gemm="auto"), or, for "conv", with SigLIP's patch embedding as cuDNN's convolution (the engine's form until
 2026-11-26) instead of the f32 GEMM, or an Engine built another way (`ENGINE_KW`, `SCHEDULING`, `STAGES`,
-`STEP_ENDS`, `RUNTIME`, `LAYERS`, `WEIGHTS`, `KERNELS`: the denoise loop unrolled, the first step's overlap and its
-programs, π0's in-projection unfolded, the vision tower as one program, GELU-tanh as jax writes it, the FP8 MLP on
-XLA, in its earlier XLA form, on the kernel in the expert too or on another launch of it, FP8 output scales computed
-in the programs); the
+`STEP_ENDS`, `RUNTIME`, `PATCHES`: the denoise loop unrolled, the first step's overlap and its programs, π0's
+in-projection unfolded, the vision tower as one program, GELU-tanh as jax writes it, the FP8 MLP on XLA, in its
+earlier XLA form, on the kernel in the expert too or on another launch of it, SigLIP's FP8 fc1 on a kernel, FP8
+output scales computed in the programs); the
 "vision-" variants set their options on the vision programs alone, "vhead-" on the first of them, "loop-" on the
 denoise programs without the prefix (the expert's weights alone).
 Stage medians (round-robin over the variants), kernels per call, device span and idle time (by the kernel that
@@ -85,18 +85,20 @@ VARIANTS = {
     "vision-triton": {"xla_gpu_enable_triton_gemm": True, "xla_gpu_cublas_fallback": False},
     # the denoise loop's GEMMs on cuBLAS, as `Policy`'s loop program chose them under an FP8 prefix until session 50
     "loop-cublas": {"xla_gpu_enable_triton_gemm": False},
-    # the engine's GeGLU with jax's GELU-tanh (LAYERS), where `layers.gelu_tanh` writes it as x sigmoid(2 z)
+    # the engine's GeGLU with jax's GELU-tanh (PATCHES), where `layers.gelu_tanh` writes it as x sigmoid(2 z)
     "gelu-tanh": {},
-    # with FP8 weights (--quant): the prefix's FP8 MLPs on XLA's GEMM and a pass of its own (LAYERS), not on the
+    # with FP8 weights (--quant): the prefix's FP8 MLPs on XLA's GEMM and a pass of its own (PATCHES), not on the
     # engine's Mosaic GPU kernel of gate/up GEMM, GeGLU and the down GEMM's e4m3 input (`ops.fp8_geglu`; the
     # variant "fp8-geglu" of session 56's runs, when the kernel was off by default)
     "fp8-geglu-off": {},
-    # with FP8 weights: the action expert's FP8 MLPs on the kernel too (`every-gemm`; LAYERS.FP8_GEGLU_EXPERT), and the
-    # kernel's launch with 3 pipeline stages and a snake of 16 tiles (KERNELS; 2-4 % faster alone in session 56)
+    # with FP8 weights: the action expert's FP8 MLPs on the kernel too (`every-gemm`; layers.FP8_GEGLU_EXPERT), SigLIP's
+    # fc1 with GELU in the kernel's epilogue (`every-gemm`, `prefix-vision`; vision.FP8_GELU), and the kernel's launch
+    # with 3 pipeline stages and a snake of 16 tiles (fp8_geglu.LAUNCH; 2-4 % faster alone in session 56)
     "fp8-geglu-expert": {},
+    "fp8-gelu-vision": {},
     "fp8-geglu-3stages": {},
-    # with FP8 weights: the FP8 MLP as the engine ran it until session 56 (LAYERS: gate and up scaled and rounded to
-    # the activation dtype, GeGLU in it), and every FP8 product's output scale computed in the program (WEIGHTS: not
+    # with FP8 weights: the FP8 MLP as the engine ran it until session 56 (PATCHES: gate and up scaled and rounded to
+    # the activation dtype, GeGLU in it), and every FP8 product's output scale computed in the program (PATCHES: not
     # folded into the weights, `formats.fold_scales`)
     "geglu-bf16": {},
     "scales-apart": {},
@@ -116,11 +118,13 @@ def scaled_geglu(h, w, kernel=False):
     return layers._mm(layers.gelu_tanh(gate) * up, w["down"])
 
 
-LAYERS = {"gelu-tanh": {"gelu_tanh": lambda x: jax.nn.gelu(x, approximate=True)},
-          "fp8-geglu-off": {"FP8_GEGLU": False}, "geglu-bf16": {"_mlp": scaled_geglu},
-          "fp8-geglu-expert": {"FP8_GEGLU_EXPERT": True}}
-WEIGHTS = {"scales-apart": {"fold_scales": lambda tree: tree}}
-KERNELS = {"fp8-geglu-3stages": {"LAUNCH": fp8_geglu.Launch(stages=3, snake=16)}}
+# module attributes a variant sets (each restored to the engine's own for every other variant)
+PATCHES = {"gelu-tanh": (layers, {"gelu_tanh": lambda x: jax.nn.gelu(x, approximate=True)}),
+           "fp8-geglu-off": (layers, {"FP8_GEGLU": False}), "geglu-bf16": (layers, {"_mlp": scaled_geglu}),
+           "fp8-geglu-expert": (layers, {"FP8_GEGLU_EXPERT": True}),
+           "fp8-gelu-vision": (vision, {"FP8_GELU": True}),
+           "fp8-geglu-3stages": (fp8_geglu, {"LAUNCH": fp8_geglu.Launch(stages=3, snake=16)}),
+           "scales-apart": (formats, {"fold_scales": lambda tree: tree})}
 
 
 def conv_patch_embed(images, kernel, bias, p: int):
@@ -166,9 +170,8 @@ def main() -> None:
     report = {"preset": args.preset, "quant": args.quant, "env": benchmark.environment(), "rows": []}
     own_options, own_embed, own_concurrent = runtime.matmul.compiler_options, vision.patch_embed, paths.CONCURRENT
     own_ends = {k: getattr(programs, k) for k in ("FOLD_ACTION_IN",)}
-    own_split, own_layers = runtime.VISION_SPLIT, {k: getattr(layers, k) for d in LAYERS.values() for k in d}
-    own_formats = {k: getattr(formats, k) for d in WEIGHTS.values() for k in d}
-    own_kernels = {k: getattr(fp8_geglu, k) for d in KERNELS.values() for k in d}
+    own_split = runtime.VISION_SPLIT
+    own_attrs = {(m, k): getattr(m, k) for m, d in PATCHES.values() for k in d}
     for batch in args.batch or [1]:
         obs, noise = benchmark.make_inputs(config, batch, 3, args.prompt_tokens, 0)
         rows, timed, first = [], {}, None
@@ -191,12 +194,9 @@ def main() -> None:
             for k, v in {**own_ends, **STEP_ENDS.get(name, {})}.items():
                 setattr(programs, k, v)
             runtime.VISION_SPLIT = RUNTIME.get(name, {}).get("VISION_SPLIT", own_split)
-            for k, v in {**own_layers, **LAYERS.get(name, {})}.items():
-                setattr(layers, k, v)
-            for k, v in {**own_formats, **WEIGHTS.get(name, {})}.items():
-                setattr(formats, k, v)
-            for k, v in {**own_kernels, **KERNELS.get(name, {})}.items():
-                setattr(fp8_geglu, k, v)
+            patch = PATCHES.get(name, (None, {}))
+            for (m, k), v in {**own_attrs, **{(patch[0], k): v for k, v in patch[1].items()}}.items():
+                setattr(m, k, v)
             engine = Engine(config, params, cache_dir=False, **ENGINE_KW.get(name, {}))
             if name in STAGES:   # this engine's calls only
                 engine.call_stages = types.MethodType(STAGES[name], engine)
@@ -241,10 +241,8 @@ def main() -> None:
         paths.CONCURRENT, runtime.VISION_SPLIT = own_concurrent, own_split
         for k, v in own_ends.items():
             setattr(programs, k, v)
-        for k, v in own_layers.items():
-            setattr(layers, k, v)
-        for k, v in own_formats.items():
-            setattr(formats, k, v)
+        for (m, k), v in own_attrs.items():
+            setattr(m, k, v)
         times = profile_engine.round_robin(timed, args.iters)
         if args.loop:
             loops = {(row["variant"], stage): profile_engine.looping(timed[row["variant"], stage], args.loop)

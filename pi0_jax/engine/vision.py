@@ -34,10 +34,17 @@ from pi0_jax.config import SiglipConfig
 from pi0_jax.engine import layers
 from pi0_jax.engine.weights import FC2_BIAS, LN1_BIAS, LN1_SCALE, LN2_BIAS, LN2_SCALE, OUT_BIAS
 from pi0_jax.ops import attention as ops_attention
-from pi0_jax.ops import formats, matmul
+from pi0_jax.ops import formats, fp8_geglu, matmul
 from pi0_jax.ops import layer_norm as ops_layer_norm
 from pi0_jax.ops import vision_attention
+from pi0_jax.ops.formats import E4M3
 from pi0_jax.siglip import patch_embed
+
+
+# FP8 x FP8 fc1: its GEMM, bias, GELU-tanh and fc2's e4m3 input as one Mosaic GPU kernel (`ops.fp8_geglu.gelu`, f32
+# in the epilogue), where `layers.fp8_mlp_kernel()` holds; else cuBLASLt's GEMM and XLA's pass (in the dtype). Off
+# until measured on a GPU.
+FP8_GELU = False
 
 
 def layer_norm(x, vectors, rows, dtype):
@@ -112,8 +119,11 @@ def block(cfg: SiglipConfig, w, x, f, *, attention: str, norm: str = "xla"):
     out, scale = layers.raw_mm(y, w["out"], dtype)
     x, h = add_norm(x, (out, (vectors, OUT_BIAS), scale), (vectors, (LN2_SCALE, LN2_BIAS)), dtype, norm,
                     matmul.input_scale(w["fc1"]))
-    y, scale = layers.raw_mm(h, w["fc1"], dtype)
-    h = nn.gelu(_finish(y, w["fc1_bias"], scale), approximate=True)
+    if FP8_GELU and layers.fp8_mlp_kernel() and h.dtype == E4M3 and fp8_geglu.gelu_applies(w["fc1"], w["fc2"]):
+        h = fp8_geglu.gelu(h.reshape(b * t, -1), w["fc1"], w["fc1_bias"], w["fc2"].act_scale).reshape(b, t, -1)
+    else:
+        y, scale = layers.raw_mm(h, w["fc1"], dtype)
+        h = nn.gelu(_finish(y, w["fc1_bias"], scale), approximate=True)
     y, scale = layers.raw_mm(h, w["fc2"], dtype)
     return x, (y, vectors, scale)
 

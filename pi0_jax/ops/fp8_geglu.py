@@ -115,10 +115,15 @@ def column_scales(w: QArray, down_scale) -> jax.Array:
     return jnp.where(up, scale / jnp.asarray(down_scale, F32), scale)
 
 
+def gelu_tanh(x):
+    """GELU-tanh in f32 as x sigmoid(2 z) (`engine.layers.gelu_tanh`'s form)."""
+    z = np.float32(2 * 0.7978845608028654) * (x + np.float32(0.044715) * x * x * x)
+    return x * jax.nn.sigmoid(z)
+
+
 def gelu_product(g, u):
-    """GELU-tanh(g) * u in f32, GELU as x sigmoid(2 z) (`engine.layers.gelu_tanh`'s form)."""
-    z = np.float32(2 * 0.7978845608028654) * (g + np.float32(0.044715) * g * g * g)
-    return g * jax.nn.sigmoid(z) * u
+    """GELU-tanh(g) * u in f32."""
+    return gelu_tanh(g) * u
 
 
 def reference(xq, w: QArray, down_scale) -> jax.Array:
@@ -161,7 +166,96 @@ _partitioned.def_partition(
     sharding_rule="m k, n k, n -> m f", need_replication_factors=("k", "n", "f"))
 
 
-def run(xq, wq, scales, launch: Launch, *, interpret: bool = False, sms: int | None = None) -> jax.Array:
+# An FP8 GEMM with GELU in its epilogue (SigLIP's fc1 into fc2's e4m3 input): 3 pipeline stages, as the output's
+# shared memory is a tile's whole width.
+GELU_BLOCK = 64
+GELU_LAUNCH = Launch(stages=3)
+
+
+def gelu_block(n: int) -> int:
+    """`gelu`'s output columns a TMA store takes: the widest of 64, 32, 16 that divides N (a TMA layout's tiles
+    must divide the array it writes: SigLIP's 4,304 columns take 16)."""
+    return next(b for b in (GELU_BLOCK, 32, 16) if n % b == 0)
+
+
+def fit_gelu(launch: Launch, k: int, n: int) -> Launch | None:
+    """The launch for `gelu` on a (N, K) weight: tile_k as `fit`, column tiles of whole `GELU_BLOCK`s (one warpgroup
+    where N fills no more than one's share). N need not divide: on a GPU the last column tile is ragged."""
+    tile_k = launch.tile_k
+    while k % tile_k and tile_k > MIN_K:
+        tile_k //= 2
+    wgs = launch.wgs if n > launch.tile_n // launch.wgs else 1
+    wg_n = launch.tile_n // launch.wgs
+    if k % tile_k or tile_k % MIN_K or wg_n % GELU_BLOCK or n % 16:
+        return None
+    stages = min(launch.stages, k // tile_k)
+    return dataclasses.replace(launch, tile_k=tile_k, tile_n=wgs * wg_n, wgs=wgs, stages=stages,
+                               delay=min(launch.delay, stages - 1))
+
+
+def gelu_applies(w, nxt) -> bool:
+    """Whether `gelu` can take the GEMM of weight `w` (N, K) whose output feeds the GEMM of `nxt`: both FP8 x FP8,
+    w K-major, a launch fits, and on a GPU a Hopper one."""
+    if not (isinstance(w, QArray) and isinstance(nxt, QArray) and w.act_scale is not None
+            and nxt.act_scale is not None and w.q.ndim == 2 and w.contract == (-1,)):
+        return False
+    if fit_gelu(GELU_LAUNCH, w.q.shape[1], w.q.shape[0]) is None:
+        return False
+    return jax.default_backend() == "cpu" or mosaic_gemm.hopper()
+
+
+def gelu_table(w: QArray, bias, next_scale, columns: int) -> jax.Array:
+    """(3, columns) f32, the epilogue's rows: each column's output scale, its bias, and 1 / the next GEMM's
+    activation scale; zero past N (whole column tiles)."""
+    n = w.q.shape[0]
+    scale = jnp.broadcast_to(formats.output_scale("...D,FD->...F", w).reshape(-1), (n,))
+    inv = jnp.broadcast_to(1 / jnp.asarray(next_scale, F32), (n,))
+    return jnp.pad(jnp.stack([scale, bias.astype(F32), inv]), ((0, 0), (0, columns - n)))
+
+
+def gelu_reference(xq, w: QArray, bias, next_scale) -> jax.Array:
+    """`gelu`'s numerics as XLA ops: f32 product, column scales, bias, GELU-tanh, times 1 / next_scale, e4m3."""
+    n = w.q.shape[0]
+    s, b, inv = gelu_table(w, bias, next_scale, n)
+    y = gelu_tanh(jnp.einsum("md,nd->mn", xq, w.q, preferred_element_type=F32) * s + b) * inv
+    return jnp.clip(y, -formats.E4M3_MAX, formats.E4M3_MAX).astype(E4M3)
+
+
+def gelu(xq, w: QArray, bias, next_scale, launch: Launch | None = None) -> jax.Array:
+    """xq (M, K) e4m3 @ w (N, K) e4m3 -> (M, N) e4m3: GELU-tanh(the product's columns scaled, plus bias) quantised
+    with `next_scale` (the next GEMM's activation scale), as `gelu_reference` computes it. `gelu_applies` must hold.
+    launch: default `GELU_LAUNCH`."""
+    n, k = w.q.shape
+    launch = fit_gelu(GELU_LAUNCH if launch is None else launch, k, n)
+    if launch is None or xq.shape[1] != k:
+        raise ValueError(f"x {xq.shape} @ w {w.q.shape}.T: no launch of the FP8 GELU kernel fits")
+    columns = -(-n // launch.tile_n) * launch.tile_n
+    table = gelu_table(w, bias, next_scale, columns)
+    if jax.default_backend() == "cpu":   # the interpreter: whole column tiles, the weight N-major
+        wt = jnp.pad(w.q.T, ((0, 0), (0, columns - n)))
+        return run(xq, wt, table, launch, interpret=True, act="gelu")[:, :n]
+    return _partitioned_gelu(xq, w.q, table, launch)
+
+
+@functools.partial(custom_partitioning, static_argnums=(3,))
+def _partitioned_gelu(xq, wq, table, launch: Launch):
+    return run(xq, wq, table, launch, act="gelu")
+
+
+def _partition_gelu(launch, mesh, arg_shapes, result_shape):
+    rows, full = row_shardings(mesh, arg_shapes[0].sharding)
+    return mesh, lambda xq, wq, table: run(xq, wq, table, launch, act="gelu"), rows, (rows, full, full)
+
+
+_partitioned_gelu.def_partition(
+    partition=_partition_gelu,
+    infer_sharding_from_operands=lambda launch, mesh, arg_shapes, result_shape: row_shardings(
+        mesh, arg_shapes[0].sharding)[0],
+    sharding_rule="m k, n k, t c -> m n", need_replication_factors=("k", "n", "t", "c"))
+
+
+def run(xq, wq, scales, launch: Launch, *, interpret: bool = False, sms: int | None = None,
+        act: str = "geglu") -> jax.Array:
     """The kernel on xq (M, K) e4m3, wq (2F, K) e4m3 ((K, 2F) when `interpret`) and (2F,) column scales
     (`column_scales`) -> (M, F) e4m3, on `sms` CTAs (default: the GPU's SMs); `launch` fits the weight (`fit`). Rows
     are padded with zeros and cut back: to whole row tiles in the interpreter, and on a GPU to TMA's row tiling (its
@@ -173,23 +267,29 @@ def run(xq, wq, scales, launch: Launch, *, interpret: bool = False, sms: int | N
     step = launch.tile_m if interpret else TMA_ROWS
     mp = -(-m // step) * step
     xp = jnp.pad(xq, ((0, mp - m), (0, 0))) if mp != m else xq
-    out = _call(mp, k, wq.shape[1] if interpret else wq.shape[0], launch, interpret, sms=sms or 1)(xp, wq, scales)
+    out = _call(mp, k, wq.shape[1] if interpret else wq.shape[0], launch, interpret, sms=sms or 1,
+                act=act)(xp, wq, scales)
     return out[:m] if mp != m else out
 
 
 @functools.lru_cache(maxsize=None)
-def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "e4m3", sms: int = 1):
+def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "e4m3", sms: int = 1,
+          act: str = "geglu"):
     """The kernel for x (m, k), a (n2, k) weight ((k, n2) when `interpret`) and (n2,) column scales, on `sms` CTAs
     (the GPU's SMs; given, so that it lowers for a GPU on a CPU too: the tests). out: "e4m3" (the down GEMM's input),
     or, to tell a GPU run's parts apart (`scripts/fp8_geglu_probe.py`), "bf16" (GeGLU's product unquantised) or
-    "product" (the raw GEMM in bf16, (m, n2), no epilogue but the store)."""
+    "product" (the raw GEMM in bf16, (m, n2), no epilogue but the store). act "gelu": the epilogue is `gelu`'s, the
+    scales a (3, whole column tiles) table (`gelu_table`), the output (m, n2), n2 ragged on a GPU."""
     tm, tn, tk, wgs = launch.tile_m, launch.tile_n, launch.tile_k, launch.wgs
     wg_n = tn // wgs
-    block = layout.gate_up_block(n2 // 2)
-    pairs = wg_n // (2 * block)
-    m_iters, n_iters, k_iters = -(-m // tm), n2 // tn, k // tk
+    gelu = act == "gelu"
+    block = gelu_block(n2) if gelu else layout.gate_up_block(n2 // 2)
+    pairs = wg_n // block if gelu else wg_n // (2 * block)   # gelu: the epilogue's column chunks
+    m_iters, n_iters, k_iters = -(-m // tm), -(-n2 // tn), k // tk
     out_dtype = {"e4m3": E4M3, "bf16": jnp.bfloat16, "product": jnp.bfloat16}[out]
-    in_tr, out_tr = mosaic_gemm.transforms(tk, E4M3), mosaic_gemm.transforms(block, out_dtype)
+    in_tr = mosaic_gemm.transforms(tk, E4M3)   # no swizzle below 32 bytes
+    out_tr = ((plgpu.TilingTransform((8, block)),) if block * jnp.dtype(out_dtype).itemsize < 32
+              else mosaic_gemm.transforms(block, out_dtype))
 
     def pipeline(body, context):
         spec = functools.partial(plgpu.BlockSpec, memory_space=plgpu.SMEM, transforms=in_tr,
@@ -206,7 +306,7 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
                     else plgpu.SMEM((wgs, pairs, tm, block), out_dtype, transforms=out_tr))
 
         @functools.partial(pl.run_scoped, allocs=pipeline(nothing, nothing).get_allocations(x_gmem, w_gmem),
-                           out_smem=out_smem, s_smem=plgpu.SMEM((wgs, wg_n), F32),
+                           out_smem=out_smem, s_smem=plgpu.SMEM((wgs, 3, wg_n) if gelu else (wgs, wg_n), F32),
                            s_bar=plgpu.Barrier(num_barriers=wgs), collective_axes="wg")
         def scope(allocs, out_smem, s_smem, s_bar):
             wg = lax.axis_index("wg")
@@ -222,7 +322,8 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
                 h_col0 = ni * (tn // 2) + wg * (wg_n // 2)
 
                 def context(run):
-                    plgpu.copy_gmem_to_smem(s_gmem.at[pl.ds(col0, wg_n)], s_smem.at[wg], s_bar.at[wg])
+                    plgpu.copy_gmem_to_smem(s_gmem.at[:, pl.ds(col0, wg_n)] if gelu else s_gmem.at[pl.ds(col0, wg_n)],
+                                            s_smem.at[wg], s_bar.at[wg])
 
                     @functools.partial(pl.run_scoped, acc=plgpu.ACC((tm, wg_n), F32))
                     def _(acc):
@@ -239,9 +340,23 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
                             return
                         # the interpreter has no plgpu.load; on a GPU it gives the scales the accumulator's columns'
                         # layout
-                        s = (s_smem[wg] if interpret
-                             else plgpu.load(s_smem.at[wg], (), layout=plgpu.Layout.WGMMA.reduce(0)))
-                        y = acc[...] * lax.broadcast_in_dim(s, (tm, wg_n), [1])   # as jax's Mosaic kernels do
+                        def row(ref):
+                            v = ref[...] if interpret else plgpu.load(ref, (), layout=plgpu.Layout.WGMMA.reduce(0))
+                            return lax.broadcast_in_dim(v, (tm, wg_n), [1])   # as jax's Mosaic kernels do
+
+                        if gelu:
+                            y = gelu_tanh(acc[...] * row(s_smem.at[wg, 0]) + row(s_smem.at[wg, 1]))
+                            y = y * row(s_smem.at[wg, 2])
+                            y = jnp.minimum(jnp.maximum(y, -formats.E4M3_MAX), formats.E4M3_MAX)
+                            plgpu.wait_smem_to_gmem(0, wait_read_only=True)
+                            for c in range(pairs):
+                                out_smem[wg, c] = y[:, c * block:(c + 1) * block].astype(out_dtype)
+                            plgpu.commit_smem()
+                            for c in range(pairs):   # on a GPU, TMA drops the columns past n2
+                                plgpu.copy_smem_to_gmem(out_smem.at[wg, c],
+                                                        o_gmem.at[rows, pl.ds(col0 + c * block, block)])
+                            return
+                        y = acc[...] * row(s_smem.at[wg])
                         plgpu.wait_smem_to_gmem(0, wait_read_only=True)
                         for p in range(pairs):
                             h = gelu_product(y[:, 2 * p * block:(2 * p + 1) * block],
@@ -268,7 +383,7 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
 
     params = plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup,
                                   **({"approx_math": True} if launch.approx else {}))
-    shape = (m, n2) if out == "product" else (m, n2 // 2)
+    shape = (m, n2) if out == "product" or gelu else (m, n2 // 2)
     return plgpu.kernel(kernel, out_type=jax.ShapeDtypeStruct(shape, out_dtype), grid=(1 if interpret else sms,),
                         grid_names=("cluster_grid",), num_threads=wgs + 1, thread_name="wg", compiler_params=params,
                         kernel_name="fp8_geglu",
