@@ -1,6 +1,7 @@
-"""The FP8 MLP kernel (`pi0_jax.ops.fp8_geglu`: gate/up GEMM, GeGLU and the down GEMM's e4m3 input in one Mosaic
-GPU kernel, its CPU interpreter here) equals its XLA form bit for bit, stays within one e4m3 step of the engine's XLA
-path, and the engine's FP8 call with it (`engine.layers.FP8_GEGLU`) matches the call without it."""
+"""The FP8 MLP kernels (`pi0_jax.ops.fp8_geglu`: gate/up GEMM, GeGLU and the down GEMM's e4m3 input in one Mosaic
+GPU kernel; SigLIP's fc1 GEMM, bias, GELU and fc2's e4m3 input in another; their CPU interpreter here) equal their
+XLA forms, stay within one e4m3 step of the engine's XLA paths, and the engine's FP8 call with them
+(`engine.layers.FP8_GEGLU`, `engine.vision.FP8_GELU`) matches the call without."""
 
 import jax
 import jax.numpy as jnp
@@ -8,8 +9,8 @@ import numpy as np
 import pytest
 
 from pi0_jax import benchmark
-from pi0_jax.config import get_config
-from pi0_jax.engine import Engine, layers
+from pi0_jax.config import GEMMA_VARIANTS, SIGLIP_VARIANTS, GemmaConfig, SiglipConfig, get_config
+from pi0_jax.engine import Engine, layers, vision
 from pi0_jax.ops import formats, fp8_geglu, layout
 from pi0_jax.ops.fp8_geglu import Launch
 from pi0_jax.quant import schemes
@@ -96,3 +97,108 @@ def test_kernel_lowers_for_hopper(m, k, n2, launch):
     call = jax.jit(lambda x, w, s: fp8_geglu.run(x, w, s, launch, sms=132))
     text = call.trace(*avals).lower(lowering_platforms=("cuda",)).as_text()
     assert "mosaic_gpu" in text and f"tensor<{m}x{n2 // 2}xf8E4M3FN>" in text
+
+
+def _gelu_operands(m, k, n, next_scale):
+    key = jax.random.key(m + k + n)
+    x = jax.random.normal(key, (m, k), jnp.float32)
+    w = jax.random.normal(jax.random.fold_in(key, 1), (n, k), jnp.float32) * k**-0.5 * 3
+    fc1 = formats.quantize_fp8(w, contract=(-1,), act_scale=formats.act_scale_from_amax(np.abs(x).max()))
+    fc2 = formats.quantize_fp8(jnp.ones((8, n)), contract=(-1,), act_scale=next_scale)
+    bias = jax.random.normal(jax.random.fold_in(key, 2), (n,), jnp.float32)
+    return formats.quantise(x, fc1.act_scale), fc1, bias, fc2
+
+
+@pytest.mark.parametrize("m,k,n,launch", [(200, 256, 80, None),   # one warpgroup, N padded to a tile, 2 K steps
+                                          (130, 128, 304, None),   # 2 warpgroups, 2 column tiles, the last ragged
+                                          (64, 96, 128, Launch(stages=2, delay=1, minor=1, snake=2))])   # K = 3 x 32
+def test_gelu_kernel_equals_its_xla_form(m, k, n, launch):
+    """`fp8_geglu.gelu` (SigLIP's fc1: GEMM, bias, GELU-tanh, fc2's e4m3 input) against `gelu_reference`; within one
+    e4m3 step of the engine's XLA path (`engine.vision.block`: scale and bias rounded to the dtype, then GELU)."""
+    xq, fc1, bias, fc2 = _gelu_operands(m, k, n, 0.004)
+    assert fp8_geglu.gelu_applies(fc1, fc2)
+    got = np.asarray(fp8_geglu.gelu(xq, fc1, bias, fc2.act_scale, launch), np.float32)
+    want = np.asarray(fp8_geglu.gelu_reference(xq, fc1, bias, fc2.act_scale), np.float32)
+    assert got.shape == (m, n)
+    # the interpreter sums K in tile_k steps, the reference in one: a value on an e4m3 rounding boundary may move
+    assert np.mean(got == want) > 0.999 and np.all(np.abs(got - want) <= np.abs(want) / 8 + 1e-6)
+    assert np.abs(want).max() == formats.E4M3_MAX and (want < 0).any()   # saturated, and GELU's negative lobe
+    y = jnp.einsum("md,nd->mn", xq, fc1.q, preferred_element_type=jnp.float32)
+    xla = formats.quantise(jax.nn.gelu(y * formats.output_scale("...D,FD->...F", fc1) + bias, approximate=True),
+                           fc2.act_scale)
+    xla = np.asarray(xla, np.float32)
+    assert np.all(np.abs(got - xla) <= np.maximum(np.abs(xla), 2.0**-6) / 8 + 1e-6) and np.mean(got == xla) > 0.95
+    unbiased = np.asarray(fp8_geglu.gelu_reference(xq, fc1, jnp.zeros_like(bias), fc2.act_scale), np.float32)
+    assert np.mean(got == unbiased) < 0.5
+
+
+def test_gelu_applies_only_where_it_fits():
+    _, fc1, _, fc2 = _gelu_operands(64, 128, 80, 0.1)
+    assert fp8_geglu.gelu_applies(fc1, fc2)
+    assert not fp8_geglu.gelu_applies(formats.QArray(fc1.q, fc1.scale, None, (-1,)), fc2)   # weight-only
+    assert not fp8_geglu.gelu_applies(fc1, formats.QArray(fc2.q, fc2.scale, None, (-1,)))   # the next GEMM in bf16
+    assert fp8_geglu.fit_gelu(Launch(), 40, 88) is None   # SigLIP's dummy width: no e4m3 wgmma step divides it
+    assert fp8_geglu.fit_gelu(Launch(), 64, 88) is None   # no TMA store tiles 88 columns (16 bytes at least)
+    assert fp8_geglu.gelu_block(4304) == 16 and fp8_geglu.gelu_block(4352) == 64
+
+
+def test_engine_vision_with_the_gelu_kernel_matches_without(monkeypatch):
+    """`prefix-vision` with a SigLIP whose width an e4m3 wgmma divides (the dummy's 40 does not): every block's fc1
+    runs the kernel; the actions equal XLA's path's to e4m3 rounding."""
+    monkeypatch.setitem(SIGLIP_VARIANTS, "dummy-64", SiglipConfig(width=64, depth=2, mlp_dim=80, num_heads=2))
+    config = get_config("dummy", dtype="float32", siglip_variant="dummy-64")
+    params = benchmark.random_params(config, 0)
+    calib = schemes.sample_observations(config, 2, seed=1)
+    qp = schemes.quantize_params(params, "prefix-vision", schemes.calibrate(config, params, calib, "prefix-vision",
+                                                                            percentile=None)["amax"])
+    noise = jnp.asarray(np.random.default_rng(0).normal(size=(1, config.action_horizon, config.action_dim)),
+                        jnp.float32)
+    monkeypatch.setattr(layers, "FP8_GEGLU", True)
+    want = np.asarray(Engine(config, qp, cache_dir=False).sample_actions(calib[1], noise, num_steps=2))
+    calls, own = [], fp8_geglu.gelu
+    monkeypatch.setattr(vision, "FP8_GELU", True)
+    monkeypatch.setattr(fp8_geglu, "gelu", lambda *a, **kw: calls.append(a[0].shape) or own(*a, **kw))
+    got = np.asarray(Engine(config, qp, cache_dir=False).sample_actions(calib[1], noise, num_steps=2))
+    assert len(calls) >= config.siglip.depth and all(c[1] == 64 for c in calls)
+    assert np.isfinite(got).all()
+    # f32 here: the paths differ only where GELU's two forms' last bits move a value across an e4m3 boundary
+    assert np.linalg.norm(got - want) / np.linalg.norm(want) < 5e-3
+
+
+@pytest.mark.parametrize("m", [768, 49152])   # SigLIP's fc1 at B = 1 and 64 (3 cameras)
+def test_gelu_kernel_lowers_for_hopper(m):
+    """The GPU form of `gelu` at SigLIP's shapes lowers for sm_90 here: its 4,304 columns end in a ragged column
+    tile, stored 16 columns at a time (a TMA layout's tiles must divide the array: 64 did not lower)."""
+    k, n = 1152, 4304
+    launch = fp8_geglu.fit_gelu(fp8_geglu.GELU_LAUNCH, k, n)
+    avals = (jax.ShapeDtypeStruct((m, k), formats.E4M3), jax.ShapeDtypeStruct((n, k), formats.E4M3),
+             jax.ShapeDtypeStruct((3, 17 * launch.tile_n), jnp.float32))
+    call = jax.jit(lambda x, w, t: fp8_geglu.run(x, w, t, launch, sms=132, act="gelu"))
+    text = call.trace(*avals).lower(lowering_platforms=("cuda",)).as_text()
+    assert "mosaic_gpu" in text and f"tensor<{m}x{n}xf8E4M3FN>" in text
+
+
+def test_engine_expert_on_the_kernel_matches_xla(monkeypatch):
+    """`every-gemm` with an action expert whose width an e4m3 wgmma divides (the dummy's 48 does not) and
+    `FP8_GEGLU_EXPERT`: the expert's MLPs run the kernel too; the actions equal XLA's path's to e4m3 rounding."""
+    monkeypatch.setitem(GEMMA_VARIANTS, "dummy_expert_64", GemmaConfig(width=64, depth=3, mlp_dim=96, num_heads=4,
+                                                                        num_kv_heads=1, head_dim=16))
+    config = get_config("dummy", dtype="float32", action_expert_variant="dummy_expert_64")
+    params = benchmark.random_params(config, 0)
+    calib = schemes.sample_observations(config, 2, seed=1)
+    qp = schemes.quantize_params(params, "every-gemm", schemes.calibrate(config, params, calib, "every-gemm",
+                                                                         percentile=None)["amax"])
+    noise = jnp.asarray(np.random.default_rng(0).normal(size=(1, config.action_horizon, config.action_dim)),
+                        jnp.float32)
+    calls, own = [], fp8_geglu.geglu
+    monkeypatch.setattr(layers, "FP8_GEGLU", True)
+    monkeypatch.setattr(fp8_geglu, "geglu", lambda *a, **kw: calls.append(a[1].q.shape) or own(*a, **kw))
+    want = np.asarray(Engine(config, qp, cache_dir=False).sample_actions(calib[1], noise, num_steps=2))
+    prefix = len(calls)
+    assert prefix and all(c == (2 * config.paligemma.mlp_dim, 64) for c in calls)
+    monkeypatch.setattr(layers, "FP8_GEGLU_EXPERT", True)
+    monkeypatch.setattr(layers, "FP8_GEGLU_EXPERT_ROWS", 1)   # the expert's 51 rows at B = 1
+    got = np.asarray(Engine(config, qp, cache_dir=False).sample_actions(calib[1], noise, num_steps=2))
+    expert = [c for c in calls[prefix:] if c == (2 * config.action_expert.mlp_dim, 64)]
+    assert len(expert) >= config.action_expert.depth
+    assert np.isfinite(got).all() and np.linalg.norm(got - want) / np.linalg.norm(want) < 5e-3
