@@ -34,7 +34,7 @@ import numpy as np
 from pi0_jax import pi0
 from pi0_jax.pi0 import random_params
 from pi0_jax.config import IMAGE_KEYS, PRESETS, Pi0Config, get_config
-from pi0_jax.engine import Engine, layers, store
+from pi0_jax.engine import Engine, layers, store, vision
 from pi0_jax.engine.paths import KERNELS, OVERLAPS, attention_spec, vision_norm
 from pi0_jax.ops import expert_kernels, formats, pallas_base
 from pi0_jax.ops.matmul import GEMMS
@@ -166,6 +166,14 @@ def time_calls(fn, inputs: list, iters: int, warmup: int) -> dict:
 def _peak_bytes() -> int | None:
     stats = jax.devices()[0].memory_stats() or {}
     return stats.get("peak_bytes_in_use")
+
+
+def fp8_kernel_rows() -> dict:
+    """From how many rows each FP8 MLP runs `ops.fp8_geglu`'s kernels on this backend (None: never): the prefix's
+    (any), the action expert's and SigLIP's fc1 (`engine.layers.FP8_GEGLU_EXPERT_ROWS`, `vision.FP8_GELU_ROWS`)."""
+    on = layers.fp8_mlp_kernel()
+    return {"prefix_mlp": 1 if on else None, "expert_mlp": layers.FP8_GEGLU_EXPERT_ROWS if on else None,
+            "vision_fc1": vision.FP8_GELU_ROWS if on else None}
 
 
 def environment() -> dict:
@@ -393,7 +401,8 @@ def run(args: argparse.Namespace, save=None) -> dict:
     results = {"preset": args.preset, "env": {**environment(), "kernels": args.kernels, "attention": args.attention,
                                                "gemm": args.gemm, "overlap": args.overlap, "quant": quant,
                                                "expert_blocks": dataclasses.asdict(expert_kernels.Blocks()),
-                                               "fp8_mlp_kernel": layers.fp8_mlp_kernel()},
+                                               "fp8_mlp_kernel": layers.fp8_mlp_kernel(),
+                                               "fp8_kernel_from_rows": fp8_kernel_rows()},
                "complete": False, "rows": [], "peers": [],
                "compile": {},
                "args": {k: str(v) for k, v in vars(args).items() if k != "func"}}

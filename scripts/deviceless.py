@@ -40,7 +40,7 @@ from profile_engine import count_ops  # noqa: E402
 
 from pi0_jax import benchmark, pi0  # noqa: E402
 from pi0_jax.config import IMAGE_KEYS, get_config  # noqa: E402
-from pi0_jax.engine import Engine, layers, runtime, vision  # noqa: E402
+from pi0_jax.engine import Engine, layers, runtime  # noqa: E402
 from pi0_jax.engine import weights as weights_lib  # noqa: E402
 from pi0_jax.ops import fp8_geglu  # noqa: E402
 from pi0_jax.ops.formats import E4M3, QArray  # noqa: E402
@@ -215,13 +215,9 @@ def main(argv=None) -> int:
     p.add_argument("--kernels", default="auto", help="the engine's kernels: auto, xla, pallas (default: %(default)s)")
     p.add_argument("--attention", default="auto", help="the engine's attention (default: %(default)s)")
     p.add_argument("--fp8-mlp-kernel", choices=("auto", "on", "off"), default="auto",
-                   help="the prefix's FP8 MLPs on `ops.fp8_geglu` (engine.layers.FP8_GEGLU): auto = as the engine "
+                   help="FP8 MLPs on `ops.fp8_geglu`'s kernels (engine.layers.FP8_GEGLU: the prefix's, the expert's and "
+                        "SigLIP's fc1 from their row thresholds): auto = as the engine "
                         "on the target (an H200: on), on, off (default: %(default)s)")
-    p.add_argument("--fp8-mlp-expert", action="store_true",
-                   help="the action expert's FP8 MLPs on the kernel too (engine.layers.FP8_GEGLU_EXPERT; from "
-                        "FP8_GEGLU_EXPERT_ROWS rows)")
-    p.add_argument("--fp8-gelu-vision", action="store_true",
-                   help="SigLIP's FP8 fc1 on `ops.fp8_geglu.gelu` (engine.vision.FP8_GELU)")
     p.add_argument("--out", type=Path, default=None, help="JSON of counts per program (default: print only)")
     p.add_argument("--hlo", type=Path, default=None, help="a folder to write each program's optimized HLO to")
     p.add_argument("--fp8-mlp-sharded", action="store_true",
@@ -236,8 +232,6 @@ def main(argv=None) -> int:
     cameras = IMAGE_KEYS[:args.cameras]
     bucket = runtime.prompt_bucket(args.prompt, config.max_token_len)
     layers.FP8_GEGLU = {"auto": "auto", "on": True, "off": False}[args.fp8_mlp_kernel]
-    layers.FP8_GEGLU_EXPERT = args.fp8_mlp_expert
-    vision.FP8_GELU = args.fp8_gelu_vision
     sharding = target_sharding()
     results = {"target": TargetDevice.device_kind, "jax": jax.__version__, "commit": benchmark._git_commit(),
                "source": benchmark.source_digest(), "args": {k: str(v) for k, v in vars(args).items()},

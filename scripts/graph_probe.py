@@ -4,7 +4,7 @@ under gemm="auto"), or, for "conv", with SigLIP's patch embedding as cuDNN's con
 2026-11-26) instead of the f32 GEMM, or an Engine built another way (`ENGINE_KW`, `SCHEDULING`, `STAGES`,
 `STEP_ENDS`, `RUNTIME`, `PATCHES`: the denoise loop unrolled, the first step's overlap and its programs, π0's
 in-projection unfolded, the vision tower as one program, GELU-tanh as jax writes it, the FP8 MLP on XLA, in its
-earlier XLA form, on the kernel in the expert too or on another launch of it, SigLIP's FP8 fc1 on a kernel, FP8
+earlier XLA form, on another launch of the kernel, the expert's FP8 MLPs and SigLIP's FP8 fc1 on XLA's paths, FP8
 output scales computed in the programs); the
 "vision-" variants set their options on the vision programs alone, "vhead-" on the first of them, "loop-" on the
 denoise programs without the prefix (the expert's weights alone).
@@ -91,11 +91,13 @@ VARIANTS = {
     # engine's Mosaic GPU kernel of gate/up GEMM, GeGLU and the down GEMM's e4m3 input (`ops.fp8_geglu`; the
     # variant "fp8-geglu" of session 56's runs, when the kernel was off by default)
     "fp8-geglu-off": {},
-    # with FP8 weights: the action expert's FP8 MLPs on the kernel too (`every-gemm`; layers.FP8_GEGLU_EXPERT), SigLIP's
-    # fc1 with GELU in the kernel's epilogue (`every-gemm`, `prefix-vision`; vision.FP8_GELU), and the kernel's launch
-    # with 3 pipeline stages and a snake of 16 tiles (fp8_geglu.LAUNCH; 2-4 % faster alone in session 56)
-    "fp8-geglu-expert": {},
-    "fp8-gelu-vision": {},
+    # with FP8 weights: the action expert's FP8 MLPs on XLA's path (`every-gemm`; layers.FP8_GEGLU_EXPERT_ROWS), SigLIP's
+    # fc1 on XLA's GEMM and pass (`every-gemm`, `prefix-vision`; vision.FP8_GELU_ROWS), where the kernels run them from
+    # B = 8 (the variants "fp8-geglu-expert" and "fp8-gelu-vision" of session 57's runs, when both were off), and the
+    # kernel's launch with 3 pipeline stages and a snake of 16 tiles (fp8_geglu.LAUNCH; 2-4 % faster alone in session
+    # 56, level in π0's call at B = 1 in session 57)
+    "fp8-geglu-expert-off": {},
+    "fp8-gelu-vision-off": {},
     "fp8-geglu-3stages": {},
     # with FP8 weights: the FP8 MLP as the engine ran it until session 56 (PATCHES: gate and up scaled and rounded to
     # the activation dtype, GeGLU in it), and every FP8 product's output scale computed in the program (PATCHES: not
@@ -121,8 +123,8 @@ def scaled_geglu(h, w, kernel=False):
 # module attributes a variant sets (each restored to the engine's own for every other variant)
 PATCHES = {"gelu-tanh": (layers, {"gelu_tanh": lambda x: jax.nn.gelu(x, approximate=True)}),
            "fp8-geglu-off": (layers, {"FP8_GEGLU": False}), "geglu-bf16": (layers, {"_mlp": scaled_geglu}),
-           "fp8-geglu-expert": (layers, {"FP8_GEGLU_EXPERT": True}),
-           "fp8-gelu-vision": (vision, {"FP8_GELU": True}),
+           "fp8-geglu-expert-off": (layers, {"FP8_GEGLU_EXPERT_ROWS": None}),
+           "fp8-gelu-vision-off": (vision, {"FP8_GELU_ROWS": None}),
            "fp8-geglu-3stages": (fp8_geglu, {"LAUNCH": fp8_geglu.Launch(stages=3, snake=16)}),
            "scales-apart": (formats, {"fold_scales": lambda tree: tree})}
 

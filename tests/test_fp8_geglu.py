@@ -1,7 +1,7 @@
 """The FP8 MLP kernels (`pi0_jax.ops.fp8_geglu`: gate/up GEMM, GeGLU and the down GEMM's e4m3 input in one Mosaic
 GPU kernel; SigLIP's fc1 GEMM, bias, GELU and fc2's e4m3 input in another; their CPU interpreter here) equal their
 XLA forms, stay within one e4m3 step of the engine's XLA paths, and the engine's FP8 call with them
-(`engine.layers.FP8_GEGLU`, `engine.vision.FP8_GELU`) matches the call without."""
+(`engine.layers.FP8_GEGLU`, `FP8_GEGLU_EXPERT_ROWS`, `engine.vision.FP8_GELU_ROWS`) matches the call without."""
 
 import jax
 import jax.numpy as jnp
@@ -154,9 +154,10 @@ def test_engine_vision_with_the_gelu_kernel_matches_without(monkeypatch):
     noise = jnp.asarray(np.random.default_rng(0).normal(size=(1, config.action_horizon, config.action_dim)),
                         jnp.float32)
     monkeypatch.setattr(layers, "FP8_GEGLU", True)
+    monkeypatch.setattr(vision, "FP8_GELU_ROWS", None)
     want = np.asarray(Engine(config, qp, cache_dir=False).sample_actions(calib[1], noise, num_steps=2))
     calls, own = [], fp8_geglu.gelu
-    monkeypatch.setattr(vision, "FP8_GELU", True)
+    monkeypatch.setattr(vision, "FP8_GELU_ROWS", 256)   # a camera's rows
     monkeypatch.setattr(fp8_geglu, "gelu", lambda *a, **kw: calls.append(a[0].shape) or own(*a, **kw))
     got = np.asarray(Engine(config, qp, cache_dir=False).sample_actions(calib[1], noise, num_steps=2))
     assert len(calls) >= config.siglip.depth and all(c[1] == 64 for c in calls)
@@ -179,8 +180,8 @@ def test_gelu_kernel_lowers_for_hopper(m):
 
 
 def test_engine_expert_on_the_kernel_matches_xla(monkeypatch):
-    """`every-gemm` with an action expert whose width an e4m3 wgmma divides (the dummy's 48 does not) and
-    `FP8_GEGLU_EXPERT`: the expert's MLPs run the kernel too; the actions equal XLA's path's to e4m3 rounding."""
+    """`every-gemm` with an action expert whose width an e4m3 wgmma divides (the dummy's 48 does not), from
+    `FP8_GEGLU_EXPERT_ROWS`: the expert's MLPs run the kernel too; the actions equal XLA's path's to e4m3 rounding."""
     monkeypatch.setitem(GEMMA_VARIANTS, "dummy_expert_64", GemmaConfig(width=64, depth=3, mlp_dim=96, num_heads=4,
                                                                         num_kv_heads=1, head_dim=16))
     config = get_config("dummy", dtype="float32", action_expert_variant="dummy_expert_64")
@@ -192,11 +193,11 @@ def test_engine_expert_on_the_kernel_matches_xla(monkeypatch):
                         jnp.float32)
     calls, own = [], fp8_geglu.geglu
     monkeypatch.setattr(layers, "FP8_GEGLU", True)
+    monkeypatch.setattr(layers, "FP8_GEGLU_EXPERT_ROWS", None)
     monkeypatch.setattr(fp8_geglu, "geglu", lambda *a, **kw: calls.append(a[1].q.shape) or own(*a, **kw))
     want = np.asarray(Engine(config, qp, cache_dir=False).sample_actions(calib[1], noise, num_steps=2))
     prefix = len(calls)
     assert prefix and all(c == (2 * config.paligemma.mlp_dim, 64) for c in calls)
-    monkeypatch.setattr(layers, "FP8_GEGLU_EXPERT", True)
     monkeypatch.setattr(layers, "FP8_GEGLU_EXPERT_ROWS", 1)   # the expert's 51 rows at B = 1
     got = np.asarray(Engine(config, qp, cache_dir=False).sample_actions(calib[1], noise, num_steps=2))
     expert = [c for c in calls[prefix:] if c == (2 * config.action_expert.mlp_dim, 64)]

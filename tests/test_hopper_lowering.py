@@ -24,7 +24,7 @@ TRITON, MOSAIC, CUDNN = "__gpu$xla.gpu.triton", "mosaic_gpu_v2", "__cudnn$fmhaSo
 # Mosaic GPU gate/up. B = 8: vision's LayerNorms as kernels too (two a block and the final one); the XLA expert, with
 # the Pallas split-key attention and its merge. In FP8 (`every-gemm`) the same kernels take e4m3 ends (the
 # LayerNorms quantise, the attention scales its q/k/v and quantises); with `layers.FP8_GEGLU` the prefix's MLPs (the
-# 17 live ones) run `ops.fp8_geglu`
+# 17 live ones) run `ops.fp8_geglu`, and at B = 8 in `every-gemm` the expert's 18 and SigLIP's 27 fc1s too
 B1 = {"vision_head": {TRITON: 9}, "vision_tail": {TRITON: 18},
       "prefix_first_step": {CUDNN: 17, TRITON: 90, MOSAIC: 18}, "denoise_rest": {TRITON: 90, MOSAIC: 18}}
 B8 = {"vision_head": {TRITON: 27}, "vision_tail": {TRITON: 55}, "prefix_denoise": {CUDNN: 17, TRITON: 36}}
@@ -34,6 +34,8 @@ EXPECTED = {   # (preset, batch, FP8 scheme, FP8_GEGLU)
     ("pi0_base", 8, None, False): B8,
     ("pi0_base", 8, "every-gemm", False): B8,
     ("pi0_base", 8, "prefix-all", True): {**B8, "prefix_denoise": {CUDNN: 17, TRITON: 36, MOSAIC: 17}},
+    ("pi0_base", 8, "every-gemm", True): {"vision_head": {TRITON: 27, MOSAIC: 9}, "vision_tail": {TRITON: 55, MOSAIC: 18},
+                                          "prefix_denoise": {CUDNN: 17, TRITON: 36, MOSAIC: 35}},
 }
 
 

@@ -75,15 +75,15 @@ def gelu_tanh(x):
 # The prefix's FP8 x FP8 MLPs: gate/up GEMM, GeGLU and the down GEMM's e4m3 input as one Mosaic GPU kernel
 # (`ops.fp8_geglu`). "auto": on a Hopper GPU, where it ran π0's FP8 prefix 8.6 % faster at B = 8 and 2.1 % at B = 1
 # (H200, docs/BENCHMARKS.md, session 56); True: wherever it applies (the CPU tests: Mosaic GPU's interpreter); False:
-# XLA's GEMM and pass. FP8_GEGLU_EXPERT: the action expert's FP8 MLPs too (every-gemm; B x 51 rows a step), from
-# FP8_GEGLU_EXPERT_ROWS rows; off until measured (at B = 1 its 51 rows add a pad and a cut).
+# XLA's GEMM and pass (here, in the expert and in SigLIP's fc1, `vision.FP8_GELU_ROWS`). The action expert's FP8 MLPs
+# (`every-gemm`) take it too from FP8_GEGLU_EXPERT_ROWS rows a step (B x 50-51): π0's call 0.6 % faster at B = 8 and
+# 2.2 % at B = 64 (H200, session 57); fewer rows are untimed (at B = 1, 51 rows cost a pad and a cut). None: never.
 FP8_GEGLU = "auto"
-FP8_GEGLU_EXPERT = False
 FP8_GEGLU_EXPERT_ROWS = 256
 
 
 def fp8_mlp_kernel() -> bool:
-    """Whether the prefix's FP8 MLPs run `ops.fp8_geglu` on this backend (`FP8_GEGLU`)."""
+    """Whether FP8 MLPs run `ops.fp8_geglu`'s kernels on this backend (`FP8_GEGLU`)."""
     if FP8_GEGLU == "auto":
         return mosaic_gemm.hopper()
     return bool(FP8_GEGLU)
@@ -222,7 +222,8 @@ def suffix_layer(cfg: GemmaConfig, w, x, positions, cache_k, cache_v, prefix_mas
     y = _mm(y, w["attn_out"])
     x = x + (y if gate is None else y * gate)
     h, gate = rms_norm(x, w.get("pre_ffw"), mod_ffw)
-    y = _mlp(h, w, kernel=FP8_GEGLU_EXPERT and h.size // h.shape[-1] >= FP8_GEGLU_EXPERT_ROWS)
+    rows = h.size // h.shape[-1]
+    y = _mlp(h, w, kernel=FP8_GEGLU_EXPERT_ROWS is not None and rows >= FP8_GEGLU_EXPERT_ROWS)
     return x + (y if gate is None else y * gate), k, v
 
 

@@ -42,9 +42,10 @@ from pi0_jax.siglip import patch_embed
 
 
 # FP8 x FP8 fc1: its GEMM, bias, GELU-tanh and fc2's e4m3 input as one Mosaic GPU kernel (`ops.fp8_geglu.gelu`, f32
-# in the epilogue), where `layers.fp8_mlp_kernel()` holds; else cuBLASLt's GEMM and XLA's pass (in the dtype). Off
-# until measured on a GPU.
-FP8_GELU = False
+# in the epilogue) from this many rows (images x 256) where `layers.fp8_mlp_kernel()` holds; else cuBLASLt's GEMM and
+# XLA's pass (in the dtype). Alone it was 11 % faster at 6,144 rows (3 cameras, B = 8) and 22 % at 49,152, 10 %
+# slower at 768; π0's every-gemm call 2.3 % faster at B = 64 (H200, docs/BENCHMARKS.md, session 57). None: never.
+FP8_GELU_ROWS = 6144
 
 
 def layer_norm(x, vectors, rows, dtype):
@@ -119,7 +120,8 @@ def block(cfg: SiglipConfig, w, x, f, *, attention: str, norm: str = "xla"):
     out, scale = layers.raw_mm(y, w["out"], dtype)
     x, h = add_norm(x, (out, (vectors, OUT_BIAS), scale), (vectors, (LN2_SCALE, LN2_BIAS)), dtype, norm,
                     matmul.input_scale(w["fc1"]))
-    if FP8_GELU and layers.fp8_mlp_kernel() and h.dtype == E4M3 and fp8_geglu.gelu_applies(w["fc1"], w["fc2"]):
+    if (FP8_GELU_ROWS is not None and b * t >= FP8_GELU_ROWS and layers.fp8_mlp_kernel() and h.dtype == E4M3
+            and fp8_geglu.gelu_applies(w["fc1"], w["fc2"])):
         h = fp8_geglu.gelu(h.reshape(b * t, -1), w["fc1"], w["fc1_bias"], w["fc2"].act_scale).reshape(b, t, -1)
     else:
         y, scale = layers.raw_mm(h, w["fc1"], dtype)
