@@ -82,7 +82,8 @@ def _rel(a, b):
 def siglip(rows, k, n, iters, chain, out) -> dict:
     """SigLIP's FP8 fc1 (K = 1,152, N = 4,304) into fc2's e4m3 input: the engine's XLA path (`engine.vision.block`:
     cuBLASLt's GEMM, then one pass of scale, bias, GELU-tanh and quantisation), its GEMM alone, and the kernel
-    (`fp8_geglu.gelu`, 16-column stores), checked against `fp8_geglu.gelu_reference` and the XLA path."""
+    (`fp8_geglu.gelu`, 16-column stores; 4 stages do not fit its shared memory), checked against
+    `fp8_geglu.gelu_reference` and the XLA path."""
     from pi0_jax.engine import vision   # noqa: PLC0415
     res = {}
     for m in rows:
@@ -102,9 +103,7 @@ def siglip(rows, k, n, iters, chain, out) -> dict:
         forms = {"xla: the engine's path (GEMM, pass)": (jax.jit(xla), (xq, fc1, bias)),
                  "xla: the GEMM alone": (jax.jit(lambda xq, fc1: vision.layers.raw_mm(xq, fc1, BF16)[0]), (xq, fc1)),
                  "kernel (3 stages)": (jax.jit(lambda xq, fc1, bias: fp8_geglu.gelu(xq, fc1, bias, fc2.act_scale)),
-                                       (xq, fc1, bias)),
-                 "kernel (4 stages)": (jax.jit(lambda xq, fc1, bias: fp8_geglu.gelu(
-                     xq, fc1, bias, fc2.act_scale, Launch(stages=4))), (xq, fc1, bias))}
+                                       (xq, fc1, bias))}
         mine = fp8_geglu.gelu_reference(xq, fc1, bias, fc2.act_scale).astype(F32)
         engine = forms["xla: the engine's path (GEMM, pass)"][0](xq, fc1, bias).astype(F32)
         row = res[m] = {"rel_l2_reference_vs_engine": _rel(mine, engine)}

@@ -1,4 +1,5 @@
-"""An FP8 MLP's gate/up GEMM, GeGLU and the down GEMM's e4m3 input as one Pallas Mosaic GPU kernel (Hopper).
+"""An FP8 MLP's gate/up GEMM, GeGLU and the down GEMM's e4m3 input as one Pallas Mosaic GPU kernel (Hopper); and
+the same kernel with GELU for SigLIP's MLP (`gelu`: fc1's GEMM, bias, GELU-tanh and fc2's e4m3 input).
 
 XLA runs an FP8 Gemma MLP (`engine.layers._mlp` on `QArray` weights) as cuBLASLt's e4m3 GEMM into the activation
 dtype, then one fusion that scales gate and up per column, computes GELU-tanh(gate) * up and quantises it for the
@@ -23,7 +24,13 @@ transposed wgmma operand: there the rows are padded to whole tiles and the weigh
 so the interpreter checks the tiling, the pipeline and the epilogue; the GPU form (K-major operand, ragged rows) is
 lowered for sm_90 on the CPU by the tests (`lowering_platforms`). Under a sharded jit each device runs it on its
 own rows (`custom_partitioning`). The engine runs it in the prefix's FP8 MLPs on a Hopper GPU (`engine.layers.
-FP8_GEGLU`): π0's FP8 prefix 8.6 % faster at B = 8 and 2.1 % at B = 1 (H200, docs/BENCHMARKS.md, session 56).
+FP8_GEGLU`): π0's FP8 prefix 8.6 % faster at B = 8 and 2.1 % at B = 1 (H200, docs/BENCHMARKS.md, session 56); and
+from B = 8 in the action expert's and SigLIP's (session 57).
+
+`gelu` takes a (N, K) weight whose N no tile divides (SigLIP's 4,304): on a GPU its last column tile is ragged (TMA
+reads zero weight rows past N and drops stores there), and since a TMA layout's tiles must divide the array they
+write, the output goes out 16 columns (16 bytes, unswizzled) at a time; the epilogue's (3, N) table (column scales,
+bias, 1 / the next GEMM's activation scale) is padded to whole tiles. The interpreter pads N to whole tiles instead.
 
 Axis legend: M rows, K contraction, N2 = 2F fused gate/up columns, F hidden units.
 """
@@ -166,8 +173,8 @@ _partitioned.def_partition(
     sharding_rule="m k, n k, n -> m f", need_replication_factors=("k", "n", "f"))
 
 
-# An FP8 GEMM with GELU in its epilogue (SigLIP's fc1 into fc2's e4m3 input): 3 pipeline stages, as the output's
-# shared memory is a tile's whole width.
+# An FP8 GEMM with GELU in its epilogue (SigLIP's fc1 into fc2's e4m3 input): 3 pipeline stages, as its output's
+# shared memory is a tile's whole width (with 4 it needs 232,528 bytes, 80 more than a Hopper block may have).
 GELU_BLOCK = 64
 GELU_LAUNCH = Launch(stages=3)
 
@@ -257,7 +264,7 @@ _partitioned_gelu.def_partition(
 def run(xq, wq, scales, launch: Launch, *, interpret: bool = False, sms: int | None = None,
         act: str = "geglu") -> jax.Array:
     """The kernel on xq (M, K) e4m3, wq (2F, K) e4m3 ((K, 2F) when `interpret`) and (2F,) column scales
-    (`column_scales`) -> (M, F) e4m3, on `sms` CTAs (default: the GPU's SMs); `launch` fits the weight (`fit`). Rows
+    (`column_scales`) -> (M, F) e4m3 (act "gelu": wq (N, K), the (3, whole tiles) `gelu_table` -> (M, N)), on `sms` CTAs (default: the GPU's SMs); `launch` fits the weight (`fit`). Rows
     are padded with zeros and cut back: to whole row tiles in the interpreter, and on a GPU to TMA's row tiling (its
     copies take a last row tile that is ragged, but not rows that are not a multiple of 8: the expert's 50 B rows at
     an odd B)."""
@@ -386,5 +393,5 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
     shape = (m, n2) if out == "product" or gelu else (m, n2 // 2)
     return plgpu.kernel(kernel, out_type=jax.ShapeDtypeStruct(shape, out_dtype), grid=(1 if interpret else sms,),
                         grid_names=("cluster_grid",), num_threads=wgs + 1, thread_name="wg", compiler_params=params,
-                        kernel_name="fp8_geglu",
+                        kernel_name="fp8_gelu" if gelu else "fp8_geglu",
                         **({"interpret": mosaic_gemm._interpret()} if interpret else {}))
