@@ -74,6 +74,18 @@ def _kernel(launch, out, m, q):
                                                      sms=jax.devices()[0].core_count)(*a))
 
 
+def _report(row, name, r, width, out, res):
+    """Keep a form's result, print it, and write the JSON after every form (a run cut off by a time limit keeps
+    what it measured)."""
+    row[name] = r
+    facts = " ".join(f"{k} {v:.1e}" for k, v in r.items() if k.startswith(("rel", "equal")))
+    print(f"   {name:{width}s} " + (f"{r['ms']:8.4f} ms {r['tflops']:6.0f} TFLOP/s {facts}"
+                                     if "ms" in r else r["error"]), flush=True)
+    if out:
+        with open(out, "w") as f:
+            json.dump(res, f, indent=1)
+
+
 def _rel(a, b):
     a, b = jnp.asarray(a, F32), jnp.asarray(b, F32)
     return float(jnp.linalg.norm(a - b) / jnp.linalg.norm(b))
@@ -120,13 +132,7 @@ def siglip(rows, k, n, iters, chain, out) -> dict:
                     r["finite"] = bool(jnp.isfinite(got).all())
             except Exception as e:  # noqa: BLE001  (a probe: report the form that fails and go on)
                 r = {"error": f"{type(e).__name__}: {str(e)[:600]}"}
-            row[name] = r
-            facts = " ".join(f"{k} {v:.1e}" for k, v in r.items() if k.startswith(("rel", "equal")))
-            print(f"   {name:40s} " + (f"{r['ms']:8.4f} ms {r['tflops']:6.0f} TFLOP/s {facts}"
-                                        if "ms" in r else r["error"]), flush=True)
-            if out:
-                with open(out, "w") as f:
-                    json.dump({"jax": jax.__version__, "device": str(jax.devices()[0]), "siglip": res}, f, indent=1)
+            _report(row, name, r, 40, out, {"jax": jax.__version__, "device": str(jax.devices()[0]), "siglip": res})
     return res
 
 
@@ -190,13 +196,7 @@ def main():
                     r["rel_l2_vs_f32"] = _rel(want, ref)
             except Exception as e:  # noqa: BLE001  (a probe: report the form that fails and go on)
                 r = {"error": f"{type(e).__name__}: {str(e)[:600]}"}
-            row[name] = r
-            facts = " ".join(f"{k} {v:.1e}" for k, v in r.items() if k.startswith(("rel", "equal")))
-            print(f"   {name:72s} " + (f"{r['ms']:8.4f} ms {r['tflops']:6.0f} TFLOP/s {facts}"
-                                        if "ms" in r else r["error"]), flush=True)
-            if args.out:   # after every form: a run cut off by a time limit keeps what it measured
-                with open(args.out, "w") as f:
-                    json.dump(res, f, indent=1)
+            _report(row, name, r, 72, args.out, res)
 
 
 if __name__ == "__main__":

@@ -57,22 +57,29 @@ def test_applies_only_to_fp8_x_fp8_weights_that_tile():
     assert fp8_geglu.fit(Launch(), 48, 192) is None   # K = 48: no e4m3 wgmma step divides it
 
 
+def _fp8_call(config, scheme):
+    """A function of nothing that runs the engine's 2-step call on `config`'s random weights in FP8 (`scheme`, scales
+    calibrated on two observations) as the module flags stand when it is called."""
+    params = benchmark.random_params(config, 0)
+    calib = schemes.sample_observations(config, 2, seed=1)
+    qp = schemes.quantize_params(params, scheme, schemes.calibrate(config, params, calib, scheme,
+                                                                   percentile=None)["amax"])
+    noise = jnp.asarray(np.random.default_rng(0).normal(size=(1, config.action_horizon, config.action_dim)),
+                        jnp.float32)
+    return lambda: np.asarray(Engine(config, qp, cache_dir=False).sample_actions(calib[1], noise, num_steps=2))
+
+
 def test_engine_fp8_call_with_the_kernel_matches_the_call_without(monkeypatch):
     """`prefix-all` at the dummy size: the prefix's MLPs (all but the last layer's, which is dead code) run the
     kernel; the actions equal XLA's path's to e4m3 rounding (gate and up swapped in the kernel: 0.35)."""
     config = get_config("dummy", dtype="float32")
-    params = benchmark.random_params(config, 0)
-    calib = schemes.sample_observations(config, 2, seed=1)
-    qp = schemes.quantize_params(params, "prefix-all", schemes.calibrate(config, params, calib, "prefix-all",
-                                                                         percentile=None)["amax"])
-    noise = jnp.asarray(np.random.default_rng(0).normal(size=(1, config.action_horizon, config.action_dim)),
-                        jnp.float32)
-    want = np.asarray(Engine(config, qp, cache_dir=False).sample_actions(calib[1], noise, num_steps=2))
+    call = _fp8_call(config, "prefix-all")
+    want = call()
     calls = []
     own = fp8_geglu.geglu
     monkeypatch.setattr(layers, "FP8_GEGLU", True)
     monkeypatch.setattr(fp8_geglu, "geglu", lambda *a, **kw: calls.append(a[0].shape) or own(*a, **kw))
-    got = np.asarray(Engine(config, qp, cache_dir=False).sample_actions(calib[1], noise, num_steps=2))
+    got = call()
     assert len(calls) >= config.paligemma.depth - 1
     monkeypatch.setattr(layers, "FP8_GEGLU", "auto")   # the default: on a Hopper GPU only, not the interpreter
     assert not layers.fp8_mlp_kernel()
@@ -147,19 +154,14 @@ def test_engine_vision_with_the_gelu_kernel_matches_without(monkeypatch):
     runs the kernel; the actions equal XLA's path's to e4m3 rounding."""
     monkeypatch.setitem(SIGLIP_VARIANTS, "dummy-64", SiglipConfig(width=64, depth=2, mlp_dim=80, num_heads=2))
     config = get_config("dummy", dtype="float32", siglip_variant="dummy-64")
-    params = benchmark.random_params(config, 0)
-    calib = schemes.sample_observations(config, 2, seed=1)
-    qp = schemes.quantize_params(params, "prefix-vision", schemes.calibrate(config, params, calib, "prefix-vision",
-                                                                            percentile=None)["amax"])
-    noise = jnp.asarray(np.random.default_rng(0).normal(size=(1, config.action_horizon, config.action_dim)),
-                        jnp.float32)
+    call = _fp8_call(config, "prefix-vision")
     monkeypatch.setattr(layers, "FP8_GEGLU", True)
     monkeypatch.setattr(vision, "FP8_GELU_ROWS", None)
-    want = np.asarray(Engine(config, qp, cache_dir=False).sample_actions(calib[1], noise, num_steps=2))
+    want = call()
     calls, own = [], fp8_geglu.gelu
     monkeypatch.setattr(vision, "FP8_GELU_ROWS", 256)   # a camera's rows
     monkeypatch.setattr(fp8_geglu, "gelu", lambda *a, **kw: calls.append(a[0].shape) or own(*a, **kw))
-    got = np.asarray(Engine(config, qp, cache_dir=False).sample_actions(calib[1], noise, num_steps=2))
+    got = call()
     assert len(calls) >= config.siglip.depth and all(c[1] == 64 for c in calls)
     assert np.isfinite(got).all()
     # f32 here: the paths differ only where GELU's two forms' last bits move a value across an e4m3 boundary
@@ -185,21 +187,16 @@ def test_engine_expert_on_the_kernel_matches_xla(monkeypatch):
     monkeypatch.setitem(GEMMA_VARIANTS, "dummy_expert_64", GemmaConfig(width=64, depth=3, mlp_dim=96, num_heads=4,
                                                                         num_kv_heads=1, head_dim=16))
     config = get_config("dummy", dtype="float32", action_expert_variant="dummy_expert_64")
-    params = benchmark.random_params(config, 0)
-    calib = schemes.sample_observations(config, 2, seed=1)
-    qp = schemes.quantize_params(params, "every-gemm", schemes.calibrate(config, params, calib, "every-gemm",
-                                                                         percentile=None)["amax"])
-    noise = jnp.asarray(np.random.default_rng(0).normal(size=(1, config.action_horizon, config.action_dim)),
-                        jnp.float32)
+    call = _fp8_call(config, "every-gemm")
     calls, own = [], fp8_geglu.geglu
     monkeypatch.setattr(layers, "FP8_GEGLU", True)
     monkeypatch.setattr(layers, "FP8_GEGLU_EXPERT_ROWS", None)
     monkeypatch.setattr(fp8_geglu, "geglu", lambda *a, **kw: calls.append(a[1].q.shape) or own(*a, **kw))
-    want = np.asarray(Engine(config, qp, cache_dir=False).sample_actions(calib[1], noise, num_steps=2))
+    want = call()
     prefix = len(calls)
     assert prefix and all(c == (2 * config.paligemma.mlp_dim, 64) for c in calls)
     monkeypatch.setattr(layers, "FP8_GEGLU_EXPERT_ROWS", 1)   # the expert's 51 rows at B = 1
-    got = np.asarray(Engine(config, qp, cache_dir=False).sample_actions(calib[1], noise, num_steps=2))
+    got = call()
     expert = [c for c in calls[prefix:] if c == (2 * config.action_expert.mlp_dim, 64)]
     assert len(expert) >= config.action_expert.depth
     assert np.isfinite(got).all() and np.linalg.norm(got - want) / np.linalg.norm(want) < 5e-3

@@ -102,15 +102,20 @@ def fit(launch: Launch, k: int, n2: int) -> Launch | None:
 LAUNCH = Launch()
 
 
-def applies(w, down) -> bool:
-    """Whether the kernel can take the MLP whose fused gate/up weight is `w` and down weight `down`: both FP8 x FP8
-    (`QArray`s with activation scales), w K-major (2F, K), a launch fits, and on a GPU a Hopper one."""
-    if not (isinstance(w, QArray) and isinstance(down, QArray) and w.act_scale is not None
-            and down.act_scale is not None and w.q.ndim == 2 and w.contract == (-1,)):
+def _takes(w, nxt, fit_launch) -> bool:
+    """w and the next GEMM's weight nxt both FP8 x FP8 (`QArray`s with activation scales), w a K-major (N, K) that
+    `fit_launch(k, n)` fits, and on a GPU a Hopper one."""
+    if not (isinstance(w, QArray) and isinstance(nxt, QArray) and w.act_scale is not None
+            and nxt.act_scale is not None and w.q.ndim == 2 and w.contract == (-1,)):
         return False
-    if fit(LAUNCH, w.q.shape[1], w.q.shape[0]) is None:
+    if fit_launch(w.q.shape[1], w.q.shape[0]) is None:
         return False
     return jax.default_backend() == "cpu" or mosaic_gemm.hopper()
+
+
+def applies(w, down) -> bool:
+    """Whether the kernel can take the MLP whose fused gate/up weight is `w` (2F, K) and down weight `down`."""
+    return _takes(w, down, lambda k, n: fit(LAUNCH, k, n))
 
 
 def column_scales(w: QArray, down_scale) -> jax.Array:
@@ -201,14 +206,8 @@ def fit_gelu(launch: Launch, k: int, n: int) -> Launch | None:
 
 
 def gelu_applies(w, nxt) -> bool:
-    """Whether `gelu` can take the GEMM of weight `w` (N, K) whose output feeds the GEMM of `nxt`: both FP8 x FP8,
-    w K-major, a launch fits, and on a GPU a Hopper one."""
-    if not (isinstance(w, QArray) and isinstance(nxt, QArray) and w.act_scale is not None
-            and nxt.act_scale is not None and w.q.ndim == 2 and w.contract == (-1,)):
-        return False
-    if fit_gelu(GELU_LAUNCH, w.q.shape[1], w.q.shape[0]) is None:
-        return False
-    return jax.default_backend() == "cpu" or mosaic_gemm.hopper()
+    """Whether `gelu` can take the GEMM of weight `w` (N, K) whose output feeds the GEMM of `nxt`."""
+    return _takes(w, nxt, lambda k, n: fit_gelu(GELU_LAUNCH, k, n))
 
 
 def gelu_table(w: QArray, bias, next_scale, columns: int) -> jax.Array:
