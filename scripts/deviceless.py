@@ -15,7 +15,7 @@ full-size preset compiles in a few GB of host memory. Without the plugin, `abstr
 CUDA and stops there: `tests/test_hopper_lowering.py` lowers the engine's calls so, with every kernel at its shapes.
 
     python3 scripts/deviceless.py --preset pi0_base --batch 1 --steps 10 --out deviceless.json
-    python3 scripts/deviceless.py --preset pi0_base --quant prefix-all --fp8-mlp-kernel --batch 8
+    python3 scripts/deviceless.py --preset pi0_base --quant prefix-all --fp8-mlp-kernel on --batch 8
 """
 
 from __future__ import annotations

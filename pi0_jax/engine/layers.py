@@ -75,9 +75,10 @@ def gelu_tanh(x):
 # The prefix's FP8 x FP8 MLPs: gate/up GEMM, GeGLU and the down GEMM's e4m3 input as one Mosaic GPU kernel
 # (`ops.fp8_geglu`). "auto": on a Hopper GPU, where it ran π0's FP8 prefix 8.6 % faster at B = 8 and 2.1 % at B = 1
 # (H200, docs/BENCHMARKS.md, session 56); True: wherever it applies (the CPU tests: Mosaic GPU's interpreter); False:
-# XLA's GEMM and pass (here, in the expert and in SigLIP's fc1, `vision.FP8_GELU_ROWS`). The action expert's FP8 MLPs
-# (`every-gemm`) take it too from FP8_GEGLU_EXPERT_ROWS rows a step (B x 50-51): π0's call 0.6 % faster at B = 8 and
-# 2.2 % at B = 64 (H200, session 57); fewer rows are untimed (at B = 1, 51 rows cost a pad and a cut). None: never.
+# XLA's GEMM and pass, here, in the expert and in SigLIP's fc1 (`vision.FP8_GELU_ROWS`). The action expert's FP8 MLPs
+# (`every-gemm`) take the kernel too from FP8_GEGLU_EXPERT_ROWS rows a step (B x 50-51): π0's call 0.6 % faster at
+# B = 8 and 2.2 % at B = 64 (H200, session 57); fewer rows are untimed (at B = 1, 51 rows cost a pad and a cut).
+# None: never.
 FP8_GEGLU = "auto"
 FP8_GEGLU_EXPERT_ROWS = 256
 
