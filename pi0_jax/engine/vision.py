@@ -37,7 +37,6 @@ from pi0_jax.ops import attention as ops_attention
 from pi0_jax.ops import formats, fp8_geglu, matmul
 from pi0_jax.ops import layer_norm as ops_layer_norm
 from pi0_jax.ops import vision_attention
-from pi0_jax.ops.formats import E4M3
 from pi0_jax.siglip import patch_embed
 
 
@@ -120,8 +119,8 @@ def block(cfg: SiglipConfig, w, x, f, *, attention: str, norm: str = "xla"):
     out, scale = layers.raw_mm(y, w["out"], dtype)
     x, h = add_norm(x, (out, (vectors, OUT_BIAS), scale), (vectors, (LN2_SCALE, LN2_BIAS)), dtype, norm,
                     matmul.input_scale(w["fc1"]))
-    if (FP8_GELU_ROWS is not None and b * t >= FP8_GELU_ROWS and layers.fp8_mlp_kernel() and h.dtype == E4M3
-            and fp8_geglu.gelu_applies(w["fc1"], w["fc2"])):
+    if (FP8_GELU_ROWS is not None and b * t >= FP8_GELU_ROWS and layers.fp8_mlp_kernel()
+            and fp8_geglu.gelu_applies(w["fc1"], w["fc2"])):   # h came quantised for fc1 (add_norm)
         h = fp8_geglu.gelu(h.reshape(b * t, -1), w["fc1"], w["fc1_bias"], w["fc2"].act_scale).reshape(b, t, -1)
     else:
         y, scale = layers.raw_mm(h, w["fc1"], dtype)

@@ -159,23 +159,28 @@ def geglu(xq, w: QArray, down_scale, launch: Launch | None = None) -> jax.Array:
     return _partitioned(xq, w.q, scales, launch)
 
 
-@functools.partial(custom_partitioning, static_argnums=(3,))
-def _partitioned(xq, wq, scales, launch: Launch):
-    return run(xq, wq, scales, launch)
+def _row_partitioned(act: str, rule: str, replicated: tuple):
+    """`run` with epilogue `act` as a `custom_partitioning` op: under a sharded jit (the simulator's batch mesh) each
+    device runs the kernel on its own rows. XLA cannot split a kernel it does not know, and would otherwise gather
+    every row onto every device. rule / replicated: the op's Shardy sharding rule and its factors kept whole."""
+
+    @functools.partial(custom_partitioning, static_argnums=(3,))
+    def partitioned(xq, wq, scales, launch: Launch):
+        return run(xq, wq, scales, launch, act=act)
+
+    def partition(launch, mesh, arg_shapes, result_shape):
+        rows, full = row_shardings(mesh, arg_shapes[0].sharding)
+        return mesh, lambda xq, wq, scales: run(xq, wq, scales, launch, act=act), rows, (rows, full, full)
+
+    partitioned.def_partition(
+        partition=partition,
+        infer_sharding_from_operands=lambda launch, mesh, arg_shapes, result_shape: row_shardings(
+            mesh, arg_shapes[0].sharding)[0],
+        sharding_rule=rule, need_replication_factors=replicated)
+    return partitioned
 
 
-def _partition(launch, mesh, arg_shapes, result_shape):
-    rows, full = row_shardings(mesh, arg_shapes[0].sharding)
-    return mesh, lambda xq, wq, scales: run(xq, wq, scales, launch), rows, (rows, full, full)
-
-
-# Under a sharded jit (the simulator's batch mesh) each device runs the kernel on its own rows: XLA cannot split a
-# kernel it does not know, and would otherwise gather every row onto every device.
-_partitioned.def_partition(
-    partition=_partition,
-    infer_sharding_from_operands=lambda launch, mesh, arg_shapes, result_shape: row_shardings(
-        mesh, arg_shapes[0].sharding)[0],
-    sharding_rule="m k, n k, n -> m f", need_replication_factors=("k", "n", "f"))
+_partitioned = _row_partitioned("geglu", "m k, n k, n -> m f", ("k", "n", "f"))
 
 
 # An FP8 GEMM with GELU in its epilogue (SigLIP's fc1 into fc2's e4m3 input): 3 pipeline stages, as its output's
@@ -243,21 +248,7 @@ def gelu(xq, w: QArray, bias, next_scale, launch: Launch | None = None) -> jax.A
     return _partitioned_gelu(xq, w.q, table, launch)
 
 
-@functools.partial(custom_partitioning, static_argnums=(3,))
-def _partitioned_gelu(xq, wq, table, launch: Launch):
-    return run(xq, wq, table, launch, act="gelu")
-
-
-def _partition_gelu(launch, mesh, arg_shapes, result_shape):
-    rows, full = row_shardings(mesh, arg_shapes[0].sharding)
-    return mesh, lambda xq, wq, table: run(xq, wq, table, launch, act="gelu"), rows, (rows, full, full)
-
-
-_partitioned_gelu.def_partition(
-    partition=_partition_gelu,
-    infer_sharding_from_operands=lambda launch, mesh, arg_shapes, result_shape: row_shardings(
-        mesh, arg_shapes[0].sharding)[0],
-    sharding_rule="m k, n k, t c -> m n", need_replication_factors=("k", "n", "t", "c"))
+_partitioned_gelu = _row_partitioned("gelu", "m k, n k, t c -> m n", ("k", "n", "t", "c"))
 
 
 def run(xq, wq, scales, launch: Launch, *, interpret: bool = False, sms: int | None = None,
