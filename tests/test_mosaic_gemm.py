@@ -4,6 +4,7 @@ expert's layers with every GEMM on it equal the XLA layer, for π0 and π0.5's a
 head), MLP 256, which every launch below tiles. f32: the kernel and XLA differ only in summation order."""
 
 import dataclasses
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -131,6 +132,18 @@ def test_expert_layers_on_the_mosaic_gemm_equal_xla(pi05, blocks, monkeypatch):
     other = layers.suffix_layers_pallas(CFG, weights, x, positions, cache_k, cache_v, layout.cache_mask(pmask), smask,
                                         mods, blocks=blocks)
     assert not np.allclose(other, want, **TOL)
+
+
+def test_interpreter_warns_where_xla_cpu_scheduler_may_hang_it(monkeypatch):
+    """Without the scheduler flag (`mosaic_gemm._SCHEDULER_OFF`) the interpreter warns before it runs: the engine's
+    FP8 call on it hung so; with the flag (as `pi0_jax.sim` sets it, and so these tests) it runs without a word."""
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
+    with pytest.warns(UserWarning, match="enable_concurrency_optimized_scheduler=false"):
+        mosaic_gemm._interpret()
+    monkeypatch.setenv("XLA_FLAGS", mosaic_gemm._SCHEDULER_OFF)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        mosaic_gemm._interpret()
 
 
 def test_blocks_with_launches_round_trip_through_json():

@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import os
+import warnings
 
 import jax
 import jax.experimental.pallas as pl
@@ -66,8 +68,19 @@ class Launch:
             raise ValueError(f"{self}: delay must be below the pipeline depth (stages)")
 
 
+# Mosaic GPU's CPU interpreter runs each warpgroup's thread as a computation of its own inside a host callback; under
+# XLA:CPU's concurrency-optimised scheduler those computations wait for the threads the callback holds, and the call
+# hangs (on 2 cores: the engine's FP8 call with `layers.FP8_GEGLU` on, sessions 57-58). `pi0_jax.sim` turns the
+# scheduler off before JAX starts, as the tests import it.
+_SCHEDULER_OFF = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
+
+
 def _interpret():
-    """Mosaic GPU's CPU interpreter (its parameters class moved into the public module in jax 0.11)."""
+    """Mosaic GPU's CPU interpreter (its parameters class moved into the public module in jax 0.11), with a warning
+    where XLA:CPU's scheduler may hang it (`_SCHEDULER_OFF`)."""
+    if _SCHEDULER_OFF.split("=")[0] not in os.environ.get("XLA_FLAGS", ""):
+        warnings.warn(f"Mosaic GPU's CPU interpreter can hang under XLA:CPU's concurrency-optimised scheduler: set "
+                      f"XLA_FLAGS={_SCHEDULER_OFF} before JAX starts (importing pi0_jax.sim does)", stacklevel=3)
     params = getattr(plgpu, "InterpretGPUParams", None)
     if params is None:
         from jax._src.pallas.mosaic_gpu.interpret.params import InterpretGPUParams as params
