@@ -34,7 +34,7 @@ import numpy as np
 from pi0_jax import pi0
 from pi0_jax.pi0 import random_params
 from pi0_jax.config import IMAGE_KEYS, PRESETS, Pi0Config, get_config
-from pi0_jax.engine import Engine, layers, store, vision
+from pi0_jax.engine import Engine, layers, programs, store, vision
 from pi0_jax.engine.paths import KERNELS, OVERLAPS, attention_spec, vision_norm
 from pi0_jax.ops import expert_kernels, formats, pallas_base
 from pi0_jax.ops.matmul import GEMMS
@@ -402,7 +402,8 @@ def run(args: argparse.Namespace, save=None) -> dict:
                                                "gemm": args.gemm, "overlap": args.overlap, "quant": quant,
                                                "expert_blocks": dataclasses.asdict(expert_kernels.Blocks()),
                                                "fp8_mlp_kernel": layers.fp8_mlp_kernel(),
-                                               "fp8_kernel_from_rows": fp8_kernel_rows()},
+                                               "fp8_kernel_from_rows": fp8_kernel_rows(),
+                                               "fp8_row_pad": programs.FP8_ROW_PAD},
                "complete": False, "rows": [], "peers": [],
                "compile": {},
                "args": {k: str(v) for k, v in vars(args).items() if k != "func"}}

@@ -3,11 +3,11 @@ compile with extra XLA options on top of the engine's own (`matmul.compiler_opti
 under gemm="auto"), or, for "conv", with SigLIP's patch embedding as cuDNN's convolution (the engine's form until
 2026-11-26) instead of the f32 GEMM, or an Engine built another way (`ENGINE_KW`, `SCHEDULING`, `STAGES`,
 `STEP_ENDS`, `RUNTIME`, `PATCHES`: the denoise loop unrolled, the first step's overlap and its programs, π0's
-in-projection unfolded, the vision tower as one program, GELU-tanh as jax writes it, the FP8 MLP on XLA, in its
-earlier XLA form, on another launch of the kernel, the expert's FP8 MLPs and SigLIP's FP8 fc1 on XLA's paths, FP8
-output scales computed in the programs); the
-"vision-" variants set their options on the vision programs alone, "vhead-" on the first of them, "loop-" on the
-denoise programs without the prefix (the expert's weights alone).
+in-projection unfolded, the FP8 expert's rows unpadded, the vision tower as one program, GELU-tanh as jax writes
+it, the FP8 MLP on XLA, in its earlier XLA form, on another launch of the kernel, the expert's FP8 MLPs and SigLIP's
+FP8 fc1 on XLA's paths, FP8 output scales computed in the programs); the "vision-" variants set their options on
+the vision programs alone, "vhead-" on the first of them, "loop-" on the denoise programs without the prefix (the
+expert's weights alone).
 Stage medians (round-robin over the variants), kernels per call, device span and idle time (by the kernel that
 waited) from a trace, and the fused program's actions against the first variant.
 
@@ -76,6 +76,10 @@ VARIANTS = {
     "one-loop-program": {},
     # the denoise step's ends (STEP_ENDS): π0's in-projection and time MLP as two products, not folded into one
     "unfolded": {},
+    # with FP8 expert weights (`every-gemm`) on the Pallas attention (π0, B = 2-16): the step's rows as they are
+    # (STEP_ENDS), where `programs.FP8_ROW_PAD` pads each element's to make them a multiple of 16 (π0 at B = 8: 51
+    # -> 52 rows, 36 of XLA's pads a step gone)
+    "fp8-row-pad-off": {},
     # the call's vision tower as one program (RUNTIME), not two
     "one-vision-program": {},
     # every GEMM a Triton GEMM (no cuBLAS fallback) in the vision head's program ("vhead-") or both vision programs:
@@ -109,7 +113,7 @@ ENGINE_KW = {"unroll-steps": {"unroll_steps": True}, "no-overlap": {"overlap": "
 SCHEDULING = {"overlap-lhs": {"xla_gpu_command_buffer_scheduling_mode": "LHS"}}
 STAGES = {"one-loop-program": lambda self, batch, num_steps: (
     *(s for s in Engine.call_stages(self, batch, num_steps) if s in runtime.VISION_STAGES), "prefix_denoise")}
-STEP_ENDS = {"unfolded": {"FOLD_ACTION_IN": False}}
+STEP_ENDS = {"unfolded": {"FOLD_ACTION_IN": False}, "fp8-row-pad-off": {"FP8_ROW_PAD": False}}
 RUNTIME = {"one-vision-program": {"VISION_SPLIT": 0}}
 
 
@@ -171,7 +175,7 @@ def main() -> None:
         params = benchmark.fp8_params(config, params, args.quant, num_steps=args.steps)
     report = {"preset": args.preset, "quant": args.quant, "env": benchmark.environment(), "rows": []}
     own_options, own_embed, own_concurrent = runtime.matmul.compiler_options, vision.patch_embed, paths.CONCURRENT
-    own_ends = {k: getattr(programs, k) for k in ("FOLD_ACTION_IN",)}
+    own_ends = {k: getattr(programs, k) for k in ("FOLD_ACTION_IN", "FP8_ROW_PAD")}
     own_split = runtime.VISION_SPLIT
     own_attrs = {(m, k): getattr(m, k) for m, d in PATCHES.values() for k in d}
     for batch in args.batch or [1]:

@@ -14,11 +14,12 @@ import pytest
 
 from pi0_jax import gemma, pi0
 from pi0_jax.config import IMAGE_KEYS, get_config
-from pi0_jax.engine import Engine, layers
+from pi0_jax.engine import Engine, layers, paths, programs
 from pi0_jax.ops import expert_kernels as ek
 from pi0_jax.ops import layout
 from pi0_jax.ops.expert_kernels import Blocks, Gemm
 from pi0_jax.ops.formats import E4M3
+from pi0_jax.quant import schemes
 from test_model import make_obs, randomize
 
 CFG = get_config("dummy").action_expert  # width 48, 4 heads x 16 (1 kv head), mlp 96: all padded by the layout
@@ -242,6 +243,46 @@ def test_xla_expert_with_the_attention_kernel_matches_reference(model, monkeypat
         _, cache, got = engine.run_stages(obs, jnp.array(noise), 2)
         assert cache.mask.shape[1] % layout.KEY_PAD == 0, cache.mask.shape
         np.testing.assert_allclose(got, ref, **TOL)
+
+
+def test_fp8_expert_rows_padded_to_16_leave_the_actions(monkeypatch):
+    """`programs.FP8_ROW_PAD`: with FP8 x FP8 expert weights (`every-gemm`) and the Pallas attention, π0's 2 x 11
+    step rows run as 2 x 16 (the multiple of 16 that cuBLASLt's FP8 GEMM takes), the extra rows masked as keys:
+    the actions are those of the unpadded step. Where the step pads nothing: π0.5, bf16, another attention, rows
+    already a multiple of 16, or a pad that no whole row count per element reaches (B = 5)."""
+    config = get_config("dummy")
+    params = randomize(pi0.param_shapes(config))
+    obs = make_obs(config)
+    calib = schemes.sample_observations(config, 2, seed=1)
+    qp = schemes.quantize_params(params, "every-gemm", schemes.calibrate(config, params, calib, "every-gemm",
+                                                                         percentile=None)["amax"])
+    noise = jnp.asarray(jax.random.normal(jax.random.key(4), (2, config.action_horizon, config.action_dim)))
+    pads = []
+    own = programs.fp8_row_pad
+    monkeypatch.setattr(programs, "fp8_row_pad", lambda *a: pads.append(own(*a)) or pads[-1])
+
+    engine = Engine(config, qp, kernels="xla", attention="denoise=pallas", cache_dir=False)
+
+    def actions():   # traced anew: the switch is read when a program is traced
+        return np.asarray(Engine(config, qp, kernels="xla", attention="denoise=pallas",
+                                 cache_dir=False).sample_actions(obs, noise, 2))
+
+    padded = actions()
+    assert pads and set(pads) == {5}   # 11 + 5 rows an element: 32 a step
+    monkeypatch.setattr(programs, "FP8_ROW_PAD", False)
+    pads.clear()
+    np.testing.assert_allclose(padded, actions(), **TOL)
+    assert set(pads) == {0}
+    monkeypatch.setattr(programs, "FP8_ROW_PAD", True)
+    pallas = paths.Attention(vision="xla", prefix="xla", denoise="pallas")
+    w = engine.weights
+    assert own(config, w, 2, 11, pallas) == 5 and own(config, w, 8, 11, pallas) == 1   # 88 -> 96 rows
+    assert own(config, w, 5, 11, pallas) == 0   # 55 -> 64 rows: not a whole count per element
+    assert own(config, w, 16, 11, pallas) == 0 and own(config, w, 2, 8, pallas) == 0   # already 16-aligned
+    assert own(config, w, 2, 11, dataclasses.replace(pallas, denoise="xla")) == 0
+    plain = Engine(config, params, kernels="xla", cache_dir=False).weights
+    assert own(config, plain, 2, 11, pallas) == 0   # weights not FP8 x FP8
+    assert own(get_config("dummy_pi05"), w, 2, 11, pallas) == 0
 
 
 def test_engine_with_kernels_skips_a_camera_masked_everywhere():

@@ -21,10 +21,16 @@ from pi0_jax.config import Pi0Config
 from pi0_jax.engine import layers, paths, vision
 from pi0_jax.engine.paths import Attention
 from pi0_jax.ops import expert_kernels, layout
+from pi0_jax.ops.formats import QArray
 
 # π0's action in-projection folded into the time MLP's first product (`weights.fold_action_in`); False: the two
 # products as the reference runs them (an A/B switch for probes, read when a program is traced)
 FOLD_ACTION_IN = True
+# The XLA expert's FP8 x FP8 GEMMs take their rows (B x S a step) in multiples of 16, as cuBLASLt's FP8 GEMM needs:
+# otherwise XLA pads the e4m3 input of every such GEMM whose producer cannot take the pad (q/k/v's after the norm's
+# Triton fusion, down's after the FP8 MLP kernel), two kernels a layer for π0's 408 rows at B = 8. Each element
+# carries `fp8_row_pad` rows more through the step instead, masked as keys (an A/B switch, read when traced).
+FP8_ROW_PAD = True
 
 
 @flax.struct.dataclass
@@ -181,6 +187,25 @@ def step_invariants(config: Pi0Config, weights: dict, cache: PrefixCache, state,
             "tables": tables}
 
 
+def fp8_row_pad(config: Pi0Config, weights: dict, batch: int, s: int, attention: Attention) -> int:
+    """Rows to add to each element's s suffix rows (`FP8_ROW_PAD`) so that the XLA expert's batch x s rows become the
+    multiple of 16 XLA pads its FP8 x FP8 GEMMs to, with no more GEMM rows than that pad. Only π0's rows with the
+    Pallas attention, whose tables mask every key past s (their padded suffix), and only where those tables' padded
+    suffix and query rows stay as laid out for s (`layers.query_rows`); 0 elsewhere."""
+    if not FP8_ROW_PAD or config.pi05 or attention.denoise != "pallas" or (batch * s) % 16 == 0:
+        return 0
+    fp8 = [w for w in jax.tree.leaves(weights["expert"], is_leaf=lambda v: isinstance(v, QArray))
+           if isinstance(w, QArray) and w.act_scale is not None]
+    rows = -(-batch * s // 16) * 16
+    if not fp8 or rows % batch:
+        return 0
+    blocks, cfg, padded = expert_kernels.blocks_at(batch), config.action_expert, rows // batch
+    if layout.suffix_rows(padded) != layout.suffix_rows(s) or \
+            layers.query_rows(cfg, padded, blocks) != layers.query_rows(cfg, s, blocks):
+        return 0
+    return padded - s
+
+
 def step_velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array, cache: PrefixCache, fixed: dict,
                   x_t, kv, *, unroll: bool, attention: Attention, kernels: str, frozen: jax.Array | None) -> tuple:
     """One denoise step's velocity v(x_t, t_step) -> (v, kv). cache, kv: `step_inputs`'; kv, the suffix-first
@@ -235,6 +260,11 @@ def step_velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array
             raise ValueError("the fused denoise attention takes π0's state token once a call (`paths.cached_state`)")
         kv_len = (config.suffix_len + jnp.sum(cache.mask, axis=-1)).astype(jnp.int32)
 
+    pad = fp8_row_pad(config, weights, b, s, attention)
+    if pad:   # rows past s: zeros, at the last position, masked as keys by the kernel's tables; cut after the layers
+        x = jnp.pad(x, ((0, 0), (0, pad), (0, 0)))
+        positions = jnp.pad(positions, ((0, 0), (0, pad)), mode="edge")
+
     def layer(w, x, k, v, *mod):
         m = None if mods is None else mod
         x, k, v = layers.suffix_layer(config.action_expert, w, x, positions, k, v, prefix_mask, suffix_mask, m,
@@ -245,7 +275,7 @@ def step_velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array
     if mods is not None:   # layer axis first: (L, B or 1, H or 1, 3D)
         per_layer += [_by_layer(jnp.moveaxis(m, 2, 0), unroll) for m in mods]
     x, outs = layers.run_layers(layer, weights["expert"], x, per_layer, unroll=unroll)
-    return _top(config, weights, final_mod, x), (None if kv is None else tuple(outs))
+    return _top(config, weights, final_mod, x[:, :s]), (None if kv is None else tuple(outs))
 
 
 def _top(config, weights, final_mod, x):
