@@ -63,7 +63,8 @@ class Launch:
     contraction a pipeline step brings (128: one 128-byte swizzled row of e4m3), the TMA pipeline's depth, wgmma
     steps left in flight when the next is issued (`delay`; their tiles are released that many steps later), the tile
     order (`plgpu.planar_snake`: bands of `snake` tiles along dimension `minor`, 0 rows, 1 columns), and Mosaic GPU's
-    approximate math (`approx`: tanh.approx.f32 inside GELU's sigmoid)."""
+    approximate math (`approx`: the sigmoid's exp as one ex2.approx.f32, without the range reduction around it; its
+    division is rcp.approx.f32 either way, as ptxas's input for sm_90a shows)."""
 
     tile_m: int = 128
     tile_n: int = 256
