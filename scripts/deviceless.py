@@ -40,7 +40,7 @@ from profile_engine import count_ops  # noqa: E402
 
 from pi0_jax import benchmark, pi0  # noqa: E402
 from pi0_jax.config import IMAGE_KEYS, get_config  # noqa: E402
-from pi0_jax.engine import Engine, layers, runtime  # noqa: E402
+from pi0_jax.engine import Engine, layers, programs, runtime  # noqa: E402
 from pi0_jax.engine import weights as weights_lib  # noqa: E402
 from pi0_jax.ops import fp8_geglu  # noqa: E402
 from pi0_jax.ops.formats import E4M3, QArray  # noqa: E402
@@ -218,6 +218,9 @@ def main(argv=None) -> int:
                    help="FP8 MLPs on `ops.fp8_geglu`'s kernels (engine.layers.FP8_GEGLU: the prefix's, the expert's and "
                         "SigLIP's fc1 from their row thresholds): auto = as the engine "
                         "on the target (an H200: on), on, off (default: %(default)s)")
+    p.add_argument("--fp8-row-pad", choices=("on", "off"), default="on",
+                   help="the FP8 expert's step rows padded to a multiple of 16 (engine.programs.FP8_ROW_PAD; "
+                        "default: %(default)s)")
     p.add_argument("--out", type=Path, default=None, help="JSON of counts per program (default: print only)")
     p.add_argument("--hlo", type=Path, default=None, help="a folder to write each program's optimized HLO to")
     p.add_argument("--fp8-mlp-sharded", action="store_true",
@@ -232,6 +235,7 @@ def main(argv=None) -> int:
     cameras = IMAGE_KEYS[:args.cameras]
     bucket = runtime.prompt_bucket(args.prompt, config.max_token_len)
     layers.FP8_GEGLU = {"auto": "auto", "on": True, "off": False}[args.fp8_mlp_kernel]
+    programs.FP8_ROW_PAD = args.fp8_row_pad == "on"
     sharding = target_sharding()
     results = {"target": TargetDevice.device_kind, "jax": jax.__version__, "commit": benchmark._git_commit(),
                "source": benchmark.source_digest(), "args": {k: str(v) for k, v in vars(args).items()},
