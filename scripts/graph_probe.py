@@ -76,7 +76,7 @@ VARIANTS = {
     "one-loop-program": {},
     # the denoise step's ends (STEP_ENDS): π0's in-projection and time MLP as two products, not folded into one
     "unfolded": {},
-    # with FP8 expert weights (`every-gemm`) on the Pallas attention (π0, B = 2-16): the step's rows as they are
+    # with FP8 expert weights (`every-gemm`) on the Pallas attention (π0 at B = 3-16): the step's rows as they are
     # (STEP_ENDS), where `programs.FP8_ROW_PAD` pads each element's to make them a multiple of 16 (π0 at B = 8: 51
     # -> 52 rows, 36 of XLA's pads a step gone)
     "fp8-row-pad-off": {},

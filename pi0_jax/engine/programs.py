@@ -194,10 +194,9 @@ def fp8_row_pad(config: Pi0Config, weights: dict, batch: int, s: int, attention:
     suffix and query rows stay as laid out for s (`layers.query_rows`); 0 elsewhere."""
     if not FP8_ROW_PAD or config.pi05 or attention.denoise != "pallas" or (batch * s) % 16 == 0:
         return 0
-    fp8 = [w for w in jax.tree.leaves(weights["expert"], is_leaf=lambda v: isinstance(v, QArray))
-           if isinstance(w, QArray) and w.act_scale is not None]
+    leaves = jax.tree.leaves(weights["expert"], is_leaf=lambda v: isinstance(v, QArray))
     rows = -(-batch * s // 16) * 16
-    if not fp8 or rows % batch:
+    if rows % batch or not any(isinstance(w, QArray) and w.act_scale is not None for w in leaves):
         return 0
     blocks, cfg, padded = expert_kernels.blocks_at(batch), config.action_expert, rows // batch
     if layout.suffix_rows(padded) != layout.suffix_rows(s) or \
