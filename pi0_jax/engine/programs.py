@@ -22,6 +22,7 @@ from pi0_jax.engine import layers, paths, vision
 from pi0_jax.engine.paths import Attention
 from pi0_jax.ops import expert_kernels, layout
 from pi0_jax.ops.formats import QArray
+from pi0_jax.ops.matmul import input_scale
 
 # π0's action in-projection folded into the time MLP's first product (`weights.fold_action_in`); False: the two
 # products as the reference runs them (an A/B switch for probes, read when a program is traced)
@@ -196,7 +197,7 @@ def fp8_row_pad(config: Pi0Config, weights: dict, batch: int, s: int, attention:
         return 0
     leaves = jax.tree.leaves(weights["expert"], is_leaf=lambda v: isinstance(v, QArray))
     rows = -(-batch * s // 16) * 16
-    if rows % batch or not any(isinstance(w, QArray) and w.act_scale is not None for w in leaves):
+    if rows % batch or not any(input_scale(w) is not None for w in leaves):
         return 0
     blocks, cfg, padded = expert_kernels.blocks_at(batch), config.action_expert, rows // batch
     if layout.suffix_rows(padded) != layout.suffix_rows(s) or \

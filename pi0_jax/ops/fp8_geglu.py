@@ -255,10 +255,10 @@ _partitioned_gelu = _row_partitioned("gelu", "m k, n k, t c -> m n", ("k", "n", 
 def run(xq, wq, scales, launch: Launch, *, interpret: bool = False, sms: int | None = None,
         act: str = "geglu") -> jax.Array:
     """The kernel on xq (M, K) e4m3, wq (2F, K) e4m3 ((K, 2F) when `interpret`) and (2F,) column scales
-    (`column_scales`) -> (M, F) e4m3 (act "gelu": wq (N, K), the (3, whole tiles) `gelu_table` -> (M, N)), on `sms` CTAs (default: the GPU's SMs); `launch` fits the weight (`fit`). Rows
-    are padded with zeros and cut back: to whole row tiles in the interpreter, and on a GPU to TMA's row tiling (its
-    copies take a last row tile that is ragged, but not rows that are not a multiple of 8: the expert's 50 B rows at
-    an odd B)."""
+    (`column_scales`) -> (M, F) e4m3 (act "gelu": wq (N, K), the (3, whole tiles) `gelu_table` -> (M, N)), on `sms`
+    CTAs (default: the GPU's SMs); `launch` fits the weight (`fit`). Rows are padded with zeros and cut back: to
+    whole row tiles in the interpreter, and on a GPU to TMA's row tiling (its copies take a last row tile that is
+    ragged, but not rows that are not a multiple of 8: the expert's 50 B rows at an odd B)."""
     if not interpret and sms is None:
         sms = jax.devices()[0].core_count
     m, k = xq.shape
