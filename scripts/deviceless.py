@@ -221,6 +221,9 @@ def main(argv=None) -> int:
     p.add_argument("--fp8-row-pad", choices=("on", "off"), default="on",
                    help="the FP8 expert's step rows padded to a multiple of 16 (engine.programs.FP8_ROW_PAD; "
                         "default: %(default)s)")
+    p.add_argument("--pack-attention", choices=("on", "off"), default="on",
+                   help="the XLA expert's folded attention input as one buffer (engine.layers.PACK_ATTENTION_INPUT; "
+                        "default: %(default)s)")
     p.add_argument("--out", type=Path, default=None, help="JSON of counts per program (default: print only)")
     p.add_argument("--hlo", type=Path, default=None, help="a folder to write each program's optimized HLO to")
     p.add_argument("--fp8-mlp-sharded", action="store_true",
@@ -236,6 +239,7 @@ def main(argv=None) -> int:
     bucket = runtime.prompt_bucket(args.prompt, config.max_token_len)
     layers.FP8_GEGLU = {"auto": "auto", "on": True, "off": False}[args.fp8_mlp_kernel]
     programs.FP8_ROW_PAD = args.fp8_row_pad == "on"
+    layers.PACK_ATTENTION_INPUT = args.pack_attention == "on"
     sharding = target_sharding()
     results = {"target": TargetDevice.device_kind, "jax": jax.__version__, "commit": benchmark._git_commit(),
                "source": benchmark.source_digest(), "args": {k: str(v) for k, v in vars(args).items()},

@@ -155,21 +155,31 @@ def test_the_attention_launches_no_split_past_the_cache(monkeypatch):
 @pytest.mark.parametrize("pi05", [False, True])
 def test_xla_experts_call_of_the_attention_kernel_folds_query_heads(pi05, monkeypatch):
     """`layers._attend_kernel` (the XLA expert on the kernel) with a kv head's 4 query heads folded into its rows
-    (44 rows an element, padded to whole query blocks) or not, and its masks from `layers.pallas_tables`."""
+    (44 rows an element, padded to whole query blocks), in one buffer with the suffix's keys and values or apart, or
+    not folded, and its masks from `layers.pallas_tables`."""
     q, k, v, ck, cv, pmask, smask = _attention_inputs(pi05)
     want = layers._attend(q, [ck, k], [cv, v], [jnp.broadcast_to(pmask[:, None], (B, S, P)), smask], jnp.float32)
     ck, cv = (layout.cache_kv(c, CFG.head_dim) for c in (ck, cv))
-    for fold, rows, q_block in ((False, 16, 16), (True, 48, 16), (True, 64, 32)):
+    packed = []
+    own = ek.attention
+    monkeypatch.setattr(ek, "attention", lambda *a, **kw: packed.append(kw.get("packed", False)) or own(*a, **kw))
+    for fold, rows, q_block, pack in ((False, 16, 16, True), (True, 48, 16, True), (True, 64, 32, True),
+                                      (True, 48, 16, False)):
         blocks = Blocks(q=q_block, kv=32, kv_splits=3, fold=fold)
         monkeypatch.setattr(ek, "blocks_at", lambda batch, blocks=blocks: blocks)
+        monkeypatch.setattr(layers, "PACK_ATTENTION_INPUT", pack)
         assert layers.query_rows(CFG, S, blocks) == rows
         tables = layers.pallas_tables(CFG, jnp.zeros((B, S), jnp.int32), layout.cache_mask(pmask), smask, blocks)
         assert tables[3].shape == (B * rows, layout.suffix_rows(S))
         got = layers._attend_kernel(CFG, q, k, v, ck, cv, *tables[2:])
         np.testing.assert_allclose(got, want.reshape(got.shape), **TOL)
+    assert packed == [False, True, True, False]
     with pytest.raises(ValueError, match="suffix rows"):
-        ek.attention(jnp.zeros((B * 64, ck.shape[-1])), ck, cv, tables[2], tables[3], batch=B, num_heads=1,
-                     num_kv_heads=1, kv=jnp.zeros((B * S, 2 * ck.shape[-1])))
+        own(jnp.zeros((B * 48, ck.shape[-1])), ck, cv, tables[2], tables[3], batch=B, num_heads=1, num_kv_heads=1,
+            kv=jnp.zeros((B * S, 2 * ck.shape[-1])))
+    with pytest.raises(ValueError, match="packed takes qkv"):   # 48 query rows and no room for the suffix's
+        own(jnp.zeros((B * 48, ck.shape[-1])), ck, cv, tables[2], tables[3], batch=B, num_heads=1, num_kv_heads=1,
+            packed=True)
 
 
 @pytest.mark.parametrize("adaptive", [False, True])

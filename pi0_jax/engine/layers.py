@@ -82,6 +82,11 @@ def gelu_tanh(x):
 FP8_GEGLU = "auto"
 FP8_GEGLU_EXPERT_ROWS = 256
 
+# The XLA expert's attention kernel with folded query heads (B >= 8) takes its queries and the suffix's keys and values
+# in one buffer (`expert_kernels.attention`'s packed), which one XLA fusion makes from q/k/v's GEMM output: else two
+# (an A/B switch, read when traced).
+PACK_ATTENTION_INPUT = True
+
 
 def fp8_mlp_kernel() -> bool:
     """Whether FP8 MLPs run `ops.fp8_geglu`'s kernels on this backend (`FP8_GEGLU`)."""
@@ -193,8 +198,13 @@ def _attend_kernel(cfg: GemmaConfig, q, k, v, cache_k, cache_v, prefix_mask, suf
     g, rows = cfg.num_heads // kv_heads, query_rows(cfg, t, blocks)
     kv = layout.rows(layout.heads(jnp.concatenate([k, v], axis=2).reshape(b, t, -1), -1, hd), sp)
     qf = layout.rows(layout.heads(einops.rearrange(q, "B T K G H -> B (T G) (K H)"), -1, hd), rows)
-    y = expert_kernels.attention(qf, *cache, prefix_mask, suffix_mask, batch=b, num_heads=kv_heads,
-                                 num_kv_heads=kv_heads, blocks=blocks, kv=kv)
+    heads = dict(batch=b, num_heads=kv_heads, num_kv_heads=kv_heads, blocks=blocks)
+    if PACK_ATTENTION_INPUT and not blocks.mosaic_attention and rows % 2 == 0:
+        packed = jnp.concatenate([qf.reshape(b, rows, -1), kv.reshape(b, 2 * sp, -1)], axis=1)
+        y = expert_kernels.attention(packed.reshape(-1, qf.shape[1]), *cache, prefix_mask, suffix_mask, packed=True,
+                                     **heads)
+    else:
+        y = expert_kernels.attention(qf, *cache, prefix_mask, suffix_mask, kv=kv, **heads)
     y = layout.unheads(y.reshape(b, rows, -1)[:, : t * g], hd)
     return einops.rearrange(y, "B (T G) (K H) -> B T (K G H)", G=g, H=hd)
 

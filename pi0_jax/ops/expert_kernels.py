@@ -270,15 +270,16 @@ def norm_qkv_rope(x, mods, mod_row: int, adaptive: bool, w_qkv, cos, sin, *, wid
 
 # -- attention over [cached prefix | suffix] ---------------------------------------------------------------------------
 def _attention_kernel(q_ref, kv_ref, ck_ref, cv_ref, pmask_ref, smask_ref, o_ref, lse_ref, *, m, bq, bkv, sq, sk, pp,
-                      hd, num_heads, num_kv_heads, splits, per_split, kv_cols):
+                      hd, num_heads, num_kv_heads, splits, per_split, kv_cols, strides):
     """Program (b, n, qi, s): query block qi of head n over prefix key blocks [s * per_split, (s + 1) * per_split)
     (s < splits; blocks past the cache are masked), or over the suffix keys (s == splits). Writes the split's
-    normalised output (in the dtype) and its log-sum-exp (f32). An element's queries are rows [b sq, (b + 1) sq) of
-    q, its suffix keys and values rows [b sk, (b + 1) sk) of kv at columns kv_cols (+ the kv head's offset)."""
+    normalised output (in the dtype) and its log-sum-exp (f32). An element's sq queries are rows from b qs of q, its
+    sk suffix keys and values rows from b ks + ko of kv at columns kv_cols (+ the kv head's offset); strides =
+    (qs, ks, ko), (sq, sk, 0) unless q and kv are views of one packed buffer (`attention`'s packed)."""
     b, n, qi, s = pl.program_id(0), pl.program_id(1), pl.program_id(2), pl.program_id(3)
     kh = jax.lax.div(n, num_heads // num_kv_heads) if num_kv_heads > 1 else 0  # this query head's kv head
     rows = pl.ds(b * sq + qi * bq, bq)
-    q = q_ref[rows, pl.ds(n * hd, hd)]
+    q = q_ref[pl.ds(b * strides[0] + qi * bq, bq), pl.ds(n * hd, hd)]
     dtype = q.dtype
     blocks = pp // bkv
 
@@ -311,14 +312,14 @@ def _attention_kernel(q_ref, kv_ref, ck_ref, cv_ref, pmask_ref, smask_ref, o_ref
 
     @pl.when(s == splits)
     def _suffix():
-        suffix = pl.ds(b * sk, sk)
+        suffix = pl.ds(b * strides[1] + strides[2], sk)
         k_col, v_col = kv_cols[0] + kh * hd, kv_cols[1] + kh * hd
         write(update(init, kv_ref[suffix, pl.ds(k_col, hd)], kv_ref[suffix, pl.ds(v_col, hd)],
                      smask_ref[rows, :] != 0))
 
 
 def attention(qkv, cache_k, cache_v, prefix_mask, suffix_mask, *, batch: int, num_heads: int, num_kv_heads: int,
-              blocks: Blocks = Blocks(), kv=None):
+              blocks: Blocks = Blocks(), kv=None, packed: bool = False):
     """Softmax attention of the suffix queries over [cached prefix | suffix] keys -> (M, N * 2hp).
 
     qkv (M, (N + 2K) * 2hp) from `norm_qkv_rope`; cache_k / cache_v (B * P, K * 2hp); prefix_mask (B, P) int32, the
@@ -330,16 +331,27 @@ def attention(qkv, cache_k, cache_v, prefix_mask, suffix_mask, *, batch: int, nu
     (M, N * 2hp) with M / B rows an element. That is how a kv head's query heads folded into rows arrive (the caller
     passes num_heads = num_kv_heads; `layers._attend_kernel`).
 
+    packed: the same with both in one buffer, qkv (B (R + 2 Sp), K * 2hp): an element's R = M / B query rows, then its
+    Sp suffix rows of [k | v] as 2 Sp rows (R even). One XLA fusion then makes the kernel's two inputs (the kernel
+    reads kv as a view of rows twice as wide, at a row offset); the Triton kernel only (not `ops.mosaic_attention`).
+
     Under a sharded jit (the simulator's batch mesh) each device attends its own elements: every operand is
     batch-major, and XLA cannot split a kernel it does not know (it would gather every row onto every device).
     """
+    (m, sp), strides = suffix_mask.shape, None
+    if packed:
+        r = m // batch
+        if kv is not None or num_heads != num_kv_heads or r % 2 or qkv.shape[0] != batch * (r + 2 * sp):
+            raise ValueError(f"packed takes qkv of batch * ({r} + 2 * {sp}) rows (an even query count), one head "
+                             f"per kv head and no kv, got qkv {qkv.shape}, {num_heads} heads, kv "
+                             f"{None if kv is None else kv.shape}")
+        kv, strides = qkv.reshape(-1, 2 * qkv.shape[1]), (r + 2 * sp, r // 2 + sp, r // 2)
     hd = qkv.shape[1] // (num_heads + (0 if kv is not None else 2 * num_kv_heads))
     kv_cols = (num_heads * hd, (num_heads + num_kv_heads) * hd) if kv is None else (0, num_kv_heads * hd)
-    if kv is not None and kv.shape != (batch * suffix_mask.shape[1], 2 * num_kv_heads * hd):
-        raise ValueError(f"kv must be (batch * {suffix_mask.shape[1]}, {2 * num_kv_heads * hd}) suffix rows of "
-                         f"[k | v], got {kv.shape}")
+    if kv is not None and not packed and kv.shape != (batch * sp, 2 * num_kv_heads * hd):
+        raise ValueError(f"kv must be (batch * {sp}, {2 * num_kv_heads * hd}) suffix rows of [k | v], got {kv.shape}")
     return _partitioned(qkv, qkv if kv is None else kv, cache_k, cache_v, prefix_mask, suffix_mask, batch, num_heads,
-                        num_kv_heads, kv_cols, blocks)
+                        num_kv_heads, kv_cols, blocks, strides)
 
 
 def key_splits(key_blocks: int, wanted: int) -> tuple[int, int]:
@@ -363,10 +375,11 @@ def attention_launch(blocks: Blocks, prefix_keys: int) -> dict:
             "attention_warps": blocks.attention_warps, "fold": blocks.fold, "mosaic": blocks.mosaic_attention}
 
 
-def _attention(q, kv, cache_k, cache_v, prefix_mask, suffix_mask, batch, num_heads, num_kv_heads, kv_cols, blocks):
+def _attention(q, kv, cache_k, cache_v, prefix_mask, suffix_mask, batch, num_heads, num_kv_heads, kv_cols, blocks,
+               strides):
     (m, sk), hd = suffix_mask.shape, (kv_cols[1] - kv_cols[0]) // num_kv_heads
     sq, pp = m // batch, prefix_mask.shape[1]
-    if blocks.mosaic_attention and mosaic_attention.applies(q.dtype, head_dim=hd, query_rows=sq, suffix_keys=sk,
+    if strides is None and blocks.mosaic_attention and mosaic_attention.applies(q.dtype, head_dim=hd, query_rows=sq, suffix_keys=sk,
                                                             prefix_keys=pp):
         o, lse = mosaic_attention.attention(q, kv, cache_k, cache_v, prefix_mask,
                                             mosaic_attention.suffix_ends(suffix_mask), batch=batch,
@@ -377,7 +390,7 @@ def _attention(q, kv, cache_k, cache_v, prefix_mask, suffix_mask, batch, num_hea
         splits, per_split = key_splits(pp // bkv, blocks.kv_splits)
         kernel = functools.partial(_attention_kernel, m=m, bq=bq, bkv=bkv, sq=sq, sk=sk, pp=pp, hd=hd,
                                    num_heads=num_heads, num_kv_heads=num_kv_heads, splits=splits,
-                                   per_split=per_split, kv_cols=kv_cols)
+                                   per_split=per_split, kv_cols=kv_cols, strides=strides or (sq, sk, 0))
         out = (jax.ShapeDtypeStruct(((splits + 1) * m, num_heads * hd), q.dtype),
                jax.ShapeDtypeStruct(((splits + 1) * m, num_heads), jnp.float32))
         o, lse = _call(kernel, (batch, num_heads, sq // bq, splits + 1), out, "expert_attention",
@@ -389,10 +402,11 @@ def _attention(q, kv, cache_k, cache_v, prefix_mask, suffix_mask, batch, num_hea
     return merge(o, lse, parts=parts, num_heads=num_heads)
 
 
-@functools.partial(custom_partitioning, static_argnums=(6, 7, 8, 9, 10))
-def _partitioned(q, kv, cache_k, cache_v, prefix_mask, suffix_mask, batch, num_heads, num_kv_heads, kv_cols, blocks):
+@functools.partial(custom_partitioning, static_argnums=(6, 7, 8, 9, 10, 11))
+def _partitioned(q, kv, cache_k, cache_v, prefix_mask, suffix_mask, batch, num_heads, num_kv_heads, kv_cols, blocks,
+                 strides):
     return _attention(q, kv, cache_k, cache_v, prefix_mask, suffix_mask, batch, num_heads, num_kv_heads, kv_cols,
-                      blocks)
+                      blocks, strides)
 
 
 def _batch_rows(batch, mesh, sharding) -> tuple:
@@ -404,14 +418,14 @@ def _batch_rows(batch, mesh, sharding) -> tuple:
     return NamedSharding(mesh, P(axes, None)), n
 
 
-def _partition(batch, num_heads, num_kv_heads, kv_cols, blocks, mesh, arg_shapes, result_shape):
+def _partition(batch, num_heads, num_kv_heads, kv_cols, blocks, strides, mesh, arg_shapes, result_shape):
     rows, n = _batch_rows(batch, mesh, arg_shapes[0].sharding)
     fn = functools.partial(_attention, batch=batch // n, num_heads=num_heads, num_kv_heads=num_kv_heads,
-                           kv_cols=kv_cols, blocks=blocks)
+                           kv_cols=kv_cols, blocks=blocks, strides=strides)   # strides are an element's
     return mesh, fn, rows, (rows,) * 6
 
 
-def _infer(batch, num_heads, num_kv_heads, kv_cols, blocks, mesh, arg_shapes, result_shape):
+def _infer(batch, num_heads, num_kv_heads, kv_cols, blocks, strides, mesh, arg_shapes, result_shape):
     return _batch_rows(batch, mesh, arg_shapes[0].sharding)[0]
 
 
