@@ -376,7 +376,7 @@ def attention_launch(blocks: Blocks, prefix_keys: int) -> dict:
 
 
 def _attention(q, kv, cache_k, cache_v, prefix_mask, suffix_mask, batch, num_heads, num_kv_heads, kv_cols, blocks,
-               strides):
+               strides=None):
     (m, sk), hd = suffix_mask.shape, (kv_cols[1] - kv_cols[0]) // num_kv_heads
     sq, pp = m // batch, prefix_mask.shape[1]
     if strides is None and blocks.mosaic_attention and mosaic_attention.applies(q.dtype, head_dim=hd, query_rows=sq, suffix_keys=sk,
