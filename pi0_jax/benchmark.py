@@ -404,7 +404,8 @@ def run(args: argparse.Namespace, save=None) -> dict:
                                                "fp8_mlp_kernel": layers.fp8_mlp_kernel(),
                                                "fp8_kernel_from_rows": fp8_kernel_rows(),
                                                "fp8_row_pad": programs.FP8_ROW_PAD,
-                                               "pack_attention_input": layers.PACK_ATTENTION_INPUT},
+                                               "pack_attention_input": layers.PACK_ATTENTION_INPUT,
+                                               "attention_ends_in_merge": layers.ATTENTION_ENDS_IN_MERGE},
                "complete": False, "rows": [], "peers": [],
                "compile": {},
                "args": {k: str(v) for k, v in vars(args).items() if k != "func"}}

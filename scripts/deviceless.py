@@ -224,6 +224,9 @@ def main(argv=None) -> int:
     p.add_argument("--pack-attention", choices=("on", "off"), default="on",
                    help="the XLA expert's folded attention input as one buffer (engine.layers.PACK_ATTENTION_INPUT; "
                         "default: %(default)s)")
+    p.add_argument("--merge-ends", choices=("on", "off"), default="on",
+                   help="the XLA expert's attention merge cutting pad rows and quantising for an FP8 out-projection "
+                        "(engine.layers.ATTENTION_ENDS_IN_MERGE; default: %(default)s)")
     p.add_argument("--out", type=Path, default=None, help="JSON of counts per program (default: print only)")
     p.add_argument("--hlo", type=Path, default=None, help="a folder to write each program's optimized HLO to")
     p.add_argument("--fp8-mlp-sharded", action="store_true",
@@ -240,6 +243,7 @@ def main(argv=None) -> int:
     layers.FP8_GEGLU = {"auto": "auto", "on": True, "off": False}[args.fp8_mlp_kernel]
     programs.FP8_ROW_PAD = args.fp8_row_pad == "on"
     layers.PACK_ATTENTION_INPUT = args.pack_attention == "on"
+    layers.ATTENTION_ENDS_IN_MERGE = args.merge_ends == "on"
     sharding = target_sharding()
     results = {"target": TargetDevice.device_kind, "jax": jax.__version__, "commit": benchmark._git_commit(),
                "source": benchmark.source_digest(), "args": {k: str(v) for k, v in vars(args).items()},

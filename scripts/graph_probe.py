@@ -83,6 +83,9 @@ VARIANTS = {
     # with folded query heads in the XLA expert's attention (π0 at B = 8-16): its queries and the suffix's keys and
     # values as two buffers (PATCHES), where `layers.PACK_ATTENTION_INPUT` makes them one (one XLA fusion a layer fewer)
     "attention-unpacked": {},
+    # the same kernel's merge writing every padded row in the activation dtype, XLA's fusion after it cutting them and
+    # quantising for an FP8 out-projection (PATCHES), where `layers.ATTENTION_ENDS_IN_MERGE` does both in the merge
+    "merge-ends-off": {},
     # the call's vision tower as one program (RUNTIME), not two
     "one-vision-program": {},
     # every GEMM a Triton GEMM (no cuBLAS fallback) in the vision head's program ("vhead-") or both vision programs:
@@ -130,6 +133,7 @@ def scaled_geglu(h, w, kernel=False):
 # module attributes a variant sets (each restored to the engine's own for every other variant)
 PATCHES = {"gelu-tanh": (layers, {"gelu_tanh": lambda x: jax.nn.gelu(x, approximate=True)}),
            "attention-unpacked": (layers, {"PACK_ATTENTION_INPUT": False}),
+           "merge-ends-off": (layers, {"ATTENTION_ENDS_IN_MERGE": False}),
            "fp8-geglu-off": (layers, {"FP8_GEGLU": False}), "geglu-bf16": (layers, {"_mlp": scaled_geglu}),
            "fp8-geglu-expert-off": (layers, {"FP8_GEGLU_EXPERT_ROWS": None}),
            "fp8-gelu-vision-off": (vision, {"FP8_GELU_ROWS": None}),

@@ -37,6 +37,7 @@ def test_benchmark_dummy_writes_every_stage(tmp_path):
     assert results["env"]["fp8_kernel_from_rows"] == {"prefix_mlp": None, "expert_mlp": None, "vision_fc1": None}
     assert results["env"]["fp8_row_pad"] is True   # engine.programs.FP8_ROW_PAD: the FP8 expert's rows in 16s
     assert results["env"]["pack_attention_input"] is True   # engine.layers.PACK_ATTENTION_INPUT
+    assert results["env"]["attention_ends_in_merge"] is True
     assert list(results["compile"]["bfloat16"]["cold_compile_s_call"]) == ["B1_S2"]
     assert (tmp_path / "bench.png").stat().st_size > 1000
 

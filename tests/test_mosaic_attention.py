@@ -86,7 +86,7 @@ def test_kernel_splits_equal_the_triton_kernels(monkeypatch):
     sp, h = layout.suffix_rows(S), CFG.head_dim
     monkeypatch.setattr(ek, "merge_xla", lambda o, lse, **kw: (o, lse))   # the splits themselves
     (o_t, lse_t), (o_m, lse_m) = (
-        ek._attention(qkv, qkv, ck, cv, pmask, smask, B, CFG.num_heads, CFG.num_kv_heads, (2 * h, 3 * h),
+        ek._attention(qkv, qkv, ck, cv, pmask, smask, None, B, CFG.num_heads, CFG.num_kv_heads, (2 * h, 3 * h),
                       ek.Blocks(mosaic_attention=mosaic, xla_merge=True, kv_splits=2))
         for mosaic in (False, True))
     assert o_t.shape == o_m.shape == (3 * B * sp, 2 * h) and lse_m.shape == (3, CFG.num_heads, B * sp)

@@ -86,6 +86,9 @@ FP8_GEGLU_EXPERT_ROWS = 256
 # in one buffer (`expert_kernels.attention`'s packed), which one XLA fusion makes from q/k/v's GEMM output: else two
 # (an A/B switch, read when traced).
 PACK_ATTENTION_INPUT = True
+# The same kernel's split merge writes only each element's real rows and, before an FP8 x FP8 out-projection, its e4m3
+# input (`expert_kernels.merge`'s kept and scale): else one XLA fusion cuts and quantises after it (A/B, when traced).
+ATTENTION_ENDS_IN_MERGE = True
 
 
 def fp8_mlp_kernel() -> bool:
@@ -178,34 +181,37 @@ def query_rows(cfg: GemmaConfig, s: int, blocks: expert_kernels.Blocks) -> int:
     return -(-rows // blocks.q) * blocks.q
 
 
-def _attend_kernel(cfg: GemmaConfig, q, k, v, cache_k, cache_v, prefix_mask, suffix_mask):
+def _attend_kernel(cfg: GemmaConfig, q, k, v, cache_k, cache_v, prefix_mask, suffix_mask, out_scale=None):
     """The Pallas expert's split-key attention (`ops.expert_kernels.attention`) for the XLA expert's q (B,T,K,G,H)
     (post-RoPE, scaled), k, v (B,T,K,H), over the cache in the kernels' layout (B,Pp,K,2hp); masks as
     `pallas_tables` makes them at `expert_kernels.blocks_at`'s launch. Unfolded, one row block of [q | k | v] per
     element, suffix rows padded to Sp. Folded (MQA), the G query heads of a kv head are rows (T G) of one head, as
     in `_attend_fused`: an element's cache is then read by its blocks of T G rows (7 of 64 for 51 x 8) rather than
-    by its G heads' blocks of Sp rows (8 of 64), with less padding. Same sums per row. Returns (B, T, N H)."""
+    by its G heads' blocks of Sp rows (8 of 64), with less padding. Same sums per row. Returns (B, T, N H), in e4m3
+    quantised with out_scale where given and `ATTENTION_ENDS_IN_MERGE` (else out_scale is ignored)."""
     b, t = q.shape[:2]
     hd, kv_heads, blocks = cfg.head_dim, cfg.num_kv_heads, expert_kernels.blocks_at(b)
+    g = cfg.num_heads // kv_heads
+    ends = dict(out_rows=t * (g if blocks.fold else 1), out_scale=out_scale) if ATTENTION_ENDS_IN_MERGE else {}
     cache = (c.reshape(b * c.shape[1], -1) for c in (cache_k, cache_v))
     sp = layout.suffix_rows(t)
     if not blocks.fold:
         qkv = jnp.concatenate([q.reshape(b, t, -1, hd), k, v], axis=2).reshape(b, t, -1)
         qkv = layout.rows(layout.heads(qkv, -1, hd), sp)
         y = expert_kernels.attention(qkv, *cache, prefix_mask, suffix_mask, batch=b, num_heads=cfg.num_heads,
-                                     num_kv_heads=kv_heads, blocks=blocks)
-        return layout.unheads(y.reshape(b, sp, -1)[:, :t], hd)
-    g, rows = cfg.num_heads // kv_heads, query_rows(cfg, t, blocks)
+                                     num_kv_heads=kv_heads, blocks=blocks, **ends)
+        return layout.unheads(y.reshape(b, -1, y.shape[-1])[:, :t], hd)
+    rows = query_rows(cfg, t, blocks)
     kv = layout.rows(layout.heads(jnp.concatenate([k, v], axis=2).reshape(b, t, -1), -1, hd), sp)
     qf = layout.rows(layout.heads(einops.rearrange(q, "B T K G H -> B (T G) (K H)"), -1, hd), rows)
-    heads = dict(batch=b, num_heads=kv_heads, num_kv_heads=kv_heads, blocks=blocks)
+    heads = dict(batch=b, num_heads=kv_heads, num_kv_heads=kv_heads, blocks=blocks, **ends)
     if PACK_ATTENTION_INPUT and not blocks.mosaic_attention and rows % 2 == 0:
         packed = jnp.concatenate([qf.reshape(b, rows, -1), kv.reshape(b, 2 * sp, -1)], axis=1)
         y = expert_kernels.attention(packed.reshape(-1, qf.shape[1]), *cache, prefix_mask, suffix_mask, packed=True,
                                      **heads)
     else:
         y = expert_kernels.attention(qf, *cache, prefix_mask, suffix_mask, kv=kv, **heads)
-    y = layout.unheads(y.reshape(b, rows, -1)[:, : t * g], hd)
+    y = layout.unheads(y.reshape(b, -1, y.shape[-1])[:, : t * g], hd)
     return einops.rearrange(y, "B (T G) (K H) -> B T (K G H)", G=g, H=hd)
 
 
@@ -224,13 +230,17 @@ def suffix_layer(cfg: GemmaConfig, w, x, positions, cache_k, cache_v, prefix_mas
     h, gate = rms_norm(x, w.get("pre_attn"), mod_attn)
     q, k, v = _qkv(h, w["qkv"], cfg, positions)
     if kernel:
-        y = _attend_kernel(cfg, q, k, v, cache_k, cache_v, prefix_mask, suffix_mask)
+        y = _attend_kernel(cfg, q, k, v, cache_k, cache_v, prefix_mask, suffix_mask, input_scale(w["attn_out"]))
         k, v = cache_k, cache_v
     elif kv_len is None:
         y = _attend(q, [cache_k, k], [cache_v, v], [prefix_mask, suffix_mask], x.dtype)
     else:
         y, k, v = _attend_suffix_fused(q, k, v, cache_k, cache_v, kv_len, slot)
-    y = _mm(y, w["attn_out"])
+    if y.dtype == formats.E4M3:   # quantised by the attention kernel
+        y, scale = raw_mm(y, w["attn_out"], x.dtype)
+        y = (y.astype(jnp.float32) * scale).astype(x.dtype)   # `formats.qmatmul`'s end
+    else:
+        y = _mm(y, w["attn_out"])
     x = x + (y if gate is None else y * gate)
     h, gate = rms_norm(x, w.get("pre_ffw"), mod_ffw)
     rows = h.size // h.shape[-1]

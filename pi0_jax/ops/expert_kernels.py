@@ -47,7 +47,7 @@ from jax.experimental import pallas as pl
 from jax.experimental.custom_partitioning import custom_partitioning
 from jax.sharding import NamedSharding, PartitionSpec as P
 
-from pi0_jax.ops import layout, mosaic_attention, mosaic_gemm, pallas_base
+from pi0_jax.ops import formats, layout, mosaic_attention, mosaic_gemm, pallas_base
 from pi0_jax.ops.mosaic_gemm import Launch
 from pi0_jax.ops.pallas_base import ALIGN, dot, fit
 
@@ -319,7 +319,8 @@ def _attention_kernel(q_ref, kv_ref, ck_ref, cv_ref, pmask_ref, smask_ref, o_ref
 
 
 def attention(qkv, cache_k, cache_v, prefix_mask, suffix_mask, *, batch: int, num_heads: int, num_kv_heads: int,
-              blocks: Blocks = Blocks(), kv=None, packed: bool = False):
+              blocks: Blocks = Blocks(), kv=None, packed: bool = False, out_rows: int | None = None,
+              out_scale=None):
     """Softmax attention of the suffix queries over [cached prefix | suffix] keys -> (M, N * 2hp).
 
     qkv (M, (N + 2K) * 2hp) from `norm_qkv_rope`; cache_k / cache_v (B * P, K * 2hp); prefix_mask (B, P) int32, the
@@ -334,6 +335,10 @@ def attention(qkv, cache_k, cache_v, prefix_mask, suffix_mask, *, batch: int, nu
     packed: the same with both in one buffer, qkv (B (R + 2 Sp), K * 2hp): an element's R = M / B query rows, then its
     Sp suffix rows of [k | v] as 2 Sp rows (R even). One XLA fusion then makes the kernel's two inputs (the kernel
     reads kv as a view of rows twice as wide, at a row offset); the Triton kernel only (not `ops.mosaic_attention`).
+
+    out_rows: only each element's first out_rows query rows come out, (B out_rows, N * 2hp); out_scale: an f32
+    scalar, the output e4m3 with it (`formats.quantise`: the input of an FP8 out-projection). Both in the splits'
+    merge (`merge`), no kernel of their own.
 
     Under a sharded jit (the simulator's batch mesh) each device attends its own elements: every operand is
     batch-major, and XLA cannot split a kernel it does not know (it would gather every row onto every device).
@@ -350,8 +355,9 @@ def attention(qkv, cache_k, cache_v, prefix_mask, suffix_mask, *, batch: int, nu
     kv_cols = (num_heads * hd, (num_heads + num_kv_heads) * hd) if kv is None else (0, num_kv_heads * hd)
     if kv is not None and not packed and kv.shape != (batch * sp, 2 * num_kv_heads * hd):
         raise ValueError(f"kv must be (batch * {sp}, {2 * num_kv_heads * hd}) suffix rows of [k | v], got {kv.shape}")
-    return _partitioned(qkv, qkv if kv is None else kv, cache_k, cache_v, prefix_mask, suffix_mask, batch, num_heads,
-                        num_kv_heads, kv_cols, blocks, strides)
+    scale = jnp.zeros((1, 1), jnp.float32) if out_scale is None else out_scale.astype(jnp.float32).reshape(1, 1)
+    return _partitioned(qkv, qkv if kv is None else kv, cache_k, cache_v, prefix_mask, suffix_mask, scale, batch,
+                        num_heads, num_kv_heads, kv_cols, blocks, strides, out_rows, out_scale is not None)
 
 
 def key_splits(key_blocks: int, wanted: int) -> tuple[int, int]:
@@ -375,12 +381,12 @@ def attention_launch(blocks: Blocks, prefix_keys: int) -> dict:
             "attention_warps": blocks.attention_warps, "fold": blocks.fold, "mosaic": blocks.mosaic_attention}
 
 
-def _attention(q, kv, cache_k, cache_v, prefix_mask, suffix_mask, batch, num_heads, num_kv_heads, kv_cols, blocks,
-               strides=None):
+def _attention(q, kv, cache_k, cache_v, prefix_mask, suffix_mask, scale, batch, num_heads, num_kv_heads, kv_cols,
+               blocks, strides=None, kept=None, quantise=False):
     (m, sk), hd = suffix_mask.shape, (kv_cols[1] - kv_cols[0]) // num_kv_heads
     sq, pp = m // batch, prefix_mask.shape[1]
-    if strides is None and blocks.mosaic_attention and mosaic_attention.applies(q.dtype, head_dim=hd, query_rows=sq, suffix_keys=sk,
-                                                            prefix_keys=pp):
+    if strides is None and blocks.mosaic_attention and mosaic_attention.applies(
+            q.dtype, head_dim=hd, query_rows=sq, suffix_keys=sk, prefix_keys=pp):
         o, lse = mosaic_attention.attention(q, kv, cache_k, cache_v, prefix_mask,
                                             mosaic_attention.suffix_ends(suffix_mask), batch=batch,
                                             num_heads=num_heads, num_kv_heads=num_kv_heads, kv_cols=kv_cols, sk=sk,
@@ -396,17 +402,15 @@ def _attention(q, kv, cache_k, cache_v, prefix_mask, suffix_mask, batch, num_hea
         o, lse = _call(kernel, (batch, num_heads, sq // bq, splits + 1), out, "expert_attention",
                        blocks.attention_warps, blocks.attention_stages)(q, kv, cache_k, cache_v, prefix_mask,
                                                                         suffix_mask)
-    parts = o.shape[0] // m
-    if blocks.xla_merge or not pallas_base.TRITON:
-        return merge_xla(o, lse, parts=parts, num_heads=num_heads)
-    return merge(o, lse, parts=parts, num_heads=num_heads)
+    ends = dict(parts=o.shape[0] // m, num_heads=num_heads, batch=batch, kept=kept, scale=scale if quantise else None)
+    return (merge_xla if blocks.xla_merge or not pallas_base.TRITON else merge)(o, lse, **ends)
 
 
-@functools.partial(custom_partitioning, static_argnums=(6, 7, 8, 9, 10, 11))
-def _partitioned(q, kv, cache_k, cache_v, prefix_mask, suffix_mask, batch, num_heads, num_kv_heads, kv_cols, blocks,
-                 strides):
-    return _attention(q, kv, cache_k, cache_v, prefix_mask, suffix_mask, batch, num_heads, num_kv_heads, kv_cols,
-                      blocks, strides)
+@functools.partial(custom_partitioning, static_argnums=tuple(range(7, 15)))
+def _partitioned(q, kv, cache_k, cache_v, prefix_mask, suffix_mask, scale, batch, num_heads, num_kv_heads, kv_cols,
+                 blocks, strides, kept, quantise):
+    return _attention(q, kv, cache_k, cache_v, prefix_mask, suffix_mask, scale, batch, num_heads, num_kv_heads,
+                      kv_cols, blocks, strides, kept, quantise)
 
 
 def _batch_rows(batch, mesh, sharding) -> tuple:
@@ -418,57 +422,82 @@ def _batch_rows(batch, mesh, sharding) -> tuple:
     return NamedSharding(mesh, P(axes, None)), n
 
 
-def _partition(batch, num_heads, num_kv_heads, kv_cols, blocks, strides, mesh, arg_shapes, result_shape):
+def _partition(batch, num_heads, num_kv_heads, kv_cols, blocks, strides, kept, quantise, mesh, arg_shapes,
+               result_shape):
     rows, n = _batch_rows(batch, mesh, arg_shapes[0].sharding)
     fn = functools.partial(_attention, batch=batch // n, num_heads=num_heads, num_kv_heads=num_kv_heads,
-                           kv_cols=kv_cols, blocks=blocks, strides=strides)   # strides are an element's
-    return mesh, fn, rows, (rows,) * 6
+                           kv_cols=kv_cols, blocks=blocks, strides=strides, kept=kept, quantise=quantise)
+    return mesh, fn, rows, (rows,) * 6 + (NamedSharding(mesh, P()),)   # strides and kept are an element's
 
 
-def _infer(batch, num_heads, num_kv_heads, kv_cols, blocks, strides, mesh, arg_shapes, result_shape):
+def _infer(batch, num_heads, num_kv_heads, kv_cols, blocks, strides, kept, quantise, mesh, arg_shapes, result_shape):
     return _batch_rows(batch, mesh, arg_shapes[0].sharding)[0]
 
 
 # need_replication lists the factors in their order of appearance (Shardy's verifier wants them sorted)
 _partitioned.def_partition(partition=_partition, infer_sharding_from_operands=_infer,
-                           sharding_rule="r c, u f, k e, k e, b p, r s -> r d",
-                           need_replication_factors=("c", "f", "e", "p", "s", "d"))
+                           sharding_rule="r c, u f, k e, k e, b p, r s, o z -> r d",
+                           need_replication_factors=("c", "f", "e", "p", "s", "o", "z", "d"))
 
 
-def _merge_kernel(o_ref, lse_ref, out_ref, *, m, bm, bd, hd, parts, by_head):
+def _merge_kernel(o_ref, lse_ref, scale_ref, out_ref, *, m, bm, bd, hd, parts, by_head, rows, kept, quantise):
     """Program (i, n, c): rows block i, head n, columns block c of the head: the splits' outputs weighted by
-    exp(lse_s - max_s lse_s), in f32, over their sum. by_head: lse is (parts, N, M), else (parts M, N)."""
+    exp(lse_s - max_s lse_s), in f32, over their sum. by_head: lse is (parts, N, M), else (parts M, N). An element's
+    first `kept` of its `rows` rows are written, packed (a block past them writes nothing); quantise: rounded to o's
+    dtype, then over the scale (scale_ref (1, 1) f32) into e4m3, as `formats.quantise`."""
     i, n, c = pl.program_id(0), pl.program_id(1), pl.program_id(2)
-    if by_head:
-        lse = [lse_ref[s, n, pl.ds(i * bm, bm)][:, None] for s in range(parts)]
-    else:
-        lse = [lse_ref[pl.ds(s * m + i * bm, bm), pl.ds(n, 1)] for s in range(parts)]
-    top = functools.reduce(jnp.maximum, lse)
-    weights = [jnp.exp(x - top) for x in lse]
-    cols = pl.ds(n * hd + c * bd, bd)
-    acc = sum(w * o_ref[pl.ds(s * m + i * bm, bm), cols].astype(jnp.float32) for s, w in enumerate(weights))
-    out_ref[pl.ds(i * bm, bm), cols] = (acc / sum(weights)).astype(out_ref.dtype)
+    b, r = jax.lax.div(i * bm, rows), jax.lax.rem(i * bm, rows)
+
+    @pl.when(r < kept)
+    def _():
+        if by_head:
+            lse = [lse_ref[s, n, pl.ds(i * bm, bm)][:, None] for s in range(parts)]
+        else:
+            lse = [lse_ref[pl.ds(s * m + i * bm, bm), pl.ds(n, 1)] for s in range(parts)]
+        top = functools.reduce(jnp.maximum, lse)
+        weights = [jnp.exp(x - top) for x in lse]
+        cols = pl.ds(n * hd + c * bd, bd)
+        acc = sum(w * o_ref[pl.ds(s * m + i * bm, bm), cols].astype(jnp.float32) for s, w in enumerate(weights))
+        y = (acc / sum(weights)).astype(o_ref.dtype)
+        if quantise:
+            y = jnp.clip(y.astype(jnp.float32) / scale_ref[...], -formats.E4M3_MAX, formats.E4M3_MAX)
+        out_ref[pl.ds(b * kept + r, bm), cols] = y.astype(out_ref.dtype)
 
 
-def merge(o, lse, *, parts: int, num_heads: int, rows: int = 16, cols: int = 64):
+def merge(o, lse, *, parts: int, num_heads: int, rows: int = 16, cols: int = 64, batch: int = 1,
+          kept: int | None = None, scale=None):
     """The key splits' softmaxes as one: o (parts * M, N * hd) normalised per split, lse (parts * M, N) f32 (or
     (parts, N, M): `mosaic_attention`'s) -> (M, N * hd) = sum_s exp(lse_s - top) o_s / sum_s exp(lse_s - top),
     top = max_s lse_s, in f32 (in the splits' order). One kernel of many small programs (rows x cols of one head):
-    XLA made it two (the max apart)."""
+    XLA made it two (the max apart).
+
+    kept: only each element's first `kept` rows of its M / batch (B kept rows out: a cut of the pad rows that would
+    be a kernel of its own). scale: (1, 1) f32, the output e4m3 with it (`formats.quantise` of the output in o's
+    dtype: the next GEMM's FP8 input). Where whole row blocks of 8 cannot cut the rows, XLA's ops cut them after."""
     m, hd = o.shape[0] // parts, o.shape[1] // num_heads
-    bm, bd = fit(rows, m), fit(cols, hd)
-    kernel = functools.partial(_merge_kernel, m=m, bm=bm, bd=bd, hd=hd, parts=parts, by_head=lse.ndim == 3)
-    out = jax.ShapeDtypeStruct((m, num_heads * hd), o.dtype)
-    return _call(kernel, (m // bm, num_heads, hd // bd), out, "expert_attention_merge", 4, 1)(o, lse)
+    per, kept = m // batch, m // batch if kept is None else kept
+    bm, bd = fit(rows, math.gcd(per, kept)), fit(cols, hd)
+    if bm < min(rows, 8):   # rows blocks too small to cut: the kernel keeps every row
+        y = merge(o, lse, parts=parts, num_heads=num_heads, rows=rows, cols=cols, batch=batch, scale=scale)
+        return y.reshape(batch, per, -1)[:, :kept].reshape(batch * kept, -1)
+    kernel = functools.partial(_merge_kernel, m=m, bm=bm, bd=bd, hd=hd, parts=parts, by_head=lse.ndim == 3, rows=per,
+                               kept=kept, quantise=scale is not None)
+    out = jax.ShapeDtypeStruct((batch * kept, num_heads * hd), o.dtype if scale is None else formats.E4M3)
+    scale = jnp.zeros((1, 1), jnp.float32) if scale is None else scale   # read only to quantise
+    return _call(kernel, (m // bm, num_heads, hd // bd), out, "expert_attention_merge", 4, 1)(o, lse, scale)
 
 
-def merge_xla(o, lse, *, parts: int, num_heads: int):
+def merge_xla(o, lse, *, parts: int, num_heads: int, batch: int = 1, kept: int | None = None, scale=None):
     """`merge` as XLA's ops (no Pallas kernel), the same sums in f32."""
     m, hd = o.shape[0] // parts, o.shape[1] // num_heads
     lse = lse.reshape(parts, num_heads, m).transpose(0, 2, 1) if lse.ndim == 3 else lse.reshape(parts, m, num_heads)
     weights = jnp.exp(lse - jnp.max(lse, axis=0))[..., None]   # (parts, M, N, 1)
     acc = jnp.sum(weights * o.reshape(parts, m, num_heads, hd).astype(jnp.float32), axis=0)
-    return (acc / jnp.sum(weights, axis=0)).reshape(m, num_heads * hd).astype(o.dtype)
+    y = (acc / jnp.sum(weights, axis=0)).astype(o.dtype).reshape(batch, m // batch, num_heads * hd)
+    y = y[:, : m // batch if kept is None else kept]
+    if scale is not None:
+        y = formats.quantise(y, scale)
+    return y.reshape(-1, y.shape[-1])
 
 
 # -- GEMM + (gated) residual, norm + gate/up GEMM + GeGLU --------------------------------------------------------------
