@@ -16,7 +16,7 @@ from pi0_jax import gemma, pi0
 from pi0_jax.config import IMAGE_KEYS, get_config
 from pi0_jax.engine import Engine, layers, paths, programs
 from pi0_jax.ops import expert_kernels as ek
-from pi0_jax.ops import layout
+from pi0_jax.ops import formats, layout
 from pi0_jax.ops.expert_kernels import Blocks, Gemm
 from pi0_jax.ops.formats import E4M3
 from pi0_jax.quant import schemes
@@ -182,6 +182,29 @@ def test_xla_experts_call_of_the_attention_kernel_folds_query_heads(pi05, monkey
             packed=True)
 
 
+def test_attention_merge_cuts_pad_rows_and_quantises():
+    """`merge`'s kept and scale: each element's first rows only, in e4m3 as `formats.quantise` makes them from the
+    merged output in its dtype (values past ±448 scales saturate); rows cut in the kernel (24 of 32: blocks of 8) or
+    after it (20 of 32), as `merge_xla` does."""
+    parts, batch, rows, heads, hd = 3, 2, 32, 2, 64
+    o = _rand(60, parts * batch * rows, heads * hd).astype(jnp.bfloat16)
+    lse = _rand(61, parts * batch * rows, heads, scale=3.0)
+    kw = dict(parts=parts, num_heads=heads, batch=batch)
+    full = np.asarray(ek.merge(o, lse, **kw)).reshape(batch, rows, -1)
+    np.testing.assert_allclose(full.astype(np.float32), np.asarray(ek.merge_xla(o, lse, **kw), np.float32).reshape(
+        full.shape), rtol=1e-2, atol=1e-2)
+    scale = jnp.full((1, 1), 0.004, jnp.float32)   # |x| > 1.8 saturates
+    for kept in (24, 20):
+        cut = ek.merge(o, lse, kept=kept, **kw)
+        np.testing.assert_array_equal(cut, full[:, :kept].reshape(batch * kept, -1))
+        q = ek.merge(o, lse, kept=kept, scale=scale, **kw)
+        assert q.dtype == E4M3 and q.shape == (batch * kept, heads * hd)
+        np.testing.assert_array_equal(q.astype(np.float32), formats.quantise(cut, scale).astype(np.float32))
+        assert np.abs(q.astype(np.float32)).max() == formats.E4M3_MAX
+        qx = ek.merge_xla(o, lse, kept=kept, scale=scale, **kw).astype(np.float32)
+        assert qx.shape == q.shape and np.mean(np.asarray(qx) == np.asarray(q.astype(np.float32))) > 0.95
+
+
 @pytest.mark.parametrize("adaptive", [False, True])
 def test_mlp_kernels_match_xla(adaptive):
     w = _layer_weights(30)
@@ -280,6 +303,9 @@ def test_fp8_expert_rows_padded_to_16_leave_the_actions(monkeypatch):
 
     padded = actions()
     assert pads and set(pads) == {5}   # 11 + 5 rows an element: 32 a step
+    monkeypatch.setattr(layers, "ATTENTION_ENDS_IN_MERGE", False)   # out-projection's e4m3 input made by XLA
+    np.testing.assert_allclose(padded, actions(), **TOL)
+    monkeypatch.setattr(layers, "ATTENTION_ENDS_IN_MERGE", True)
     monkeypatch.setattr(programs, "FP8_ROW_PAD", False)
     pads.clear()
     np.testing.assert_allclose(padded, actions(), **TOL)
