@@ -80,12 +80,11 @@ VARIANTS = {
     # (STEP_ENDS), where `programs.FP8_ROW_PAD` pads each element's to make them a multiple of 16 (π0 at B = 8: 51
     # -> 52 rows, 36 of XLA's pads a step gone)
     "fp8-row-pad-off": {},
-    # with folded query heads in the XLA expert's attention (π0 at B = 8-16): its queries and the suffix's keys and
-    # values as two buffers (PATCHES), where `layers.PACK_ATTENTION_INPUT` makes them one (one XLA fusion a layer fewer)
-    "attention-unpacked": {},
-    # the same kernel's merge writing every padded row in the activation dtype, XLA's fusion after it cutting them and
-    # quantising for an FP8 out-projection (PATCHES), where `layers.ATTENTION_ENDS_IN_MERGE` does both in the merge
-    "merge-ends-off": {},
+    # the XLA expert's attention kernel (π0 at B = 3-16) with its ends as XLA fusions (PATCHES): the folded queries
+    # and the suffix's keys and values as two buffers, where `layers.PACK_ATTENTION_INPUT` makes them one; the merge
+    # writing every padded row in the activation dtype, a fusion after it cutting them and quantising for an FP8
+    # out-projection, where `layers.ATTENTION_ENDS_IN_MERGE` does both in the merge (two fusions a layer fewer at B = 8)
+    "attention-ends-off": {},
     # the call's vision tower as one program (RUNTIME), not two
     "one-vision-program": {},
     # every GEMM a Triton GEMM (no cuBLAS fallback) in the vision head's program ("vhead-") or both vision programs:
@@ -132,8 +131,7 @@ def scaled_geglu(h, w, kernel=False):
 
 # module attributes a variant sets (each restored to the engine's own for every other variant)
 PATCHES = {"gelu-tanh": (layers, {"gelu_tanh": lambda x: jax.nn.gelu(x, approximate=True)}),
-           "attention-unpacked": (layers, {"PACK_ATTENTION_INPUT": False}),
-           "merge-ends-off": (layers, {"ATTENTION_ENDS_IN_MERGE": False}),
+           "attention-ends-off": (layers, {"PACK_ATTENTION_INPUT": False, "ATTENTION_ENDS_IN_MERGE": False}),
            "fp8-geglu-off": (layers, {"FP8_GEGLU": False}), "geglu-bf16": (layers, {"_mlp": scaled_geglu}),
            "fp8-geglu-expert-off": (layers, {"FP8_GEGLU_EXPERT_ROWS": None}),
            "fp8-gelu-vision-off": (vision, {"FP8_GELU_ROWS": None}),
