@@ -184,8 +184,8 @@ def test_xla_experts_call_of_the_attention_kernel_folds_query_heads(pi05, monkey
 
 def test_attention_merge_cuts_pad_rows_and_quantises():
     """`merge`'s kept and scale: each element's first rows only, in e4m3 as `formats.quantise` makes them from the
-    merged output in its dtype (values past ±448 scales saturate); rows cut in the kernel (24 of 32: blocks of 8) or
-    after it (20 of 32), as `merge_xla` does."""
+    merged output in its dtype (values past ±448 scales saturate); rows cut in the kernel (24 or 20 of 32: blocks of
+    8 or 4) or after it (18 of 32), as `merge_xla` does."""
     parts, batch, rows, heads, hd = 3, 2, 32, 2, 64
     o = _rand(60, parts * batch * rows, heads * hd).astype(jnp.bfloat16)
     lse = _rand(61, parts * batch * rows, heads, scale=3.0)
@@ -194,7 +194,7 @@ def test_attention_merge_cuts_pad_rows_and_quantises():
     np.testing.assert_allclose(full.astype(np.float32), np.asarray(ek.merge_xla(o, lse, **kw), np.float32).reshape(
         full.shape), rtol=1e-2, atol=1e-2)
     scale = jnp.full((1, 1), 0.004, jnp.float32)   # |x| > 1.8 saturates
-    for kept in (24, 20):
+    for kept in (24, 20, 18):
         cut = ek.merge(o, lse, kept=kept, **kw)
         np.testing.assert_array_equal(cut, full[:, :kept].reshape(batch * kept, -1))
         q = ek.merge(o, lse, kept=kept, scale=scale, **kw)

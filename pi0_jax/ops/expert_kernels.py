@@ -473,11 +473,13 @@ def merge(o, lse, *, parts: int, num_heads: int, rows: int = 16, cols: int = 64,
 
     kept: only each element's first `kept` rows of its M / batch (B kept rows out: a cut of the pad rows that would
     be a kernel of its own). scale: (1, 1) f32, the output e4m3 with it (`formats.quantise` of the output in o's
-    dtype: the next GEMM's FP8 input). Where whole row blocks of 8 cannot cut the rows, XLA's ops cut them after."""
+    dtype: the next GEMM's FP8 input). Row blocks shrink to cut the rows (with wider column blocks: as many values a
+    program); where blocks of 4 cannot, XLA's ops cut them after."""
     m, hd = o.shape[0] // parts, o.shape[1] // num_heads
     per, kept = m // batch, m // batch if kept is None else kept
-    bm, bd = fit(rows, math.gcd(per, kept)), fit(cols, hd)
-    if bm < min(rows, 8):   # rows blocks too small to cut: the kernel keeps every row
+    bm = fit(rows, math.gcd(per, kept))
+    bd = fit(cols * max(1, rows // bm), hd)
+    if bm < min(rows, 4):   # rows blocks too small to cut: the kernel keeps every row
         y = merge(o, lse, parts=parts, num_heads=num_heads, rows=rows, cols=cols, batch=batch, scale=scale)
         return y.reshape(batch, per, -1)[:, :kept].reshape(batch * kept, -1)
     kernel = functools.partial(_merge_kernel, m=m, bm=bm, bd=bd, hd=hd, parts=parts, by_head=lse.ndim == 3, rows=per,
