@@ -440,13 +440,13 @@ _partitioned.def_partition(partition=_partition, infer_sharding_from_operands=_i
                            need_replication_factors=("c", "f", "e", "p", "s", "o", "z", "d"))
 
 
-def _merge_kernel(o_ref, lse_ref, scale_ref, out_ref, *, m, bm, bd, hd, parts, by_head, rows, kept, quantise):
+def _merge_kernel(o_ref, lse_ref, scale_ref, out_ref, *, m, bm, bd, hd, parts, by_head, per, kept, quantise):
     """Program (i, n, c): rows block i, head n, columns block c of the head: the splits' outputs weighted by
     exp(lse_s - max_s lse_s), in f32, over their sum. by_head: lse is (parts, N, M), else (parts M, N). An element's
-    first `kept` of its `rows` rows are written, packed (a block past them writes nothing); quantise: rounded to o's
+    first `kept` of its `per` rows are written, packed (a block past them writes nothing); quantise: rounded to o's
     dtype, then over the scale (scale_ref (1, 1) f32) into e4m3, as `formats.quantise`."""
     i, n, c = pl.program_id(0), pl.program_id(1), pl.program_id(2)
-    b, r = jax.lax.div(i * bm, rows), jax.lax.rem(i * bm, rows)
+    b, r = jax.lax.div(i * bm, per), jax.lax.rem(i * bm, per)
 
     @pl.when(r < kept)
     def _():
@@ -482,7 +482,7 @@ def merge(o, lse, *, parts: int, num_heads: int, rows: int = 16, cols: int = 64,
     if bm < min(rows, 4):   # rows blocks too small to cut: the kernel keeps every row
         y = merge(o, lse, parts=parts, num_heads=num_heads, rows=rows, cols=cols, batch=batch, scale=scale)
         return y.reshape(batch, per, -1)[:, :kept].reshape(batch * kept, -1)
-    kernel = functools.partial(_merge_kernel, m=m, bm=bm, bd=bd, hd=hd, parts=parts, by_head=lse.ndim == 3, rows=per,
+    kernel = functools.partial(_merge_kernel, m=m, bm=bm, bd=bd, hd=hd, parts=parts, by_head=lse.ndim == 3, per=per,
                                kept=kept, quantise=scale is not None)
     out = jax.ShapeDtypeStruct((batch * kept, num_heads * hd), o.dtype if scale is None else formats.E4M3)
     scale = jnp.zeros((1, 1), jnp.float32) if scale is None else scale   # read only to quantise
