@@ -7,7 +7,8 @@ over K (hundreds of short programs, f32 partials), and the cheap elementwise wor
   matmul_partials  [x * (1 + scale)] @ w over one K chunk, plus the chunk's sum of squares (the norm's statistics)
                    and adaRMS's shift @ w: the norm is applied after the GEMM, as a per-row 1 / rms
   attention        the suffix queries over [cached prefix | suffix] keys: an online softmax over each of several key
-                   splits in parallel (flash-decoding), merged by their log-sum-exp
+                   splits in parallel (flash-decoding), merged by their log-sum-exp (the merge can also cut each
+                   element's pad rows and write an FP8 out-projection's e4m3 input)
 
   norm_qkv_rope    = matmul_partials, then (XLA) the split sum, 1 / rms, RoPE and q's scaling
   norm_geglu       = matmul_partials, then (XLA) the split sum, 1 / rms, GELU-tanh(gate) * up
