@@ -184,7 +184,7 @@ def test_xla_experts_call_of_the_attention_kernel_folds_query_heads(pi05, monkey
 
 def test_attention_merge_cuts_pad_rows_and_quantises():
     """`merge`'s kept and scale: each element's first rows only, in e4m3 as `formats.quantise` makes them from the
-    merged output in its dtype (values past ±448 scales saturate); rows cut in the kernel (24 or 20 of 32: blocks of
+    merged output in its dtype (past ±448 scales, saturated); rows cut in the kernel (24 or 20 of 32: blocks of
     8 or 4) or after it (18 of 32), as `merge_xla` does."""
     parts, batch, rows, heads, hd = 3, 2, 32, 2, 64
     o = _rand(60, parts * batch * rows, heads * hd).astype(jnp.bfloat16)
