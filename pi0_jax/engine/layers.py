@@ -52,6 +52,13 @@ def raw_mm(x, w, dtype):
     return y, (None if scale is None else jnp.broadcast_to(scale, y.shape[-1:]))
 
 
+def _scaled_mm(xq, w, dtype):
+    """x @ w for an e4m3 x that a kernel quantised with `input_scale(w)`: the FP8 product scaled in f32 and rounded
+    to dtype, `formats.qmatmul`'s end."""
+    y, scale = raw_mm(xq, w, dtype)
+    return (y.astype(jnp.float32) * scale).astype(dtype)
+
+
 def _qkv(h, w, cfg: GemmaConfig, positions):
     qkv = _mm(h, w)
     nq = cfg.num_heads * cfg.head_dim
@@ -115,8 +122,7 @@ def _mlp(h, w, kernel: bool = False):
         product, scale = raw_mm(xq, gate_up, h.dtype)
         gate, up = layout.split_gate_up(product.astype(jnp.float32) * scale)
         y = formats.quantise(gelu_tanh(gate) * up, down.act_scale)
-    z, scale = raw_mm(y, down, h.dtype)
-    return (z.astype(jnp.float32) * scale).astype(h.dtype)   # `formats.qmatmul`'s end
+    return _scaled_mm(y, down, h.dtype)
 
 
 def _attend(q, ks, vs, masks, dtype):
@@ -236,11 +242,8 @@ def suffix_layer(cfg: GemmaConfig, w, x, positions, cache_k, cache_v, prefix_mas
         y = _attend(q, [cache_k, k], [cache_v, v], [prefix_mask, suffix_mask], x.dtype)
     else:
         y, k, v = _attend_suffix_fused(q, k, v, cache_k, cache_v, kv_len, slot)
-    if y.dtype == formats.E4M3:   # quantised by the attention kernel
-        y, scale = raw_mm(y, w["attn_out"], x.dtype)
-        y = (y.astype(jnp.float32) * scale).astype(x.dtype)   # `formats.qmatmul`'s end
-    else:
-        y = _mm(y, w["attn_out"])
+    # the attention kernel quantised y for an FP8 out-projection
+    y = _scaled_mm(y, w["attn_out"], x.dtype) if y.dtype == formats.E4M3 else _mm(y, w["attn_out"])
     x = x + (y if gate is None else y * gate)
     h, gate = rms_norm(x, w.get("pre_ffw"), mod_ffw)
     rows = h.size // h.shape[-1]
