@@ -32,7 +32,7 @@ import profile_engine  # noqa: E402
 from pi0_jax import benchmark  # noqa: E402
 from pi0_jax.config import get_config  # noqa: E402
 from pi0_jax.engine import Engine, layers, paths, programs, runtime, vision  # noqa: E402
-from pi0_jax.ops import formats, fp8_geglu, layout  # noqa: E402
+from pi0_jax.ops import expert_kernels, formats, fp8_geglu, layout  # noqa: E402
 from pi0_jax.quant.schemes import SCHEMES  # noqa: E402
 
 GRAPHS = {"xla_gpu_graph_min_graph_size": 1}
@@ -85,6 +85,11 @@ VARIANTS = {
     # writing every padded row in the activation dtype, a fusion after it cutting them and quantising for an FP8
     # out-projection, where `layers.ATTENTION_ENDS_IN_MERGE` does both in the merge (two fusions a layer fewer at B = 8)
     "attention-ends-off": {},
+    # the same kernel taking q/k/v's GEMM output through PACK_ATTENTION_INPUT's fusion (column scales, RoPE, the fold),
+    # where `layers.ROPE_IN_ATTENTION` does those inside the kernel
+    "rope-in-attention-off": {},
+    # the same kernel with a kv head's query heads folded into its rows from B = 4 (`expert_kernels.FOLD_FROM`), not 8
+    "fold-from-4": {},
     # the call's vision tower as one program (RUNTIME), not two
     "one-vision-program": {},
     # every GEMM a Triton GEMM (no cuBLAS fallback) in the vision head's program ("vhead-") or both vision programs:
@@ -106,6 +111,8 @@ VARIANTS = {
     # kernel's launch with 3 pipeline stages and a snake of 16 tiles (fp8_geglu.LAUNCH; 2-4 % faster alone in session
     # 56, level in π0's call at B = 1 in session 57)
     "fp8-geglu-expert-off": {},
+    # ... and from 128 rows a step (π0 at B = 4 too)
+    "fp8-geglu-expert-128": {},
     "fp8-gelu-vision-off": {},
     "fp8-geglu-3stages": {},
     # with FP8 weights: the FP8 MLP as the engine ran it until session 56 (PATCHES: gate and up scaled and rounded to
@@ -134,6 +141,9 @@ PATCHES = {"gelu-tanh": (layers, {"gelu_tanh": lambda x: jax.nn.gelu(x, approxim
            "attention-ends-off": (layers, {"PACK_ATTENTION_INPUT": False, "ATTENTION_ENDS_IN_MERGE": False}),
            "fp8-geglu-off": (layers, {"FP8_GEGLU": False}), "geglu-bf16": (layers, {"_mlp": scaled_geglu}),
            "fp8-geglu-expert-off": (layers, {"FP8_GEGLU_EXPERT_ROWS": None}),
+           "fp8-geglu-expert-128": (layers, {"FP8_GEGLU_EXPERT_ROWS": 128}),
+           "fold-from-4": (expert_kernels, {"FOLD_FROM": 4}),
+           "rope-in-attention-off": (layers, {"ROPE_IN_ATTENTION": False}),
            "fp8-gelu-vision-off": (vision, {"FP8_GELU_ROWS": None}),
            "fp8-geglu-3stages": (fp8_geglu, {"LAUNCH": fp8_geglu.Launch(stages=3, snake=16)}),
            "scales-apart": (formats, {"fold_scales": lambda tree: tree})}
