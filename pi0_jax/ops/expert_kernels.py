@@ -53,6 +53,7 @@ from pi0_jax.ops.mosaic_gemm import Launch
 from pi0_jax.ops.pallas_base import ALIGN, dot, fit, plgpu
 
 BIG_NEG = -2.3819763e38  # masked logits: the value pi0_jax.gemma fills (a test checks they agree)
+SUFFIX_KEYS = 16  # the attention's suffix keys a loop step where the kernel rotates them (`attention`'s rope)
 EPS = 1e-6
 
 
@@ -345,25 +346,31 @@ def _attention_kernel(q_ref, kv_ref, ck_ref, cv_ref, pmask_ref, smask_ref, *refs
 
     @pl.when(s == splits)
     def _suffix():
-        valid = smask_ref[rows, :] != 0
         if rope is None:
             suffix = pl.ds(b * strides[1] + strides[2], sk)
             k_col, v_col = kv_cols[0] + kh * hd, kv_cols[1] + kh * hd
-            write(update(init, [kv_ref[suffix, pl.ds(k_col, hd)]], [kv_ref[suffix, pl.ds(v_col, hd)]], valid))
+            write(update(init, [kv_ref[suffix, pl.ds(k_col, hd)]], [kv_ref[suffix, pl.ds(v_col, hd)]],
+                         smask_ref[rows, :] != 0))
             return
-        # the element's t suffix rows of k and v (heads N + kh, N + K + kh), read as sk: rows past t masked
-        real = jax.lax.broadcasted_iota(jnp.int32, (sk, 1, 1), 0) < t
-        zero = jnp.zeros((), q_ref.dtype)
+        # the element's t suffix rows of k and v (heads N + kh, N + K + kh) in blocks of sb: rows past t masked;
+        # blocks, not all sk rows at once, to keep k's rotation in f32 off the registers the queries hold
+        sb, nq, zero = min(sk, SUFFIX_KEYS), num_heads * g, jnp.zeros((), q_ref.dtype)
 
-        def load(head, c):
-            y = plgpu.load(q_ref.at[pl.ds(b * t, sk), pl.ds(head, 1), pl.ds(c, h2)], mask=real, other=zero)
-            y = y.reshape(sk, h2)
-            return (y.astype(jnp.float32) * cols_ref[pl.ds(head, 1), pl.ds(c, h2)]).astype(y.dtype) if scaled else y
+        def block(j, carry):
+            real = jax.lax.broadcasted_iota(jnp.int32, (sb, 1, 1), 0) + j * sb < t
 
-        nq = num_heads * g
-        k = [load(nq + kh, c) for c in (0, h2)]
-        turn = [tab_ref[pl.ds(b * sk, sk), pl.ds(c, h2)] for c in (0, hp)]
-        write(update(init, _rotate(k, *turn), [load(nq + num_kv_heads + kh, c) for c in (0, h2)], valid))
+            def load(head, c):
+                y = plgpu.load(q_ref.at[pl.ds(b * t + j * sb, sb), pl.ds(head, 1), pl.ds(c, h2)], mask=real,
+                               other=zero).reshape(sb, h2)
+                return (y.astype(jnp.float32) * cols_ref[pl.ds(head, 1), pl.ds(c, h2)]).astype(y.dtype) if scaled \
+                    else y
+
+            turn = [tab_ref[pl.ds(b * sk + j * sb, sb), pl.ds(c, h2)] for c in (0, hp)]
+            k = _rotate([load(nq + kh, c) for c in (0, h2)], *turn)
+            keys = smask_ref[rows, pl.ds(j * sb, sb)] != 0
+            return update(carry, k, [load(nq + num_kv_heads + kh, c) for c in (0, h2)], keys)
+
+        write(jax.lax.fori_loop(0, -(-t // sb), block, init))
 
 
 def _rotate(x, cos, sin):
