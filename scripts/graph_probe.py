@@ -85,9 +85,6 @@ VARIANTS = {
     # writing every padded row in the activation dtype, a fusion after it cutting them and quantising for an FP8
     # out-projection, where `layers.ATTENTION_ENDS_IN_MERGE` does both in the merge (two fusions a layer fewer at B = 8)
     "attention-ends-off": {},
-    # the same kernel taking q/k/v's GEMM output through PACK_ATTENTION_INPUT's fusion (column scales, RoPE, the fold),
-    # where `layers.ROPE_IN_ATTENTION` does those inside the kernel
-    "rope-in-attention-off": {},
     # the same kernel with a kv head's query heads folded into its rows from B = 4 (`expert_kernels.FOLD_FROM`), not 8
     "fold-from-4": {},
     # the call's vision tower as one program (RUNTIME), not two
@@ -143,7 +140,6 @@ PATCHES = {"gelu-tanh": (layers, {"gelu_tanh": lambda x: jax.nn.gelu(x, approxim
            "fp8-geglu-expert-off": (layers, {"FP8_GEGLU_EXPERT_ROWS": None}),
            "fp8-geglu-expert-128": (layers, {"FP8_GEGLU_EXPERT_ROWS": 128}),
            "fold-from-4": (expert_kernels, {"FOLD_FROM": 4}),
-           "rope-in-attention-off": (layers, {"ROPE_IN_ATTENTION": False}),
            "fp8-gelu-vision-off": (vision, {"FP8_GELU_ROWS": None}),
            "fp8-geglu-3stages": (fp8_geglu, {"LAUNCH": fp8_geglu.Launch(stages=3, snake=16)}),
            "scales-apart": (formats, {"fold_scales": lambda tree: tree})}

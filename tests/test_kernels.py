@@ -182,38 +182,6 @@ def test_xla_experts_call_of_the_attention_kernel_folds_query_heads(pi05, monkey
             packed=True)
 
 
-@pytest.mark.parametrize("head_dim", [16, 32])   # RoPE halves of 8 padded to 16 (the dummy's), or of 16 unpadded
-@pytest.mark.parametrize("scaled", [False, True])
-def test_attention_kernel_rotates_and_folds_the_gemm_output_itself(head_dim, scaled, monkeypatch):
-    """`expert_kernels.attention`'s rope (`layers._attend_kernel_rope`): the kernel takes q/k/v's GEMM output as it
-    is, applies its columns' scales (an FP8 product's), RoPE and the query scale, and folds a kv head's 4 query heads
-    into its rows itself (11 tokens: query blocks of 4 tokens from rows 0, 16 and 28, the last block overlapping the
-    one before), as XLA's ops do before `layers._attend`."""
-    cfg = dataclasses.replace(CFG, head_dim=head_dim)
-    n, kh, h = cfg.num_heads, cfg.num_kv_heads, head_dim
-    positions = 17 + jnp.arange(S)[None].repeat(B, 0) + jnp.arange(B)[:, None]
-    y = _rand(70, B, S, (n + 2 * kh) * h)
-    cols = 0.5 + jnp.abs(_rand(71, (n + 2 * kh) * h)) if scaled else None
-    ys = y if cols is None else y * cols
-    q = gemma.apply_rope(ys[..., : n * h].reshape(B, S, n, h), positions) * h**-0.5
-    k, v = ys[..., n * h:].reshape(B, S, 2, kh, h).transpose(2, 0, 1, 3, 4)
-    ck, cv = _rand(23, B, P, kh, h), _rand(24, B, P, kh, h)
-    pmask, smask = _prefix_mask(), _suffix_mask(False)
-    want = layers._attend(q.reshape(B, S, kh, n // kh, h), [ck, gemma.apply_rope(k, positions)], [cv, v],
-                          [jnp.broadcast_to(pmask[:, None], (B, S, P)), smask], jnp.float32)
-    blocks = Blocks(q=16, kv=32, kv_splits=3, fold=True)
-    monkeypatch.setattr(ek, "blocks_at", lambda batch: blocks)
-    assert layers.rope_in_attention(cfg, B, S) and not layers.rope_in_attention(cfg, B, 3)   # blocks of 4 tokens
-    cos, sin, pm, sm = layers.pallas_tables(cfg, positions, layout.cache_mask(pmask), smask, blocks)
-    ck, cv = (layout.cache_kv(c, h) for c in (ck, cv))
-    got = layers._attend_kernel_rope(cfg, y, cols, (cos, sin), ck, cv, pm, sm)
-    np.testing.assert_allclose(got, want.reshape(got.shape), **TOL)
-    with pytest.raises(ValueError, match="rope takes"):   # the GEMM output of one element too few
-        ek.attention(y.reshape(B * S, -1)[:S], ck.reshape(B * ck.shape[1], -1), cv.reshape(B * cv.shape[1], -1),
-                     pm, sm, batch=B, num_heads=n, num_kv_heads=kh, blocks=blocks,
-                     rope=(jnp.concatenate([cos, sin], 1), None))
-
-
 def test_attention_merge_cuts_pad_rows_and_quantises():
     """`merge`'s kept and scale: each element's first rows only, in e4m3 as `formats.quantise` makes them from the
     merged output in its dtype (past ±448 scales, saturated); rows cut in the kernel (24 or 20 of 32: blocks of

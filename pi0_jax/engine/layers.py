@@ -18,7 +18,6 @@ import jax.numpy as jnp
 from pi0_jax.config import GemmaConfig
 from pi0_jax.gemma import _BIG_NEG, apply_rope
 from pi0_jax.ops import attention, expert_kernels, formats, fp8_geglu, layout, mosaic_gemm
-from pi0_jax.ops.pallas_base import fit
 from pi0_jax.ops.formats import QArray
 from pi0_jax.ops.matmul import input_scale, matmul, raw_matmul
 
@@ -97,10 +96,6 @@ PACK_ATTENTION_INPUT = True
 # The same kernel's split merge writes only each element's real rows and, before an FP8 x FP8 out-projection, its e4m3
 # input (`expert_kernels.merge`'s kept and scale): else one XLA fusion cuts and quantises after it (A/B, when traced).
 ATTENTION_ENDS_IN_MERGE = True
-# With folded query heads the kernel takes q/k/v's GEMM output as it is and applies its FP8 column scales, RoPE and
-# the query scale itself (`expert_kernels.attention`'s rope): no XLA fusion between the GEMM and the attention. Else
-# PACK_ATTENTION_INPUT's fusion (an A/B switch, read when traced).
-ROPE_IN_ATTENTION = True
 
 
 def fp8_mlp_kernel() -> bool:
@@ -226,31 +221,8 @@ def _attend_kernel(cfg: GemmaConfig, q, k, v, cache_k, cache_v, prefix_mask, suf
     return einops.rearrange(y, "B (T G) (K H) -> B T (K G H)", G=g, H=hd)
 
 
-def rope_in_attention(cfg: GemmaConfig, b: int, t: int) -> bool:
-    """Whether the XLA expert's attention kernel takes q/k/v's GEMM output before RoPE (`ROPE_IN_ATTENTION`) at B = b,
-    t rows an element: with folded query heads, on the Triton kernel, whose query blocks hold whole tokens' heads."""
-    blocks, g = expert_kernels.blocks_at(b), cfg.num_heads // cfg.num_kv_heads
-    bq = fit(blocks.q, query_rows(cfg, t, blocks)) if blocks.fold else 0
-    return ROPE_IN_ATTENTION and blocks.fold and not blocks.mosaic_attention and bq % g == 0 and t >= bq // g
-
-
-def _attend_kernel_rope(cfg: GemmaConfig, y, cols, rope, cache_k, cache_v, prefix_mask, suffix_mask, out_scale=None):
-    """`_attend_kernel` from q/k/v's GEMM output y (B,T,(N+2K)H) as `raw_mm` leaves it (cols: an FP8 product's
-    column scales, or None), for the kernel to scale, rotate and fold (`rope_in_attention`); rope: the kernel
-    tables' (cos, sin) (`pallas_tables`). Returns (B, T, N H) as `_attend_kernel`."""
-    b, t = y.shape[:2]
-    hd, g = cfg.head_dim, cfg.num_heads // cfg.num_kv_heads
-    ends = dict(out_rows=t * g, out_scale=out_scale) if ATTENTION_ENDS_IN_MERGE else {}
-    cache = (c.reshape(b * c.shape[1], -1) for c in (cache_k, cache_v))
-    y = expert_kernels.attention(y.reshape(b * t, -1), *cache, prefix_mask, suffix_mask, batch=b,
-                                 num_heads=cfg.num_heads, num_kv_heads=cfg.num_kv_heads,
-                                 blocks=expert_kernels.blocks_at(b), rope=(jnp.concatenate(rope, axis=1), cols), **ends)
-    y = layout.unheads(y.reshape(b, -1, y.shape[-1])[:, : t * g], hd)
-    return einops.rearrange(y, "B (T G) (K H) -> B T (K G H)", G=g, H=hd)
-
-
 def suffix_layer(cfg: GemmaConfig, w, x, positions, cache_k, cache_v, prefix_mask, suffix_mask, mods=None,
-                 kv_len=None, kernel: bool = False, slot: int = 0, rope=None):
+                 kv_len=None, kernel: bool = False, slot: int = 0):
     """One action-expert layer over the suffix, attending to [cached prefix | suffix]. Returns (x, k, v).
 
     cache_k/v (B,P,K,H); prefix_mask (B,S,P); suffix_mask (B,S,S); mods: None (π0) or (attn, ffw) adaRMS outputs.
@@ -258,20 +230,13 @@ def suffix_layer(cfg: GemmaConfig, w, x, positions, cache_k, cache_v, prefix_mas
     (B,) key lengths for the fused kernel; cache_k/v are then the suffix-first buffers (B,S'+P,K,H) of
     `_attend_suffix_fused`, k, v come back as those buffers with this step's suffix keys in them from `slot` on, and
     suffix_mask is unused (every row sees every suffix key). kernel: the attention is the Pallas kernel's
-    (`_attend_kernel`; cache_k/v and the masks in its layout, returned as given); rope: its tables' (cos, sin)
-    (`pallas_tables`), for RoPE inside it where `rope_in_attention`.
+    (`_attend_kernel`; cache_k/v and the masks in its layout, returned as given).
     """
     mod_attn, mod_ffw = mods if mods is not None else (None, None)
     h, gate = rms_norm(x, w.get("pre_attn"), mod_attn)
-    inside = kernel and rope is not None and rope_in_attention(cfg, *x.shape[:2])   # RoPE inside the kernel
-    if inside:
-        y = _attend_kernel_rope(cfg, *raw_mm(h, w["qkv"], x.dtype), rope, cache_k, cache_v, prefix_mask, suffix_mask,
-                                input_scale(w["attn_out"]))
-    else:
-        q, k, v = _qkv(h, w["qkv"], cfg, positions)
+    q, k, v = _qkv(h, w["qkv"], cfg, positions)
     if kernel:
-        if not inside:
-            y = _attend_kernel(cfg, q, k, v, cache_k, cache_v, prefix_mask, suffix_mask, input_scale(w["attn_out"]))
+        y = _attend_kernel(cfg, q, k, v, cache_k, cache_v, prefix_mask, suffix_mask, input_scale(w["attn_out"]))
         k, v = cache_k, cache_v
     elif kv_len is None:
         y = _attend(q, [cache_k, k], [cache_v, v], [prefix_mask, suffix_mask], x.dtype)

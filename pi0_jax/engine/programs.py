@@ -265,12 +265,10 @@ def step_velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array
         x = jnp.pad(x, ((0, 0), (0, pad), (0, 0)))
         positions = jnp.pad(positions, ((0, 0), (0, pad)), mode="edge")
 
-    kernel = attention.denoise == "pallas"
-
     def layer(w, x, k, v, *mod):
         m = None if mods is None else mod
         x, k, v = layers.suffix_layer(config.action_expert, w, x, positions, k, v, prefix_mask, suffix_mask, m,
-                                      kv_len, kernel=kernel, slot=slot, rope=fixed["tables"][:2] if kernel else None)
+                                      kv_len, kernel=attention.denoise == "pallas", slot=slot)
         return (x, k, v) if kv_len is not None else (x,)
 
     per_layer = [cache.k, cache.v] if kv is None else list(kv)

@@ -50,10 +50,9 @@ from jax.sharding import NamedSharding, PartitionSpec as P
 
 from pi0_jax.ops import formats, layout, mosaic_attention, mosaic_gemm, pallas_base
 from pi0_jax.ops.mosaic_gemm import Launch
-from pi0_jax.ops.pallas_base import ALIGN, dot, fit, plgpu
+from pi0_jax.ops.pallas_base import ALIGN, dot, fit
 
 BIG_NEG = -2.3819763e38  # masked logits: the value pi0_jax.gemma fills (a test checks they agree)
-SUFFIX_KEYS = 16  # the attention's suffix keys a loop step where the kernel rotates them (`attention`'s rope)
 EPS = 1e-6
 
 
@@ -275,114 +274,58 @@ def norm_qkv_rope(x, mods, mod_row: int, adaptive: bool, w_qkv, cos, sin, *, wid
 
 
 # -- attention over [cached prefix | suffix] ---------------------------------------------------------------------------
-def _attention_kernel(q_ref, kv_ref, ck_ref, cv_ref, pmask_ref, smask_ref, *refs, m, bq, bkv, sq, sk, pp, hd,
-                      num_heads, num_kv_heads, splits, per_split, kv_cols, strides, rope):
+def _attention_kernel(q_ref, kv_ref, ck_ref, cv_ref, pmask_ref, smask_ref, o_ref, lse_ref, *, m, bq, bkv, sq, sk, pp,
+                      hd, num_heads, num_kv_heads, splits, per_split, kv_cols, strides):
     """Program (b, n, qi, s): query block qi of head n over prefix key blocks [s * per_split, (s + 1) * per_split)
     (s < splits; blocks past the cache are masked), or over the suffix keys (s == splits). Writes the split's
     normalised output (in the dtype) and its log-sum-exp (f32). An element's sq queries are rows from b qs of q, its
     sk suffix keys and values rows from b ks + ko of kv at columns kv_cols (+ the kv head's offset); strides =
-    (qs, ks, ko), (sq, sk, 0) unless q and kv are views of one packed buffer (`attention`'s packed).
-
-    rope (`attention`'s rope): None, or (t, g, h2, scaled, q_scale). q_ref is then q/k/v's GEMM output as (B t, N + 2K, H)
-    before RoPE (kv_ref the same), refs start with RoPE's [cos | sin] rows (B sk, 2 hp) and the columns' f32 scales
-    (N + 2K, H) (read if scaled). A block's bq rows are t0 + bq / g tokens of g folded heads, t0 = qi bq / g but at
-    most t - bq / g (the last block overlaps the one before it and writes the same values; rows past t g are not
-    written). The logits and the output are sums over the two RoPE halves (width h2, at 0 and hp of a head)."""
-    o_ref, lse_ref = refs[-2:]
+    (qs, ks, ko), (sq, sk, 0) unless q and kv are views of one packed buffer (`attention`'s packed)."""
     b, n, qi, s = pl.program_id(0), pl.program_id(1), pl.program_id(2), pl.program_id(3)
     kh = jax.lax.div(n, num_heads // num_kv_heads) if num_kv_heads > 1 else 0  # this query head's kv head
-    if rope is None:
-        r0, halves = qi * bq, ((0, hd),)
-        qs = (q_ref[pl.ds(b * strides[0] + r0, bq), pl.ds(n * hd, hd)],)
-    else:
-        t, g, h2, scaled, q_scale = rope
-        tq, hp = bq // g, hd // 2
-        t0 = jnp.minimum(qi * tq, t - tq)
-        r0, halves = t0 * g, ((0, h2), (hp, h2))
-        tab_ref, cols_ref = refs[0], refs[1]
-        heads = pl.ds(n * g, g)
-        raw = [q_ref[pl.ds(b * t + t0, tq), heads, pl.ds(c, h2)] for c in (0, h2)]   # (tq, g, h2) each
-        if scaled:
-            raw = [(x.astype(jnp.float32) * cols_ref[heads, pl.ds(c, h2)][None]).astype(x.dtype)
-                   for x, c in zip(raw, (0, h2))]
-        turn = [tab_ref[pl.ds(b * sk + t0, tq), pl.ds(c, h2)][:, None, :] for c in (0, hp)]   # cos, sin (tq, 1, h2)
-        qs = tuple((y * jnp.asarray(q_scale, y.dtype)).reshape(bq, h2) for y in _rotate(raw, *turn))
-    dtype = qs[0].dtype
-    rows = pl.ds(b * sq + r0, bq)
+    rows = pl.ds(b * sq + qi * bq, bq)
+    q = q_ref[pl.ds(b * strides[0] + qi * bq, bq), pl.ds(n * hd, hd)]
+    dtype = q.dtype
     blocks = pp // bkv
 
-    def update(carry, ks, vs, valid):
-        os, mx, l = carry
-        logits = jnp.where(valid, sum(dot(q, k, trans_b=True) for q, k in zip(qs, ks)), BIG_NEG)  # f32
+    def update(carry, k, v, valid):
+        o, mx, l = carry
+        logits = jnp.where(valid, dot(q, k, trans_b=True), BIG_NEG)  # f32
         m_new = jnp.maximum(mx, jnp.max(logits, axis=1))
         corr = jnp.exp(mx - m_new)
         p = jnp.exp(logits - m_new[:, None])
-        os = tuple(o * corr[:, None] + dot(p.astype(dtype), v) for o, v in zip(os, vs))
-        return os, m_new, l * corr + jnp.sum(p, axis=1)
+        return o * corr[:, None] + dot(p.astype(dtype), v), m_new, l * corr + jnp.sum(p, axis=1)
 
     def write(carry):
-        os, mx, l = carry
-        out_rows = pl.ds(s * m + b * sq + r0, bq)
-        for o, (c, w) in zip(os, halves):
-            o_ref[out_rows, pl.ds(n * hd + c, w)] = (o / l[:, None]).astype(o_ref.dtype)
-            if rope is not None and w < hd // 2:   # a padded half (small test models): zeros, as `layout.heads`
-                o_ref[out_rows, pl.ds(n * hd + c + w, hd // 2 - w)] = jnp.zeros((bq, hd // 2 - w), o_ref.dtype)
+        o, mx, l = carry
+        out_rows = pl.ds(s * m + b * sq + qi * bq, bq)
+        o_ref[out_rows, pl.ds(n * hd, hd)] = (o / l[:, None]).astype(o_ref.dtype)
         lse_ref[out_rows, pl.ds(n, 1)] = (mx + jnp.log(l))[:, None]
 
-    init = (tuple(jnp.zeros((bq, w), jnp.float32) for _, w in halves), jnp.full((bq,), BIG_NEG, jnp.float32),
-            jnp.zeros((bq,), jnp.float32))
+    init = (jnp.zeros((bq, hd), jnp.float32), jnp.full((bq,), BIG_NEG, jnp.float32), jnp.zeros((bq,), jnp.float32))
 
     @pl.when(s < splits)
     def _prefix():
-        def block(i, carry):
-            i = s * per_split + i
-            tc = jnp.minimum(i, blocks - 1)  # a block past the cache reads the last one, all masked
+        def block(t, carry):
+            t = s * per_split + t
+            tc = jnp.minimum(t, blocks - 1)  # a block past the cache reads the last one, all masked
             keys = pl.ds(b * pp + tc * bkv, bkv)
-            valid = (pmask_ref[pl.ds(b, 1), pl.ds(tc * bkv, bkv)] != 0) & (i < blocks)
-            return update(carry, [ck_ref[keys, pl.ds(kh * hd + c, w)] for c, w in halves],
-                          [cv_ref[keys, pl.ds(kh * hd + c, w)] for c, w in halves], valid)
+            valid = (pmask_ref[pl.ds(b, 1), pl.ds(tc * bkv, bkv)] != 0) & (t < blocks)
+            return update(carry, ck_ref[keys, pl.ds(kh * hd, hd)], cv_ref[keys, pl.ds(kh * hd, hd)], valid)
 
         write(jax.lax.fori_loop(0, per_split, block, init))
 
     @pl.when(s == splits)
     def _suffix():
-        if rope is None:
-            suffix = pl.ds(b * strides[1] + strides[2], sk)
-            k_col, v_col = kv_cols[0] + kh * hd, kv_cols[1] + kh * hd
-            write(update(init, [kv_ref[suffix, pl.ds(k_col, hd)]], [kv_ref[suffix, pl.ds(v_col, hd)]],
-                         smask_ref[rows, :] != 0))
-            return
-        # the element's t suffix rows of k and v (heads N + kh, N + K + kh) in blocks of sb: rows past t masked;
-        # blocks, not all sk rows at once, to keep k's rotation in f32 off the registers the queries hold
-        sb, nq, zero = min(sk, SUFFIX_KEYS), num_heads * g, jnp.zeros((), q_ref.dtype)
-
-        def block(j, carry):
-            real = jax.lax.broadcasted_iota(jnp.int32, (sb, 1, 1), 0) + j * sb < t
-
-            def load(head, c):
-                y = plgpu.load(q_ref.at[pl.ds(b * t + j * sb, sb), pl.ds(head, 1), pl.ds(c, h2)], mask=real,
-                               other=zero).reshape(sb, h2)
-                return (y.astype(jnp.float32) * cols_ref[pl.ds(head, 1), pl.ds(c, h2)]).astype(y.dtype) if scaled \
-                    else y
-
-            turn = [tab_ref[pl.ds(b * sk + j * sb, sb), pl.ds(c, h2)] for c in (0, hp)]
-            k = _rotate([load(nq + kh, c) for c in (0, h2)], *turn)
-            keys = smask_ref[rows, pl.ds(j * sb, sb)] != 0
-            return update(carry, k, [load(nq + num_kv_heads + kh, c) for c in (0, h2)], keys)
-
-        write(jax.lax.fori_loop(0, -(-t // sb), block, init))
-
-
-def _rotate(x, cos, sin):
-    """RoPE's halves (x1, x2) -> (x1 cos - x2 sin, x2 cos + x1 sin) in f32, rounded to x's dtype, as
-    `pi0_jax.gemma.apply_rope` computes them."""
-    x1, x2 = (a.astype(jnp.float32) for a in x)
-    return (x1 * cos - x2 * sin).astype(x[0].dtype), (x2 * cos + x1 * sin).astype(x[0].dtype)
+        suffix = pl.ds(b * strides[1] + strides[2], sk)
+        k_col, v_col = kv_cols[0] + kh * hd, kv_cols[1] + kh * hd
+        write(update(init, kv_ref[suffix, pl.ds(k_col, hd)], kv_ref[suffix, pl.ds(v_col, hd)],
+                     smask_ref[rows, :] != 0))
 
 
 def attention(qkv, cache_k, cache_v, prefix_mask, suffix_mask, *, batch: int, num_heads: int, num_kv_heads: int,
               blocks: Blocks = Blocks(), kv=None, packed: bool = False, out_rows: int | None = None,
-              out_scale=None, rope=None):
+              out_scale=None):
     """Softmax attention of the suffix queries over [cached prefix | suffix] keys -> (M, N * 2hp).
 
     qkv (M, (N + 2K) * 2hp) from `norm_qkv_rope`; cache_k / cache_v (B * P, K * 2hp); prefix_mask (B, P) int32, the
@@ -398,15 +341,6 @@ def attention(qkv, cache_k, cache_v, prefix_mask, suffix_mask, *, batch: int, nu
     Sp suffix rows of [k | v] as 2 Sp rows (R even). One XLA fusion then makes the kernel's two inputs (the kernel
     reads kv as a view of rows twice as wide, at a row offset); the Triton kernel only (not `ops.mosaic_attention`).
 
-    rope: (tables, cols), the folded call with q/k/v's ends inside the kernel: qkv is then q/k/v's GEMM output before
-    RoPE, (B T, (N + 2K) H) with H unpadded and the queries unscaled, cols None or its columns' f32 output scales
-    ((N + 2K) H,: an FP8 product's, applied and rounded to qkv's dtype first, as `formats.qmatmul`), tables RoPE's
-    [cos | sin] (B Sp, 2hp) f32 (`layout.rope_tables` of the suffix's positions). The kernel reads each kv head's
-    G = N / K query heads as rows (T G of an element's R = M / B, suffix_mask's rows folded as
-    `engine.layers.pallas_tables` makes them), rotates q and the suffix's k, scales q by H ** -0.5 (`engine.layers.
-    _qkv`'s numerics) and returns (B R, K 2hp) as the folded call does: no XLA fusion before it. Needs G to divide
-    the query block and T >= its tokens; the Triton kernel only.
-
     out_rows: only each element's first out_rows query rows come out, (B out_rows, N * 2hp); out_scale: an f32
     scalar, the output e4m3 with it (`formats.quantise`: the input of an FP8 out-projection). Both in the splits'
     merge (`merge`), no kernel of their own.
@@ -415,23 +349,6 @@ def attention(qkv, cache_k, cache_v, prefix_mask, suffix_mask, *, batch: int, nu
     batch-major, and XLA cannot split a kernel it does not know (it would gather every row onto every device).
     """
     (m, sp), strides = suffix_mask.shape, None
-    scale = jnp.zeros((1, 1), jnp.float32) if out_scale is None else out_scale.astype(jnp.float32).reshape(1, 1)
-    if rope is not None:
-        tables, cols = rope
-        heads, g, hp = num_heads + 2 * num_kv_heads, num_heads // num_kv_heads, tables.shape[1] // 2
-        h, t, bq = qkv.shape[1] // heads, qkv.shape[0] // batch, fit(blocks.q, m // batch)
-        if (packed or kv is not None or blocks.mosaic_attention or num_heads % num_kv_heads or bq % g
-                or t < bq // g or m // batch < t * g or h % 2 or h // 2 > hp or tables.shape[0] != batch * sp
-                or qkv.shape != (batch * t, heads * h)):
-            raise ValueError(f"rope takes q/k/v's output (batch * T, {heads} * H) with {g} query heads a kv head that "
-                             f"divide a query block ({bq} rows) of at most T of them, tables (batch * {sp}, 2 hp) "
-                             f"and {m // batch} >= T {g} suffix rows, no kv, packed or Mosaic kernel: got qkv "
-                             f"{qkv.shape}, tables {tables.shape}")
-        cols = jnp.zeros((heads, h), jnp.float32) if cols is None else cols.astype(jnp.float32).reshape(heads, h)
-        rope_static = (t, g, h // 2, rope[1] is not None, h**-0.5)
-        return _partitioned(qkv, qkv, cache_k, cache_v, prefix_mask, suffix_mask, scale, tables, cols, batch,
-                            num_kv_heads, num_kv_heads, (0, 2 * hp * num_kv_heads), blocks, None, out_rows,
-                            out_scale is not None, rope_static)
     if packed:
         r = m // batch
         if kv is not None or num_heads != num_kv_heads or r % 2 or qkv.shape[0] != batch * (r + 2 * sp):
@@ -443,10 +360,9 @@ def attention(qkv, cache_k, cache_v, prefix_mask, suffix_mask, *, batch: int, nu
     kv_cols = (num_heads * hd, (num_heads + num_kv_heads) * hd) if kv is None else (0, num_kv_heads * hd)
     if kv is not None and not packed and kv.shape != (batch * sp, 2 * num_kv_heads * hd):
         raise ValueError(f"kv must be (batch * {sp}, {2 * num_kv_heads * hd}) suffix rows of [k | v], got {kv.shape}")
-    none = jnp.zeros((batch, 1), jnp.float32)   # no rope tables and column scales
-    return _partitioned(qkv, qkv if kv is None else kv, cache_k, cache_v, prefix_mask, suffix_mask, scale, none,
-                        none[:1], batch, num_heads, num_kv_heads, kv_cols, blocks, strides, out_rows,
-                        out_scale is not None, None)
+    scale = jnp.zeros((1, 1), jnp.float32) if out_scale is None else out_scale.astype(jnp.float32).reshape(1, 1)
+    return _partitioned(qkv, qkv if kv is None else kv, cache_k, cache_v, prefix_mask, suffix_mask, scale, batch,
+                        num_heads, num_kv_heads, kv_cols, blocks, strides, out_rows, out_scale is not None)
 
 
 def key_splits(key_blocks: int, wanted: int) -> tuple[int, int]:
@@ -470,11 +386,11 @@ def attention_launch(blocks: Blocks, prefix_keys: int) -> dict:
             "attention_warps": blocks.attention_warps, "fold": blocks.fold, "mosaic": blocks.mosaic_attention}
 
 
-def _attention(q, kv, cache_k, cache_v, prefix_mask, suffix_mask, scale, tables, cols, batch, num_heads,
-               num_kv_heads, kv_cols, blocks, strides=None, kept=None, quantise=False, rope=None):
+def _attention(q, kv, cache_k, cache_v, prefix_mask, suffix_mask, scale, batch, num_heads, num_kv_heads, kv_cols,
+               blocks, strides=None, kept=None, quantise=False):
     (m, sk), hd = suffix_mask.shape, (kv_cols[1] - kv_cols[0]) // num_kv_heads
     sq, pp = m // batch, prefix_mask.shape[1]
-    if rope is None and strides is None and blocks.mosaic_attention and mosaic_attention.applies(
+    if strides is None and blocks.mosaic_attention and mosaic_attention.applies(
             q.dtype, head_dim=hd, query_rows=sq, suffix_keys=sk, prefix_keys=pp):
         o, lse = mosaic_attention.attention(q, kv, cache_k, cache_v, prefix_mask,
                                             mosaic_attention.suffix_ends(suffix_mask), batch=batch,
@@ -485,25 +401,21 @@ def _attention(q, kv, cache_k, cache_v, prefix_mask, suffix_mask, scale, tables,
         splits, per_split = key_splits(pp // bkv, blocks.kv_splits)
         kernel = functools.partial(_attention_kernel, m=m, bq=bq, bkv=bkv, sq=sq, sk=sk, pp=pp, hd=hd,
                                    num_heads=num_heads, num_kv_heads=num_kv_heads, splits=splits,
-                                   per_split=per_split, kv_cols=kv_cols, strides=strides or (sq, sk, 0), rope=rope)
+                                   per_split=per_split, kv_cols=kv_cols, strides=strides or (sq, sk, 0))
         out = (jax.ShapeDtypeStruct(((splits + 1) * m, num_heads * hd), q.dtype),
                jax.ShapeDtypeStruct(((splits + 1) * m, num_heads), jnp.float32))
-        if rope is None:
-            operands = (q, kv, cache_k, cache_v, prefix_mask, suffix_mask)
-        else:   # q/k/v's output as (rows, heads, H): a kv head's query heads are a block of the middle axis
-            y = q.reshape(q.shape[0], *cols.shape)
-            operands = (y, y, cache_k, cache_v, prefix_mask, suffix_mask, tables, cols)
         o, lse = _call(kernel, (batch, num_heads, sq // bq, splits + 1), out, "expert_attention",
-                       blocks.attention_warps, blocks.attention_stages)(*operands)
+                       blocks.attention_warps, blocks.attention_stages)(q, kv, cache_k, cache_v, prefix_mask,
+                                                                        suffix_mask)
     ends = dict(parts=o.shape[0] // m, num_heads=num_heads, batch=batch, kept=kept, scale=scale if quantise else None)
     return (merge_xla if blocks.xla_merge or not pallas_base.TRITON else merge)(o, lse, **ends)
 
 
-@functools.partial(custom_partitioning, static_argnums=tuple(range(9, 18)))
-def _partitioned(q, kv, cache_k, cache_v, prefix_mask, suffix_mask, scale, tables, cols, batch, num_heads,
-                 num_kv_heads, kv_cols, blocks, strides, kept, quantise, rope):
-    return _attention(q, kv, cache_k, cache_v, prefix_mask, suffix_mask, scale, tables, cols, batch, num_heads,
-                      num_kv_heads, kv_cols, blocks, strides, kept, quantise, rope)
+@functools.partial(custom_partitioning, static_argnums=tuple(range(7, 15)))
+def _partitioned(q, kv, cache_k, cache_v, prefix_mask, suffix_mask, scale, batch, num_heads, num_kv_heads, kv_cols,
+                 blocks, strides, kept, quantise):
+    return _attention(q, kv, cache_k, cache_v, prefix_mask, suffix_mask, scale, batch, num_heads, num_kv_heads,
+                      kv_cols, blocks, strides, kept, quantise)
 
 
 def _batch_rows(batch, mesh, sharding) -> tuple:
@@ -515,24 +427,22 @@ def _batch_rows(batch, mesh, sharding) -> tuple:
     return NamedSharding(mesh, P(axes, None)), n
 
 
-def _partition(batch, num_heads, num_kv_heads, kv_cols, blocks, strides, kept, quantise, rope, mesh, arg_shapes,
+def _partition(batch, num_heads, num_kv_heads, kv_cols, blocks, strides, kept, quantise, mesh, arg_shapes,
                result_shape):
     rows, n = _batch_rows(batch, mesh, arg_shapes[0].sharding)
     fn = functools.partial(_attention, batch=batch // n, num_heads=num_heads, num_kv_heads=num_kv_heads,
-                           kv_cols=kv_cols, blocks=blocks, strides=strides, kept=kept, quantise=quantise, rope=rope)
-    replicated = NamedSharding(mesh, P())
-    return mesh, fn, rows, (rows,) * 6 + (replicated, rows, replicated)   # strides, kept and rope are an element's
+                           kv_cols=kv_cols, blocks=blocks, strides=strides, kept=kept, quantise=quantise)
+    return mesh, fn, rows, (rows,) * 6 + (NamedSharding(mesh, P()),)   # strides and kept are an element's
 
 
-def _infer(batch, num_heads, num_kv_heads, kv_cols, blocks, strides, kept, quantise, rope, mesh, arg_shapes,
-           result_shape):
+def _infer(batch, num_heads, num_kv_heads, kv_cols, blocks, strides, kept, quantise, mesh, arg_shapes, result_shape):
     return _batch_rows(batch, mesh, arg_shapes[0].sharding)[0]
 
 
 # need_replication lists the factors in their order of appearance (Shardy's verifier wants them sorted)
 _partitioned.def_partition(partition=_partition, infer_sharding_from_operands=_infer,
-                           sharding_rule="r c, u f, k e, k e, b p, r s, o z, t h, w x -> r d",
-                           need_replication_factors=("c", "f", "e", "p", "s", "o", "z", "h", "w", "x", "d"))
+                           sharding_rule="r c, u f, k e, k e, b p, r s, o z -> r d",
+                           need_replication_factors=("c", "f", "e", "p", "s", "o", "z", "d"))
 
 
 def _merge_kernel(o_ref, lse_ref, scale_ref, out_ref, *, m, bm, bd, hd, parts, by_head, per, kept, quantise):
