@@ -1,7 +1,7 @@
 """Compile the engine's programs for an H200 on a machine with no GPU: XLA's deviceless ahead-of-time compile.
 
 What it shows without a GPU: whether every kernel of the engine compiles for sm_90a (Pallas Triton and Mosaic GPU
-through ptxas; Mosaic GPU's registers and spills), the optimized HLO's kernel counts per program and per denoise step
+through ptxas; their registers and spills a thread), the optimized HLO's kernel counts per program and per denoise step
 (`profile_engine.count_ops`: fusions, library calls and copies, each one GPU kernel), and the GEMMs that are FP8. What
 it cannot show: time. The GEMMs are not autotuned (no device to time them on), so where XLA's autotuner would pick
 another tiling or split-K on a GPU the counts may differ by those kernels: compare them with a GPU run's
@@ -25,6 +25,8 @@ import contextlib
 import json
 import os
 import re
+import shutil
+import subprocess
 import sys
 import tempfile
 import time
@@ -127,10 +129,10 @@ def fp8_mlp_sharded(rows: int = 816, devices: int = 2) -> dict:
             "kernel_rows": sorted(set(int(r) for r in re.findall(r"f8e4m3fn\[(\d+),16384\]", text)))}
 
 
-def abstract_engine(config, quant: str | None, sharding=None, **engine_kw) -> Engine:
+def abstract_engine(config, quant: str | None, sharding=None, dump: Path | None = None, **engine_kw) -> Engine:
     """An Engine whose weights are shapes (`store.compile` replaced): its programs compiled for the target's device
-    (`sharding`: `target_sharding`, which takes the CUDA plugin), or without one lowered for CUDA only (each program a
-    `jax.stages.Lowered`: no plugin needed, the tests)."""
+    (`sharding`: `target_sharding`, which takes the CUDA plugin; XLA's dump, its PTX included, into `dump`), or
+    without one lowered for CUDA only (each program a `jax.stages.Lowered`: no plugin needed, the tests)."""
     params = pi0.param_shapes(config)
     if quant:   # unit amaxes, shaped as `schemes.calibrate` gives them: a layer's each where the weight is stacked
         depth = {"img": config.siglip.depth, "vlm": config.paligemma.depth, "expert": config.action_expert.depth}
@@ -149,8 +151,10 @@ def abstract_engine(config, quant: str | None, sharding=None, **engine_kw) -> En
         engine.store.compile = lambda name, parts, fn, args, options=None: (
             jax.jit(fn).trace(*args).lower(lowering_platforms=("cuda",)))
     else:
+        dumped = {} if dump is None else {"xla_dump_to": str(dump)}
         engine.store.compile = lambda name, parts, fn, args, options=None: (
-            jax.jit(fn, in_shardings=sharding, out_shardings=sharding).lower(*args).compile(options))
+            jax.jit(fn, in_shardings=sharding, out_shardings=sharding).lower(*args).compile(
+                {**(options or {}), **dumped}))
     return engine
 
 
@@ -167,6 +171,45 @@ def ptxas_info(root: Path) -> list[dict]:
                      "serialised_wgmma": "serialized" in text,   # ptxas's "wgmma.mma_async ... serialized"
                      "notes": re.findall(r"\((C\d+)\) ([^\n]+)", text)})
     return rows
+
+
+def ptxas_binary() -> str | None:
+    """The CUDA toolkit's ptxas that jax's CUDA wheels bring (`nvidia-cuda-nvcc`), else one on PATH."""
+    try:
+        import nvidia.cuda_nvcc
+        found = Path(next(iter(nvidia.cuda_nvcc.__path__))) / "bin" / "ptxas"
+        if found.exists():
+            return str(found)
+    except (ImportError, StopIteration):
+        pass
+    return shutil.which("ptxas")
+
+
+def pallas_names(hlo: str) -> set:
+    """The Pallas kernels an optimized HLO text calls (jax names each pallas_call's op after its kernel)."""
+    return set(re.findall(r'op_name="[^"]*/(\w+)/pallas_call"', hlo))
+
+
+def triton_ptxas(root: Path, names: set) -> list[dict]:
+    """The Pallas Triton kernels of XLA's PTX dump (`xla_dump_to`) as ptxas builds them for sm_90a: registers and
+    spills a thread. A kernel past 255 registers spills to local memory; that made an attention kernel of session
+    60 16 % slower (docs/BENCHMARKS.md). One row per kernel and build (a program's copy of a kernel may differ)."""
+    ptxas = ptxas_binary()
+    rows = {}
+    for path in sorted(root.glob("*.ptx")) if ptxas else ():
+        entries = re.findall(r"\.entry (\w+)\(", path.read_text())
+        if len(entries) != 1 or entries[0] not in names:
+            continue
+        with tempfile.NamedTemporaryFile(suffix=".cubin") as cubin:
+            text = subprocess.run([ptxas, "-arch=sm_90a", "-v", str(path), "-o", cubin.name], capture_output=True,
+                                  text=True).stderr
+        regs = re.search(r"Used (\d+) registers", text)
+        spill = re.search(r"(\d+) bytes spill stores, (\d+) bytes spill loads", text)
+        row = {"kernel": entries[0], "registers": int(regs.group(1)) if regs else None,
+               "spill_store_bytes": int(spill.group(1)) if spill else None,
+               "spill_load_bytes": int(spill.group(2)) if spill else None}
+        rows[tuple(row.values())] = row
+    return sorted(rows.values(), key=lambda r: r["kernel"])
 
 
 def kinds(hlo: str) -> dict:
@@ -250,7 +293,9 @@ def main(argv=None) -> int:
                "programs": []}
     with tempfile.TemporaryDirectory() as dump, as_target():
         os.environ.update(MOSAIC_GPU_DUMP_PTXAS="1", MOSAIC_GPU_DUMP_TO=dump)
-        engine = abstract_engine(config, args.quant, sharding, kernels=args.kernels, attention=args.attention)
+        engine = abstract_engine(config, args.quant, sharding, dump=Path(dump) / "xla", kernels=args.kernels,
+                                 attention=args.attention)
+        names = set()
         for stage in engine.call_stages(args.batch, args.steps):
             start = time.perf_counter()
             program = engine.executable(stage, args.batch, args.steps, cameras, bucket)
@@ -259,6 +304,7 @@ def main(argv=None) -> int:
                 args.hlo.mkdir(parents=True, exist_ok=True)
                 (args.hlo / f"{stage}.hlo").write_text(hlo)
             counts = count_ops(hlo)
+            names |= pallas_names(hlo)
             loops = set(re.findall(r"while\(.*?body=%([\w.\-]+)", hlo))
             bodies = {k: v for k, v in counts.items() if k in loops}
             entry = next(v for k, v in counts.items() if k.startswith("ENTRY"))
@@ -274,9 +320,16 @@ def main(argv=None) -> int:
                   f"FP8 GEMMs {row['fp8_gemms']}, Mosaic GPU {row['mosaic_gpu']}, Triton {row['triton']} "
                   f"({row['compile_s']} s)", flush=True)
         results["mosaic_gpu_kernels"] = ptxas_info(Path(dump))
+        results["triton_kernels"] = triton_ptxas(Path(dump) / "xla", names)
     for k in results["mosaic_gpu_kernels"]:
         print(f"  {k['kernel']}: {k['registers']} registers, spills {k['spill_store_bytes']} / "
               f"{k['spill_load_bytes']} B{', wgmma serialised' if k['serialised_wgmma'] else ''}")
+    for k in results["triton_kernels"]:
+        print(f"  {k['kernel']} (Triton): {k['registers']} registers, spills {k['spill_store_bytes']} / "
+              f"{k['spill_load_bytes']} B")
+    if names and not results["triton_kernels"]:
+        print("  Triton kernels' registers: no ptxas found" if ptxas_binary() is None else
+              "  Triton kernels' registers: none of the Pallas kernels was found in XLA's PTX dump")
     if args.fp8_mlp_sharded:
         results["fp8_mlp_sharded"] = fp8_mlp_sharded()
         print(f"FP8 MLP kernel on 2 devices: {results['fp8_mlp_sharded']}")
