@@ -192,8 +192,8 @@ def pallas_names(hlo: str) -> set:
 
 def triton_ptxas(root: Path, names: set) -> list[dict]:
     """The Pallas Triton kernels of XLA's PTX dump (`xla_dump_to`) as ptxas builds them for sm_90a: registers and
-    spills a thread. A kernel past 255 registers spills to local memory; that made an attention kernel of session
-    60 16 % slower (docs/BENCHMARKS.md). One row per kernel and build (a program's copy of a kernel may differ)."""
+    spills a thread (past 255 registers a kernel spills to local memory: docs/BENCHMARKS.md, session 60). One row
+    per kernel and build (a program's copy of a kernel may differ)."""
     ptxas = ptxas_binary()
     rows = {}
     for path in sorted(root.glob("*.ptx")) if ptxas else ():
