@@ -158,16 +158,21 @@ def abstract_engine(config, quant: str | None, sharding=None, dump: Path | None 
     return engine
 
 
+def ptxas_figures(kernel: str, text: str) -> dict:
+    """A kernel's registers and spill bytes a thread from ptxas's -v output."""
+    regs = re.search(r"Used (\d+) registers", text)
+    spill = re.search(r"(\d+) bytes spill stores, (\d+) bytes spill loads", text)
+    return {"kernel": kernel, "registers": int(regs.group(1)) if regs else None,
+            "spill_store_bytes": int(spill.group(1)) if spill else None,
+            "spill_load_bytes": int(spill.group(2)) if spill else None}
+
+
 def ptxas_info(root: Path) -> list[dict]:
     """Mosaic GPU's kernels as ptxas built them (MOSAIC_GPU_DUMP_PTXAS): registers, spills, barriers."""
     rows = []
     for path in sorted(root.glob("*.ptxas")):
         text = path.read_text()
-        regs = re.search(r"Used (\d+) registers", text)
-        spill = re.search(r"(\d+) bytes spill stores, (\d+) bytes spill loads", text)
-        rows.append({"kernel": path.stem, "registers": int(regs.group(1)) if regs else None,
-                     "spill_store_bytes": int(spill.group(1)) if spill else None,
-                     "spill_load_bytes": int(spill.group(2)) if spill else None,
+        rows.append({**ptxas_figures(path.stem, text),
                      "serialised_wgmma": "serialized" in text,   # ptxas's "wgmma.mma_async ... serialized"
                      "notes": re.findall(r"\((C\d+)\) ([^\n]+)", text)})
     return rows
@@ -203,11 +208,7 @@ def triton_ptxas(root: Path, names: set) -> list[dict]:
         with tempfile.NamedTemporaryFile(suffix=".cubin") as cubin:
             text = subprocess.run([ptxas, "-arch=sm_90a", "-v", str(path), "-o", cubin.name], capture_output=True,
                                   text=True).stderr
-        regs = re.search(r"Used (\d+) registers", text)
-        spill = re.search(r"(\d+) bytes spill stores, (\d+) bytes spill loads", text)
-        row = {"kernel": entries[0], "registers": int(regs.group(1)) if regs else None,
-               "spill_store_bytes": int(spill.group(1)) if spill else None,
-               "spill_load_bytes": int(spill.group(2)) if spill else None}
+        row = ptxas_figures(entries[0], text)
         rows[tuple(row.values())] = row
     return sorted(rows.values(), key=lambda r: r["kernel"])
 
