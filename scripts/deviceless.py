@@ -44,7 +44,7 @@ from pi0_jax import benchmark, pi0  # noqa: E402
 from pi0_jax.config import IMAGE_KEYS, get_config  # noqa: E402
 from pi0_jax.engine import Engine, layers, programs, runtime  # noqa: E402
 from pi0_jax.engine import weights as weights_lib  # noqa: E402
-from pi0_jax.ops import fp8_geglu  # noqa: E402
+from pi0_jax.ops import expert_kernels, fp8_geglu  # noqa: E402
 from pi0_jax.ops.formats import E4M3, QArray  # noqa: E402
 from pi0_jax.quant import schemes  # noqa: E402
 
@@ -271,6 +271,9 @@ def main(argv=None) -> int:
     p.add_argument("--merge-ends", choices=("on", "off"), default="on",
                    help="the XLA expert's attention merge cutting pad rows and quantising for an FP8 out-projection "
                         "(engine.layers.ATTENTION_ENDS_IN_MERGE; default: %(default)s)")
+    p.add_argument("--fold-from", type=int, default=None,
+                   help="the batch from which the XLA expert's attention folds a kv head's query heads into its rows "
+                        "(ops.expert_kernels.FOLD_FROM; default: the engine's)")
     p.add_argument("--out", type=Path, default=None, help="JSON of counts per program (default: print only)")
     p.add_argument("--hlo", type=Path, default=None, help="a folder to write each program's optimized HLO to")
     p.add_argument("--fp8-mlp-sharded", action="store_true",
@@ -288,6 +291,8 @@ def main(argv=None) -> int:
     programs.FP8_ROW_PAD = args.fp8_row_pad == "on"
     layers.PACK_ATTENTION_INPUT = args.pack_attention == "on"
     layers.ATTENTION_ENDS_IN_MERGE = args.merge_ends == "on"
+    if args.fold_from is not None:
+        expert_kernels.FOLD_FROM = args.fold_from
     sharding = target_sharding()
     results = {"target": TargetDevice.device_kind, "jax": jax.__version__, "commit": benchmark._git_commit(),
                "source": benchmark.source_digest(), "args": {k: str(v) for k, v in vars(args).items()},

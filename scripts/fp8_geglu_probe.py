@@ -28,7 +28,6 @@ spills, as jax's own Hopper matmul example). It has not yet been timed.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -92,11 +91,23 @@ def _rel(a, b):
     return float(jnp.linalg.norm(a - b) / jnp.linalg.norm(b))
 
 
-def siglip(rows, k, n, iters, chain, out) -> dict:
+# the GELU kernel's launches timed beside the engine's: the epilogue's arithmetic (Launch.approx: the exp without its
+# range reduction; Launch.folded: `fp8_geglu.gelu_folded`), and column tiles of 128 (13 waves of 1,632 tiles at B = 8
+# against 7 of 816)
+GELU_LAUNCHES = {"3 stages, GELU as x sigmoid(2 z)": Launch(stages=3),
+                 "3 stages, approximate exp": Launch(stages=3, approx=True),
+                 "3 stages, folded": Launch(stages=3, folded=True),
+                 "3 stages, folded, approximate exp": Launch(stages=3, folded=True, approx=True),
+                 "128x128, 4 stages, folded, approximate exp": Launch(tile_n=128, stages=4, folded=True, approx=True),
+                 "3 stages, snake 16, folded, approximate exp": Launch(stages=3, snake=16, folded=True, approx=True)}
+
+
+def siglip(rows, k, n, iters, chain, out, padded=False) -> dict:
     """SigLIP's FP8 fc1 (K = 1,152, N = 4,304) into fc2's e4m3 input: the engine's XLA path (`engine.vision.block`:
     cuBLASLt's GEMM, then one pass of scale, bias, GELU-tanh and quantisation), its GEMM alone, and the kernel
-    (`fp8_geglu.gelu`, 16-column stores; 4 stages do not fit its shared memory), checked against
-    `fp8_geglu.gelu_reference` and the XLA path."""
+    (`fp8_geglu.gelu`, 16-column stores; 4 stages do not fit its shared memory) at the engine's launch and at
+    `GELU_LAUNCHES`, checked against `fp8_geglu.gelu_reference` and the XLA path; its mainloop with a bf16 store and
+    no epilogue; padded: also N padded to 64-column stores."""
     from pi0_jax.engine import vision   # noqa: PLC0415
     res = {}
     for m in rows:
@@ -115,19 +126,11 @@ def siglip(rows, k, n, iters, chain, out) -> dict:
 
         forms = {"xla: the engine's path (GEMM, pass)": (jax.jit(xla), (xq, fc1, bias)),
                  "xla: the GEMM alone": (jax.jit(lambda xq, fc1: vision.layers.raw_mm(xq, fc1, BF16)[0]), (xq, fc1)),
-                 "kernel (3 stages)": (jax.jit(lambda xq, fc1, bias: fp8_geglu.gelu(xq, fc1, bias, fc2.act_scale)),
-                                       (xq, fc1, bias)),
-                 # GELU on every column: the sigmoid's exp as one instruction (Launch.approx)
-                 "kernel (3 stages), approximate exp": (jax.jit(lambda xq, fc1, bias: fp8_geglu.gelu(
-                     xq, fc1, bias, fc2.act_scale, dataclasses.replace(fp8_geglu.GELU_LAUNCH, approx=True))),
-                     (xq, fc1, bias))}
-        # N padded to whole 64-column blocks (zero weight rows, zero bias): 64-column swizzled stores instead of
-        # 16-column unswizzled ones; the padded columns come out 0 and are cut for the checks
-        npad = -(-n // fp8_geglu.GELU_BLOCK) * fp8_geglu.GELU_BLOCK
-        fc1p = formats.fold_scales(formats.quantize_fp8(jnp.pad(w, ((0, npad - n), (0, 0))), contract=(-1,),
-                                                        act_scale=fc1.act_scale))
-        fc2p = formats.quantize_fp8(jnp.ones((16, npad)), contract=(-1,), act_scale=fc2.act_scale)
-        biasp = jnp.pad(bias, (0, npad - n))
+                 "kernel (the engine's launch)": (jax.jit(lambda xq, fc1, bias: fp8_geglu.gelu(
+                     xq, fc1, bias, fc2.act_scale)), (xq, fc1, bias))}
+        for label, launch in GELU_LAUNCHES.items():
+            forms[f"kernel {label}"] = (jax.jit(lambda xq, fc1, bias, launch=launch: fp8_geglu.gelu(
+                xq, fc1, bias, fc2.act_scale, launch)), (xq, fc1, bias))
         sms = jax.devices()[0].core_count
 
         def product(w_q, launch):   # the kernel's mainloop and a bf16 store, no epilogue
@@ -137,15 +140,23 @@ def siglip(rows, k, n, iters, chain, out) -> dict:
             return jax.jit(lambda xq: fp8_geglu._call(m, k, w_q.shape[0], launch, False, "product", sms,
                                                       act="gelu")(xq, w_q, table)), (xq,)
 
-        for label, launch in (("", fp8_geglu.GELU_LAUNCH), (", 128x128 4 stages", Launch(tile_n=128, stages=4)),
-                              (", approximate exp", dataclasses.replace(fp8_geglu.GELU_LAUNCH, approx=True))):
-            forms[f"kernel (3 stages), N padded to {npad}{label}"] = (jax.jit(
-                lambda xq, fc1, bias, launch=launch: fp8_geglu.gelu(xq, fc1, bias, fc2p.act_scale, launch)[:, :n]),
-                (xq, fc1p, biasp))
-        forms["mainloop + bf16 store, N as it is"] = product(fc1.q, fp8_geglu.GELU_LAUNCH)
-        forms[f"mainloop + bf16 store, N padded to {npad}"] = product(fc1p.q, fp8_geglu.GELU_LAUNCH)
-        forms[f"xla: the GEMM alone, N padded to {npad}"] = (
-            jax.jit(lambda xq, fc1: vision.layers.raw_mm(xq, fc1, BF16)[0]), (xq, fc1p))
+        forms["mainloop + bf16 store, N as it is"] = product(fc1.q, Launch(stages=3))
+        if padded:
+            # N padded to whole 64-column blocks (zero weight rows, zero bias): 64-column swizzled stores instead of
+            # 16-column unswizzled ones; the padded columns come out 0 and are cut for the checks
+            npad = -(-n // fp8_geglu.GELU_BLOCK) * fp8_geglu.GELU_BLOCK
+            fc1p = formats.fold_scales(formats.quantize_fp8(jnp.pad(w, ((0, npad - n), (0, 0))), contract=(-1,),
+                                                            act_scale=fc1.act_scale))
+            fc2p = formats.quantize_fp8(jnp.ones((16, npad)), contract=(-1,), act_scale=fc2.act_scale)
+            biasp = jnp.pad(bias, (0, npad - n))
+            for label, launch in (("", Launch(stages=3)), (", 128x128 4 stages", Launch(tile_n=128, stages=4)),
+                                  (", approximate exp", Launch(stages=3, approx=True))):
+                forms[f"kernel (3 stages), N padded to {npad}{label}"] = (jax.jit(
+                    lambda xq, fc1, bias, launch=launch: fp8_geglu.gelu(xq, fc1, bias, fc2p.act_scale,
+                                                                        launch)[:, :n]), (xq, fc1p, biasp))
+            forms[f"mainloop + bf16 store, N padded to {npad}"] = product(fc1p.q, Launch(stages=3))
+            forms[f"xla: the GEMM alone, N padded to {npad}"] = (
+                jax.jit(lambda xq, fc1: vision.layers.raw_mm(xq, fc1, BF16)[0]), (xq, fc1p))
         mine = fp8_geglu.gelu_reference(xq, fc1, bias, fc2.act_scale).astype(F32)
         engine = forms["xla: the engine's path (GEMM, pass)"][0](xq, fc1, bias).astype(F32)
         row = res[m] = {"rel_l2_reference_vs_engine": _rel(mine, engine)}
@@ -179,9 +190,12 @@ def main():
     p.add_argument("--siglip", default=None,
                    help="comma-separated M values: SigLIP's FP8 fc1 with GELU (`fp8_geglu.gelu`) instead, e.g. "
                         "768,6144,49152 (3 cameras at B = 1, 8, 64)")
+    p.add_argument("--siglip-padded", action="store_true",
+                   help="with --siglip: also the kernel with N padded to whole 64-column stores (session 61: slower)")
     args = p.parse_args()
     if args.siglip:
-        siglip([int(m) for m in args.siglip.split(",")], 1152, 4304, args.iters, args.chain, args.out)
+        siglip([int(m) for m in args.siglip.split(",")], 1152, 4304, args.iters, args.chain, args.out,
+               args.siglip_padded)
         return
     res = {"jax": jax.__version__, "device": str(jax.devices()[0]), "rows": {}}
     for m in map(int, args.rows.split(",")):

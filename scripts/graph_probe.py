@@ -112,6 +112,9 @@ VARIANTS = {
     "fp8-geglu-expert-128": {},
     "fp8-gelu-vision-off": {},
     "fp8-geglu-3stages": {},
+    # with FP8 weights: SigLIP's GELU kernel at its launch until session 61 (fp8_geglu.GELU_LAUNCH: 256-column tiles,
+    # 3 stages, GELU as x sigmoid(2 z) with the exp's range reduction)
+    "fp8-gelu-launch-60": {},
     # with FP8 weights: the FP8 MLP as the engine ran it until session 56 (PATCHES: gate and up scaled and rounded to
     # the activation dtype, GeGLU in it), and every FP8 product's output scale computed in the program (PATCHES: not
     # folded into the weights, `formats.fold_scales`)
@@ -142,6 +145,7 @@ PATCHES = {"gelu-tanh": (layers, {"gelu_tanh": lambda x: jax.nn.gelu(x, approxim
            "fold-from-4": (expert_kernels, {"FOLD_FROM": 4}),
            "fp8-gelu-vision-off": (vision, {"FP8_GELU_ROWS": None}),
            "fp8-geglu-3stages": (fp8_geglu, {"LAUNCH": fp8_geglu.Launch(stages=3, snake=16)}),
+           "fp8-gelu-launch-60": (fp8_geglu, {"GELU_LAUNCH": fp8_geglu.Launch(stages=3)}),
            "scales-apart": (formats, {"fold_scales": lambda tree: tree})}
 
 

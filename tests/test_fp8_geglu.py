@@ -118,7 +118,8 @@ def _gelu_operands(m, k, n, next_scale):
 
 @pytest.mark.parametrize("m,k,n,launch", [(200, 256, 80, None),   # one warpgroup, N padded to a tile, 2 K steps
                                           (130, 128, 304, None),   # 2 warpgroups, 2 column tiles, the last ragged
-                                          (64, 96, 128, Launch(stages=2, delay=1, minor=1, snake=2))])   # K = 3 x 32
+                                          (64, 96, 128, Launch(stages=2, delay=1, minor=1, snake=2)),   # K = 3 x 32
+                                          (130, 128, 304, Launch(stages=3, folded=True))])   # the engine's GELU form
 def test_gelu_kernel_equals_its_xla_form(m, k, n, launch):
     """`fp8_geglu.gelu` (SigLIP's fc1: GEMM, bias, GELU-tanh, fc2's e4m3 input) against `gelu_reference`; within one
     e4m3 step of the engine's XLA path (`engine.vision.block`: scale and bias rounded to the dtype, then GELU)."""
@@ -137,6 +138,22 @@ def test_gelu_kernel_equals_its_xla_form(m, k, n, launch):
     assert np.all(np.abs(got - xla) <= np.maximum(np.abs(xla), 2.0**-6) / 8 + 1e-6) and np.mean(got == xla) > 0.95
     unbiased = np.asarray(fp8_geglu.gelu_reference(xq, fc1, jnp.zeros_like(bias), fc2.act_scale), np.float32)
     assert np.mean(got == unbiased) < 0.5
+
+
+def test_gelu_folded_is_gelu_tanh():
+    """The kernel's folded GELU-tanh (an exp2 of x (A + B x^2)) is GELU-tanh to f32 rounding over both tails, the
+    negative one included (x sigmoid(2 z) in float64 as the truth: jax's 0.5 x (1 + tanh z) cancels to 0 there), and
+    no NaN where the exp2 overflows."""
+    x = jnp.concatenate([jnp.linspace(-12.0, 12.0, 4001, dtype=jnp.float32), jnp.array([-300.0, 300.0, 0.0])])
+    got = np.asarray(fp8_geglu.gelu_folded(x))
+    x64 = np.asarray(x, np.float64)
+    with np.errstate(over="ignore"):
+        want = x64 / (1 + np.exp(-2 * 0.7978845608028654 * (x64 + 0.044715 * x64**3)))
+    assert np.isfinite(got).all()
+    # the tail's relative error grows with the exp's argument (|x (A + B x^2)| up to 200 here), in both f32 forms
+    np.testing.assert_allclose(got, want, rtol=3e-5, atol=1e-30)
+    np.testing.assert_allclose(got, np.asarray(fp8_geglu.gelu_tanh(x)), rtol=3e-5, atol=1e-30)
+    assert np.abs(got - want).max() < 1e-6
 
 
 def test_gelu_applies_only_where_it_fits():

@@ -64,7 +64,8 @@ class Launch:
     steps left in flight when the next is issued (`delay`; their tiles are released that many steps later), the tile
     order (`plgpu.planar_snake`: bands of `snake` tiles along dimension `minor`, 0 rows, 1 columns), and Mosaic GPU's
     approximate math (`approx`: the sigmoid's exp as one ex2.approx.f32, without the range reduction around it; its
-    division is rcp.approx.f32 either way, as ptxas's input for sm_90a shows)."""
+    division is rcp.approx.f32 either way, as ptxas's input for sm_90a shows), and GELU-tanh's arithmetic folded
+    (`folded`: `gelu_folded`, the `gelu` epilogue only)."""
 
     tile_m: int = 128
     tile_n: int = 256
@@ -75,6 +76,7 @@ class Launch:
     snake: int = 8
     minor: int = 0
     approx: bool = False
+    folded: bool = False
 
 
 def fit(launch: Launch, k: int, n2: int) -> Launch | None:
@@ -134,6 +136,18 @@ def gelu_tanh(x):
     return x * jax.nn.sigmoid(z)
 
 
+# GELU-tanh(x) = x sigmoid(2 z) = x / (1 + 2^(x (A + B x^2))): the constants of z, its sign and log2(e) in two
+_FOLD_A = np.float32(-2 * 0.7978845608028654 / np.log(2.0))
+_FOLD_B = np.float32(_FOLD_A * np.float32(0.044715))
+
+
+def gelu_folded(x):
+    """`gelu_tanh` with its constants folded: an exp2 of x (A + B x^2) (three f32 operations, where z and the exp's
+    log2(e) take five), then the sigmoid's 1 / (1 + e) as jax lowers it (`lax.logistic`). The same function; its
+    f32 result differs by rounding."""
+    return x * (1.0 / (1.0 + jnp.exp2(x * (_FOLD_A + _FOLD_B * (x * x)))))
+
+
 def gelu_product(g, u):
     """GELU-tanh(g) * u in f32."""
     return gelu_tanh(g) * u
@@ -187,7 +201,7 @@ _partitioned = _row_partitioned("geglu", "m k, n k, n -> m f", ("k", "n", "f"))
 # An FP8 GEMM with GELU in its epilogue (SigLIP's fc1 into fc2's e4m3 input): 3 pipeline stages, as its output's
 # shared memory is a tile's whole width (with 4 it needs 232,528 bytes, 80 more than a Hopper block may have).
 GELU_BLOCK = 64
-GELU_LAUNCH = Launch(stages=3)
+GELU_LAUNCH = Launch(tile_n=128, stages=4, folded=True, approx=True)
 
 
 def gelu_block(n: int) -> int:
@@ -343,9 +357,10 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
                             return lax.broadcast_in_dim(v, (tm, wg_n), [1])   # as jax's Mosaic kernels do
 
                         if gelu:
-                            y = gelu_tanh(acc[...] * row(s_smem.at[wg, 0]) + row(s_smem.at[wg, 1]))
-                            y = y * row(s_smem.at[wg, 2])
-                            y = jnp.minimum(jnp.maximum(y, -formats.E4M3_MAX), formats.E4M3_MAX)
+                            y = acc[...] * row(s_smem.at[wg, 0]) + row(s_smem.at[wg, 1])
+                            y = (gelu_folded if launch.folded else gelu_tanh)(y) * row(s_smem.at[wg, 2])
+                            if interpret:   # a GPU's e4m3 conversion saturates (cvt.rn.satfinite), a NaN stays NaN
+                                y = jnp.minimum(jnp.maximum(y, -formats.E4M3_MAX), formats.E4M3_MAX)
                             plgpu.wait_smem_to_gmem(0, wait_read_only=True)
                             for c in range(pairs):
                                 out_smem[wg, c] = y[:, c * block:(c + 1) * block].astype(out_dtype)
@@ -359,8 +374,8 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
                         for p in range(pairs):
                             h = gelu_product(y[:, 2 * p * block:(2 * p + 1) * block],
                                              y[:, (2 * p + 1) * block:(2 * p + 2) * block])
-                            if out == "e4m3":   # saturating, as `formats.quantise` (the interpreter's cast is not)
-                                h = jnp.minimum(jnp.maximum(h, -formats.E4M3_MAX), formats.E4M3_MAX)
+                            if out == "e4m3" and interpret:   # saturating, as `formats.quantise` (the GPU's cast
+                                h = jnp.minimum(jnp.maximum(h, -formats.E4M3_MAX), formats.E4M3_MAX)   # is too)
                             out_smem[wg, p] = h.astype(out_dtype)
                         plgpu.commit_smem()
                         for p in range(pairs):
