@@ -31,6 +31,9 @@ from B = 8 in the action expert's and SigLIP's (session 57).
 reads zero weight rows past N and drops stores there), and since a TMA layout's tiles must divide the array they
 write, the output goes out 16 columns (16 bytes, unswizzled) at a time; the epilogue's (3, N) table (column scales,
 bias, 1 / the next GEMM's activation scale) is padded to whole tiles. The interpreter pads N to whole tiles instead.
+(Padding N to 4,352 for 64-column swizzled stores made the kernel slower: docs/BENCHMARKS.md, session 61.) Its
+epilogue, GELU on every column after 9 K steps, costs as much as 40 % of the mainloop; its arithmetic is
+`gelu_folded`, and a GPU's e4m3 conversion saturates by itself (`cvt.rn.satfinite`), so only the interpreter clamps.
 
 Axis legend: M rows, K contraction, N2 = 2F fused gate/up columns, F hidden units.
 """
@@ -198,8 +201,12 @@ def _row_partitioned(act: str, rule: str, replicated: tuple):
 _partitioned = _row_partitioned("geglu", "m k, n k, n -> m f", ("k", "n", "f"))
 
 
-# An FP8 GEMM with GELU in its epilogue (SigLIP's fc1 into fc2's e4m3 input): 3 pipeline stages, as its output's
-# shared memory is a tile's whole width (with 4 it needs 232,528 bytes, 80 more than a Hopper block may have).
+# An FP8 GEMM with GELU in its epilogue (SigLIP's fc1 into fc2's e4m3 input). Tiles of 128 x 128 (two warpgroups of
+# 64 columns) in 4 stages, GELU folded (`gelu_folded`) with the exp's approximate form: alone 15 % faster than session
+# 57's 128 x 256 tiles in 3 stages at 6,144 rows (13 waves of 1,632 tiles on 132 SMs against 7 of 816, and no
+# spills where the wider tile's epilogue spilled 36-52 bytes), 5.7 % at 49,152; π0's every-gemm call at B = 8 1.3 %
+# faster (H100, docs/BENCHMARKS.md, session 61). At 256 columns, 4 stages need 232,528 bytes of shared memory, 80
+# more than a Hopper block may have.
 GELU_BLOCK = 64
 GELU_LAUNCH = Launch(tile_n=128, stages=4, folded=True, approx=True)
 
