@@ -23,6 +23,7 @@ layout-inference failure (fixed), and compiled it through ptxas with `scripts/de
 spills, as jax's own Hopper matmul example). It has not yet been timed.
 
     python3 scripts/fp8_geglu_probe.py --rows 816,6528,51200 --out OUT.json
+    python3 scripts/fp8_geglu_probe.py --rows 416,832 --width 1024 --hidden 4096   # the action expert's MLP, B = 8, 16
 """
 
 from __future__ import annotations
@@ -55,6 +56,9 @@ CONFIGS = {
     "128x256x128, 3 stages, snake 16": (Launch(stages=3, snake=16), "e4m3"),
     "128x256x64, 6 stages": (Launch(tile_k=64, stages=6), "e4m3"),
     "128x128x128, 6 stages": (Launch(tile_n=128, stages=6), "e4m3"),
+    # GELU folded into one exp2 (`fp8_geglu.gelu_folded`): SigLIP's GELU kernel's epilogue form since session 61
+    "128x256x128, 4 stages, folded, approximate exp": (Launch(folded=True, approx=True), "e4m3"),
+    "64x256x128, 4 stages, folded, approximate exp": (Launch(tile_m=64, folded=True, approx=True), "e4m3"),
 }
 
 

@@ -27,7 +27,8 @@ def _operands(m, k, f, down_scale):
 
 @pytest.mark.parametrize("m,k,f,launch", [(200, 256, 128, Launch()),   # 2 warpgroups, 2 K steps, a partial row tile
                                           (128, 64, 160, Launch()),    # the dummy prefix's MLP: one warpgroup
-                                          (130, 128, 256, Launch(stages=2, delay=1, minor=1, snake=2))])
+                                          (130, 128, 256, Launch(stages=2, delay=1, minor=1, snake=2)),
+                                          (200, 256, 128, Launch(folded=True))])   # GELU folded into one exp2
 def test_kernel_equals_its_xla_form(m, k, f, launch):
     xq, gate_up, down = _operands(m, k, f, 0.01)
     assert fp8_geglu.applies(gate_up, down)

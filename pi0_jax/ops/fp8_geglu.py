@@ -68,7 +68,7 @@ class Launch:
     order (`plgpu.planar_snake`: bands of `snake` tiles along dimension `minor`, 0 rows, 1 columns), and Mosaic GPU's
     approximate math (`approx`: the sigmoid's exp as one ex2.approx.f32, without the range reduction around it; its
     division is rcp.approx.f32 either way, as ptxas's input for sm_90a shows), and GELU-tanh's arithmetic folded
-    (`folded`: `gelu_folded`, the `gelu` epilogue only)."""
+    (`folded`: `gelu_folded`)."""
 
     tile_m: int = 128
     tile_n: int = 256
@@ -379,8 +379,9 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
                         y = acc[...] * row(s_smem.at[wg])
                         plgpu.wait_smem_to_gmem(0, wait_read_only=True)
                         for p in range(pairs):
-                            h = gelu_product(y[:, 2 * p * block:(2 * p + 1) * block],
-                                             y[:, (2 * p + 1) * block:(2 * p + 2) * block])
+                            gate = y[:, 2 * p * block:(2 * p + 1) * block]
+                            h = (gelu_folded if launch.folded else gelu_tanh)(gate) * \
+                                y[:, (2 * p + 1) * block:(2 * p + 2) * block]
                             if out == "e4m3" and interpret:   # saturating, as `formats.quantise` (the GPU's cast
                                 h = jnp.minimum(jnp.maximum(h, -formats.E4M3_MAX), formats.E4M3_MAX)   # is too)
                             out_smem[wg, p] = h.astype(out_dtype)
