@@ -17,16 +17,15 @@ import argparse
 import functools
 import json
 import sys
-import time
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jax.experimental import pallas as pl
 
 sys.path.insert(0, str(Path(__file__).parent.parent))
 sys.path.insert(0, str(Path(__file__).parent))
+import geglu_probe  # noqa: E402
 import profile_engine  # noqa: E402
 
 from pi0_jax.ops import formats, pallas_base  # noqa: E402
@@ -71,24 +70,13 @@ CONFIGS = [  # (bm, bn, bk, warps, stages, splits)
 ]
 
 
-def _time(fn, args, iters, chain):
-    jax.block_until_ready(fn(*args))
-    ts = []
-    for _ in range(iters):
-        t = time.perf_counter()
-        for _ in range(chain):
-            y = fn(*args)
-        jax.block_until_ready(y)
-        ts.append((time.perf_counter() - t) / chain * 1e3)
-    return float(np.median(ts))
-
-
 def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--batch", default="4,8,16", help="comma-separated batches (rows = 52 an element)")
     p.add_argument("--iters", type=int, default=15, help="timed runs per form (median reported)")
     p.add_argument("--chain", type=int, default=10, help="programs dispatched back to back per timed run")
-    p.add_argument("--layers", type=int, default=36, help="GEMMs a program, each on a weight of its own; times are per GEMM")
+    p.add_argument("--layers", type=int, default=36,
+                   help="GEMMs a program, each on a weight and an input of its own; times are per GEMM")
     p.add_argument("--out", default=None, help="write the results as JSON here")
     args = p.parse_args()
     res = {"jax": jax.__version__, "device": str(jax.devices()[0]), "rows": {}}
@@ -121,7 +109,7 @@ def main():
                 try:
                     got = fn(xq, wq)[0].astype(F32)
                     rel = float(jnp.linalg.norm(got - ref) / jnp.linalg.norm(ref))
-                    wall = _time(fn, (xq, wq), args.iters, args.chain) / args.layers
+                    wall = geglu_probe._chain(fn, (xq, wq), args.iters, args.chain) / args.layers
                     # the device's time: the GPU kernels of a profiler trace (the wall holds the host's launches)
                     t = profile_engine.kernel_times(lambda fn=fn: fn(xq, wq), calls=3)
                     ms = t["kernel_ms"] / args.layers
@@ -129,8 +117,8 @@ def main():
                          "kernel_names": [k["name"][:80] for k in t["by_name"][:3]],
                          "tflops": flops / ms / 1e9, "weight_gbs": wbytes / ms / 1e6, "rel_l2": rel}
                     print(f"   {fname:34s} {r['us']:7.2f} us {r['tflops']:6.0f} TFLOP/s {r['weight_gbs']:6.0f} GB/s "
-                          f"(wall {r['wall_us']:6.2f} us, {r['kernels']:.0f} kernels) rel {rel:.1e} {r['kernel_names'][0][:40]}",
-                          flush=True)
+                          f"(wall {r['wall_us']:6.2f} us, {r['kernels']:.0f} kernels) rel {rel:.1e} "
+                          f"{r['kernel_names'][0][:40]}", flush=True)
                 except Exception as e:  # noqa: BLE001  (a probe: report the form that fails and go on)
                     r = {"error": f"{type(e).__name__}: {str(e)[:400]}"}
                     print(f"   {fname:34s} {r['error'][:200]}", flush=True)
