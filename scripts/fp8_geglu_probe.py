@@ -109,7 +109,8 @@ GELU_LAUNCHES = {"3 stages, GELU as x sigmoid(2 z)": Launch(stages=3),
 def siglip(rows, k, n, iters, chain, out, padded=False) -> dict:
     """SigLIP's FP8 fc1 (K = 1,152, N = 4,304) into fc2's e4m3 input: the engine's XLA path (`engine.vision.block`:
     cuBLASLt's GEMM, then one pass of scale, bias, GELU-tanh and quantisation), its GEMM alone, and the kernel
-    (`fp8_geglu.gelu`, 16-column stores; 4 stages do not fit its shared memory) at the engine's launch and at
+    (`fp8_geglu.gelu`, 16-column stores; 4 stages of 256-column tiles do not fit its shared memory) at the engine's
+    launch and at
     `GELU_LAUNCHES`, checked against `fp8_geglu.gelu_reference` and the XLA path; its mainloop with a bf16 store and
     no epilogue; padded: also N padded to 64-column stores."""
     from pi0_jax.engine import vision   # noqa: PLC0415

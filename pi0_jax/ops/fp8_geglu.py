@@ -151,16 +151,11 @@ def gelu_folded(x):
     return x * (1.0 / (1.0 + jnp.exp2(x * (_FOLD_A + _FOLD_B * (x * x)))))
 
 
-def gelu_product(g, u):
-    """GELU-tanh(g) * u in f32."""
-    return gelu_tanh(g) * u
-
-
 def reference(xq, w: QArray, down_scale) -> jax.Array:
     """The kernel's numerics as XLA ops: f32 product, column scales, GeGLU in f32, e4m3."""
     y = jnp.einsum("md,nd->mn", xq, w.q, preferred_element_type=F32) * column_scales(w, down_scale)
     gate, up = layout.split_gate_up(y)
-    return jnp.clip(gelu_product(gate, up), -formats.E4M3_MAX, formats.E4M3_MAX).astype(E4M3)
+    return jnp.clip(gelu_tanh(gate) * up, -formats.E4M3_MAX, formats.E4M3_MAX).astype(E4M3)
 
 
 def geglu(xq, w: QArray, down_scale, launch: Launch | None = None) -> jax.Array:
@@ -302,6 +297,13 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
     tm, tn, tk, wgs = launch.tile_m, launch.tile_n, launch.tile_k, launch.wgs
     wg_n = tn // wgs
     gelu = act == "gelu"
+    gelu_fn = gelu_folded if launch.folded else gelu_tanh
+
+    def saturated(y):
+        """y clamped to e4m3's range, as `formats.quantise`, where the cast does not saturate (the interpreter's): a
+        GPU's e4m3 conversion saturates by itself (cvt.rn.satfinite, a NaN stays NaN)."""
+        return jnp.minimum(jnp.maximum(y, -formats.E4M3_MAX), formats.E4M3_MAX) if interpret else y
+
     block = gelu_block(n2) if gelu else layout.gate_up_block(n2 // 2)
     pairs = wg_n // block if gelu else wg_n // (2 * block)   # gelu: the epilogue's column chunks
     m_iters, n_iters, k_iters = -(-m // tm), -(-n2 // tn), k // tk
@@ -365,9 +367,7 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
 
                         if gelu:
                             y = acc[...] * row(s_smem.at[wg, 0]) + row(s_smem.at[wg, 1])
-                            y = (gelu_folded if launch.folded else gelu_tanh)(y) * row(s_smem.at[wg, 2])
-                            if interpret:   # a GPU's e4m3 conversion saturates (cvt.rn.satfinite), a NaN stays NaN
-                                y = jnp.minimum(jnp.maximum(y, -formats.E4M3_MAX), formats.E4M3_MAX)
+                            y = saturated(gelu_fn(y) * row(s_smem.at[wg, 2]))
                             plgpu.wait_smem_to_gmem(0, wait_read_only=True)
                             for c in range(pairs):
                                 out_smem[wg, c] = y[:, c * block:(c + 1) * block].astype(out_dtype)
@@ -379,11 +379,10 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
                         y = acc[...] * row(s_smem.at[wg])
                         plgpu.wait_smem_to_gmem(0, wait_read_only=True)
                         for p in range(pairs):
-                            gate = y[:, 2 * p * block:(2 * p + 1) * block]
-                            h = (gelu_folded if launch.folded else gelu_tanh)(gate) * \
+                            h = gelu_fn(y[:, 2 * p * block:(2 * p + 1) * block]) * \
                                 y[:, (2 * p + 1) * block:(2 * p + 2) * block]
-                            if out == "e4m3" and interpret:   # saturating, as `formats.quantise` (the GPU's cast
-                                h = jnp.minimum(jnp.maximum(h, -formats.E4M3_MAX), formats.E4M3_MAX)   # is too)
+                            if out == "e4m3":
+                                h = saturated(h)
                             out_smem[wg, p] = h.astype(out_dtype)
                         plgpu.commit_smem()
                         for p in range(pairs):
