@@ -115,9 +115,13 @@ VARIANTS = {
     # with FP8 weights: SigLIP's GELU kernel at its launch until session 61 (fp8_geglu.GELU_LAUNCH: 256-column tiles,
     # 3 stages, GELU as x sigmoid(2 z) with the exp's range reduction)
     "fp8-gelu-launch-60": {},
-    # with FP8 weights: the GeGLU kernel (the prefix's and the expert's FP8 MLPs) with GELU folded into one exp2 as
-    # SigLIP's GELU kernel computes it since session 61 (fp8_geglu.LAUNCH with folded and approx)
-    "fp8-geglu-folded": {},
+    # with FP8 weights: the GeGLU kernel (the prefix's and the expert's FP8 MLPs) at its launch until session 62 (GELU
+    # as x sigmoid(2 z) with the exp's range reduction, where fp8_geglu.LAUNCH folds it as the GELU kernel does), and
+    # both FP8 kernels' launches as session 60 had them
+    "fp8-geglu-launch-61": {},
+    "fp8-launches-60": {},
+    # with FP8 weights: SigLIP's GELU kernel from 3 cameras at B = 4 (vision.FP8_GELU_ROWS: from B = 8)
+    "fp8-gelu-rows-3072": {},
     # with FP8 weights: the FP8 MLP as the engine ran it until session 56 (PATCHES: gate and up scaled and rounded to
     # the activation dtype, GeGLU in it), and every FP8 product's output scale computed in the program (PATCHES: not
     # folded into the weights, `formats.fold_scales`)
@@ -149,7 +153,9 @@ PATCHES = {"gelu-tanh": (layers, {"gelu_tanh": lambda x: jax.nn.gelu(x, approxim
            "fp8-gelu-vision-off": (vision, {"FP8_GELU_ROWS": None}),
            "fp8-geglu-3stages": (fp8_geglu, {"LAUNCH": fp8_geglu.Launch(stages=3, snake=16)}),
            "fp8-gelu-launch-60": (fp8_geglu, {"GELU_LAUNCH": fp8_geglu.Launch(stages=3)}),
-           "fp8-geglu-folded": (fp8_geglu, {"LAUNCH": fp8_geglu.Launch(folded=True, approx=True)}),
+           "fp8-geglu-launch-61": (fp8_geglu, {"LAUNCH": fp8_geglu.Launch()}),
+           "fp8-launches-60": (fp8_geglu, {"LAUNCH": fp8_geglu.Launch(), "GELU_LAUNCH": fp8_geglu.Launch(stages=3)}),
+           "fp8-gelu-rows-3072": (vision, {"FP8_GELU_ROWS": 3072}),
            "scales-apart": (formats, {"fold_scales": lambda tree: tree})}
 
 

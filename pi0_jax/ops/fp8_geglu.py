@@ -104,8 +104,10 @@ def fit(launch: Launch, k: int, n2: int) -> Launch | None:
     return None
 
 
-# The launch `geglu` fits to each weight (the engine's)
-LAUNCH = Launch()
+# The launch `geglu` fits to each weight (the engine's): 128 x 256 tiles in 4 stages, GELU folded with the exp's
+# approximate form as `GELU_LAUNCH` computes it. π0's every-gemm call at B = 8 2.4 % faster than with session 56's
+# epilogue (x sigmoid(2 z) with the exp's range reduction), its kernel time 3.5 % (H100, docs/BENCHMARKS.md, session 62)
+LAUNCH = Launch(folded=True, approx=True)
 
 
 def _takes(w, nxt, fit_launch) -> bool:
