@@ -120,8 +120,8 @@ VARIANTS = {
     # both FP8 kernels' launches as session 60 had them
     "fp8-geglu-launch-61": {},
     "fp8-launches-60": {},
-    # with FP8 weights: SigLIP's GELU kernel from 3 cameras at B = 4 (vision.FP8_GELU_ROWS: from B = 8)
-    "fp8-gelu-rows-3072": {},
+    # with FP8 weights: SigLIP's GELU kernel from 3 cameras at B = 8, as until session 62 (vision.FP8_GELU_ROWS: B = 4)
+    "fp8-gelu-rows-6144": {},
     # with FP8 weights: the FP8 MLP as the engine ran it until session 56 (PATCHES: gate and up scaled and rounded to
     # the activation dtype, GeGLU in it), and every FP8 product's output scale computed in the program (PATCHES: not
     # folded into the weights, `formats.fold_scales`)
@@ -155,7 +155,7 @@ PATCHES = {"gelu-tanh": (layers, {"gelu_tanh": lambda x: jax.nn.gelu(x, approxim
            "fp8-gelu-launch-60": (fp8_geglu, {"GELU_LAUNCH": fp8_geglu.Launch(stages=3)}),
            "fp8-geglu-launch-61": (fp8_geglu, {"LAUNCH": fp8_geglu.Launch()}),
            "fp8-launches-60": (fp8_geglu, {"LAUNCH": fp8_geglu.Launch(), "GELU_LAUNCH": fp8_geglu.Launch(stages=3)}),
-           "fp8-gelu-rows-3072": (vision, {"FP8_GELU_ROWS": 3072}),
+           "fp8-gelu-rows-6144": (vision, {"FP8_GELU_ROWS": 6144}),
            "scales-apart": (formats, {"fold_scales": lambda tree: tree})}
 
 

@@ -44,9 +44,9 @@ from pi0_jax.siglip import patch_embed
 # in the epilogue) from this many rows (images x 256) where `layers.fp8_mlp_kernel()` holds; else cuBLASLt's GEMM and
 # XLA's pass (in the dtype). Alone it was 11 % faster at 6,144 rows (3 cameras, B = 8) and 22 % at 49,152, 10 %
 # slower at 768; π0's every-gemm call 2.3 % faster at B = 64 (H200, docs/BENCHMARKS.md, session 57; with session 61's
-# launch, `fp8_geglu.GELU_LAUNCH`, 24 % and 29 % faster than XLA's path at 6,144 and 49,152 rows, H100, fewer rows
-# untimed). None: never.
-FP8_GELU_ROWS = 6144
+# launch, `fp8_geglu.GELU_LAUNCH`, 24 % and 29 % faster than XLA's path at 6,144 and 49,152 rows, H100). From 3,072
+# rows (B = 4) since session 62: π0's every-gemm call at B = 4 0.6 % faster, its kernel time 1.2 % (H100). None: never.
+FP8_GELU_ROWS = 3072
 
 
 def layer_norm(x, vectors, rows, dtype):
