@@ -59,6 +59,7 @@ CONFIGS = {
     # GELU folded into one exp2 (`fp8_geglu.gelu_folded`): SigLIP's GELU kernel's epilogue form since session 61
     "128x256x128, 4 stages, folded, approximate exp (the default)": (fp8_geglu.LAUNCH, "e4m3"),
     "64x256x128, 4 stages, folded, approximate exp": (Launch(tile_m=64, folded=True, approx=True), "e4m3"),
+    "128x256x128, 4 stages, one tanh, approximate": (Launch(tanh=True, approx=True), "e4m3"),
 }
 
 
@@ -103,7 +104,8 @@ GELU_LAUNCHES = {"3 stages, GELU as x sigmoid(2 z)": Launch(stages=3),
                  "3 stages, folded": Launch(stages=3, folded=True),
                  "3 stages, folded, approximate exp": Launch(stages=3, folded=True, approx=True),
                  "128x128, 4 stages, folded, approximate exp": Launch(tile_n=128, stages=4, folded=True, approx=True),
-                 "3 stages, snake 16, folded, approximate exp": Launch(stages=3, snake=16, folded=True, approx=True)}
+                 "3 stages, snake 16, folded, approximate exp": Launch(stages=3, snake=16, folded=True, approx=True),
+                 "128x128, 4 stages, one tanh, approximate": Launch(tile_n=128, stages=4, tanh=True, approx=True)}
 
 
 def siglip(rows, k, n, iters, chain, out, padded=False) -> dict:

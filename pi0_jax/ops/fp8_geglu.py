@@ -68,7 +68,8 @@ class Launch:
     order (`plgpu.planar_snake`: bands of `snake` tiles along dimension `minor`, 0 rows, 1 columns), and Mosaic GPU's
     approximate math (`approx`: the sigmoid's exp as one ex2.approx.f32, without the range reduction around it; its
     division is rcp.approx.f32 either way, as ptxas's input for sm_90a shows), and GELU-tanh's arithmetic folded
-    (`folded`: `gelu_folded`)."""
+    (`folded`: `gelu_folded`), or written with one tanh (`tanh`: `gelu_half_tanh`; with approx one tanh.approx.f32,
+    one MUFU instruction a value where the folded form takes two)."""
 
     tile_m: int = 128
     tile_n: int = 256
@@ -80,6 +81,7 @@ class Launch:
     minor: int = 0
     approx: bool = False
     folded: bool = False
+    tanh: bool = False
 
 
 def fit(launch: Launch, k: int, n2: int) -> Launch | None:
@@ -151,6 +153,16 @@ def gelu_folded(x):
     log2(e) take five), then the sigmoid's 1 / (1 + e) as jax lowers it (`lax.logistic`). The same function; its
     f32 result differs by rounding."""
     return x * (1.0 / (1.0 + jnp.exp2(x * (_FOLD_A + _FOLD_B * (x * x)))))
+
+
+_HALF_TANH_A = np.float32(0.7978845608028654)
+_HALF_TANH_B = np.float32(_HALF_TANH_A * np.float32(0.044715))
+
+
+def gelu_half_tanh(x):
+    """GELU-tanh as its definition writes it, 0.5 x (1 + tanh(z)) with z = x (A + B x^2): one tanh, no division."""
+    h = np.float32(0.5) * x
+    return h + h * jnp.tanh(x * (_HALF_TANH_A + _HALF_TANH_B * (x * x)))
 
 
 def reference(xq, w: QArray, down_scale) -> jax.Array:
@@ -299,7 +311,7 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
     tm, tn, tk, wgs = launch.tile_m, launch.tile_n, launch.tile_k, launch.wgs
     wg_n = tn // wgs
     gelu = act == "gelu"
-    gelu_fn = gelu_folded if launch.folded else gelu_tanh
+    gelu_fn = gelu_half_tanh if launch.tanh else gelu_folded if launch.folded else gelu_tanh
 
     def saturated(y):
         """y clamped to e4m3's range, as `formats.quantise`, where the cast does not saturate (the interpreter's): a
