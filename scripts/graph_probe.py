@@ -123,6 +123,7 @@ VARIANTS = {
     # with FP8 weights: both FP8 kernels' GELU written with one tanh (fp8_geglu.Launch.tanh: one tanh.approx.f32 a
     # value, where the folded form takes an exp2 and a reciprocal)
     "fp8-tanh": {},
+    "fp8-gelu-tanh": {},   # SigLIP's GELU kernel alone
     # with FP8 weights: SigLIP's GELU kernel from 3 cameras at B = 8, as until session 62 (vision.FP8_GELU_ROWS: B = 4)
     "fp8-gelu-rows-6144": {},
     # with FP8 weights: the FP8 MLP as the engine ran it until session 56 (PATCHES: gate and up scaled and rounded to
@@ -159,6 +160,7 @@ PATCHES = {"gelu-tanh": (layers, {"gelu_tanh": lambda x: jax.nn.gelu(x, approxim
            "fp8-geglu-launch-61": (fp8_geglu, {"LAUNCH": fp8_geglu.Launch()}),
            "fp8-launches-60": (fp8_geglu, {"LAUNCH": fp8_geglu.Launch(), "GELU_LAUNCH": fp8_geglu.Launch(stages=3)}),
            "fp8-gelu-rows-6144": (vision, {"FP8_GELU_ROWS": 6144}),
+           "fp8-gelu-tanh": (fp8_geglu, {"GELU_LAUNCH": fp8_geglu.Launch(tile_n=128, stages=4, tanh=True, approx=True)}),
            "fp8-tanh": (fp8_geglu, {"LAUNCH": fp8_geglu.Launch(tanh=True, approx=True),
                                     "GELU_LAUNCH": fp8_geglu.Launch(tile_n=128, stages=4, tanh=True, approx=True)}),
            "scales-apart": (formats, {"fold_scales": lambda tree: tree})}

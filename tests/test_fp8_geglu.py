@@ -28,12 +28,13 @@ def _operands(m, k, f, down_scale):
 @pytest.mark.parametrize("m,k,f,launch", [(200, 256, 128, Launch()),   # 2 warpgroups, 2 K steps, a partial row tile
                                           (128, 64, 160, Launch()),    # the dummy prefix's MLP: one warpgroup
                                           (130, 128, 256, Launch(stages=2, delay=1, minor=1, snake=2)),
-                                          (200, 256, 128, Launch(folded=True))])   # GELU folded into one exp2
+                                          (200, 256, 128, Launch(folded=True)),   # GELU folded into one exp2
+                                          (200, 256, 128, Launch(tanh=True))])   # GELU with one tanh
 def test_kernel_equals_its_xla_form(m, k, f, launch):
     xq, gate_up, down = _operands(m, k, f, 0.01)
     assert fp8_geglu.applies(gate_up, down)
     got = fp8_geglu.geglu(xq, gate_up, down.act_scale, launch)
-    want = fp8_geglu.reference(xq, gate_up, down.act_scale)
+    want = fp8_geglu.reference(xq, gate_up, down.act_scale, launch)
     assert got.shape == (m, f) and got.dtype == formats.E4M3
     np.testing.assert_array_equal(np.asarray(got, np.float32), np.asarray(want, np.float32))
     assert np.abs(np.asarray(want, np.float32)).max() == formats.E4M3_MAX   # some outputs saturate
@@ -155,6 +156,9 @@ def test_gelu_folded_is_gelu_tanh():
     np.testing.assert_allclose(got, want, rtol=3e-5, atol=1e-30)
     np.testing.assert_allclose(got, np.asarray(fp8_geglu.gelu_tanh(x)), rtol=3e-5, atol=1e-30)
     assert np.abs(got - want).max() < 1e-6
+    # 0.5 x (1 + tanh z) (`Launch.tanh`) cancels in the negative tail: equal to f32 rounding in absolute terms only
+    half = np.asarray(fp8_geglu.gelu_half_tanh(x))
+    assert np.isfinite(half).all() and np.abs(half - want).max() < 1e-6
 
 
 def test_gelu_applies_only_where_it_fits():

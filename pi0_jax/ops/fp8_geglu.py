@@ -165,11 +165,19 @@ def gelu_half_tanh(x):
     return h + h * jnp.tanh(x * (_HALF_TANH_A + _HALF_TANH_B * (x * x)))
 
 
-def reference(xq, w: QArray, down_scale) -> jax.Array:
-    """The kernel's numerics as XLA ops: f32 product, column scales, GeGLU in f32, e4m3."""
+def gelu_form(launch: Launch | None):
+    """The GELU-tanh a launch's epilogue computes (`gelu_half_tanh`, `gelu_folded` or `gelu_tanh`)."""
+    if launch is not None and launch.tanh:
+        return gelu_half_tanh
+    return gelu_folded if launch is not None and launch.folded else gelu_tanh
+
+
+def reference(xq, w: QArray, down_scale, launch: Launch | None = None) -> jax.Array:
+    """The kernel's numerics as XLA ops: f32 product, column scales, GeGLU in f32 (GELU in `launch`'s form; None:
+    `gelu_tanh`), e4m3."""
     y = jnp.einsum("md,nd->mn", xq, w.q, preferred_element_type=F32) * column_scales(w, down_scale)
     gate, up = layout.split_gate_up(y)
-    return jnp.clip(gelu_tanh(gate) * up, -formats.E4M3_MAX, formats.E4M3_MAX).astype(E4M3)
+    return jnp.clip(gelu_form(launch)(gate) * up, -formats.E4M3_MAX, formats.E4M3_MAX).astype(E4M3)
 
 
 def geglu(xq, w: QArray, down_scale, launch: Launch | None = None) -> jax.Array:
@@ -311,7 +319,7 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
     tm, tn, tk, wgs = launch.tile_m, launch.tile_n, launch.tile_k, launch.wgs
     wg_n = tn // wgs
     gelu = act == "gelu"
-    gelu_fn = gelu_half_tanh if launch.tanh else gelu_folded if launch.folded else gelu_tanh
+    gelu_fn = gelu_form(launch)
 
     def saturated(y):
         """y clamped to e4m3's range, as `formats.quantise`, where the cast does not saturate (the interpreter's): a
