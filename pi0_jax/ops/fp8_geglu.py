@@ -13,8 +13,9 @@ columns (whole gate/up block pairs, `ops.layout.gate_up_block`) as an f32 wgmma 
 wgmma needs both operands K-major: x is (M, K) and the weight (2F, K), as the engine lays out FP8 weights.
 
 Numerics: the accumulator times its column's f32 scale (act_scale x the weight's scale; up's columns also divided by
-the down GEMM's activation scale, folded in), GELU-tanh(gate) * up in f32 as `engine.layers.gelu_tanh` writes it (x
-sigmoid(2 z)), converted to e4m3 (nearest even, saturating at ±448). XLA's path rounds gate and up to the activation
+the down GEMM's activation scale, folded in), GELU-tanh(gate) * up in f32 (in the launch's form, `gelu_form`: by
+default `gelu_folded`, `engine.layers.gelu_tanh`'s x sigmoid(2 z) with its constants folded), converted to e4m3
+(nearest even, saturating at ±448). XLA's path rounds gate and up to the activation
 dtype and divides after the product: in bf16 the two agree to that rounding, so an e4m3 output near a rounding
 boundary may take the next e4m3 value.
 
