@@ -200,6 +200,10 @@ def main() -> None:
                         "name, and the first call's in order)")
     p.add_argument("--quant", default=None, choices=sorted(SCHEMES),
                    help="FP8 weights of this scheme for every variant, calibrated as the benchmark's --quant")
+    p.add_argument("--trace-max-batch", type=int, default=8,
+                   help="trace 3 calls of each stage (kernels, kernel time, span, idle) up to this batch, e.g. 64 to "
+                        "compare variants by their kernel time there; larger batches get only the medians "
+                        "(default: %(default)s)")
     p.add_argument("--out", type=Path, default=None, help="JSON of every variant's row")
     args = p.parse_args()
     config = get_config(args.preset, dtype="bfloat16")
@@ -252,7 +256,7 @@ def main() -> None:
                 continue
             row = {"variant": name, "options": extra, "batch": batch, "kernels_per_call": {}, "span_ms": {},
                    "idle_ms": {}, "compile_s": {k[0]: round(v, 2) for k, v in engine.compile_seconds.items()}}
-            if batch <= 8:
+            if batch <= args.trace_max_batch:
                 for stage, fn in calls.items():
                     t = profile_engine.kernel_times(fn, 3, sequence=args.sequence, host=args.host_events)
                     if args.host_events:
