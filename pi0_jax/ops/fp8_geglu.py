@@ -264,11 +264,12 @@ def gelu_table(w: QArray, bias, next_scale, columns: int) -> jax.Array:
     return jnp.pad(jnp.stack([scale, bias.astype(F32), inv]), ((0, 0), (0, columns - n)))
 
 
-def gelu_reference(xq, w: QArray, bias, next_scale) -> jax.Array:
-    """`gelu`'s numerics as XLA ops: f32 product, column scales, bias, GELU-tanh, times 1 / next_scale, e4m3."""
+def gelu_reference(xq, w: QArray, bias, next_scale, launch: Launch | None = None) -> jax.Array:
+    """`gelu`'s numerics as XLA ops: f32 product, column scales, bias, GELU-tanh (in `launch`'s form; None:
+    `gelu_tanh`), times 1 / next_scale, e4m3."""
     n = w.q.shape[0]
     s, b, inv = gelu_table(w, bias, next_scale, n)
-    y = gelu_tanh(jnp.einsum("md,nd->mn", xq, w.q, preferred_element_type=F32) * s + b) * inv
+    y = gelu_form(launch)(jnp.einsum("md,nd->mn", xq, w.q, preferred_element_type=F32) * s + b) * inv
     return jnp.clip(y, -formats.E4M3_MAX, formats.E4M3_MAX).astype(E4M3)
 
 
