@@ -38,6 +38,7 @@ import jax.numpy as jnp
 
 sys.path.insert(0, str(Path(__file__).parent))
 import geglu_probe  # noqa: E402
+import profile_engine  # noqa: E402
 
 from pi0_jax.ops import formats, fp8_geglu  # noqa: E402
 from pi0_jax.ops.fp8_geglu import Launch  # noqa: E402
@@ -79,12 +80,23 @@ def _kernel(launch, out, m, q):
                                                      sms=jax.devices()[0].core_count)(*a))
 
 
+def _timed(fn, fargs, iters, chain, kernel_time=False) -> dict:
+    """ms a call as `chain` calls back to back (the host's dispatch included: at the expert's shapes it bounds the
+    measure, session 62), and with kernel_time the summed GPU kernels of one call in a profiler trace (3 calls)."""
+    r = {"ms": geglu_probe._chain(fn, fargs, iters, chain)}
+    if kernel_time:
+        t = profile_engine.kernel_times(lambda: fn(*fargs), calls=3)
+        r["kernel_us"], r["kernels"] = t["kernel_ms"] * 1e3, t["kernels_per_call"]
+    return r
+
+
 def _report(row, name, r, width, out, res):
     """Keep a form's result, print it, and write the JSON after every form (a run cut off by a time limit keeps
     what it measured)."""
     row[name] = r
     facts = " ".join(f"{k} {v:.1e}" for k, v in r.items() if k.startswith(("rel", "equal")))
-    print(f"   {name:{width}s} " + (f"{r['ms']:8.4f} ms {r['tflops']:6.0f} TFLOP/s {facts}"
+    kernel = f"kernels {r['kernel_us']:8.2f} us ({r['kernels']:.0f}) " if "kernel_us" in r else ""
+    print(f"   {name:{width}s} " + (f"{r['ms']:8.4f} ms {r['tflops']:6.0f} TFLOP/s {kernel}{facts}"
                                      if "ms" in r else r["error"]), flush=True)
     if out:
         with open(out, "w") as f:
@@ -108,7 +120,7 @@ GELU_LAUNCHES = {"3 stages, GELU as x sigmoid(2 z)": Launch(stages=3),
                  "128x128, 4 stages, one tanh, approximate": Launch(tile_n=128, stages=4, tanh=True, approx=True)}
 
 
-def siglip(rows, k, n, iters, chain, out, padded=False) -> dict:
+def siglip(rows, k, n, iters, chain, out, padded=False, kernel_time=False) -> dict:
     """SigLIP's FP8 fc1 (K = 1,152, N = 4,304) into fc2's e4m3 input: the engine's XLA path (`engine.vision.block`:
     cuBLASLt's GEMM, then one pass of scale, bias, GELU-tanh and quantisation), its GEMM alone, and the kernel
     (`fp8_geglu.gelu`, 16-column stores; 4 stages of 256-column tiles do not fit its shared memory) at the engine's
@@ -170,7 +182,7 @@ def siglip(rows, k, n, iters, chain, out, padded=False) -> dict:
         print(f"M={m} (SigLIP fc1)", flush=True)
         for name, (fn, fargs) in forms.items():
             try:
-                r = {"ms": geglu_probe._chain(fn, fargs, iters, chain)}
+                r = _timed(fn, fargs, iters, chain, kernel_time)
                 r["tflops"] = 2 * m * k * n / r["ms"] / 1e9
                 if name.startswith("kernel"):   # (padded forms come out cut to N)
                     got = fn(*fargs).astype(F32)
@@ -193,6 +205,9 @@ def main():
     p.add_argument("--chain", type=int, default=20, help="calls dispatched back to back per timed run")
     p.add_argument("--only", action="append", default=None,
                    help="repeatable: only the kernel configs whose name contains this")
+    p.add_argument("--kernel-time", action="store_true",
+                   help="also each form's GPU kernel time from a profiler trace (the chained wall time is bound by "
+                        "the host's dispatch at the expert's shapes)")
     p.add_argument("--out", default=None, help="write the results as JSON here")
     p.add_argument("--siglip", default=None,
                    help="comma-separated M values: SigLIP's FP8 fc1 with GELU (`fp8_geglu.gelu`) instead, e.g. "
@@ -202,7 +217,7 @@ def main():
     args = p.parse_args()
     if args.siglip:
         siglip([int(m) for m in args.siglip.split(",")], 1152, 4304, args.iters, args.chain, args.out,
-               args.siglip_padded)
+               args.siglip_padded, args.kernel_time)
         return
     res = {"jax": jax.__version__, "device": str(jax.devices()[0]), "rows": {}}
     for m in map(int, args.rows.split(",")):
@@ -232,7 +247,7 @@ def main():
         for name, (fn, fargs) in forms.items():
             try:
                 got = fn(*fargs)[:m]
-                r = {"ms": geglu_probe._chain(fn, fargs, args.iters, args.chain)}
+                r = _timed(fn, fargs, args.iters, args.chain, args.kernel_time)
                 r["tflops"] = flops / r["ms"] / 1e9
                 if name.startswith("kernel") and got.shape == product.shape:   # the kernel's GEMM alone
                     r["rel_l2_vs_xla_product"] = _rel(got, product)
