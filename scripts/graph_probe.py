@@ -17,6 +17,7 @@ waited) from a trace, and the fused program's actions against the first variant.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import types
@@ -160,9 +161,9 @@ PATCHES = {"gelu-tanh": (layers, {"gelu_tanh": lambda x: jax.nn.gelu(x, approxim
            "fp8-geglu-launch-61": (fp8_geglu, {"LAUNCH": fp8_geglu.Launch()}),
            "fp8-launches-60": (fp8_geglu, {"LAUNCH": fp8_geglu.Launch(), "GELU_LAUNCH": fp8_geglu.Launch(stages=3)}),
            "fp8-gelu-rows-6144": (vision, {"FP8_GELU_ROWS": 6144}),
-           "fp8-gelu-tanh": (fp8_geglu, {"GELU_LAUNCH": fp8_geglu.Launch(tile_n=128, stages=4, tanh=True, approx=True)}),
-           "fp8-tanh": (fp8_geglu, {"LAUNCH": fp8_geglu.Launch(tanh=True, approx=True),
-                                    "GELU_LAUNCH": fp8_geglu.Launch(tile_n=128, stages=4, tanh=True, approx=True)}),
+           "fp8-gelu-tanh": (fp8_geglu, {"GELU_LAUNCH": dataclasses.replace(fp8_geglu.GELU_LAUNCH, tanh=True)}),
+           "fp8-tanh": (fp8_geglu, {"LAUNCH": dataclasses.replace(fp8_geglu.LAUNCH, tanh=True),
+                                    "GELU_LAUNCH": dataclasses.replace(fp8_geglu.GELU_LAUNCH, tanh=True)}),
            "scales-apart": (formats, {"fold_scales": lambda tree: tree})}
 
 

@@ -138,15 +138,19 @@ def column_scales(w: QArray, down_scale) -> jax.Array:
     return jnp.where(up, scale / jnp.asarray(down_scale, F32), scale)
 
 
+# GELU-tanh's z = sqrt(2 / pi) (x + 0.044715 x^3)
+_SQRT_2_PI, _CUBIC = 0.7978845608028654, np.float32(0.044715)
+
+
 def gelu_tanh(x):
     """GELU-tanh in f32 as x sigmoid(2 z) (`engine.layers.gelu_tanh`'s form)."""
-    z = np.float32(2 * 0.7978845608028654) * (x + np.float32(0.044715) * x * x * x)
+    z = np.float32(2 * _SQRT_2_PI) * (x + _CUBIC * x * x * x)
     return x * jax.nn.sigmoid(z)
 
 
 # GELU-tanh(x) = x sigmoid(2 z) = x / (1 + 2^(x (A + B x^2))): the constants of z, its sign and log2(e) in two
-_FOLD_A = np.float32(-2 * 0.7978845608028654 / np.log(2.0))
-_FOLD_B = np.float32(_FOLD_A * np.float32(0.044715))
+_FOLD_A = np.float32(-2 * _SQRT_2_PI / np.log(2.0))
+_FOLD_B = np.float32(_FOLD_A * _CUBIC)
 
 
 def gelu_folded(x):
@@ -156,8 +160,8 @@ def gelu_folded(x):
     return x * (1.0 / (1.0 + jnp.exp2(x * (_FOLD_A + _FOLD_B * (x * x)))))
 
 
-_HALF_TANH_A = np.float32(0.7978845608028654)
-_HALF_TANH_B = np.float32(_HALF_TANH_A * np.float32(0.044715))
+_HALF_TANH_A = np.float32(_SQRT_2_PI)
+_HALF_TANH_B = np.float32(_HALF_TANH_A * _CUBIC)
 
 
 def gelu_half_tanh(x):
@@ -168,9 +172,9 @@ def gelu_half_tanh(x):
 
 def gelu_form(launch: Launch | None):
     """The GELU-tanh a launch's epilogue computes (`gelu_half_tanh`, `gelu_folded` or `gelu_tanh`)."""
-    if launch is not None and launch.tanh:
-        return gelu_half_tanh
-    return gelu_folded if launch is not None and launch.folded else gelu_tanh
+    if launch is None:
+        return gelu_tanh
+    return gelu_half_tanh if launch.tanh else gelu_folded if launch.folded else gelu_tanh
 
 
 def reference(xq, w: QArray, down_scale, launch: Launch | None = None) -> jax.Array:
