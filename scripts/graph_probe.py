@@ -125,6 +125,10 @@ VARIANTS = {
     # value, where the folded form takes an exp2 and a reciprocal)
     "fp8-tanh": {},
     "fp8-gelu-tanh": {},   # SigLIP's GELU kernel alone
+    # with FP8 weights: both FP8 kernels with their warpgroups on split rows (`fp8_geglu.Launch.wg_rows`), or one
+    "fp8-rows-split": {},
+    "fp8-geglu-rows-split": {},
+    "fp8-gelu-rows-split": {},
     # with FP8 weights: SigLIP's GELU kernel from 3 cameras at B = 8, as until session 62 (vision.FP8_GELU_ROWS: B = 4)
     "fp8-gelu-rows-6144": {},
     # with FP8 weights: the FP8 MLP as the engine ran it until session 56 (PATCHES: gate and up scaled and rounded to
@@ -164,6 +168,11 @@ PATCHES = {"gelu-tanh": (layers, {"gelu_tanh": lambda x: jax.nn.gelu(x, approxim
            "fp8-gelu-tanh": (fp8_geglu, {"GELU_LAUNCH": dataclasses.replace(fp8_geglu.GELU_LAUNCH, tanh=True)}),
            "fp8-tanh": (fp8_geglu, {"LAUNCH": dataclasses.replace(fp8_geglu.LAUNCH, tanh=True),
                                     "GELU_LAUNCH": dataclasses.replace(fp8_geglu.GELU_LAUNCH, tanh=True)}),
+           "fp8-rows-split": (fp8_geglu, {"LAUNCH": dataclasses.replace(fp8_geglu.LAUNCH, wg_rows=True),
+                                          "GELU_LAUNCH": dataclasses.replace(fp8_geglu.GELU_LAUNCH, wg_rows=True)}),
+           "fp8-geglu-rows-split": (fp8_geglu, {"LAUNCH": dataclasses.replace(fp8_geglu.LAUNCH, wg_rows=True)}),
+           "fp8-gelu-rows-split": (fp8_geglu, {"GELU_LAUNCH": dataclasses.replace(fp8_geglu.GELU_LAUNCH,
+                                                                                  wg_rows=True)}),
            "scales-apart": (formats, {"fold_scales": lambda tree: tree})}
 
 
