@@ -9,8 +9,9 @@ scales in an FP8 GEMM's epilogue, so the pass cannot join it there. Here it is t
 
 The kernel is persistent: a CTA per SM walks (tile_m x tile_n) tiles of the output in a snake order; a producer
 warpgroup streams x and weight tiles by TMA, `stages` deep; `wgs` compute warpgroups each own tile_n / wgs weight
-columns (whole gate/up block pairs, `ops.layout.gate_up_block`) as an f32 wgmma accumulator over the whole K. e4m3
-wgmma needs both operands K-major: x is (M, K) and the weight (2F, K), as the engine lays out FP8 weights.
+columns (whole gate/up block pairs, `ops.layout.gate_up_block`; with `Launch.wg_rows`, tile_m / wgs rows of all of
+them) as an f32 wgmma accumulator over the whole K. e4m3 wgmma needs both operands K-major: x is (M, K) and the
+weight (2F, K), as the engine lays out FP8 weights.
 
 Numerics: the accumulator times its column's f32 scale (act_scale x the weight's scale; up's columns also divided by
 the down GEMM's activation scale, folded in), GELU-tanh(gate) * up in f32 (in the launch's form, `gelu_form`: by
@@ -275,8 +276,8 @@ def fit_gelu(launch: Launch, k: int, n: int) -> Launch | None:
     if k % tile_k or tile_k % MIN_K or wg_n % GELU_BLOCK or n % 16:
         return None
     stages = min(launch.stages, k // tile_k)
-    return dataclasses.replace(launch, tile_k=tile_k, tile_n=wg_n if launch.wg_rows else wgs * wg_n, wgs=wgs, stages=stages,
-                               delay=min(launch.delay, stages - 1))
+    return dataclasses.replace(launch, tile_k=tile_k, tile_n=wg_n if launch.wg_rows else wgs * wg_n, wgs=wgs,
+                               stages=stages, delay=min(launch.delay, stages - 1))
 
 
 def gelu_applies(w, nxt) -> bool:
@@ -390,7 +391,8 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
                 (lin,) = info.index
                 mi, ni = plgpu.planar_snake(lin, (m_iters, n_iters), launch.minor, launch.snake)
                 # the warpgroup's output rows and first column: no `//` on a traced index (its floor-division
-                # selects leave Mosaic GPU's layout inference without a solution, jax 0.10.2)
+                # selects leave Mosaic GPU's layout inference without a solution, jax 0.10.2). With wg_rows a
+                # warpgroup's rows may lie wholly past M in a ragged last tile: TMA drops those stores
                 if launch.wg_rows:
                     rows, col0, h_col0 = pl.ds(mi * tm + wg * wg_m, wg_m), ni * tn, ni * (tn // 2)
                 else:
