@@ -78,8 +78,8 @@ def pieces(head_dim: int) -> tuple:
 
 
 def whole(head_dim: int, num_heads: int) -> tuple:
-    """`Blocks.whole`'s one part, (0, the next power of two, 0), where it fits the output's row (the last head's
-    block ends at its end); else `pieces`."""
+    """`Blocks.whole`'s one part, (0, the next power of two, 0), where the output's row holds one such block (the
+    last heads' blocks end at the row's end); else `pieces`."""
     width = 1 << (head_dim - 1).bit_length()
     return ((0, width, 0),) if width <= head_dim * num_heads else pieces(head_dim)
 
