@@ -97,14 +97,27 @@ class Launch:
 WGMMA_M = 64   # a wgmma's rows: with `wg_rows`, a warpgroup's rows are a multiple of it
 
 
+def _tile_k(launch: Launch, k: int) -> int:
+    """launch.tile_k halved until it divides K, not below an e4m3 wgmma's 32 (the caller checks that it divides)."""
+    tile_k = launch.tile_k
+    while k % tile_k and tile_k > MIN_K:
+        tile_k //= 2
+    return tile_k
+
+
+def _fitted(launch: Launch, k: int, tile_k: int, tile_n: int, wgs: int) -> Launch:
+    """launch with these tiles and warpgroups, its stages no more than K's steps and its delay under its stages."""
+    stages = min(launch.stages, k // tile_k)
+    return dataclasses.replace(launch, tile_k=tile_k, tile_n=tile_n, wgs=wgs, stages=stages,
+                               delay=min(launch.delay, stages - 1))
+
+
 def fit(launch: Launch, k: int, n2: int) -> Launch | None:
     """The launch for a (K, 2F) weight: tile_k halved until it divides K (not below an e4m3 wgmma's 32), then
     fewer compute warpgroups and fewer block pairs each until tile_n divides 2F (small shapes: the tests). None
     where nothing fits."""
     pair = 2 * layout.gate_up_block(n2 // 2)
-    tile_k = launch.tile_k
-    while k % tile_k and tile_k > MIN_K:
-        tile_k //= 2
+    tile_k = _tile_k(launch, k)
     if k % tile_k or tile_k % MIN_K or n2 % pair:
         return None
     if launch.wg_rows:   # every warpgroup all tile_n columns: tile_n whole block pairs that divide 2F
@@ -113,18 +126,14 @@ def fit(launch: Launch, k: int, n2: int) -> Launch | None:
             tile_n -= pair
         if tile_n < pair or launch.tile_m % (WGMMA_M * launch.wgs):
             return None
-        stages = min(launch.stages, k // tile_k)
-        return dataclasses.replace(launch, tile_k=tile_k, tile_n=tile_n, stages=stages,
-                                   delay=min(launch.delay, stages - 1))
+        return _fitted(launch, k, tile_k, tile_n, launch.wgs)
     widest = launch.tile_n // launch.wgs // pair * pair   # a warpgroup's columns: whole block pairs
     for wgs in range(launch.wgs, 0, -1):
         wg_n = widest
         while wg_n >= pair and (n2 % (wgs * wg_n) or wg_n % pair):
             wg_n -= pair
         if wg_n >= pair:
-            stages = min(launch.stages, k // tile_k)
-            return dataclasses.replace(launch, tile_k=tile_k, tile_n=wgs * wg_n, wgs=wgs, stages=stages,
-                                       delay=min(launch.delay, stages - 1))
+            return _fitted(launch, k, tile_k, wgs * wg_n, wgs)
     return None
 
 
@@ -263,9 +272,7 @@ def gelu_block(n: int) -> int:
 def fit_gelu(launch: Launch, k: int, n: int) -> Launch | None:
     """The launch for `gelu` on a (N, K) weight: tile_k as `fit`, column tiles of whole `GELU_BLOCK`s (one warpgroup
     where N fills no more than one's share). N need not divide: on a GPU the last column tile is ragged."""
-    tile_k = launch.tile_k
-    while k % tile_k and tile_k > MIN_K:
-        tile_k //= 2
+    tile_k = _tile_k(launch, k)
     if launch.wg_rows:   # the warpgroups split the rows: each takes all tile_n columns
         wgs, wg_n = launch.wgs, launch.tile_n
         if launch.tile_m % (WGMMA_M * wgs):
@@ -275,9 +282,7 @@ def fit_gelu(launch: Launch, k: int, n: int) -> Launch | None:
         wg_n = launch.tile_n // launch.wgs
     if k % tile_k or tile_k % MIN_K or wg_n % GELU_BLOCK or n % 16:
         return None
-    stages = min(launch.stages, k // tile_k)
-    return dataclasses.replace(launch, tile_k=tile_k, tile_n=wg_n if launch.wg_rows else wgs * wg_n, wgs=wgs,
-                               stages=stages, delay=min(launch.delay, stages - 1))
+    return _fitted(launch, k, tile_k, wg_n if launch.wg_rows else wgs * wg_n, wgs)
 
 
 def gelu_applies(w, nxt) -> bool:
