@@ -33,7 +33,7 @@ import profile_engine  # noqa: E402
 from pi0_jax import benchmark  # noqa: E402
 from pi0_jax.config import get_config  # noqa: E402
 from pi0_jax.engine import Engine, layers, paths, programs, runtime, vision  # noqa: E402
-from pi0_jax.ops import expert_kernels, formats, fp8_geglu, layout, vision_attention  # noqa: E402
+from pi0_jax.ops import expert_kernels, formats, fp8_geglu, layout  # noqa: E402
 from pi0_jax.quant.schemes import SCHEMES  # noqa: E402
 
 GRAPHS = {"xla_gpu_graph_min_graph_size": 1}
@@ -133,8 +133,6 @@ VARIANTS = {
     # takes π0 from B = 17 with the state token once a call (paths.PALLAS_DENOISE_BATCHES*): at B = 64 its program
     # has 222 kernels outside the loop and 190 a step against 607 and 227 (compiled for an H200, session 63)
     "pallas-denoise-any-batch": {},
-    # SigLIP's attention kernel reading each 72-wide head as one 128-column block (vision_attention.Blocks.whole)
-    "siglip-attention-whole": {},
     # with FP8 weights: SigLIP's GELU kernel from 3 cameras at B = 8, as until session 62 (vision.FP8_GELU_ROWS: B = 4)
     "fp8-gelu-rows-6144": {},
     # with FP8 weights: the FP8 MLP as the engine ran it until session 56 (PATCHES: gate and up scaled and rounded to
@@ -181,7 +179,6 @@ PATCHES = {"gelu-tanh": (layers, {"gelu_tanh": lambda x: jax.nn.gelu(x, approxim
                                                                                   wg_rows=True)}),
            "pallas-denoise-any-batch": (paths, {"PALLAS_DENOISE_BATCHES_MASKED": range(3, 1 << 20),
                                                 "PALLAS_DENOISE_BATCHES": range(4, 1 << 20)}),
-           "siglip-attention-whole": (vision_attention, {"BLOCKS": vision_attention.Blocks(whole=True)}),
            "scales-apart": (formats, {"fold_scales": lambda tree: tree})}
 
 

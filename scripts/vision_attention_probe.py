@@ -30,8 +30,7 @@ from pi0_jax.ops import attention as ops_attention, vision_attention  # noqa: E4
 
 HEADS, HEAD_DIM, TOKENS = 16, 72, 256
 DEFAULT_BLOCKS = ("128,64,4,2", "64,64,4,2", "64,128,4,2", "64,256,4,1", "64,256,8,1", "32,256,4,1", "32,256,2,1",
-                  "32,128,4,2", "16,256,4,1", "128,256,8,1", "128,64,4,2,whole", "128,64,8,2,whole",
-                  "64,64,4,2,whole")
+                  "32,128,4,2", "16,256,4,1", "128,256,8,1")
 
 
 def split(qkv, images):
@@ -42,9 +41,8 @@ def split(qkv, images):
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--images", type=int, action="append", default=None, help="repeatable (default: 3)")
-    p.add_argument("--blocks", action="append", default=None, metavar="Q,KV,WARPS,STAGES[,whole]",
-                   help="repeatable Pallas block settings; ',whole': each head read as one 128-column block "
-                        f"(`Blocks.whole`) (default: {' '.join(DEFAULT_BLOCKS)})")
+    p.add_argument("--blocks", action="append", default=None, metavar="Q,KV,WARPS,STAGES",
+                   help=f"repeatable Pallas block settings (default: {' '.join(DEFAULT_BLOCKS)})")
     p.add_argument("--calls", type=int, default=30, help="traced calls per variant (default: %(default)s)")
     p.add_argument("--out", type=Path, default=None, help="JSON of every row")
     args = p.parse_args()
@@ -57,9 +55,8 @@ def main() -> None:
         fns = {"xla": jax.jit(lambda x: nn.dot_product_attention(*split(x, images), dtype=jnp.bfloat16)),
                "cudnn": jax.jit(lambda x: ops_attention.fused(*split(x, images)))}
         for spec in args.blocks or DEFAULT_BLOCKS:
-            bq, bkv, warps, stages = (int(s) for s in spec.split(",")[:4])
-            blocks = vision_attention.Blocks(q=bq, kv=bkv, num_warps=warps, num_stages=stages,
-                                             whole=spec.endswith(",whole"))
+            bq, bkv, warps, stages = (int(s) for s in spec.split(","))
+            blocks = vision_attention.Blocks(q=bq, kv=bkv, num_warps=warps, num_stages=stages)
             fns[f"pallas-{spec}"] = jax.jit(lambda x, b=blocks: vision_attention.attention(
                 x, images=images, num_heads=HEADS, blocks=b))
         for name, fn in fns.items():

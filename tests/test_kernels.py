@@ -349,16 +349,12 @@ def test_vision_attention_kernel_matches_xla(head_dim):
     qkv = _rand(7, images * t, 3 * heads * head_dim)
     x = qkv.reshape(images, t, 3, heads, head_dim)
     ref = nn.dot_product_attention(x[:, :, 0], x[:, :, 1], x[:, :, 2]).reshape(images * t, heads * head_dim)
-    # one key block, an online softmax over two, and each head as one block of the next power of two (the last
-    # head's v and output read back from its end)
-    for blocks in (va.Blocks(), va.Blocks(q=16, kv=32), va.Blocks(q=16, kv=32, whole=True)):
+    for blocks in (va.Blocks(), va.Blocks(q=16, kv=32)):   # one key block, and an online softmax over two
         got = va.attention(qkv, images=images, num_heads=heads, blocks=blocks)
         np.testing.assert_allclose(got, ref, **TOL)
     low = va.attention(qkv.astype(jnp.bfloat16), images=images, num_heads=heads).astype(jnp.float32)
     assert float(jnp.linalg.norm(low - ref) / jnp.linalg.norm(ref)) < 1e-2
     assert [p[1] for p in va.pieces(head_dim)] == {20: [16, 16], 64: [64], 72: [64, 16]}[head_dim]
-    assert [p[1] for p in va.whole(head_dim, heads)] == {20: [32], 64: [64], 72: [128]}[head_dim]
-    assert va.whole(head_dim, 1) == va.pieces(head_dim)   # one head of 72: a block of 128 would leave the row
     with pytest.raises(ValueError, match="head dim"):
         va.pieces(8)
     with pytest.raises(ValueError, match="not 5 images"):
@@ -465,9 +461,7 @@ def test_fp8_ends_in_the_vision_kernels_match_xla():
     act = jnp.float32(2.0 / 448)
     z = va.scale_bias(qkv, q_scale, q_bias).reshape(2, 16, 3, heads, hd)
     want = formats.quantise(nn.dot_product_attention(z[:, :, 0], z[:, :, 1], z[:, :, 2]).reshape(32, -1), act)
-    for blocks in (None, va.Blocks(whole=True)):   # whole: v's scale and bias read from the last head's end too
-        _e4m3_close(va.attention(qkv, images=2, num_heads=heads, col_scale=q_scale, bias=q_bias, quantise=act,
-                                 blocks=blocks), want)
+    _e4m3_close(va.attention(qkv, images=2, num_heads=heads, col_scale=q_scale, bias=q_bias, quantise=act), want)
     with pytest.raises(ValueError, match="col_scale and bias go together"):
         va.attention(qkv, images=2, num_heads=heads, col_scale=q_scale)
 

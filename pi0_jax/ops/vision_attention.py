@@ -6,8 +6,7 @@ per layer (81 of the tower's 386 kernels at B = 1, docs/BENCHMARKS.md) and a mem
 columns in place. Triton's blocks are powers of two, so a head dim that is not one (So400m's 72) is read as two
 pieces that are, both inside the head: [0, 64) and the last 16 columns [56, 72). The second piece's first 8 columns
 repeat the first piece's: they are zeroed in q, so each product counts once, and left out of the second piece's
-store. `Blocks.whole` reads a head as one block of 128 columns instead (the next head's columns zeroed in q and left
-out of the store): one dot a product on 78 % more columns; untimed on a GPU (docs/BENCHMARKS.md, session 63).
+store.
 
 Numerics as cuDNN's kernel (`ops.attention.fused`): f32 logits scaled by 1 / sqrt(H), an online softmax in f32 over
 key blocks, the probabilities rounded to the activation dtype for the PV product with an f32 accumulator, the output
@@ -50,19 +49,12 @@ NEG = float(np.finfo(np.float32).min)  # the running max before any key (no key 
 class Blocks:
     """Queries per program, keys per loop step (powers of two, shrunk to divide T) and Triton launch parameters.
     Defaults: of six settings, the one within noise of the best at 3 and 24 images and the best at 192 (H100,
-    docs/BENCHMARKS.md). whole: a head dim that is not a power of two read as one block of the next power of two
-    (72 as 128 columns: one dot a product, on 78 % more columns, where `pieces` takes two), the columns past the
-    head zeroed in q and left out of the store."""
+    docs/BENCHMARKS.md)."""
 
     q: int = 128
     kv: int = 64
     num_warps: int = 4
     num_stages: int = 2
-    whole: bool = False
-
-
-# the engine's launch (`attention`'s default)
-BLOCKS = Blocks()
 
 
 def pieces(head_dim: int) -> tuple:
@@ -77,26 +69,14 @@ def pieces(head_dim: int) -> tuple:
     return (0, first, 0), (head_dim - width, width, first - (head_dim - width))
 
 
-def whole(head_dim: int, num_heads: int) -> tuple:
-    """`Blocks.whole`'s one part, (0, the next power of two, 0), where the output's row holds one such block (the
-    last heads' blocks end at the row's end); else `pieces`."""
-    width = 1 << (head_dim - 1).bit_length()
-    return ((0, width, 0),) if width <= head_dim * num_heads else pieces(head_dim)
-
-
 def _kernel(qkv_ref, cs_ref, b_ref, act_ref, o_ref, *, t, bq, bkv, width, hd, parts, scale, scaled):
-    """Program (i, n, qi): query block qi of image i, head n, over all T keys of image i. A part wider than the head
-    (`Blocks.whole`) starts at the head for q and k, and for v and the output where it ends inside the row (the
-    output's width), else it ends at the row's end (the last heads): `shift` columns before the head."""
+    """Program (i, n, qi): query block qi of image i, head n, over all T keys of image i."""
     i, n, qi = pl.program_id(0), pl.program_id(1), pl.program_id(2)
     rows = pl.ds(i * t + qi * bq, bq)
     dtype = qkv_ref.dtype
-    wide = parts[0][1] > hd
-    shift = jnp.maximum(n * hd + parts[0][1] - width, 0) if wide else 0
-    inside = jnp.arange(parts[0][1])[None, :] if wide else None   # (1, W): [shift, shift + hd) is the head's
 
     def cols(base, part):
-        return pl.ds(base + n * hd + part[0] - (shift if wide and base == 2 * width else 0), part[1])
+        return pl.ds(base + n * hd + part[0], part[1])
 
     def vector(ref, base, part):
         return ref[cols(base, part)].astype(jnp.float32)[None, :]
@@ -110,8 +90,6 @@ def _kernel(qkv_ref, cs_ref, b_ref, act_ref, o_ref, *, t, bq, bkv, width, hd, pa
             q = q.astype(dtype)
         if part[2]:
             q = jnp.where(jnp.arange(part[1])[None, :] >= part[2], q, jnp.zeros_like(q))
-        if wide:   # the next heads' columns: each logit counts the head's only
-            q = jnp.where(inside < hd, q, jnp.zeros_like(q))
         qs.append(q)
 
     def body(j, carry):
@@ -136,17 +114,14 @@ def _kernel(qkv_ref, cs_ref, b_ref, act_ref, o_ref, *, t, bq, bkv, width, hd, pa
         if o_ref.dtype != dtype:   # e4m3 as `formats.quantise` (Triton's f32 division: module doc)
             out = jnp.clip(out.astype(jnp.float32) / act_ref[...][None, :], -E4M3_MAX, E4M3_MAX)
         out = out.astype(o_ref.dtype)
-        if wide:   # v's columns as read: the head's are [shift, shift + hd)
-            plgpu.store(o_ref.at[rows, pl.ds(n * hd - shift, part[1])], out,
-                        mask=(inside >= shift) & (inside < shift + hd))
-        elif part[2]:
+        if part[2]:
             plgpu.store(o_ref.at[rows, cols(0, part)], out, mask=jnp.arange(part[1])[None, :] >= part[2])
         else:
             o_ref[rows, cols(0, part)] = out
 
 
 def attention(qkv, *, images: int, num_heads: int, col_scale=None, bias=None, quantise=None,
-              blocks: Blocks | None = None):
+              blocks: Blocks = Blocks()):
     """Softmax attention within each image: qkv (R, 3 N H), each row [q | k | v] with heads side by side (the fused
     GEMM's output, bias added), rows image-major -> (R, N H) in qkv's dtype.
 
@@ -161,7 +136,6 @@ def attention(qkv, *, images: int, num_heads: int, col_scale=None, bias=None, qu
     hd, t = c // (3 * num_heads), r // images
     if hd * 3 * num_heads != c or t * images != r:
         raise ValueError(f"qkv {qkv.shape} is not {images} images x T rows of 3 x {num_heads} heads")
-    blocks = BLOCKS if blocks is None else blocks
     scaled = col_scale is not None
     if scaled != (bias is not None) or (scaled and (col_scale.shape, bias.shape) != ((c,), (c,))):
         raise ValueError(f"vision attention: col_scale and bias go together, each ({c},); got "
@@ -216,9 +190,8 @@ def _attention(qkv, cs, b, act, images: int, num_heads: int, blocks: Blocks, sca
     r, c = qkv.shape
     hd, t = c // (3 * num_heads), r // images
     bq, bkv = fit(blocks.q, t), fit(blocks.kv, t)
-    kernel = functools.partial(_kernel, t=t, bq=bq, bkv=bkv, width=num_heads * hd, hd=hd,
-                               parts=whole(hd, num_heads) if blocks.whole else pieces(hd), scale=float(hd) ** -0.5,
-                               scaled=scaled)
+    kernel = functools.partial(_kernel, t=t, bq=bq, bkv=bkv, width=num_heads * hd, hd=hd, parts=pieces(hd),
+                               scale=float(hd) ** -0.5, scaled=scaled)
     out = jax.ShapeDtypeStruct((r, num_heads * hd), E4M3 if quantised else qkv.dtype)
     return call(kernel, grid=(images, num_heads, t // bq), out_shape=out, name="vision_attention",
                 num_warps=blocks.num_warps, num_stages=blocks.num_stages)(qkv, cs, b, act)
