@@ -64,12 +64,6 @@ CONFIGS = {
     "128x256x128, 4 stages, one tanh, approximate": (Launch(tanh=True, approx=True), "e4m3"),
     "128x256x128, 3 stages, snake 16, folded, approximate exp": (
         dataclasses.replace(fp8_geglu.LAUNCH, stages=3, snake=16), "e4m3"),
-    # the warpgroups on 64 rows each of all 256 columns (`Launch.wg_rows`): one m64 x 256 wgmma a K slice each
-    "GEMM alone (bf16 product), 128x256x128, 4 stages, rows split": (Launch(wg_rows=True), "product"),
-    "128x256x128, 4 stages, rows split, folded, approximate exp": (
-        dataclasses.replace(fp8_geglu.LAUNCH, wg_rows=True), "e4m3"),
-    "128x256x128, 3 stages, snake 16, rows split, folded, approximate exp": (
-        dataclasses.replace(fp8_geglu.LAUNCH, stages=3, snake=16, wg_rows=True), "e4m3"),
 }
 
 
@@ -125,11 +119,7 @@ GELU_LAUNCHES = {"3 stages, GELU as x sigmoid(2 z)": Launch(stages=3),
                  "3 stages, folded": Launch(stages=3, folded=True),
                  "3 stages, folded, approximate exp": Launch(stages=3, folded=True, approx=True),
                  "3 stages, snake 16, folded, approximate exp": Launch(stages=3, snake=16, folded=True, approx=True),
-                 "128x128, 4 stages, one tanh, approximate": Launch(tile_n=128, stages=4, tanh=True, approx=True),
-                 # the warpgroups split the rows (`Launch.wg_rows`): each 64 rows of all the tile's columns
-                 "128x128, 4 stages, rows split": dataclasses.replace(fp8_geglu.GELU_LAUNCH, wg_rows=True),
-                 "128x256, 3 stages, rows split": dataclasses.replace(fp8_geglu.GELU_LAUNCH, tile_n=256, stages=3,
-                                                                      wg_rows=True)}
+                 "128x128, 4 stages, one tanh, approximate": Launch(tile_n=128, stages=4, tanh=True, approx=True)}
 
 
 def siglip(rows, k, n, iters, chain, out, padded=False, kernel_time=False) -> dict:
@@ -173,8 +163,6 @@ def siglip(rows, k, n, iters, chain, out, padded=False, kernel_time=False) -> di
 
         forms["mainloop + bf16 store, N as it is"] = product(fc1.q, Launch(stages=3))
         forms["mainloop + bf16 store, the engine's launch"] = product(fc1.q, fp8_geglu.GELU_LAUNCH)
-        forms["mainloop + bf16 store, the engine's launch, rows split"] = product(
-            fc1.q, dataclasses.replace(fp8_geglu.GELU_LAUNCH, wg_rows=True))
         if padded:
             # N padded to whole 64-column blocks (zero weight rows, zero bias): 64-column swizzled stores instead of
             # 16-column unswizzled ones; the padded columns come out 0 and are cut for the checks

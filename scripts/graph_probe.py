@@ -125,14 +125,6 @@ VARIANTS = {
     # value, where the folded form takes an exp2 and a reciprocal)
     "fp8-tanh": {},
     "fp8-gelu-tanh": {},   # SigLIP's GELU kernel alone
-    # with FP8 weights: both FP8 kernels with their warpgroups on split rows (`fp8_geglu.Launch.wg_rows`), or one
-    "fp8-rows-split": {},
-    "fp8-geglu-rows-split": {},
-    "fp8-gelu-rows-split": {},
-    # the denoise attention="auto" on the Pallas split-key kernel at every batch from 3 (π0) / 4 (π0.5), where cuDNN's
-    # takes π0 from B = 17 with the state token once a call (paths.PALLAS_DENOISE_BATCHES*): at B = 64 its program
-    # has 222 kernels outside the loop and 190 a step against 607 and 227 (compiled for an H200, session 63)
-    "pallas-denoise-any-batch": {},
     # with FP8 weights: SigLIP's GELU kernel from 3 cameras at B = 8, as until session 62 (vision.FP8_GELU_ROWS: B = 4)
     "fp8-gelu-rows-6144": {},
     # with FP8 weights: the FP8 MLP as the engine ran it until session 56 (PATCHES: gate and up scaled and rounded to
@@ -172,13 +164,6 @@ PATCHES = {"gelu-tanh": (layers, {"gelu_tanh": lambda x: jax.nn.gelu(x, approxim
            "fp8-gelu-tanh": (fp8_geglu, {"GELU_LAUNCH": dataclasses.replace(fp8_geglu.GELU_LAUNCH, tanh=True)}),
            "fp8-tanh": (fp8_geglu, {"LAUNCH": dataclasses.replace(fp8_geglu.LAUNCH, tanh=True),
                                     "GELU_LAUNCH": dataclasses.replace(fp8_geglu.GELU_LAUNCH, tanh=True)}),
-           "fp8-rows-split": (fp8_geglu, {"LAUNCH": dataclasses.replace(fp8_geglu.LAUNCH, wg_rows=True),
-                                          "GELU_LAUNCH": dataclasses.replace(fp8_geglu.GELU_LAUNCH, wg_rows=True)}),
-           "fp8-geglu-rows-split": (fp8_geglu, {"LAUNCH": dataclasses.replace(fp8_geglu.LAUNCH, wg_rows=True)}),
-           "fp8-gelu-rows-split": (fp8_geglu, {"GELU_LAUNCH": dataclasses.replace(fp8_geglu.GELU_LAUNCH,
-                                                                                  wg_rows=True)}),
-           "pallas-denoise-any-batch": (paths, {"PALLAS_DENOISE_BATCHES_MASKED": range(3, 1 << 20),
-                                                "PALLAS_DENOISE_BATCHES": range(4, 1 << 20)}),
            "scales-apart": (formats, {"fold_scales": lambda tree: tree})}
 
 

@@ -9,9 +9,8 @@ scales in an FP8 GEMM's epilogue, so the pass cannot join it there. Here it is t
 
 The kernel is persistent: a CTA per SM walks (tile_m x tile_n) tiles of the output in a snake order; a producer
 warpgroup streams x and weight tiles by TMA, `stages` deep; `wgs` compute warpgroups each own tile_n / wgs weight
-columns (whole gate/up block pairs, `ops.layout.gate_up_block`; with `Launch.wg_rows`, tile_m / wgs rows of all of
-them) as an f32 wgmma accumulator over the whole K. e4m3 wgmma needs both operands K-major: x is (M, K) and the
-weight (2F, K), as the engine lays out FP8 weights.
+columns (whole gate/up block pairs, `ops.layout.gate_up_block`) as an f32 wgmma accumulator over the whole K. e4m3
+wgmma needs both operands K-major: x is (M, K) and the weight (2F, K), as the engine lays out FP8 weights.
 
 Numerics: the accumulator times its column's f32 scale (act_scale x the weight's scale; up's columns also divided by
 the down GEMM's activation scale, folded in), GELU-tanh(gate) * up in f32 (in the launch's form, `gelu_form`: by
@@ -71,9 +70,7 @@ class Launch:
     approximate math (`approx`: the sigmoid's exp as one ex2.approx.f32, without the range reduction around it; its
     division is rcp.approx.f32 either way, as ptxas's input for sm_90a shows), and GELU-tanh's arithmetic folded
     (`folded`: `gelu_folded`), or written with one tanh (`tanh`: `gelu_half_tanh`; with approx one tanh.approx.f32,
-    one MUFU instruction a value where the folded form takes two). `wg_rows`: the compute warpgroups split the tile's
-    rows instead (each tile_m / wgs rows of all tile_n columns: one m64 x tile_n wgmma a K slice, which reads the
-    shared x tile in halves and the weight tile once a warpgroup, where split columns read x whole in each)."""
+    one MUFU instruction a value where the folded form takes two)."""
 
     tile_m: int = 128
     tile_n: int = 256
@@ -86,15 +83,6 @@ class Launch:
     approx: bool = False
     folded: bool = False
     tanh: bool = False
-    wg_rows: bool = False
-
-    @property
-    def wg_shape(self) -> tuple[int, int]:
-        """A compute warpgroup's (rows, columns) of the tile: its accumulator."""
-        return (self.tile_m // self.wgs, self.tile_n) if self.wg_rows else (self.tile_m, self.tile_n // self.wgs)
-
-
-WGMMA_M = 64   # a wgmma's rows: with `wg_rows`, a warpgroup's rows are a multiple of it
 
 
 def _tile_k(launch: Launch, k: int) -> int:
@@ -120,13 +108,6 @@ def fit(launch: Launch, k: int, n2: int) -> Launch | None:
     tile_k = _tile_k(launch, k)
     if k % tile_k or tile_k % MIN_K or n2 % pair:
         return None
-    if launch.wg_rows:   # every warpgroup all tile_n columns: tile_n whole block pairs that divide 2F
-        tile_n = launch.tile_n // pair * pair
-        while tile_n >= pair and n2 % tile_n:
-            tile_n -= pair
-        if tile_n < pair or launch.tile_m % (WGMMA_M * launch.wgs):
-            return None
-        return _fitted(launch, k, tile_k, tile_n, launch.wgs)
     widest = launch.tile_n // launch.wgs // pair * pair   # a warpgroup's columns: whole block pairs
     for wgs in range(launch.wgs, 0, -1):
         wg_n = widest
@@ -273,16 +254,11 @@ def fit_gelu(launch: Launch, k: int, n: int) -> Launch | None:
     """The launch for `gelu` on a (N, K) weight: tile_k as `fit`, column tiles of whole `GELU_BLOCK`s (one warpgroup
     where N fills no more than one's share). N need not divide: on a GPU the last column tile is ragged."""
     tile_k = _tile_k(launch, k)
-    if launch.wg_rows:   # the warpgroups split the rows: each takes all tile_n columns
-        wgs, wg_n = launch.wgs, launch.tile_n
-        if launch.tile_m % (WGMMA_M * wgs):
-            return None
-    else:
-        wgs = launch.wgs if n > launch.tile_n // launch.wgs else 1
-        wg_n = launch.tile_n // launch.wgs
+    wgs = launch.wgs if n > launch.tile_n // launch.wgs else 1
+    wg_n = launch.tile_n // launch.wgs
     if k % tile_k or tile_k % MIN_K or wg_n % GELU_BLOCK or n % 16:
         return None
-    return _fitted(launch, k, tile_k, wg_n if launch.wg_rows else wgs * wg_n, wgs)
+    return _fitted(launch, k, tile_k, wgs * wg_n, wgs)
 
 
 def gelu_applies(w, nxt) -> bool:
@@ -354,7 +330,7 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
     "product" (the raw GEMM in bf16, (m, n2), no epilogue but the store). act "gelu": the epilogue is `gelu`'s, the
     scales a (3, whole column tiles) table (`gelu_table`), the output (m, n2), n2 ragged on a GPU."""
     tm, tn, tk, wgs = launch.tile_m, launch.tile_n, launch.tile_k, launch.wgs
-    wg_m, wg_n = launch.wg_shape
+    wg_n = tn // wgs
     gelu = act == "gelu"
     gelu_fn = gelu_form(launch)
 
@@ -382,8 +358,8 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
 
     def kernel(x_gmem, w_gmem, s_gmem, o_gmem):
         nothing = lambda *_, **__: None   # noqa: E731
-        out_smem = (plgpu.SMEM((wgs, wg_m, block), out_dtype, transforms=out_tr) if out == "product"
-                    else plgpu.SMEM((wgs, pairs, wg_m, block), out_dtype, transforms=out_tr))
+        out_smem = (plgpu.SMEM((wgs, tm, block), out_dtype, transforms=out_tr) if out == "product"
+                    else plgpu.SMEM((wgs, pairs, tm, block), out_dtype, transforms=out_tr))
 
         @functools.partial(pl.run_scoped, allocs=pipeline(nothing, nothing).get_allocations(x_gmem, w_gmem),
                            out_smem=out_smem, s_smem=plgpu.SMEM((wgs, 3, wg_n) if gelu else (wgs, wg_n), F32),
@@ -395,19 +371,17 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
             def tiles(info):
                 (lin,) = info.index
                 mi, ni = plgpu.planar_snake(lin, (m_iters, n_iters), launch.minor, launch.snake)
-                # the warpgroup's output rows and first column: no `//` on a traced index (its floor-division
-                # selects leave Mosaic GPU's layout inference without a solution, jax 0.10.2). With wg_rows a
-                # warpgroup's rows may lie wholly past M in a ragged last tile: TMA drops those stores
-                if launch.wg_rows:
-                    rows, col0, h_col0 = pl.ds(mi * tm + wg * wg_m, wg_m), ni * tn, ni * (tn // 2)
-                else:
-                    rows, col0, h_col0 = pl.ds(mi * tm, tm), ni * tn + wg * wg_n, ni * (tn // 2) + wg * (wg_n // 2)
+                rows = pl.ds(mi * tm, tm)
+                col0 = ni * tn + wg * wg_n
+                # the output's column: no `//` on a traced index (its floor-division selects leave Mosaic GPU's
+                # layout inference without a solution, jax 0.10.2)
+                h_col0 = ni * (tn // 2) + wg * (wg_n // 2)
 
                 def context(run):
                     plgpu.copy_gmem_to_smem(s_gmem.at[:, pl.ds(col0, wg_n)] if gelu else s_gmem.at[pl.ds(col0, wg_n)],
                                             s_smem.at[wg], s_bar.at[wg])
 
-                    @functools.partial(pl.run_scoped, acc=plgpu.ACC((wg_m, wg_n), F32))
+                    @functools.partial(pl.run_scoped, acc=plgpu.ACC((tm, wg_n), F32))
                     def _(acc):
                         run(acc)
                         plgpu.barrier_wait(s_bar.at[wg])
@@ -424,7 +398,7 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
                         # layout
                         def row(ref):
                             v = ref[...] if interpret else plgpu.load(ref, (), layout=plgpu.Layout.WGMMA.reduce(0))
-                            return lax.broadcast_in_dim(v, (wg_m, wg_n), [1])   # as jax's Mosaic kernels do
+                            return lax.broadcast_in_dim(v, (tm, wg_n), [1])   # as jax's Mosaic kernels do
 
                         if gelu:
                             y = acc[...] * row(s_smem.at[wg, 0]) + row(s_smem.at[wg, 1])
@@ -451,17 +425,14 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
                                                     o_gmem.at[rows, pl.ds(h_col0 + p * block, block)])
 
                 def body(_, x_smem, w_smem, acc):
-                    if launch.wg_rows:
-                        x_smem, cols = x_smem.at[pl.ds(wg * wg_m, wg_m)], slice(None)
-                    else:
-                        cols = pl.ds(wg * wg_n, wg_n)
+                    cols = pl.ds(wg * wg_n, wg_n)
                     plgpu.wgmma(acc, x_smem, w_smem.at[:, cols] if interpret
                                 else plgpu.transpose_ref(w_smem.at[cols], (1, 0)))
                     plgpu.wgmma_wait(launch.delay)
                     return acc
 
                 w_cols = pl.ds(ni * tn, tn)
-                pipeline(body, context)(x_gmem.at[pl.ds(mi * tm, tm), :], w_gmem.at[:, w_cols] if interpret
+                pipeline(body, context)(x_gmem.at[rows, :], w_gmem.at[:, w_cols] if interpret
                                         else w_gmem.at[w_cols, :], allocations=allocs)
         plgpu.wait_smem_to_gmem(0, wait_read_only=True)
 
