@@ -64,6 +64,11 @@ CONFIGS = {
     "128x256x128, 4 stages, one tanh, approximate": (Launch(tanh=True, approx=True), "e4m3"),
     "128x256x128, 3 stages, snake 16, folded, approximate exp": (
         dataclasses.replace(fp8_geglu.LAUNCH, stages=3, snake=16), "e4m3"),
+    # a CTA's tiles as one pipeline of pipelines (`Launch.chained`): the next tile's first steps in flight during the
+    # tile's last steps and epilogue
+    "128x256x128, 4 stages, folded, approximate exp, chained": (
+        dataclasses.replace(fp8_geglu.LAUNCH, chained=True), "e4m3"),
+    "GEMM alone (bf16 product), 128x256x128, 4 stages, chained": (Launch(chained=True), "product"),
 }
 
 
@@ -119,16 +124,21 @@ GELU_LAUNCHES = {"3 stages, GELU as x sigmoid(2 z)": Launch(stages=3),
                  "3 stages, folded": Launch(stages=3, folded=True),
                  "3 stages, folded, approximate exp": Launch(stages=3, folded=True, approx=True),
                  "3 stages, snake 16, folded, approximate exp": Launch(stages=3, snake=16, folded=True, approx=True),
-                 "128x128, 4 stages, one tanh, approximate": Launch(tile_n=128, stages=4, tanh=True, approx=True)}
+                 "128x128, 4 stages, one tanh, approximate": Launch(tile_n=128, stages=4, tanh=True, approx=True),
+                 # chained tiles (`Launch.chained`: 3 stages, since K's 9 steps must be a multiple of them)
+                 "128x128, 3 stages, chained": dataclasses.replace(fp8_geglu.GELU_LAUNCH, stages=3, chained=True),
+                 "128x256, 3 stages, chained": dataclasses.replace(fp8_geglu.GELU_LAUNCH, tile_n=256, stages=3,
+                                                                   chained=True)}
 
 
-def siglip(rows, k, n, iters, chain, out, padded=False, kernel_time=False) -> dict:
+def siglip(rows, k, n, iters, chain, out, padded=False, kernel_time=False, only=None) -> dict:
     """SigLIP's FP8 fc1 (K = 1,152, N = 4,304) into fc2's e4m3 input: the engine's XLA path (`engine.vision.block`:
     cuBLASLt's GEMM, then one pass of scale, bias, GELU-tanh and quantisation), its GEMM alone, and the kernel
     (`fp8_geglu.gelu`, 16-column stores; 4 stages of 256-column tiles do not fit its shared memory) at the engine's
     launch and at
     `GELU_LAUNCHES`, checked against `fp8_geglu.gelu_reference` and the XLA path; its mainloop with a bf16 store and
-    no epilogue; padded: also N padded to 64-column stores."""
+    no epilogue; padded: also N padded to 64-column stores. only: the forms whose name contains one of these, and
+    the engine's XLA path."""
     from pi0_jax.engine import vision   # noqa: PLC0415
     res = {}
     for m in rows:
@@ -184,6 +194,8 @@ def siglip(rows, k, n, iters, chain, out, padded=False, kernel_time=False) -> di
         row = res[m] = {"rel_l2_reference_vs_engine": _rel(mine, engine)}
         print(f"M={m} (SigLIP fc1)", flush=True)
         for name, (fn, fargs) in forms.items():
+            if only and "engine's path" not in name and not any(o in name for o in only):
+                continue
             try:
                 r = _timed(fn, fargs, iters, chain, kernel_time)
                 r["tflops"] = 2 * m * k * n / r["ms"] / 1e9
@@ -207,7 +219,7 @@ def main():
     p.add_argument("--iters", type=int, default=15, help="timed runs per form (median reported)")
     p.add_argument("--chain", type=int, default=20, help="calls dispatched back to back per timed run")
     p.add_argument("--only", action="append", default=None,
-                   help="repeatable: only the kernel configs whose name contains this")
+                   help="repeatable: only the kernel configs (with --siglip: the forms) whose name contains this")
     p.add_argument("--kernel-time", action="store_true",
                    help="also each form's GPU kernel time from a profiler trace (the chained wall time is bound by "
                         "the host's dispatch at the expert's shapes)")
@@ -220,7 +232,7 @@ def main():
     args = p.parse_args()
     if args.siglip:
         siglip([int(m) for m in args.siglip.split(",")], 1152, 4304, args.iters, args.chain, args.out,
-               args.siglip_padded, args.kernel_time)
+               args.siglip_padded, args.kernel_time, args.only)
         return
     res = {"jax": jax.__version__, "device": str(jax.devices()[0]), "rows": {}}
     for m in map(int, args.rows.split(",")):
