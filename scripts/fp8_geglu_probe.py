@@ -66,8 +66,7 @@ CONFIGS = {
         dataclasses.replace(fp8_geglu.LAUNCH, stages=3, snake=16), "e4m3"),
     # a CTA's tiles as one pipeline of pipelines (`Launch.chained`): the next tile's first steps in flight during the
     # tile's last steps and epilogue
-    "128x256x128, 4 stages, folded, approximate exp, chained": (
-        dataclasses.replace(fp8_geglu.LAUNCH, chained=True), "e4m3"),
+    "128x256x128, 4 stages, folded, approximate exp, chained": (fp8_geglu.CHAINED, "e4m3"),
     "GEMM alone (bf16 product), 128x256x128, 4 stages, chained": (Launch(chained=True), "product"),
 }
 
@@ -126,9 +125,8 @@ GELU_LAUNCHES = {"3 stages, GELU as x sigmoid(2 z)": Launch(stages=3),
                  "3 stages, snake 16, folded, approximate exp": Launch(stages=3, snake=16, folded=True, approx=True),
                  "128x128, 4 stages, one tanh, approximate": Launch(tile_n=128, stages=4, tanh=True, approx=True),
                  # chained tiles (`Launch.chained`: 3 stages, since K's 9 steps must be a multiple of them)
-                 "128x128, 3 stages, chained": dataclasses.replace(fp8_geglu.GELU_LAUNCH, stages=3, chained=True),
-                 "128x256, 3 stages, chained": dataclasses.replace(fp8_geglu.GELU_LAUNCH, tile_n=256, stages=3,
-                                                                   chained=True)}
+                 "128x128, 3 stages, chained": fp8_geglu.GELU_CHAINED,
+                 "128x256, 3 stages, chained": dataclasses.replace(fp8_geglu.GELU_CHAINED, tile_n=256)}
 
 
 def siglip(rows, k, n, iters, chain, out, padded=False, kernel_time=False, only=None) -> dict:

@@ -125,8 +125,8 @@ VARIANTS = {
     # value, where the folded form takes an exp2 and a reciprocal)
     "fp8-tanh": {},
     "fp8-gelu-tanh": {},   # SigLIP's GELU kernel alone
-    # with FP8 weights: both FP8 kernels with a CTA's tiles as one pipeline of pipelines (`fp8_geglu.Launch.chained`;
-    # SigLIP's GELU kernel at 3 stages, which K's 9 steps divide), or one
+    # with FP8 weights: both FP8 kernels with a CTA's tiles as one pipeline of pipelines (`fp8_geglu.CHAINED`,
+    # `GELU_CHAINED`), or one
     "fp8-chained": {},
     "fp8-geglu-chained": {},
     "fp8-gelu-chained": {},
@@ -167,12 +167,9 @@ PATCHES = {"gelu-tanh": (layers, {"gelu_tanh": lambda x: jax.nn.gelu(x, approxim
            "fp8-launches-60": (fp8_geglu, {"LAUNCH": fp8_geglu.Launch(), "GELU_LAUNCH": fp8_geglu.Launch(stages=3)}),
            "fp8-gelu-rows-6144": (vision, {"FP8_GELU_ROWS": 6144}),
            "fp8-gelu-tanh": (fp8_geglu, {"GELU_LAUNCH": dataclasses.replace(fp8_geglu.GELU_LAUNCH, tanh=True)}),
-           "fp8-chained": (fp8_geglu, {"LAUNCH": dataclasses.replace(fp8_geglu.LAUNCH, chained=True),
-                                       "GELU_LAUNCH": dataclasses.replace(fp8_geglu.GELU_LAUNCH, stages=3,
-                                                                          chained=True)}),
-           "fp8-geglu-chained": (fp8_geglu, {"LAUNCH": dataclasses.replace(fp8_geglu.LAUNCH, chained=True)}),
-           "fp8-gelu-chained": (fp8_geglu, {"GELU_LAUNCH": dataclasses.replace(fp8_geglu.GELU_LAUNCH, stages=3,
-                                                                                chained=True)}),
+           "fp8-chained": (fp8_geglu, {"LAUNCH": fp8_geglu.CHAINED, "GELU_LAUNCH": fp8_geglu.GELU_CHAINED}),
+           "fp8-geglu-chained": (fp8_geglu, {"LAUNCH": fp8_geglu.CHAINED}),
+           "fp8-gelu-chained": (fp8_geglu, {"GELU_LAUNCH": fp8_geglu.GELU_CHAINED}),
            "fp8-tanh": (fp8_geglu, {"LAUNCH": dataclasses.replace(fp8_geglu.LAUNCH, tanh=True),
                                     "GELU_LAUNCH": dataclasses.replace(fp8_geglu.GELU_LAUNCH, tanh=True)}),
            "scales-apart": (formats, {"fold_scales": lambda tree: tree})}

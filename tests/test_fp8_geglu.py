@@ -3,8 +3,6 @@ GPU kernel; SigLIP's fc1 GEMM, bias, GELU and fc2's e4m3 input in another; their
 XLA forms, stay within one e4m3 step of the engine's XLA paths, and the engine's FP8 call with them
 (`engine.layers.FP8_GEGLU`, `FP8_GEGLU_EXPERT_ROWS`, `engine.vision.FP8_GELU_ROWS`) matches the call without."""
 
-import dataclasses
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -112,7 +110,7 @@ def test_engine_fp8_call_with_the_kernel_matches_the_call_without(monkeypatch):
 @pytest.mark.parametrize("m,k,n2,launch", [(816, 2048, 32768, Launch()),   # π0's prefix MLP at B = 1
                                             (6528, 2048, 32768, Launch(tile_k=64, stages=6, delay=1)),   # B = 8
                                             (50, 1024, 8192, Launch()),   # the expert's at B = 1: 50 rows
-                                            (6528, 2048, 32768, Launch(folded=True, approx=True, chained=True))])
+                                            (6528, 2048, 32768, fp8_geglu.CHAINED)])   # tiles chained
 def test_kernel_lowers_for_hopper(m, k, n2, launch):
     """Mosaic GPU lowers the kernel as a GPU runs it (the weight K-major, a ragged last row tile, 132 SMs) for sm_90
     on this CPU: layout inference, the e4m3 wgmma's operands and the TMA copies are checked here, which the
@@ -217,9 +215,7 @@ def test_gelu_kernel_lowers_for_hopper(m, chained):
     """The GPU form of `gelu` at SigLIP's shapes lowers for sm_90 here: its 4,304 columns end in a ragged column
     tile, stored 16 columns at a time (a TMA layout's tiles must divide the array: 64 did not lower)."""
     k, n = 1152, 4304
-    launch = fp8_geglu.GELU_LAUNCH if not chained else dataclasses.replace(fp8_geglu.GELU_LAUNCH, stages=3,
-                                                                           chained=True)
-    launch = fp8_geglu.fit_gelu(launch, k, n)
+    launch = fp8_geglu.fit_gelu(fp8_geglu.GELU_CHAINED if chained else fp8_geglu.GELU_LAUNCH, k, n)
     assert fp8_geglu.chains(launch, k, 384 * 34, 132) == chained
     avals = (jax.ShapeDtypeStruct((m, k), formats.E4M3), jax.ShapeDtypeStruct((n, k), formats.E4M3),
              jax.ShapeDtypeStruct((3, -(-n // launch.tile_n) * launch.tile_n), jnp.float32))   # whole column tiles

@@ -253,6 +253,10 @@ _partitioned = _row_partitioned("geglu", "m k, n k, n -> m f", ("k", "n", "f"))
 # more than a Hopper block may have.
 GELU_BLOCK = 64
 GELU_LAUNCH = Launch(tile_n=128, stages=4, folded=True, approx=True)
+# the two launches with their tiles chained (`Launch.chained`; untimed, docs/BENCHMARKS.md, session 64): GELU's at 3
+# stages, which SigLIP's 9 K steps divide
+CHAINED = dataclasses.replace(LAUNCH, chained=True)
+GELU_CHAINED = dataclasses.replace(GELU_LAUNCH, stages=3, chained=True)
 
 
 def gelu_block(n: int) -> int:
