@@ -125,11 +125,6 @@ VARIANTS = {
     # value, where the folded form takes an exp2 and a reciprocal)
     "fp8-tanh": {},
     "fp8-gelu-tanh": {},   # SigLIP's GELU kernel alone
-    # with FP8 weights: both FP8 kernels with a CTA's tiles as one pipeline of pipelines (`fp8_geglu.CHAINED`,
-    # `GELU_CHAINED`), or one
-    "fp8-chained": {},
-    "fp8-geglu-chained": {},
-    "fp8-gelu-chained": {},
     # with FP8 weights: SigLIP's GELU kernel from 3 cameras at B = 8, as until session 62 (vision.FP8_GELU_ROWS: B = 4)
     "fp8-gelu-rows-6144": {},
     # with FP8 weights: the FP8 MLP as the engine ran it until session 56 (PATCHES: gate and up scaled and rounded to
@@ -167,9 +162,6 @@ PATCHES = {"gelu-tanh": (layers, {"gelu_tanh": lambda x: jax.nn.gelu(x, approxim
            "fp8-launches-60": (fp8_geglu, {"LAUNCH": fp8_geglu.Launch(), "GELU_LAUNCH": fp8_geglu.Launch(stages=3)}),
            "fp8-gelu-rows-6144": (vision, {"FP8_GELU_ROWS": 6144}),
            "fp8-gelu-tanh": (fp8_geglu, {"GELU_LAUNCH": dataclasses.replace(fp8_geglu.GELU_LAUNCH, tanh=True)}),
-           "fp8-chained": (fp8_geglu, {"LAUNCH": fp8_geglu.CHAINED, "GELU_LAUNCH": fp8_geglu.GELU_CHAINED}),
-           "fp8-geglu-chained": (fp8_geglu, {"LAUNCH": fp8_geglu.CHAINED}),
-           "fp8-gelu-chained": (fp8_geglu, {"GELU_LAUNCH": fp8_geglu.GELU_CHAINED}),
            "fp8-tanh": (fp8_geglu, {"LAUNCH": dataclasses.replace(fp8_geglu.LAUNCH, tanh=True),
                                     "GELU_LAUNCH": dataclasses.replace(fp8_geglu.GELU_LAUNCH, tanh=True)}),
            "scales-apart": (formats, {"fold_scales": lambda tree: tree})}

@@ -29,9 +29,7 @@ def _operands(m, k, f, down_scale):
                                           (128, 64, 160, Launch()),    # the dummy prefix's MLP: one warpgroup
                                           (130, 128, 256, Launch(stages=2, delay=1, minor=1, snake=2)),
                                           (200, 256, 128, Launch(folded=True)),   # GELU folded into one exp2
-                                          (200, 256, 128, Launch(tanh=True)),   # GELU with one tanh
-                                          # 6 tiles in one pipeline of pipelines (the interpreter's one CTA)
-                                          (300, 512, 256, Launch(stages=2, chained=True))])
+                                          (200, 256, 128, Launch(tanh=True))])   # GELU with one tanh
 def test_kernel_equals_its_xla_form(m, k, f, launch):
     xq, gate_up, down = _operands(m, k, f, 0.01)
     assert fp8_geglu.applies(gate_up, down)
@@ -59,19 +57,6 @@ def test_applies_only_to_fp8_x_fp8_weights_that_tile():
     assert not fp8_geglu.applies(gate_up.q.astype(jnp.float32), down)
     assert not fp8_geglu.applies(formats.QArray(gate_up.q, gate_up.scale, gate_up.act_scale, (-2,)), down)
     assert fp8_geglu.fit(Launch(), 48, 192) is None   # K = 48: no e4m3 wgmma step divides it
-
-
-def test_tiles_chain_only_where_jax_can():
-    """`Launch.chained` applies where the steps are a multiple of the stages, no step is released late and every
-    CTA has two tiles (one starts the chain, one stops it); elsewhere the kernel runs its tiles apart."""
-    chained = Launch(chained=True)
-    assert fp8_geglu.chains(chained, 2048, 264, 132)   # 16 steps of 4 stages, two tiles a CTA
-    assert not fp8_geglu.chains(Launch(), 2048, 264, 132)
-    assert not fp8_geglu.chains(chained, 2048, 263, 132)   # a CTA with one tile
-    assert not fp8_geglu.chains(Launch(chained=True, stages=3), 2048, 264, 132)   # 16 steps, 3 stages
-    assert not fp8_geglu.chains(Launch(chained=True, delay=1), 2048, 264, 132)
-    assert fp8_geglu.chains(fp8_geglu.fit_gelu(Launch(tile_n=128, stages=3, chained=True), 1152, 4304), 1152, 264,
-                            132)   # SigLIP's fc1: 9 steps of 3 stages
 
 
 def _fp8_call(config, scheme):
@@ -109,8 +94,7 @@ def test_engine_fp8_call_with_the_kernel_matches_the_call_without(monkeypatch):
 
 @pytest.mark.parametrize("m,k,n2,launch", [(816, 2048, 32768, Launch()),   # π0's prefix MLP at B = 1
                                             (6528, 2048, 32768, Launch(tile_k=64, stages=6, delay=1)),   # B = 8
-                                            (50, 1024, 8192, Launch()),   # the expert's at B = 1: 50 rows
-                                            (6528, 2048, 32768, fp8_geglu.CHAINED)])   # tiles chained
+                                            (50, 1024, 8192, Launch())])   # the expert's at B = 1: 50 rows
 def test_kernel_lowers_for_hopper(m, k, n2, launch):
     """Mosaic GPU lowers the kernel as a GPU runs it (the weight K-major, a ragged last row tile, 132 SMs) for sm_90
     on this CPU: layout inference, the e4m3 wgmma's operands and the TMA copies are checked here, which the
@@ -138,9 +122,7 @@ def _gelu_operands(m, k, n, next_scale):
                                           (130, 128, 304, None),   # 2 warpgroups, 2 column tiles, the last ragged
                                           (64, 96, 128, Launch(stages=2, delay=1, minor=1, snake=2)),   # K = 3 x 32
                                           (130, 128, 304, Launch(stages=3)),   # session 57's: x sigmoid(2 z)
-                                          (130, 128, 304, Launch(tile_n=128, tanh=True)),   # GELU with one tanh
-                                          # 2 x 3 tiles, 3 K steps, as one pipeline of pipelines
-                                          (130, 384, 304, Launch(tile_n=128, stages=3, chained=True))])
+                                          (130, 128, 304, Launch(tile_n=128, tanh=True))])   # GELU with one tanh
 def test_gelu_kernel_equals_its_xla_form(m, k, n, launch):
     """`fp8_geglu.gelu` (SigLIP's fc1: GEMM, bias, GELU-tanh, fc2's e4m3 input) against `gelu_reference`; within one
     e4m3 step of the engine's XLA path (`engine.vision.block`: scale and bias rounded to the dtype, then GELU)."""
@@ -210,13 +192,12 @@ def test_engine_vision_with_the_gelu_kernel_matches_without(monkeypatch):
     assert np.linalg.norm(got - want) / np.linalg.norm(want) < 5e-3
 
 
-@pytest.mark.parametrize("m,chained", [(768, False), (49152, False), (49152, True)])   # SigLIP's fc1, B = 1, 64
-def test_gelu_kernel_lowers_for_hopper(m, chained):
+@pytest.mark.parametrize("m", [768, 49152])   # SigLIP's fc1 at B = 1 and 64 (3 cameras)
+def test_gelu_kernel_lowers_for_hopper(m):
     """The GPU form of `gelu` at SigLIP's shapes lowers for sm_90 here: its 4,304 columns end in a ragged column
     tile, stored 16 columns at a time (a TMA layout's tiles must divide the array: 64 did not lower)."""
     k, n = 1152, 4304
-    launch = fp8_geglu.fit_gelu(fp8_geglu.GELU_CHAINED if chained else fp8_geglu.GELU_LAUNCH, k, n)
-    assert fp8_geglu.chains(launch, k, 384 * 34, 132) == chained
+    launch = fp8_geglu.fit_gelu(fp8_geglu.GELU_LAUNCH, k, n)
     avals = (jax.ShapeDtypeStruct((m, k), formats.E4M3), jax.ShapeDtypeStruct((n, k), formats.E4M3),
              jax.ShapeDtypeStruct((3, -(-n // launch.tile_n) * launch.tile_n), jnp.float32))   # whole column tiles
     call = jax.jit(lambda x, w, t: fp8_geglu.run(x, w, t, launch, sms=132, act="gelu"))

@@ -70,10 +70,7 @@ class Launch:
     approximate math (`approx`: the sigmoid's exp as one ex2.approx.f32, without the range reduction around it; its
     division is rcp.approx.f32 either way, as ptxas's input for sm_90a shows), and GELU-tanh's arithmetic folded
     (`folded`: `gelu_folded`), or written with one tanh (`tanh`: `gelu_half_tanh`; with approx one tanh.approx.f32,
-    one MUFU instruction a value where the folded form takes two). `chained`: a CTA's tiles as one pipeline of
-    pipelines (`emit_pipeline_warp_specialized`'s `pipeline_state`), so the producer brings the next tile's first
-    `stages` steps as the slots free up, while the compute warpgroups finish the tile and its epilogue, where
-    otherwise it waits for the tile's last step before it starts the next (`chains`: where it applies)."""
+    one MUFU instruction a value where the folded form takes two)."""
 
     tile_m: int = 128
     tile_n: int = 256
@@ -86,7 +83,6 @@ class Launch:
     approx: bool = False
     folded: bool = False
     tanh: bool = False
-    chained: bool = False
 
 
 def _tile_k(launch: Launch, k: int) -> int:
@@ -102,13 +98,6 @@ def _fitted(launch: Launch, k: int, tile_k: int, tile_n: int, wgs: int) -> Launc
     stages = min(launch.stages, k // tile_k)
     return dataclasses.replace(launch, tile_k=tile_k, tile_n=tile_n, wgs=wgs, stages=stages,
                                delay=min(launch.delay, stages - 1))
-
-
-def chains(launch: Launch, k: int, tiles: int, ctas: int) -> bool:
-    """Whether `launch.chained` applies to a fitted launch over K and `tiles` output tiles on `ctas` CTAs: jax chains
-    pipelines whose steps are a multiple of the stages and that release no step late (delay 0); each CTA has two
-    tiles or more, one to start the chain and one to stop it (a pipeline cannot be both)."""
-    return launch.chained and (k // launch.tile_k) % launch.stages == 0 and not launch.delay and tiles >= 2 * ctas
 
 
 def fit(launch: Launch, k: int, n2: int) -> Launch | None:
@@ -253,10 +242,6 @@ _partitioned = _row_partitioned("geglu", "m k, n k, n -> m f", ("k", "n", "f"))
 # more than a Hopper block may have.
 GELU_BLOCK = 64
 GELU_LAUNCH = Launch(tile_n=128, stages=4, folded=True, approx=True)
-# the two launches with their tiles chained (`Launch.chained`; untimed, docs/BENCHMARKS.md, session 64): GELU's at 3
-# stages, which SigLIP's 9 K steps divide
-CHAINED = dataclasses.replace(LAUNCH, chained=True)
-GELU_CHAINED = dataclasses.replace(GELU_LAUNCH, stages=3, chained=True)
 
 
 def gelu_block(n: int) -> int:
@@ -362,17 +347,14 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
     out_tr = ((plgpu.TilingTransform((8, block)),) if block * jnp.dtype(out_dtype).itemsize < 32
               else mosaic_gemm.transforms(block, out_dtype))
 
-    chain = chains(launch, k, m_iters * n_iters, 1 if interpret else sms)
-
-    def pipeline(body, context, state=None):
+    def pipeline(body, context):
         spec = functools.partial(plgpu.BlockSpec, memory_space=plgpu.SMEM, transforms=in_tr,
                                  delay_release=launch.delay)
         w_spec = (spec((tk, tn), lambda kk: (kk, 0), transforms=mosaic_gemm.transforms(tn, E4M3)) if interpret
                   else spec((tn, tk), lambda kk: (0, kk)))
         return plgpu.emit_pipeline_warp_specialized(
             body, grid=(k_iters,), memory_registers=40, in_specs=[spec((tm, tk), lambda kk: (0, kk)), w_spec],
-            wg_axis="wg", num_compute_wgs=wgs, max_concurrent_steps=launch.stages, compute_context=context,
-            pipeline_state=state)
+            wg_axis="wg", num_compute_wgs=wgs, max_concurrent_steps=launch.stages, compute_context=context)
 
     def kernel(x_gmem, w_gmem, s_gmem, o_gmem):
         nothing = lambda *_, **__: None   # noqa: E731
@@ -450,12 +432,7 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
                     return acc
 
                 w_cols = pl.ds(ni * tn, tn)
-                state = None
-                if chain:   # the CTA's first tile starts the chain and its last stops it (`chains`: two or more)
-                    last = info.local_index == info.num_local_steps - 1
-                    state = jnp.where(info.local_index == 0, plgpu.PipelinePipeline.START,
-                                      jnp.where(last, plgpu.PipelinePipeline.STOP, plgpu.PipelinePipeline.STEADY))
-                pipeline(body, context, state)(x_gmem.at[rows, :], w_gmem.at[:, w_cols] if interpret
+                pipeline(body, context)(x_gmem.at[rows, :], w_gmem.at[:, w_cols] if interpret
                                         else w_gmem.at[w_cols, :], allocations=allocs)
         plgpu.wait_smem_to_gmem(0, wait_read_only=True)
 
