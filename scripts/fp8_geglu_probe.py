@@ -45,6 +45,7 @@ from pi0_jax.ops import formats, fp8_geglu  # noqa: E402
 from pi0_jax.ops.fp8_geglu import Launch  # noqa: E402
 
 BF16, F32, E4M3 = jnp.bfloat16, jnp.float32, formats.E4M3
+CHECK_ROWS = 8192   # the rows each form's output is checked on
 
 # name: (launch, what the kernel stores: "e4m3" (the engine's), "bf16" (GeGLU unquantised), "product" (no epilogue))
 CONFIGS = {
@@ -64,10 +65,6 @@ CONFIGS = {
     "128x256x128, 4 stages, one tanh, approximate": (Launch(tanh=True, approx=True), "e4m3"),
     "128x256x128, 3 stages, snake 16, folded, approximate exp": (
         dataclasses.replace(fp8_geglu.LAUNCH, stages=3, snake=16), "e4m3"),
-    # a CTA's tiles as one pipeline of pipelines (`Launch.chained`): the next tile's first steps in flight during the
-    # tile's last steps and epilogue
-    "128x256x128, 4 stages, folded, approximate exp, chained": (fp8_geglu.CHAINED, "e4m3"),
-    "GEMM alone (bf16 product), 128x256x128, 4 stages, chained": (Launch(chained=True), "product"),
 }
 
 
@@ -123,10 +120,7 @@ GELU_LAUNCHES = {"3 stages, GELU as x sigmoid(2 z)": Launch(stages=3),
                  "3 stages, folded": Launch(stages=3, folded=True),
                  "3 stages, folded, approximate exp": Launch(stages=3, folded=True, approx=True),
                  "3 stages, snake 16, folded, approximate exp": Launch(stages=3, snake=16, folded=True, approx=True),
-                 "128x128, 4 stages, one tanh, approximate": Launch(tile_n=128, stages=4, tanh=True, approx=True),
-                 # chained tiles (`Launch.chained`: 3 stages, since K's 9 steps must be a multiple of them)
-                 "128x128, 3 stages, chained": fp8_geglu.GELU_CHAINED,
-                 "128x256, 3 stages, chained": dataclasses.replace(fp8_geglu.GELU_CHAINED, tile_n=256)}
+                 "128x128, 4 stages, one tanh, approximate": Launch(tile_n=128, stages=4, tanh=True, approx=True)}
 
 
 def siglip(rows, k, n, iters, chain, out, padded=False, kernel_time=False, only=None) -> dict:
@@ -237,9 +231,13 @@ def main():
         x, ws, ref, xq, q, s_down = _operands(m, args.width, args.hidden)
         flops = 2 * m * args.width * 2 * args.hidden
         engine = jax.jit(geglu_probe.XLA_FORMS["xla: block pairs (the engine, fp8)"][0])
-        want = engine(x, ws).astype(F32) * s_down
-        mine = fp8_geglu.reference(xq, q, s_down).astype(F32)
-        product = jnp.einsum("md,nd->mn", xq, q.q, preferred_element_type=F32)
+        # the checks on the first rows only (each row's output depends on its own row): e4m3 x e4m3 products in f32
+        # over all of B = 64's 52,224 rows held the setup for minutes (session 65)
+        c = min(m, CHECK_ROWS)
+        want = engine(x[:c], ws).astype(F32) * s_down
+        mine = fp8_geglu.reference(xq[:c], q, s_down).astype(F32)
+        product = jnp.einsum("md,nd->mn", xq[:c], q.q, preferred_element_type=F32)
+        ref = ref[:c]
         row = res["rows"][m] = {}
         print(f"M={m}", flush=True)
         forms = {"xla: the engine's form (x quantised, GEMM, pass)": (engine, (x, ws)),
@@ -259,7 +257,7 @@ def main():
                     _kernel(launch, out, mp, q), (jnp.pad(xq, ((0, mp - m), (0, 0))), q.q, scales))
         for name, (fn, fargs) in forms.items():
             try:
-                got = fn(*fargs)[:m]
+                got = fn(*fargs)[:c]
                 r = _timed(fn, fargs, args.iters, args.chain, args.kernel_time)
                 r["tflops"] = flops / r["ms"] / 1e9
                 if name.startswith("kernel") and got.shape == product.shape:   # the kernel's GEMM alone
