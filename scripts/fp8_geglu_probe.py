@@ -65,6 +65,10 @@ CONFIGS = {
     "128x256x128, 4 stages, one tanh, approximate": (Launch(tanh=True, approx=True), "e4m3"),
     "128x256x128, 3 stages, snake 16, folded, approximate exp": (
         dataclasses.replace(fp8_geglu.LAUNCH, stages=3, snake=16), "e4m3"),
+    # CTAs in clusters of two on adjacent row tiles, each weight tile loaded once a cluster (`Launch.cluster`)
+    "128x256x128, 4 stages, folded, approximate exp, clusters of two": (
+        dataclasses.replace(fp8_geglu.LAUNCH, cluster=True), "e4m3"),
+    "GEMM alone (bf16 product), 128x256x128, 4 stages, clusters of two": (Launch(cluster=True), "product"),
 }
 
 
@@ -120,7 +124,9 @@ GELU_LAUNCHES = {"3 stages, GELU as x sigmoid(2 z)": Launch(stages=3),
                  "3 stages, folded": Launch(stages=3, folded=True),
                  "3 stages, folded, approximate exp": Launch(stages=3, folded=True, approx=True),
                  "3 stages, snake 16, folded, approximate exp": Launch(stages=3, snake=16, folded=True, approx=True),
-                 "128x128, 4 stages, one tanh, approximate": Launch(tile_n=128, stages=4, tanh=True, approx=True)}
+                 "128x128, 4 stages, one tanh, approximate": Launch(tile_n=128, stages=4, tanh=True, approx=True),
+                 "128x128, 4 stages, folded, approximate exp, clusters of two": dataclasses.replace(
+                     fp8_geglu.GELU_LAUNCH, cluster=True)}
 
 
 def siglip(rows, k, n, iters, chain, out, padded=False, kernel_time=False, only=None) -> dict:

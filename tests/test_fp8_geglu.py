@@ -3,6 +3,8 @@ GPU kernel; SigLIP's fc1 GEMM, bias, GELU and fc2's e4m3 input in another; their
 XLA forms, stay within one e4m3 step of the engine's XLA paths, and the engine's FP8 call with them
 (`engine.layers.FP8_GEGLU`, `FP8_GEGLU_EXPERT_ROWS`, `engine.vision.FP8_GELU_ROWS`) matches the call without."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -94,7 +96,11 @@ def test_engine_fp8_call_with_the_kernel_matches_the_call_without(monkeypatch):
 
 @pytest.mark.parametrize("m,k,n2,launch", [(816, 2048, 32768, Launch()),   # π0's prefix MLP at B = 1
                                             (6528, 2048, 32768, Launch(tile_k=64, stages=6, delay=1)),   # B = 8
-                                            (50, 1024, 8192, Launch())])   # the expert's at B = 1: 50 rows
+                                            (50, 1024, 8192, Launch()),   # the expert's at B = 1: 50 rows
+                                            # clusters of two sharing the weight tile's loads: B = 8's 51 row tiles
+                                            # (the last cluster's second tile past the rows), B = 1's 7
+                                            (6528, 2048, 32768, Launch(folded=True, approx=True, cluster=True)),
+                                            (816, 2048, 32768, Launch(cluster=True))])
 def test_kernel_lowers_for_hopper(m, k, n2, launch):
     """Mosaic GPU lowers the kernel as a GPU runs it (the weight K-major, a ragged last row tile, 132 SMs) for sm_90
     on this CPU: layout inference, the e4m3 wgmma's operands and the TMA copies are checked here, which the
@@ -192,12 +198,13 @@ def test_engine_vision_with_the_gelu_kernel_matches_without(monkeypatch):
     assert np.linalg.norm(got - want) / np.linalg.norm(want) < 5e-3
 
 
-@pytest.mark.parametrize("m", [768, 49152])   # SigLIP's fc1 at B = 1 and 64 (3 cameras)
-def test_gelu_kernel_lowers_for_hopper(m):
+@pytest.mark.parametrize("m,cluster", [(768, False), (49152, False), (49152, True)])   # SigLIP's fc1, B = 1, 64
+def test_gelu_kernel_lowers_for_hopper(m, cluster):
     """The GPU form of `gelu` at SigLIP's shapes lowers for sm_90 here: its 4,304 columns end in a ragged column
-    tile, stored 16 columns at a time (a TMA layout's tiles must divide the array: 64 did not lower)."""
+    tile, stored 16 columns at a time (a TMA layout's tiles must divide the array: 64 did not lower); also with
+    CTAs in clusters of two (`Launch.cluster`)."""
     k, n = 1152, 4304
-    launch = fp8_geglu.fit_gelu(fp8_geglu.GELU_LAUNCH, k, n)
+    launch = fp8_geglu.fit_gelu(dataclasses.replace(fp8_geglu.GELU_LAUNCH, cluster=cluster), k, n)
     avals = (jax.ShapeDtypeStruct((m, k), formats.E4M3), jax.ShapeDtypeStruct((n, k), formats.E4M3),
              jax.ShapeDtypeStruct((3, -(-n // launch.tile_n) * launch.tile_n), jnp.float32))   # whole column tiles
     call = jax.jit(lambda x, w, t: fp8_geglu.run(x, w, t, launch, sms=132, act="gelu"))
