@@ -298,8 +298,8 @@ XLA_FORMS = {
 
 def _exact_mm(x, w):
     """x @ w in f32 with exact products: bf16 operands on the tensor cores with f32 accumulation (their products are
-    exact in f32), else f32 at the highest precision. At B = 64's 52,224 rows the latter, 7 TFLOP on the f32 units,
-    took minutes on an H100 (session 64)."""
+    exact in f32), else f32 at the highest precision: at B = 64's 52,224 rows that is 7 TFLOP on the f32 units, about
+    two minutes."""
     if x.dtype == w.dtype == BF16:
         return jnp.matmul(x, w, preferred_element_type=F32)
     return jnp.matmul(x.astype(F32), w.astype(F32), precision=jax.lax.Precision.HIGHEST)

@@ -72,8 +72,8 @@ class Launch:
     (`folded`: `gelu_folded`), or written with one tanh (`tanh`: `gelu_half_tanh`; with approx one tanh.approx.f32,
     one MUFU instruction a value where the folded form takes two). `cluster`: CTAs in clusters of two on row tiles
     2i and 2i + 1 of one column tile, each bringing half of the weight tile a step and multicasting it to both (TMA
-    multicast, as cuBLASLt's 2 x 1 clusters at these shapes): a CTA's reads from L2 fall by a third (GeGLU's 128 x
-    256 tiles) or a quarter; on a GPU only (the interpreter runs it without)."""
+    multicast; cuBLASLt's kernels at these shapes run in 2 x 1 clusters): a CTA's reads from L2 fall by a third
+    (GeGLU's 128 x 256 tiles) or a quarter; on a GPU only (the interpreter runs it without)."""
 
     tile_m: int = 128
     tile_n: int = 256
@@ -346,8 +346,10 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
     block = gelu_block(n2) if gelu else layout.gate_up_block(n2 // 2)
     pairs = wg_n // block if gelu else wg_n // (2 * block)   # gelu: the epilogue's column chunks
     m_iters, n_iters, k_iters = -(-m // tm), -(-n2 // tn), k // tk
-    pair = launch.cluster and not interpret   # row tiles 2i, 2i + 1 of a cluster share the weight tile's loads
-    if pair:   # an odd count's last cluster has a row tile past the rows: TMA reads it as zeros and drops its stores
+    # row tiles 2i, 2i + 1 of a cluster share the weight tile's loads; with an odd count the last cluster's second
+    # tile lies past the rows: TMA reads it as zeros and drops its stores
+    clustered = launch.cluster and not interpret
+    if clustered:
         m_iters = -(-m_iters // 2)
     out_dtype = {"e4m3": E4M3, "bf16": jnp.bfloat16, "product": jnp.bfloat16}[out]
     in_tr = mosaic_gemm.transforms(tk, E4M3)   # no swizzle below 32 bytes
@@ -359,7 +361,7 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
                                  delay_release=launch.delay)
         w_spec = (spec((tk, tn), lambda kk: (kk, 0), transforms=mosaic_gemm.transforms(tn, E4M3)) if interpret
                   else spec((tn, tk), lambda kk: (0, kk)))
-        if pair:
+        if clustered:
             w_spec = spec((tn, tk), lambda kk: (0, kk), collective_axes=("cluster",))
         return plgpu.emit_pipeline_warp_specialized(
             body, grid=(k_iters,), memory_registers=40, in_specs=[spec((tm, tk), lambda kk: (0, kk)), w_spec],
@@ -380,7 +382,7 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
             def tiles(info):
                 (lin,) = info.index
                 mi, ni = plgpu.planar_snake(lin, (m_iters, n_iters), launch.minor, launch.snake)
-                if pair:
+                if clustered:
                     mi = mi * 2 + lax.axis_index("cluster")
                 rows = pl.ds(mi * tm, tm)
                 col0 = ni * tn + wg * wg_n
@@ -450,9 +452,9 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
     params = plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup,
                                   **({"approx_math": True} if launch.approx else {}))
     shape = (m, n2) if out == "product" or gelu else (m, n2 // 2)
-    grid = 1 if interpret else sms // 2 if pair else sms
+    grid = 1 if interpret else sms // 2 if clustered else sms
     return plgpu.kernel(kernel, out_type=jax.ShapeDtypeStruct(shape, out_dtype), grid=(grid,),
                         grid_names=("cluster_grid",), num_threads=wgs + 1, thread_name="wg", compiler_params=params,
-                        **({"cluster": (2,), "cluster_names": ("cluster",)} if pair else {}),
+                        **({"cluster": (2,), "cluster_names": ("cluster",)} if clustered else {}),
                         kernel_name="fp8_gelu" if gelu else "fp8_geglu",
                         **({"interpret": mosaic_gemm._interpret()} if interpret else {}))
