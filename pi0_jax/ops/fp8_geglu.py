@@ -360,9 +360,7 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
         spec = functools.partial(plgpu.BlockSpec, memory_space=plgpu.SMEM, transforms=in_tr,
                                  delay_release=launch.delay)
         w_spec = (spec((tk, tn), lambda kk: (kk, 0), transforms=mosaic_gemm.transforms(tn, E4M3)) if interpret
-                  else spec((tn, tk), lambda kk: (0, kk)))
-        if clustered:
-            w_spec = spec((tn, tk), lambda kk: (0, kk), collective_axes=("cluster",))
+                  else spec((tn, tk), lambda kk: (0, kk), collective_axes=("cluster",) if clustered else ()))
         return plgpu.emit_pipeline_warp_specialized(
             body, grid=(k_iters,), memory_registers=40, in_specs=[spec((tm, tk), lambda kk: (0, kk)), w_spec],
             wg_axis="wg", num_compute_wgs=wgs, max_concurrent_steps=launch.stages, compute_context=context)
