@@ -331,7 +331,8 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
     """The kernel for x (m, k), a (n2, k) weight ((k, n2) when `interpret`) and (n2,) column scales, on `sms` CTAs
     (the GPU's SMs; given, so that it lowers for a GPU on a CPU too: the tests). out: "e4m3" (the down GEMM's input),
     or, to tell a GPU run's parts apart (`scripts/fp8_geglu_probe.py`), "bf16" (GeGLU's product unquantised) or
-    "product" (the raw GEMM in bf16, (m, n2), no epilogue but the store). act "gelu": the epilogue is `gelu`'s, the
+    "product" (the raw GEMM in bf16, (m, n2), no epilogue but the store), or "none" (the mainloop alone: nothing is
+    stored, the (m, n2) bf16 output is left unwritten). act "gelu": the epilogue is `gelu`'s, the
     scales a (3, whole column tiles) table (`gelu_table`), the output (m, n2), n2 ragged on a GPU."""
     tm, tn, tk, wgs = launch.tile_m, launch.tile_n, launch.tile_k, launch.wgs
     wg_n = tn // wgs
@@ -351,7 +352,7 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
     clustered = launch.cluster and not interpret
     if clustered:
         m_iters = -(-m_iters // 2)
-    out_dtype = {"e4m3": E4M3, "bf16": jnp.bfloat16, "product": jnp.bfloat16}[out]
+    out_dtype = {"e4m3": E4M3, "bf16": jnp.bfloat16, "product": jnp.bfloat16, "none": jnp.bfloat16}[out]
     in_tr = mosaic_gemm.transforms(tk, E4M3)   # no swizzle below 32 bytes
     out_tr = ((plgpu.TilingTransform((8, block)),) if block * jnp.dtype(out_dtype).itemsize < 32
               else mosaic_gemm.transforms(block, out_dtype))
@@ -367,7 +368,7 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
 
     def kernel(x_gmem, w_gmem, s_gmem, o_gmem):
         nothing = lambda *_, **__: None   # noqa: E731
-        out_smem = (plgpu.SMEM((wgs, tm, block), out_dtype, transforms=out_tr) if out == "product"
+        out_smem = (plgpu.SMEM((wgs, tm, block), out_dtype, transforms=out_tr) if out in ("product", "none")
                     else plgpu.SMEM((wgs, pairs, tm, block), out_dtype, transforms=out_tr))
 
         @functools.partial(pl.run_scoped, allocs=pipeline(nothing, nothing).get_allocations(x_gmem, w_gmem),
@@ -396,6 +397,8 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
                     def _(acc):
                         run(acc)
                         plgpu.barrier_wait(s_bar.at[wg])
+                        if out == "none":
+                            return
                         if out == "product":   # in column chunks of one block (shared memory is full)
                             y = acc[...].astype(out_dtype)
                             for c in range(wg_n // block):
@@ -449,7 +452,7 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
 
     params = plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup,
                                   **({"approx_math": True} if launch.approx else {}))
-    shape = (m, n2) if out == "product" or gelu else (m, n2 // 2)
+    shape = (m, n2) if out in ("product", "none") or gelu else (m, n2 // 2)
     grid = 1 if interpret else sms // 2 if clustered else sms
     return plgpu.kernel(kernel, out_type=jax.ShapeDtypeStruct(shape, out_dtype), grid=(grid,),
                         grid_names=("cluster_grid",), num_threads=wgs + 1, thread_name="wg", compiler_params=params,
