@@ -73,6 +73,11 @@ CONFIGS = {
     # the mainloop with nothing stored: what the kernel would take if its epilogue overlapped the next tile's mainloop
     "mainloop alone (no store), 128x256x128, 4 stages": (Launch(), "none"),
     "mainloop alone (no store), 128x256x128, 4 stages, clusters of two": (Launch(cluster=True), "none"),
+    # each compute warpgroup on 128 x 128 tiles of its own (`Launch.pingpong`): one's epilogue beside the other's
+    # mainloop
+    "ping-pong, 128x128x128 a warpgroup, 3 stages a ring, folded, approximate exp": (
+        dataclasses.replace(fp8_geglu.LAUNCH, pingpong=True, stages=3), "e4m3"),
+    "mainloop alone (no store), ping-pong, 3 stages a ring": (Launch(pingpong=True, stages=3), "none"),
 }
 
 
@@ -130,7 +135,9 @@ GELU_LAUNCHES = {"3 stages, GELU as x sigmoid(2 z)": Launch(stages=3),
                  "3 stages, snake 16, folded, approximate exp": Launch(stages=3, snake=16, folded=True, approx=True),
                  "128x128, 4 stages, one tanh, approximate": Launch(tile_n=128, stages=4, tanh=True, approx=True),
                  "128x128, 4 stages, folded, approximate exp, clusters of two": dataclasses.replace(
-                     fp8_geglu.GELU_LAUNCH, cluster=True)}
+                     fp8_geglu.GELU_LAUNCH, cluster=True),
+                 "128x64 a warpgroup, 4 stages a ring, folded, approximate exp, ping-pong": dataclasses.replace(
+                     fp8_geglu.GELU_LAUNCH, pingpong=True)}
 
 
 def siglip(rows, k, n, iters, chain, out, padded=False, kernel_time=False, only=None) -> dict:
