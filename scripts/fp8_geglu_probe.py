@@ -47,8 +47,7 @@ from pi0_jax.ops.fp8_geglu import Launch  # noqa: E402
 BF16, F32, E4M3 = jnp.bfloat16, jnp.float32, formats.E4M3
 CHECK_ROWS = 8192   # the rows each form's output is checked on
 
-# name: (launch, what the kernel stores: "e4m3" (the engine's), "bf16" (GeGLU unquantised), "product" (no epilogue),
-# "none" (nothing: its output is not checked))
+# name: (launch, what the kernel stores: "e4m3" (the engine's), "bf16" (GeGLU unquantised), "product" (no epilogue))
 CONFIGS = {
     "GEMM alone (bf16 product), 128x256x128, 4 stages": (Launch(), "product"),
     "GEMM alone (bf16 product), 128x256x128, 4 stages, delay 1": (Launch(delay=1), "product"),
@@ -70,14 +69,6 @@ CONFIGS = {
     "128x256x128, 4 stages, folded, approximate exp, clusters of two": (
         dataclasses.replace(fp8_geglu.LAUNCH, cluster=True), "e4m3"),
     "GEMM alone (bf16 product), 128x256x128, 4 stages, clusters of two": (Launch(cluster=True), "product"),
-    # the mainloop with nothing stored: what the kernel would take if its epilogue overlapped the next tile's mainloop
-    "mainloop alone (no store), 128x256x128, 4 stages": (Launch(), "none"),
-    "mainloop alone (no store), 128x256x128, 4 stages, clusters of two": (Launch(cluster=True), "none"),
-    # each compute warpgroup on 128 x 128 tiles of its own (`Launch.pingpong`): one's epilogue beside the other's
-    # mainloop
-    "ping-pong, 128x128x128 a warpgroup, 3 stages a ring, folded, approximate exp": (
-        dataclasses.replace(fp8_geglu.LAUNCH, pingpong=True, stages=3), "e4m3"),
-    "mainloop alone (no store), ping-pong, 3 stages a ring": (Launch(pingpong=True, stages=3), "none"),
 }
 
 
@@ -135,9 +126,7 @@ GELU_LAUNCHES = {"3 stages, GELU as x sigmoid(2 z)": Launch(stages=3),
                  "3 stages, snake 16, folded, approximate exp": Launch(stages=3, snake=16, folded=True, approx=True),
                  "128x128, 4 stages, one tanh, approximate": Launch(tile_n=128, stages=4, tanh=True, approx=True),
                  "128x128, 4 stages, folded, approximate exp, clusters of two": dataclasses.replace(
-                     fp8_geglu.GELU_LAUNCH, cluster=True),
-                 "128x64 a warpgroup, 4 stages a ring, folded, approximate exp, ping-pong": dataclasses.replace(
-                     fp8_geglu.GELU_LAUNCH, pingpong=True)}
+                     fp8_geglu.GELU_LAUNCH, cluster=True)}
 
 
 def siglip(rows, k, n, iters, chain, out, padded=False, kernel_time=False, only=None) -> dict:
@@ -173,16 +162,15 @@ def siglip(rows, k, n, iters, chain, out, padded=False, kernel_time=False, only=
                 xq, fc1, bias, fc2.act_scale, launch)), (xq, fc1, bias))
         sms = jax.devices()[0].core_count
 
-        def product(w_q, launch, out="product"):   # the kernel's mainloop and a bf16 store (or none), no epilogue
+        def product(w_q, launch):   # the kernel's mainloop and a bf16 store, no epilogue
             launch = fp8_geglu.fit_gelu(launch, k, w_q.shape[0])
             cols = -(-w_q.shape[0] // launch.tile_n) * launch.tile_n
             table = jnp.zeros((3, cols), F32)
-            return jax.jit(lambda xq: fp8_geglu._call(m, k, w_q.shape[0], launch, False, out, sms,
+            return jax.jit(lambda xq: fp8_geglu._call(m, k, w_q.shape[0], launch, False, "product", sms,
                                                       act="gelu")(xq, w_q, table)), (xq,)
 
         forms["mainloop + bf16 store, N as it is"] = product(fc1.q, Launch(stages=3))
         forms["mainloop + bf16 store, the engine's launch"] = product(fc1.q, fp8_geglu.GELU_LAUNCH)
-        forms["mainloop alone (no store), the engine's launch"] = product(fc1.q, fp8_geglu.GELU_LAUNCH, "none")
         if padded:
             # N padded to whole 64-column blocks (zero weight rows, zero bias): 64-column swizzled stores instead of
             # 16-column unswizzled ones; the padded columns come out 0 and are cut for the checks
@@ -278,9 +266,7 @@ def main():
                 got = fn(*fargs)[:c]
                 r = _timed(fn, fargs, args.iters, args.chain, args.kernel_time)
                 r["tflops"] = flops / r["ms"] / 1e9
-                if "no store" in name:
-                    pass
-                elif name.startswith("kernel") and got.shape == product.shape:   # the kernel's GEMM alone
+                if name.startswith("kernel") and got.shape == product.shape:   # the kernel's GEMM alone
                     r["rel_l2_vs_xla_product"] = _rel(got, product)
                 elif name.startswith("kernel"):
                     g = got.astype(F32) * s_down   # up's columns carry 1 / s_down in bf16 out too

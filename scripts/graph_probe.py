@@ -130,10 +130,6 @@ VARIANTS = {
     "fp8-cluster": {},
     "fp8-geglu-cluster": {},
     "fp8-gelu-cluster": {},
-    # with FP8 weights: the FP8 kernels' compute warpgroups on tiles of their own (`fp8_geglu.Launch.pingpong`)
-    "fp8-pingpong": {},
-    "fp8-geglu-pingpong": {},
-    "fp8-gelu-pingpong": {},
     # with FP8 weights: SigLIP's GELU kernel from 3 cameras at B = 8, as until session 62 (vision.FP8_GELU_ROWS: B = 4)
     "fp8-gelu-rows-6144": {},
     # with FP8 weights: the FP8 MLP as the engine ran it until session 56 (PATCHES: gate and up scaled and rounded to
@@ -175,12 +171,6 @@ PATCHES = {"gelu-tanh": (layers, {"gelu_tanh": lambda x: jax.nn.gelu(x, approxim
                                        "GELU_LAUNCH": dataclasses.replace(fp8_geglu.GELU_LAUNCH, cluster=True)}),
            "fp8-geglu-cluster": (fp8_geglu, {"LAUNCH": dataclasses.replace(fp8_geglu.LAUNCH, cluster=True)}),
            "fp8-gelu-cluster": (fp8_geglu, {"GELU_LAUNCH": dataclasses.replace(fp8_geglu.GELU_LAUNCH, cluster=True)}),
-           "fp8-pingpong": (fp8_geglu, {"LAUNCH": dataclasses.replace(fp8_geglu.LAUNCH, pingpong=True, stages=3),
-                                        "GELU_LAUNCH": dataclasses.replace(fp8_geglu.GELU_LAUNCH, pingpong=True)}),
-           "fp8-geglu-pingpong": (fp8_geglu, {"LAUNCH": dataclasses.replace(fp8_geglu.LAUNCH, pingpong=True,
-                                                                            stages=3)}),
-           "fp8-gelu-pingpong": (fp8_geglu, {"GELU_LAUNCH": dataclasses.replace(fp8_geglu.GELU_LAUNCH,
-                                                                               pingpong=True)}),
            "fp8-tanh": (fp8_geglu, {"LAUNCH": dataclasses.replace(fp8_geglu.LAUNCH, tanh=True),
                                     "GELU_LAUNCH": dataclasses.replace(fp8_geglu.GELU_LAUNCH, tanh=True)}),
            "scales-apart": (formats, {"fold_scales": lambda tree: tree})}

@@ -31,11 +31,7 @@ def _operands(m, k, f, down_scale):
                                           (128, 64, 160, Launch()),    # the dummy prefix's MLP: one warpgroup
                                           (130, 128, 256, Launch(stages=2, delay=1, minor=1, snake=2)),
                                           (200, 256, 128, Launch(folded=True)),   # GELU folded into one exp2
-                                          (200, 256, 128, Launch(tanh=True)),   # GELU with one tanh
-                                          # each warpgroup on tiles of its own: 5 of 128 x 64 (5 row x 2 column
-                                          # tiles), 2 K steps through a ring of 2 slots; 3 K steps on 2 slots
-                                          (520, 256, 64, Launch(pingpong=True, stages=2)),
-                                          (130, 384, 128, Launch(pingpong=True, stages=2, folded=True, approx=True))])
+                                          (200, 256, 128, Launch(tanh=True))])   # GELU with one tanh
 def test_kernel_equals_its_xla_form(m, k, f, launch):
     xq, gate_up, down = _operands(m, k, f, 0.01)
     assert fp8_geglu.applies(gate_up, down)
@@ -104,10 +100,7 @@ def test_engine_fp8_call_with_the_kernel_matches_the_call_without(monkeypatch):
                                             # clusters of two sharing the weight tile's loads: B = 8's 51 row tiles
                                             # (the last cluster's second tile past the rows), B = 1's 7
                                             (6528, 2048, 32768, Launch(folded=True, approx=True, cluster=True)),
-                                            (816, 2048, 32768, Launch(cluster=True)),
-                                            # the ping-pong launch (two rings of 3 slots: 209 KB of shared memory)
-                                            (6528, 2048, 32768, Launch(folded=True, approx=True, pingpong=True,
-                                                                       stages=3))])
+                                            (816, 2048, 32768, Launch(cluster=True))])
 def test_kernel_lowers_for_hopper(m, k, n2, launch):
     """Mosaic GPU lowers the kernel as a GPU runs it (the weight K-major, a ragged last row tile, 132 SMs) for sm_90
     on this CPU: layout inference, the e4m3 wgmma's operands and the TMA copies are checked here, which the
@@ -135,10 +128,7 @@ def _gelu_operands(m, k, n, next_scale):
                                           (130, 128, 304, None),   # 2 warpgroups, 2 column tiles, the last ragged
                                           (64, 96, 128, Launch(stages=2, delay=1, minor=1, snake=2)),   # K = 3 x 32
                                           (130, 128, 304, Launch(stages=3)),   # session 57's: x sigmoid(2 z)
-                                          (130, 128, 304, Launch(tile_n=128, tanh=True)),   # GELU with one tanh
-                                          # each warpgroup on 128 x 64 tiles of its own: 3 row x 5 column tiles
-                                          # (the last ragged), 8 for one and 7 for the other; 4 K steps, 3 slots
-                                          (260, 128, 304, Launch(tile_n=128, tile_k=32, stages=3, pingpong=True))])
+                                          (130, 128, 304, Launch(tile_n=128, tanh=True))])   # GELU with one tanh
 def test_gelu_kernel_equals_its_xla_form(m, k, n, launch):
     """`fp8_geglu.gelu` (SigLIP's fc1: GEMM, bias, GELU-tanh, fc2's e4m3 input) against `gelu_reference`; within one
     e4m3 step of the engine's XLA path (`engine.vision.block`: scale and bias rounded to the dtype, then GELU)."""
@@ -208,14 +198,13 @@ def test_engine_vision_with_the_gelu_kernel_matches_without(monkeypatch):
     assert np.linalg.norm(got - want) / np.linalg.norm(want) < 5e-3
 
 
-@pytest.mark.parametrize("m,cluster,pingpong", [(768, False, False), (49152, False, False), (49152, True, False),
-                                               (6144, False, True)])   # SigLIP's fc1, B = 1, 64, 8
-def test_gelu_kernel_lowers_for_hopper(m, cluster, pingpong):
+@pytest.mark.parametrize("m,cluster", [(768, False), (49152, False), (49152, True)])   # SigLIP's fc1, B = 1, 64
+def test_gelu_kernel_lowers_for_hopper(m, cluster):
     """The GPU form of `gelu` at SigLIP's shapes lowers for sm_90 here: its 4,304 columns end in a ragged column
     tile, stored 16 columns at a time (a TMA layout's tiles must divide the array: 64 did not lower); also with
-    CTAs in clusters of two (`Launch.cluster`), and on the ping-pong launch (`Launch.pingpong`)."""
+    CTAs in clusters of two (`Launch.cluster`)."""
     k, n = 1152, 4304
-    launch = fp8_geglu.fit_gelu(dataclasses.replace(fp8_geglu.GELU_LAUNCH, cluster=cluster, pingpong=pingpong), k, n)
+    launch = fp8_geglu.fit_gelu(dataclasses.replace(fp8_geglu.GELU_LAUNCH, cluster=cluster), k, n)
     avals = (jax.ShapeDtypeStruct((m, k), formats.E4M3), jax.ShapeDtypeStruct((n, k), formats.E4M3),
              jax.ShapeDtypeStruct((3, -(-n // launch.tile_n) * launch.tile_n), jnp.float32))   # whole column tiles
     call = jax.jit(lambda x, w, t: fp8_geglu.run(x, w, t, launch, sms=132, act="gelu"))

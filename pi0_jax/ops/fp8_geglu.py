@@ -73,10 +73,7 @@ class Launch:
     one MUFU instruction a value where the folded form takes two). `cluster`: CTAs in clusters of two on row tiles
     2i and 2i + 1 of one column tile, each bringing half of the weight tile a step and multicasting it to both (TMA
     multicast; cuBLASLt's kernels at these shapes run in 2 x 1 clusters): a CTA's reads from L2 fall by a third
-    (GeGLU's 128 x 256 tiles) or a quarter; on a GPU only (the interpreter runs it without). `pingpong`: each
-    compute warpgroup takes (tile_m, tile_n / wgs) tiles of its own through a ring of `stages` slots of its own, so
-    one warpgroup's epilogue runs beside another's mainloop (CUTLASS's ping-pong schedule; the same registers a
-    warpgroup, and a third more bytes from L2 a FLOP than 128 x 256 tiles shared by two warpgroups)."""
+    (GeGLU's 128 x 256 tiles) or a quarter; on a GPU only (the interpreter runs it without)."""
 
     tile_m: int = 128
     tile_n: int = 256
@@ -90,11 +87,6 @@ class Launch:
     folded: bool = False
     tanh: bool = False
     cluster: bool = False
-    pingpong: bool = False
-
-    def __post_init__(self):
-        if self.pingpong and (self.cluster or self.delay):
-            raise ValueError(f"{self}: the ping-pong kernel takes neither clusters nor a delay")
 
 
 def _tile_k(launch: Launch, k: int) -> int:
@@ -339,8 +331,7 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
     """The kernel for x (m, k), a (n2, k) weight ((k, n2) when `interpret`) and (n2,) column scales, on `sms` CTAs
     (the GPU's SMs; given, so that it lowers for a GPU on a CPU too: the tests). out: "e4m3" (the down GEMM's input),
     or, to tell a GPU run's parts apart (`scripts/fp8_geglu_probe.py`), "bf16" (GeGLU's product unquantised) or
-    "product" (the raw GEMM in bf16, (m, n2), no epilogue but the store), or "none" (the mainloop alone: nothing is
-    stored, the (m, n2) bf16 output is left unwritten). act "gelu": the epilogue is `gelu`'s, the
+    "product" (the raw GEMM in bf16, (m, n2), no epilogue but the store). act "gelu": the epilogue is `gelu`'s, the
     scales a (3, whole column tiles) table (`gelu_table`), the output (m, n2), n2 ragged on a GPU."""
     tm, tn, tk, wgs = launch.tile_m, launch.tile_n, launch.tile_k, launch.wgs
     wg_n = tn // wgs
@@ -354,13 +345,13 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
 
     block = gelu_block(n2) if gelu else layout.gate_up_block(n2 // 2)
     pairs = wg_n // block if gelu else wg_n // (2 * block)   # gelu: the epilogue's column chunks
-    m_iters, n_iters, k_iters = -(-m // tm), -(-n2 // (wg_n if launch.pingpong else tn)), k // tk
+    m_iters, n_iters, k_iters = -(-m // tm), -(-n2 // tn), k // tk
     # row tiles 2i, 2i + 1 of a cluster share the weight tile's loads; with an odd count the last cluster's second
     # tile lies past the rows: TMA reads it as zeros and drops its stores
     clustered = launch.cluster and not interpret
     if clustered:
         m_iters = -(-m_iters // 2)
-    out_dtype = {"e4m3": E4M3, "bf16": jnp.bfloat16, "product": jnp.bfloat16, "none": jnp.bfloat16}[out]
+    out_dtype = {"e4m3": E4M3, "bf16": jnp.bfloat16, "product": jnp.bfloat16}[out]
     in_tr = mosaic_gemm.transforms(tk, E4M3)   # no swizzle below 32 bytes
     out_tr = ((plgpu.TilingTransform((8, block)),) if block * jnp.dtype(out_dtype).itemsize < 32
               else mosaic_gemm.transforms(block, out_dtype))
@@ -374,66 +365,14 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
             body, grid=(k_iters,), memory_registers=40, in_specs=[spec((tm, tk), lambda kk: (0, kk)), w_spec],
             wg_axis="wg", num_compute_wgs=wgs, max_concurrent_steps=launch.stages, compute_context=context)
 
-    def epilogue(acc, wg, o_gmem, out_smem, s_smem, s_bar, rows, col0, h_col0):
-        """Warpgroup wg's (tm, wg_n) accumulator, weight columns from col0 (GeGLU's output columns from h_col0), out
-        through its shared-memory slots once its scales (s_smem[wg], copied on s_bar[wg]) are in."""
-        plgpu.barrier_wait(s_bar.at[wg])
-        if out == "none":
-            return
-        if out == "product":   # in column chunks of one block (shared memory is full)
-            y = acc[...].astype(out_dtype)
-            for c in range(wg_n // block):
-                plgpu.wait_smem_to_gmem(0, wait_read_only=True)
-                out_smem[wg] = y[:, c * block:(c + 1) * block]
-                plgpu.commit_smem()
-                plgpu.copy_smem_to_gmem(out_smem.at[wg], o_gmem.at[rows, pl.ds(col0 + c * block, block)])
-            return
-
-        # the interpreter has no plgpu.load; on a GPU it gives the scales the accumulator's columns' layout
-        def row(ref):
-            v = ref[...] if interpret else plgpu.load(ref, (), layout=plgpu.Layout.WGMMA.reduce(0))
-            return lax.broadcast_in_dim(v, (tm, wg_n), [1])   # as jax's Mosaic kernels do
-
-        if gelu:
-            y = acc[...] * row(s_smem.at[wg, 0]) + row(s_smem.at[wg, 1])
-            y = saturated(gelu_fn(y) * row(s_smem.at[wg, 2]))
-            plgpu.wait_smem_to_gmem(0, wait_read_only=True)
-            for c in range(pairs):
-                out_smem[wg, c] = y[:, c * block:(c + 1) * block].astype(out_dtype)
-            plgpu.commit_smem()
-            for c in range(pairs):   # on a GPU, TMA drops the columns past n2
-                plgpu.copy_smem_to_gmem(out_smem.at[wg, c], o_gmem.at[rows, pl.ds(col0 + c * block, block)])
-            return
-        y = acc[...] * row(s_smem.at[wg])
-        plgpu.wait_smem_to_gmem(0, wait_read_only=True)
-        for p in range(pairs):
-            h = gelu_fn(y[:, 2 * p * block:(2 * p + 1) * block]) * y[:, (2 * p + 1) * block:(2 * p + 2) * block]
-            if out == "e4m3":
-                h = saturated(h)
-            out_smem[wg, p] = h.astype(out_dtype)
-        plgpu.commit_smem()
-        for p in range(pairs):
-            plgpu.copy_smem_to_gmem(out_smem.at[wg, p], o_gmem.at[rows, pl.ds(h_col0 + p * block, block)])
-
-    def scopes():
-        """The shared memory both kernels' epilogues take: a warpgroup's output slots and its column scales."""
-        out_smem = (plgpu.SMEM((wgs, tm, block), out_dtype, transforms=out_tr) if out in ("product", "none")
-                    else plgpu.SMEM((wgs, pairs, tm, block), out_dtype, transforms=out_tr))
-        return dict(out_smem=out_smem, s_smem=plgpu.SMEM((wgs, 3, wg_n) if gelu else (wgs, wg_n), F32),
-                    s_bar=plgpu.Barrier(num_barriers=wgs))
-
-    def copy_scales(s_gmem, s_smem, s_bar, wg, col0):
-        plgpu.copy_gmem_to_smem(s_gmem.at[:, pl.ds(col0, wg_n)] if gelu else s_gmem.at[pl.ds(col0, wg_n)],
-                                s_smem.at[wg], s_bar.at[wg])
-
-    def mma(acc, x_smem, w_smem, cols):
-        plgpu.wgmma(acc, x_smem, w_smem.at[:, cols] if interpret else plgpu.transpose_ref(w_smem.at[cols], (1, 0)))
-
     def kernel(x_gmem, w_gmem, s_gmem, o_gmem):
         nothing = lambda *_, **__: None   # noqa: E731
+        out_smem = (plgpu.SMEM((wgs, tm, block), out_dtype, transforms=out_tr) if out == "product"
+                    else plgpu.SMEM((wgs, pairs, tm, block), out_dtype, transforms=out_tr))
 
         @functools.partial(pl.run_scoped, allocs=pipeline(nothing, nothing).get_allocations(x_gmem, w_gmem),
-                           **scopes(), collective_axes="wg")
+                           out_smem=out_smem, s_smem=plgpu.SMEM((wgs, 3, wg_n) if gelu else (wgs, wg_n), F32),
+                           s_bar=plgpu.Barrier(num_barriers=wgs), collective_axes="wg")
         def scope(allocs, out_smem, s_smem, s_bar):
             wg = lax.axis_index("wg")
 
@@ -450,15 +389,56 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
                 h_col0 = ni * (tn // 2) + wg * (wg_n // 2)
 
                 def context(run):
-                    copy_scales(s_gmem, s_smem, s_bar, wg, col0)
+                    plgpu.copy_gmem_to_smem(s_gmem.at[:, pl.ds(col0, wg_n)] if gelu else s_gmem.at[pl.ds(col0, wg_n)],
+                                            s_smem.at[wg], s_bar.at[wg])
 
                     @functools.partial(pl.run_scoped, acc=plgpu.ACC((tm, wg_n), F32))
                     def _(acc):
                         run(acc)
-                        epilogue(acc, wg, o_gmem, out_smem, s_smem, s_bar, rows, col0, h_col0)
+                        plgpu.barrier_wait(s_bar.at[wg])
+                        if out == "product":   # in column chunks of one block (shared memory is full)
+                            y = acc[...].astype(out_dtype)
+                            for c in range(wg_n // block):
+                                plgpu.wait_smem_to_gmem(0, wait_read_only=True)
+                                out_smem[wg] = y[:, c * block:(c + 1) * block]
+                                plgpu.commit_smem()
+                                plgpu.copy_smem_to_gmem(out_smem.at[wg],
+                                                        o_gmem.at[rows, pl.ds(col0 + c * block, block)])
+                            return
+                        # the interpreter has no plgpu.load; on a GPU it gives the scales the accumulator's columns'
+                        # layout
+                        def row(ref):
+                            v = ref[...] if interpret else plgpu.load(ref, (), layout=plgpu.Layout.WGMMA.reduce(0))
+                            return lax.broadcast_in_dim(v, (tm, wg_n), [1])   # as jax's Mosaic kernels do
+
+                        if gelu:
+                            y = acc[...] * row(s_smem.at[wg, 0]) + row(s_smem.at[wg, 1])
+                            y = saturated(gelu_fn(y) * row(s_smem.at[wg, 2]))
+                            plgpu.wait_smem_to_gmem(0, wait_read_only=True)
+                            for c in range(pairs):
+                                out_smem[wg, c] = y[:, c * block:(c + 1) * block].astype(out_dtype)
+                            plgpu.commit_smem()
+                            for c in range(pairs):   # on a GPU, TMA drops the columns past n2
+                                plgpu.copy_smem_to_gmem(out_smem.at[wg, c],
+                                                        o_gmem.at[rows, pl.ds(col0 + c * block, block)])
+                            return
+                        y = acc[...] * row(s_smem.at[wg])
+                        plgpu.wait_smem_to_gmem(0, wait_read_only=True)
+                        for p in range(pairs):
+                            h = gelu_fn(y[:, 2 * p * block:(2 * p + 1) * block]) * \
+                                y[:, (2 * p + 1) * block:(2 * p + 2) * block]
+                            if out == "e4m3":
+                                h = saturated(h)
+                            out_smem[wg, p] = h.astype(out_dtype)
+                        plgpu.commit_smem()
+                        for p in range(pairs):
+                            plgpu.copy_smem_to_gmem(out_smem.at[wg, p],
+                                                    o_gmem.at[rows, pl.ds(h_col0 + p * block, block)])
 
                 def body(_, x_smem, w_smem, acc):
-                    mma(acc, x_smem, w_smem, pl.ds(wg * wg_n, wg_n))
+                    cols = pl.ds(wg * wg_n, wg_n)
+                    plgpu.wgmma(acc, x_smem, w_smem.at[:, cols] if interpret
+                                else plgpu.transpose_ref(w_smem.at[cols], (1, 0)))
                     plgpu.wgmma_wait(launch.delay)
                     return acc
 
@@ -467,88 +447,11 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
                                         else w_gmem.at[w_cols, :], allocations=allocs)
         plgpu.wait_smem_to_gmem(0, wait_read_only=True)
 
-    def pingpong(x_gmem, w_gmem, s_gmem, o_gmem):
-        """`Launch.pingpong`: each compute warpgroup takes whole (tm, wg_n) tiles of its own, the CTA's even and odd
-        ones, through a ring of `stages` slots of its own that the producer warpgroup fills in tile order; so one
-        warpgroup's epilogue runs while the other's wgmma use the tensor cores."""
-        cta, grid = lax.axis_index("cluster_grid"), lax.axis_size("cluster_grid")
-        n_tiles = m_iters * n_iters
-        count = lax.div(n_tiles - cta + grid - 1, grid)   # this CTA's tiles: cta, cta + grid, ...
-        x_ring = plgpu.SMEM((wgs, launch.stages, tm, tk), E4M3, transforms=in_tr)
-        w_ring = plgpu.SMEM((wgs, launch.stages) + ((tk, wg_n) if interpret else (wg_n, tk)), E4M3,
-                            transforms=mosaic_gemm.transforms(wg_n, E4M3) if interpret else in_tr)
-
-        def place(i):
-            """The CTA's tile i: its rows, its tile column."""
-            mi, ni = plgpu.planar_snake(i * grid + cta, (m_iters, n_iters), launch.minor, launch.snake)
-            return pl.ds(mi * tm, tm), ni
-
-        @functools.partial(pl.run_scoped, x_ring=x_ring, w_ring=w_ring, **scopes(),
-                           full=plgpu.Barrier(num_arrivals=2, num_barriers=wgs * launch.stages),
-                           empty=plgpu.Barrier(num_barriers=wgs * launch.stages), collective_axes="wg")
-        def scope(x_ring, w_ring, out_smem, s_smem, s_bar, full, empty):
-            wg = lax.axis_index("wg")
-
-            @pl.when(wg == wgs)
-            def _producer():
-                plgpu.set_max_registers(40, action="decrease")
-
-                @pl.loop(0, count)
-                def _(i):
-                    rows, ni = place(i)
-                    col0 = ni * wg_n
-                    ring, j = lax.rem(i, wgs), lax.div(i, wgs)
-
-                    @pl.loop(0, k_iters)
-                    def _(kk):
-                        step = j * k_iters + kk
-                        slot = lax.rem(step, launch.stages)
-                        bar = ring * launch.stages + slot
-
-                        @pl.when(step >= launch.stages)
-                        def _():
-                            plgpu.barrier_wait(empty.at[bar])
-                        ks = pl.ds(kk * tk, tk)
-                        plgpu.copy_gmem_to_smem(x_gmem.at[rows, ks], x_ring.at[ring, slot], full.at[bar])
-                        plgpu.copy_gmem_to_smem(w_gmem.at[ks, pl.ds(col0, wg_n)] if interpret
-                                                else w_gmem.at[pl.ds(col0, wg_n), ks], w_ring.at[ring, slot],
-                                                full.at[bar])
-
-                for ring in range(wgs):   # the last releases, awaited (the interpreter checks every phase is seen)
-                    steps = lax.div(count - ring + wgs - 1, wgs) * k_iters
-
-                    @pl.loop(jnp.maximum(steps - launch.stages, 0), steps)
-                    def _(step):
-                        plgpu.barrier_wait(empty.at[ring * launch.stages + lax.rem(step, launch.stages)])
-
-            @pl.when(wg < wgs)
-            def _consumer():
-                plgpu.set_max_registers(232, action="increase")
-
-                @pl.loop(0, lax.div(count - wg + wgs - 1, wgs))
-                def _(j):
-                    rows, ni = place(j * wgs + wg)
-                    col0 = ni * wg_n
-                    copy_scales(s_gmem, s_smem, s_bar, wg, col0)
-
-                    @functools.partial(pl.run_scoped, acc=plgpu.ACC((tm, wg_n), F32))
-                    def _(acc):
-                        @pl.loop(0, k_iters)
-                        def _(kk):
-                            slot = lax.rem(j * k_iters + kk, launch.stages)
-                            bar = wg * launch.stages + slot
-                            plgpu.barrier_wait(full.at[bar])
-                            mma(acc, x_ring.at[wg, slot], w_ring.at[wg, slot], slice(None))
-                            plgpu.wgmma_wait(0)
-                            plgpu.barrier_arrive(empty.at[bar])
-                        epilogue(acc, wg, o_gmem, out_smem, s_smem, s_bar, rows, col0, ni * (wg_n // 2))
-                plgpu.wait_smem_to_gmem(0, wait_read_only=True)
-
     params = plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup,
                                   **({"approx_math": True} if launch.approx else {}))
-    shape = (m, n2) if out in ("product", "none") or gelu else (m, n2 // 2)
+    shape = (m, n2) if out == "product" or gelu else (m, n2 // 2)
     grid = 1 if interpret else sms // 2 if clustered else sms
-    return plgpu.kernel(pingpong if launch.pingpong else kernel, out_type=jax.ShapeDtypeStruct(shape, out_dtype), grid=(grid,),
+    return plgpu.kernel(kernel, out_type=jax.ShapeDtypeStruct(shape, out_dtype), grid=(grid,),
                         grid_names=("cluster_grid",), num_threads=wgs + 1, thread_name="wg", compiler_params=params,
                         **({"cluster": (2,), "cluster_names": ("cluster",)} if clustered else {}),
                         kernel_name="fp8_gelu" if gelu else "fp8_geglu",
