@@ -125,11 +125,11 @@ VARIANTS = {
     # value, where the folded form takes an exp2 and a reciprocal)
     "fp8-tanh": {},
     "fp8-gelu-tanh": {},   # SigLIP's GELU kernel alone
-    # with FP8 weights: both FP8 kernels with their CTAs in clusters of two that share each weight tile's loads
-    # (`fp8_geglu.Launch.cluster`), or one
-    "fp8-cluster": {},
-    "fp8-geglu-cluster": {},
-    "fp8-gelu-cluster": {},
+    # with FP8 weights: both FP8 kernels without clusters of two sharing each weight tile's loads
+    # (`fp8_geglu.Launch.cluster`, on since session 66), or one
+    "fp8-no-cluster": {},
+    "fp8-geglu-no-cluster": {},
+    "fp8-gelu-no-cluster": {},
     # with FP8 weights: SigLIP's GELU kernel from 3 cameras at B = 8, as until session 62 (vision.FP8_GELU_ROWS: B = 4)
     "fp8-gelu-rows-6144": {},
     # with FP8 weights: the FP8 MLP as the engine ran it until session 56 (PATCHES: gate and up scaled and rounded to
@@ -167,10 +167,11 @@ PATCHES = {"gelu-tanh": (layers, {"gelu_tanh": lambda x: jax.nn.gelu(x, approxim
            "fp8-launches-60": (fp8_geglu, {"LAUNCH": fp8_geglu.Launch(), "GELU_LAUNCH": fp8_geglu.Launch(stages=3)}),
            "fp8-gelu-rows-6144": (vision, {"FP8_GELU_ROWS": 6144}),
            "fp8-gelu-tanh": (fp8_geglu, {"GELU_LAUNCH": dataclasses.replace(fp8_geglu.GELU_LAUNCH, tanh=True)}),
-           "fp8-cluster": (fp8_geglu, {"LAUNCH": dataclasses.replace(fp8_geglu.LAUNCH, cluster=True),
-                                       "GELU_LAUNCH": dataclasses.replace(fp8_geglu.GELU_LAUNCH, cluster=True)}),
-           "fp8-geglu-cluster": (fp8_geglu, {"LAUNCH": dataclasses.replace(fp8_geglu.LAUNCH, cluster=True)}),
-           "fp8-gelu-cluster": (fp8_geglu, {"GELU_LAUNCH": dataclasses.replace(fp8_geglu.GELU_LAUNCH, cluster=True)}),
+           "fp8-no-cluster": (fp8_geglu, {"LAUNCH": dataclasses.replace(fp8_geglu.LAUNCH, cluster=False),
+                                          "GELU_LAUNCH": dataclasses.replace(fp8_geglu.GELU_LAUNCH, cluster=False)}),
+           "fp8-geglu-no-cluster": (fp8_geglu, {"LAUNCH": dataclasses.replace(fp8_geglu.LAUNCH, cluster=False)}),
+           "fp8-gelu-no-cluster": (fp8_geglu, {"GELU_LAUNCH": dataclasses.replace(fp8_geglu.GELU_LAUNCH,
+                                                                                  cluster=False)}),
            "fp8-tanh": (fp8_geglu, {"LAUNCH": dataclasses.replace(fp8_geglu.LAUNCH, tanh=True),
                                     "GELU_LAUNCH": dataclasses.replace(fp8_geglu.GELU_LAUNCH, tanh=True)}),
            "scales-apart": (formats, {"fold_scales": lambda tree: tree})}

@@ -97,10 +97,11 @@ def test_engine_fp8_call_with_the_kernel_matches_the_call_without(monkeypatch):
 @pytest.mark.parametrize("m,k,n2,launch", [(816, 2048, 32768, Launch()),   # π0's prefix MLP at B = 1
                                             (6528, 2048, 32768, Launch(tile_k=64, stages=6, delay=1)),   # B = 8
                                             (50, 1024, 8192, Launch()),   # the expert's at B = 1: 50 rows
-                                            # clusters of two sharing the weight tile's loads: B = 8's 51 row tiles
-                                            # (the last cluster's second tile past the rows), B = 1's 7
-                                            (6528, 2048, 32768, Launch(folded=True, approx=True, cluster=True)),
-                                            (816, 2048, 32768, Launch(cluster=True))])
+                                            # clusters of two sharing the weight tile's loads (the engine's launch):
+                                            # B = 8's 51 row tiles (the last cluster's second tile past the rows),
+                                            # the expert's 4 at B = 8
+                                            (6528, 2048, 32768, fp8_geglu.LAUNCH),
+                                            (400, 1024, 8192, fp8_geglu.LAUNCH)])
 def test_kernel_lowers_for_hopper(m, k, n2, launch):
     """Mosaic GPU lowers the kernel as a GPU runs it (the weight K-major, a ragged last row tile, 132 SMs) for sm_90
     on this CPU: layout inference, the e4m3 wgmma's operands and the TMA copies are checked here, which the
@@ -112,6 +113,18 @@ def test_kernel_lowers_for_hopper(m, k, n2, launch):
     call = jax.jit(lambda x, w, s: fp8_geglu.run(x, w, s, launch, sms=132))
     text = call.trace(*avals).lower(lowering_platforms=("cuda",)).as_text()
     assert "mosaic_gpu" in text and f"tensor<{m}x{n2 // 2}xf8E4M3FN>" in text
+
+
+def test_clusters_only_where_the_rows_fill_them():
+    """The engine's launches run in clusters of two where the row tiles are even or many (`clusters_pay`): not at
+    π0's prefix at B = 1 (816 rows: 7 tiles, the last cluster half idle), at B = 8 (51 tiles), the expert's 400 rows
+    at B = 8 (4) and SigLIP's 768 at B = 1 (6)."""
+    assert fp8_geglu.LAUNCH.cluster and fp8_geglu.GELU_LAUNCH.cluster
+    assert not fp8_geglu.clusters_pay(fp8_geglu.LAUNCH, 816)
+    assert all(fp8_geglu.clusters_pay(fp8_geglu.LAUNCH, m) for m in (6528, 400, 768, 52224))
+    assert fp8_geglu.clusters_pay(fp8_geglu.LAUNCH, 31 * 128) is False and fp8_geglu.clusters_pay(
+        fp8_geglu.LAUNCH, 33 * 128)
+    assert not fp8_geglu.clusters_pay(Launch(), 6528)   # a launch without clusters keeps none
 
 
 def _gelu_operands(m, k, n, next_scale):

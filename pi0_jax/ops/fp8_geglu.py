@@ -73,7 +73,8 @@ class Launch:
     one MUFU instruction a value where the folded form takes two). `cluster`: CTAs in clusters of two on row tiles
     2i and 2i + 1 of one column tile, each bringing half of the weight tile a step and multicasting it to both (TMA
     multicast; cuBLASLt's kernels at these shapes run in 2 x 1 clusters): a CTA's reads from L2 fall by a third
-    (GeGLU's 128 x 256 tiles) or a quarter; on a GPU only (the interpreter runs it without)."""
+    (GeGLU's 128 x 256 tiles) or a quarter; on a GPU only (the interpreter runs it without), and only where the
+    rows fill the clusters (`clusters_pay`)."""
 
     tile_m: int = 128
     tile_n: int = 256
@@ -124,8 +125,10 @@ def fit(launch: Launch, k: int, n2: int) -> Launch | None:
 
 # The launch `geglu` fits to each weight (the engine's): 128 x 256 tiles in 4 stages, GELU folded with the exp's
 # approximate form as `GELU_LAUNCH` computes it. π0's every-gemm call at B = 8 2.4 % faster than with session 56's
-# epilogue (x sigmoid(2 z) with the exp's range reduction), its kernel time 3.5 % (H100, docs/BENCHMARKS.md, session 62)
-LAUNCH = Launch(folded=True, approx=True)
+# epilogue (x sigmoid(2 z) with the exp's range reduction), its kernel time 3.5 % (H100, docs/BENCHMARKS.md, session
+# 62). CTAs in clusters of two, with this and `GELU_LAUNCH`: π0's every-gemm call's kernels 0.7-1.8 % shorter at B = 64
+# and 1.9-2.2 % at B = 8; its median 0.7-3.3 % shorter at B = 64, level at B = 8 (+0.1, +0.4 %; H200, session 66)
+LAUNCH = Launch(folded=True, approx=True, cluster=True)
 
 
 def _takes(w, nxt, fit_launch) -> bool:
@@ -245,7 +248,7 @@ _partitioned = _row_partitioned("geglu", "m k, n k, n -> m f", ("k", "n", "f"))
 # faster (H100, docs/BENCHMARKS.md, session 61). At 256 columns, 4 stages need 232,528 bytes of shared memory, 80
 # more than a Hopper block may have.
 GELU_BLOCK = 64
-GELU_LAUNCH = Launch(tile_n=128, stages=4, folded=True, approx=True)
+GELU_LAUNCH = Launch(tile_n=128, stages=4, folded=True, approx=True, cluster=True)
 
 
 def gelu_block(n: int) -> int:
@@ -307,16 +310,31 @@ def gelu(xq, w: QArray, bias, next_scale, launch: Launch | None = None) -> jax.A
 _partitioned_gelu = _row_partitioned("gelu", "m k, n k, t c -> m n", ("k", "n", "t", "c"))
 
 
+# A clustered launch's last cluster takes a tile past the rows where the row tiles are odd: π0's prefix at B = 1 (816
+# rows, 7 tiles in 4 clusters) took 13 % longer in its GeGLU kernels, the FP8 call 2.2 % (H200, session 66)
+CLUSTER_MIN_ODD_TILES = 32
+
+
+def clusters_pay(launch: Launch, m: int) -> bool:
+    """Whether `launch`'s clusters of two are kept for m rows: an even count of row tiles, or enough of them that the
+    last cluster's idle half is at most 1 / (2 CLUSTER_MIN_ODD_TILES) of the work."""
+    tiles = -(-m // launch.tile_m)
+    return launch.cluster and (tiles % 2 == 0 or tiles >= CLUSTER_MIN_ODD_TILES)
+
+
 def run(xq, wq, scales, launch: Launch, *, interpret: bool = False, sms: int | None = None,
         act: str = "geglu") -> jax.Array:
     """The kernel on xq (M, K) e4m3, wq (2F, K) e4m3 ((K, 2F) when `interpret`) and (2F,) column scales
     (`column_scales`) -> (M, F) e4m3 (act "gelu": wq (N, K), the (3, whole tiles) `gelu_table` -> (M, N)), on `sms`
     CTAs (default: the GPU's SMs); `launch` fits the weight (`fit`). Rows are padded with zeros and cut back: to
     whole row tiles in the interpreter, and on a GPU to TMA's row tiling (its copies take a last row tile that is
-    ragged, but not rows that are not a multiple of 8: the expert's 50 B rows at an odd B)."""
+    ragged, but not rows that are not a multiple of 8: the expert's 50 B rows at an odd B). A clustered launch runs
+    without clusters where they do not pay (`clusters_pay`)."""
     if not interpret and sms is None:
         sms = jax.devices()[0].core_count
     m, k = xq.shape
+    if launch.cluster and not clusters_pay(launch, m):
+        launch = dataclasses.replace(launch, cluster=False)
     step = launch.tile_m if interpret else TMA_ROWS
     mp = -(-m // step) * step
     xp = jnp.pad(xq, ((0, mp - m), (0, 0))) if mp != m else xq
