@@ -311,13 +311,14 @@ _partitioned_gelu = _row_partitioned("gelu", "m k, n k, t c -> m n", ("k", "n", 
 
 
 # A clustered launch's last cluster takes a tile past the rows where the row tiles are odd: π0's prefix at B = 1 (816
-# rows, 7 tiles in 4 clusters) took 13 % longer in its GeGLU kernels, the FP8 call 2.2 % (H200, session 66)
-CLUSTER_MIN_ODD_TILES = 32
+# rows, 7 tiles in 4 clusters) took 13 % longer in its GeGLU kernels, the FP8 call 2.2 %; the expert's 25 tiles at
+# B = 64 ran clustered in a call 0.7-3.3 % faster (H200, session 66)
+CLUSTER_MIN_ODD_TILES = 16
 
 
 def clusters_pay(launch: Launch, m: int) -> bool:
     """Whether `launch`'s clusters of two are kept for m rows: an even count of row tiles, or enough of them that the
-    last cluster's idle half is at most 1 / (2 CLUSTER_MIN_ODD_TILES) of the work."""
+    last cluster's idle half is at most 1 / 18 of the work (17 tiles and more)."""
     tiles = -(-m // launch.tile_m)
     return launch.cluster and (tiles % 2 == 0 or tiles >= CLUSTER_MIN_ODD_TILES)
 
