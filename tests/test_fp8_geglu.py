@@ -116,9 +116,9 @@ def test_kernel_lowers_for_hopper(m, k, n2, launch):
 
 
 def test_clusters_only_where_the_rows_fill_them():
-    """The engine's launches run in clusters of two where the row tiles are even or many (`clusters_pay`): not at
-    π0's prefix at B = 1 (816 rows: 7 tiles, the last cluster half idle), at B = 8 (51 tiles), the expert's 400 rows
-    at B = 8 (4) and 3,200 at B = 64 (25), SigLIP's 768 at B = 1 (6)."""
+    """The engine's launches run in clusters of two where the row tiles are even or many (`clusters_pay`): at π0's
+    prefix at B = 8 (51 tiles), the expert's 400 rows at B = 8 (4) and 3,200 at B = 64 (25), SigLIP's 768 rows
+    (6); not at the prefix at B = 1 (816 rows: 7 tiles, the last cluster half idle)."""
     assert fp8_geglu.LAUNCH.cluster and fp8_geglu.GELU_LAUNCH.cluster
     assert not fp8_geglu.clusters_pay(fp8_geglu.LAUNCH, 816)
     assert all(fp8_geglu.clusters_pay(fp8_geglu.LAUNCH, m) for m in (6528, 400, 768, 52224))
