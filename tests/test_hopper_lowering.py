@@ -28,12 +28,12 @@ TRITON, MOSAIC, CUDNN = "__gpu$xla.gpu.triton", "mosaic_gpu_v2", "__cudnn$fmhaSo
 B1 = {"vision_head": {TRITON: 9}, "vision_tail": {TRITON: 18},
       "prefix_first_step": {CUDNN: 17, TRITON: 90, MOSAIC: 18}, "denoise_rest": {TRITON: 90, MOSAIC: 18}}
 B8 = {"vision_head": {TRITON: 27}, "vision_tail": {TRITON: 55}, "prefix_denoise": {CUDNN: 17, TRITON: 36}}
+# (`every-gemm` without the FP8 MLP kernel and `prefix-all` with it lowered the same Triton kernels and a subset of
+# the Mosaic GPU ones of `every-gemm` with it: dropped in session 66 for CI's time)
 EXPECTED = {   # (preset, batch, FP8 scheme, FP8_GEGLU)
     ("pi0_base", 1, None, False): B1,
     ("pi05_base", 1, None, False): B1,
     ("pi0_base", 8, None, False): B8,
-    ("pi0_base", 8, "every-gemm", False): B8,
-    ("pi0_base", 8, "prefix-all", True): {**B8, "prefix_denoise": {CUDNN: 17, TRITON: 36, MOSAIC: 17}},
     ("pi0_base", 8, "every-gemm", True): {"vision_head": {TRITON: 27, MOSAIC: 9}, "vision_tail": {TRITON: 55, MOSAIC: 18},
                                           "prefix_denoise": {CUDNN: 17, TRITON: 36, MOSAIC: 35}},
 }
