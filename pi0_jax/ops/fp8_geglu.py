@@ -334,8 +334,7 @@ def run(xq, wq, scales, launch: Launch, *, interpret: bool = False, sms: int | N
     if not interpret and sms is None:
         sms = jax.devices()[0].core_count
     m, k = xq.shape
-    if launch.cluster and not clusters_pay(launch, m):
-        launch = dataclasses.replace(launch, cluster=False)
+    launch = dataclasses.replace(launch, cluster=clusters_pay(launch, m))
     step = launch.tile_m if interpret else TMA_ROWS
     mp = -(-m // step) * step
     xp = jnp.pad(xq, ((0, mp - m), (0, 0))) if mp != m else xq
