@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pi0_jax import pi0
+from pi0_jax import pi0, roofline
 from pi0_jax.pi0 import random_params
 from pi0_jax.config import IMAGE_KEYS, PRESETS, Pi0Config, get_config
 from pi0_jax.engine import Engine, layers, programs, store, vision
@@ -222,6 +222,7 @@ def bench_engine(engine: Engine, args, batch: int) -> list[dict]:
     cameras, bucket = engine.plan(sets[0][0])
     packed = [engine.pack(obs, cameras, bucket) for obs, _ in sets]
     w = engine.weights
+    gemm_formats, device = roofline.gemm_formats(w), jax.devices()[0].device_kind
     enc = engine.executable("encode_images", batch, 0, cameras, bucket)
     pre = engine.executable("fill_prefix_cache", batch, 0, cameras, bucket)
     t_vis = time_calls(lambda im: enc(w, im), [(p[0],) for p in packed], args.iters, args.warmup)
@@ -256,6 +257,7 @@ def bench_engine(engine: Engine, args, batch: int) -> list[dict]:
                                                 [(p, n) for p, (_, n) in zip(packed, sets)], args.iters, args.warmup)
         total = row.get("total", {}).get("median_ms") or (t_vis["median_ms"] + t_pre["median_ms"] + t_den["median_ms"])
         row["total_ms"], row["hz"], row["samples_per_s"] = total, 1e3 / total, 1e3 * batch / total
+        row["roofline"] = roofline.row_figures(cfg, gemm_formats, device, row)
         rows.append(row)
         print(_row_line(row), flush=True)
         if "one_program" in row:
@@ -322,6 +324,22 @@ TABLE_HEADER = ("| dtype | batch | steps | total ms | Hz | vision ms | prefix KV
                 "|---|---|---|---|---|---|---|---|---|---|")
 
 
+ROOFLINE_HEADER = ("| batch | steps | stage | ms | TFLOP (of it FP8) | GB read | floor ms | bound | of the floor |\n"
+                   "|---|---|---|---|---|---|---|---|---|")
+
+
+def _roofline_lines(r: dict) -> list[str]:
+    """A row's stages against the device's peaks (`pi0_jax.roofline`); blank where the device has no peaks."""
+    lines = []
+    for stage, f in r.get("roofline", {}).get("stages", {}).items():
+        ms = f"{f['ms']:.2f}" if "ms" in f else ""
+        floor = f"{f['floor_ms']:.3f}" if "floor_ms" in f else ""
+        of = f"{100 * f['of_floor']:.0f} %" if "of_floor" in f else ""
+        lines.append(f"| {r['batch']} | {r['steps']} | {stage} | {ms} | {f['tflop']:.4g} ({f['tflop_fp8']:.4g}) | "
+                     f"{f['gb']:.4g} | {floor} | {f.get('bound', '')} | {of} |")
+    return lines
+
+
 def markdown(results: dict) -> str:
     lines = [f"{results['env']['device']} · {results['preset']} · kernels {results['env'].get('kernels', 'xla')} · "
              f"attention {results['env'].get('attention', 'xla')} · overlap {results['env'].get('overlap', 'off')} · "
@@ -330,6 +348,13 @@ def markdown(results: dict) -> str:
     lines += [_row_line(r) for r in results["rows"]]
     one = [_one_program_line(r) for r in results["rows"] if "one_program" in r]
     lines += [""] + one if one else []   # below the table, not a row of it
+    roof = [line for r in results["rows"] for line in _roofline_lines(r)]
+    if roof:
+        peaks = next((r["roofline"]["peaks"] for r in results["rows"] if "peaks" in r.get("roofline", {})), None)
+        lines += ["", "roofline (pi0_jax.roofline): " + (f"dense peaks bf16 {peaks['bf16_tflops']:.0f} TFLOP/s, FP8 "
+                                                         f"{peaks['fp8_tflops']:.0f}, memory {peaks['memory_tbs']:.2f} "
+                                                         "TB/s" if peaks else "no peaks for this device"),
+                  "", ROOFLINE_HEADER] + roof
     for peer in results.get("peers", []):
         lines.append(f"\n{peer['impl']} ({peer['dtype']}, B={peer['batch']}, {peer['steps']} steps): "
                      f"{peer['total']['median_ms']:.2f} ms median; pi0-jax is {peer.get('ratio', float('nan')):.2f}x "

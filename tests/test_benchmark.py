@@ -29,6 +29,10 @@ def test_benchmark_dummy_writes_every_stage(tmp_path):
         assert row["gemm"] == "auto" and set(row["gemm_library"].values()) == {"xla"}
         assert "denoise_attention_launch" not in row   # only where the XLA expert runs the kernel attention
         assert row["overlap"] is False and row["quantised_leaves"] == 0   # auto: only on a GPU
+        roof = row["roofline"]["stages"]   # pi0_jax.roofline: the work; no floor on a CPU (no peaks)
+        assert list(roof) == ["vision", "prefix", "denoise", "call"] and "peaks" not in row["roofline"]
+        assert all(f["tflop"] > 0 and f["gb"] > 0 and "floor_ms" not in f for f in roof.values())
+        assert roof["denoise"]["ms"] == row["denoise"]["median_ms"] and ("ms" in roof["call"]) == ("total" in row)
     assert results["peers"][0]["impl"].startswith("reference")
     assert results["peers"][0]["engine_vs_reference"]["rel_l2"] < 1e-2  # bf16, different matmul grouping
     assert results["env"]["device"] and results["env"]["kernels"] == results["env"]["attention"] == "auto"
