@@ -4,8 +4,9 @@ Fixed random inputs (several sets, rotated so caches do not flatter), warm-up, `
 is read, median and p90 over the timed iterations. Stages are timed as separate programs (vision, prefix KV fill,
 denoise), each synchronised; `total` is the whole call as `Engine.sample_actions` runs it (the vision program, then
 the prefix and denoise program, with no host round trip between them), and `--one-program` adds the call as one
-fused program. Cold compile (empty persistent cache) and warm start (a second process reading the cache) are
-measured for the call's programs. Peers (LeRobot's PyTorch policy) come
+fused program. Each row carries its stages' roofline (`pi0_jax.roofline`: FLOPs and bytes against the device's
+peaks), printed as a second table. Cold compile (empty persistent cache) and warm start (a second process reading
+the cache) are measured for the call's programs. Peers (LeRobot's PyTorch policy) come
 from the `peers` package, which may import torch; this module does not.
 
     pi0-jax benchmark --preset pi0_base --steps 1,2,3,5,10 --batch 1,8,64 --out bench.json

@@ -55,8 +55,9 @@ def peaks_of(device_kind: str) -> Peaks | None:
 
 
 def gemm_formats(weights: dict) -> dict[str, tuple[bool, int]]:
-    """Each GEMM weight of the engine's tree by name ("vlm/gate_up", "img/qkv", "top/action_out_proj", ...: layers and
-    blocks share one): (FP8 x FP8 product, bytes an element). FP8 weights with no activation scale are weight-only."""
+    """Each two-dimensional weight of the engine's tree by name, the GEMMs' among them ("vlm/gate_up", "img/qkv",
+    "top/action_out_proj", ...: layers and blocks share one): (FP8 x FP8 product, bytes an element). FP8 weights with
+    no activation scale are weight-only."""
     out = {}
 
     def put(name, w):
