@@ -144,7 +144,8 @@ def denoise_work(config: Pi0Config, batch: int, tokens: int, steps: int) -> Work
     rows = batch * a * steps
     _layers(work, "expert", g, rows, keys + a, g.depth, False, reads=steps)
     kv = config.paligemma.num_kv_heads * config.paligemma.head_dim
-    work.other_bytes = 2.0 * batch * g.depth * keys * 2 * kv * steps   # the bf16 cache's k and v, every step
+    itemsize = 2 if config.dtype == "bfloat16" else 4
+    work.other_bytes = float(itemsize * batch * g.depth * keys * 2 * kv * steps)   # the cache's k and v, every step
     if config.pi05:
         work.gemm("top/action_in_proj", rows, adim, g.width, reads=steps)
     else:   # the in-projection folded into the time MLP's first layer (its time half is made once a step count)
