@@ -166,8 +166,9 @@ def floor(work: Work, formats: dict[str, tuple[bool, int]], peaks: Peaks | None,
     """A stage's work against the device: TFLOP (and the FP8 GEMMs' share), GB read, the floor in ms and what sets
     it, and the measured time's fraction of it (`ms`: the stage's median, None: none). A GEMM not in `formats` is
     bf16."""
-    fp8 = sum(f for name, f in work.gemm_flops.items() if formats.get(name, (False, 2))[0])
-    nbytes = work.other_bytes + sum(e * formats.get(name, (False, 2))[1] for name, e in work.weight_elems.items())
+    fmt = {name: formats.get(name, (False, 2)) for name in work.gemm_flops}
+    fp8 = sum(f for name, f in work.gemm_flops.items() if fmt[name][0])
+    nbytes = work.other_bytes + sum(e * fmt[name][1] for name, e in work.weight_elems.items())
     out = {"tflop": work.flops() / 1e12, "tflop_fp8": fp8 / 1e12, "gb": nbytes / 1e9}
     if ms:
         out["ms"] = ms

@@ -23,11 +23,8 @@ def _dot_flops(jaxpr) -> float:
             total += 2.0 * np.prod(eqn.outvars[0].aval.shape) * np.prod([lhs[i] for i in contract])
         if eqn.primitive.name == "while":
             raise AssertionError("a while loop's trip count is not in its jaxpr: trace with the steps unrolled")
-        for value in eqn.params.values():
-            for sub in value if isinstance(value, (list, tuple)) else (value,):
-                if isinstance(sub, (jcore.ClosedJaxpr, jcore.Jaxpr)):
-                    sub = sub.jaxpr if isinstance(sub, jcore.ClosedJaxpr) else sub
-                    total += _dot_flops(sub) * (eqn.params["length"] if eqn.primitive.name == "scan" else 1)
+        for sub in jcore.jaxprs_in_params(eqn.params):
+            total += _dot_flops(sub) * (eqn.params["length"] if eqn.primitive.name == "scan" else 1)
     return total
 
 
