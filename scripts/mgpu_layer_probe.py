@@ -104,9 +104,14 @@ class Phase:
         return self.k // self.splits // TK
 
 
-def phases(dm: Dims, splits: int) -> tuple:
-    return (Phase("q", dm.d, dm.nq, 1, "h", "store"), Phase("o", dm.a, dm.d, splits, "qkv", "add"),
-            Phase("g", dm.d, 2 * dm.f, 1, "h", "geglu"), Phase("d", dm.f, dm.d, splits, "act", "add"))
+def phases(dm: Dims, splits: int, order: str = "qogd") -> tuple:
+    """A layer's phases in `order`: "qogd" (the layer), or "ogdq", the chain after a layer's attention (the
+    out-projection on the attention's output, an input of the kernel, through the next layer's q/k/v)."""
+    ps = {"q": Phase("q", dm.d, dm.nq, 1, "h", "store"),
+          "o": Phase("o", dm.a, dm.d, splits, "att" if order == "ogdq" else "qkv", "add"),
+          "g": Phase("g", dm.d, 2 * dm.f, 1, "h", "geglu"), "d": Phase("d", dm.f, dm.d, splits, "act", "add")}
+    assert sorted(order) == sorted("qogd"), order
+    return tuple(ps[n] for n in order)
 
 
 def _mod(kk, n: int):
@@ -176,7 +181,7 @@ def drain(empty, ring: int, t):
 
 @functools.lru_cache(maxsize=None)
 def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, lhs: str = "regs", norm: str = "",
-                 regs: int = 0, loop: bool = False, dtype=jnp.bfloat16, ablate: str = ""):
+                 regs: int = 0, loop: bool = False, dtype=jnp.bfloat16, ablate: str = "", order: str = "qogd"):
     """(h0 f32 (64, d), w_qkv, w_out, w_gate_up (blocks of 32), w_down, each (L, K, N) in `dtype`) -> h (f32).
     lhs: how q's and g's GEMMs take the f32 residual's tiles, rounded: from registers ("regs": wgmma's register
     operand) or written back to shared memory ("smem"). norm: q's and g's GEMMs take RMSNorm(h) (its weight taken
@@ -188,16 +193,20 @@ def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, lhs: 
     squares). dtype: bf16 on a GPU (f32 in the interpreter's check). ablate (timing only, the result is wrong): a
     comma list of "nobarrier" (no phase waits for the one before), "nox" (no activation tile is brought: every GEMM
     reads stale tiles), "noconv" (the residual's f32 tiles are brought but not rounded into the GEMM's operand),
-    "x16" (q and g bring bf16 tiles, of q/k/v's buffer, as a bf16 copy of the residual would be)."""
+    "x16" (q and g bring bf16 tiles, of q/k/v's buffer, as a bf16 copy of the residual would be). order: the
+    phases' (`phases`); with "ogdq" the kernel takes the attention's output (64, a) bf16 after h0 and returns
+    (h, qkv): one launch a layer between the attention's kernels (`mgpu_step_probe.py --chain`)."""
     ablate = set(filter(None, ablate.split(",")))
-    ps = phases(dm, splits)
+    ps = phases(dm, splits, order)
+    takes_att = order == "ogdq"
     bf16, f32 = dtype, jnp.float32
     n_phases = 1 + 4 * dm.layers   # a copy of h0 into h, then 4 a layer
     on_cpu = jax.default_backend() == "cpu"
     # Mosaic GPU's interpreter (jax 0.10.2) cannot lower semaphores; its one CTA never waits at a barrier
     assert ctas == 1 or not on_cpu, "the interpreter runs one CTA"
 
-    def kernel(h0, wq, wo, wg, wd, h, qkv, act):
+    def kernel(h0, *refs):
+        att, (wq, wo, wg, wd, h, qkv, act) = (refs[0], refs[1:]) if takes_att else (None, refs)
         c = lax.axis_index("c")
         sem = None if on_cpu else pl.get_global(plgpu.SemaphoreType.REGULAR)
         weights = {"q": wq, "o": wo, "g": wg, "d": wd}
@@ -260,7 +269,7 @@ def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, lhs: 
                 def x_copy(ph, s, kk):
                     if "nox" in ablate:
                         return
-                    src = {"h": qkv if "x16" in ablate else h, "qkv": qkv, "act": act}[ph.x]
+                    src = {"h": qkv if "x16" in ablate else h, "qkv": qkv, "act": act, "att": att}[ph.x]
                     xs_ = _mod(kk, xdepth)
                     dst = (x32 if f32_x(ph) else x16).at[xs_]
                     plgpu.copy_gmem_to_smem(src.at[:, pl.ds((s * ph.steps + kk) * TK, TK)], dst,
@@ -355,6 +364,8 @@ def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, lhs: 
                         kernel_name="persistent_layers",
                         compiler_params=plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup),
                         **({"interpret": mosaic_gemm._interpret()} if on_cpu else {}))
+    if takes_att:
+        return jax.jit(lambda h0, att, ws: call(h0, att, *ws)[:2])
     return jax.jit(lambda h0, ws: call(h0, *ws)[0])
 
 

@@ -68,8 +68,9 @@ from pi0_jax.ops.mosaic_attention import BIG_NEG, _in_layout, _iota, _old_interp
 from pi0_jax.ops.mosaic_gemm import transforms as _t
 
 sys.path.insert(0, str(Path(__file__).parent))
-from mgpu_layer_probe import (EPS, _mod, _rel, _when, add_into, copy_columns, drain, interleave, signal,  # noqa: E402
-                              timed, union, wait)
+from mgpu_layer_probe import Dims as LayerDims  # noqa: E402
+from mgpu_layer_probe import (EPS, _mod, _rel, _when, add_into, copy_columns, drain, interleave, layer_kernel,  # noqa: E402
+                              signal, timed, union, wait)
 
 PHASES = ("q", "a", "o", "g", "d")
 ROWS = TK = TN = 64   # query rows (pi0's 51 suffix tokens padded), a tile's K rows, its columns, a key block
@@ -560,6 +561,53 @@ def engine_layers(dm: Dims):
     return jax.jit(run)
 
 
+def chain(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, attend: bool = True, dtype=jnp.bfloat16):
+    """The step's layers as session 42's persistent GEMM kernel cut at each attention (`--chain`): one launch a
+    layer of its phases after the attention, [o, g, d, the next layer's q] (`mgpu_layer_probe.layer_kernel`,
+    order "ogdq": the weights stream without a break through four of a layer's five phases), and between launches
+    the engine's split-key attention and merge (`expert_kernels.attention`, B = 1). No RoPE (the check takes it as
+    the identity); q's scale 1 / 16 sits in w_q's q columns (a power of two: exact). attend=False: the launches
+    alone, each on a fixed attention output (timing only). -> run(h0, layers, qkv0, att) -> h, with `layers` from
+    `chain_layers` and qkv0 the first layer's q/k/v."""
+    from pi0_jax.ops import expert_kernels as ek
+    blocks = ek.Blocks()
+    step = layer_kernel(LayerDims(d=dm.d, nq=dm.nq, a=dm.a, f=dm.f, layers=1), ctas, ring, xdepth, splits,
+                        "smem" if jax.default_backend() == "cpu" else "regs", "tile", loop=True, dtype=dtype,
+                        order="ogdq")
+
+    def run(h0, layers, qkv0, att):
+        _, _, key_ok, ends, _ = att
+        pmask = key_ok[None, :dm.prefix]
+        smask = (jnp.arange(ROWS)[None] < ends[:, None]).astype(jnp.int32)
+        h, qkv, o_fixed = h0, qkv0, qkv0[:, :dm.a]
+        for wq_next, wo, wg, wd, ck, cv in layers:
+            o = (ek.attention(qkv, ck, cv, pmask, smask, batch=1, num_heads=dm.heads, num_kv_heads=1,
+                              blocks=blocks) if attend else o_fixed)
+            h, qkv = step(h, o, [wq_next, wo, wg, wd])
+        return h
+
+    return jax.jit(run)
+
+
+def chain_layers(h0, ws, att, dm: Dims):
+    """`chain`'s inputs: each launch's weights (1, K, N) apart, [the next layer's w_q with q's scale, w_out,
+    w_gate_up in blocks of 32, w_down] and the layer's cache (the last layer's next w_q is the first's: its q/k/v
+    goes unused), and the first layer's q/k/v in XLA."""
+    wq = ws[0].at[:, :, :dm.a].multiply(jnp.asarray(dm.hd ** -0.5, ws[0].dtype))
+    wg = interleave(ws[2], dm.f)
+    layers = [(wq[(l + 1) % dm.layers][None], ws[1][l][None], wg[l][None], ws[3][l][None], att[0][l], att[1][l])
+              for l in range(dm.layers)]
+    normed = (h0 * lax.rsqrt(jnp.mean(h0 * h0, axis=-1, keepdims=True) + EPS)).astype(ws[0].dtype)
+    qkv0 = jnp.dot(normed, wq[0], preferred_element_type=jnp.float32).astype(ws[0].dtype)
+    return layers, qkv0
+
+
+def identity_rope(att):
+    """The attention's inputs with RoPE as the identity (cos 1, sin 0), as `chain` computes."""
+    rope = att[4]
+    return (*att[:4], jnp.stack([jnp.ones_like(rope[0]), jnp.zeros_like(rope[1])]))
+
+
 def per_layer(ws, att, dm: Dims) -> list:
     """Each layer's weights (gate/up in the engine's blocks of 32) and cache apart, as the engine holds them (a slice
     of a stacked array inside a jit is a copy before each Pallas call)."""
@@ -584,6 +632,9 @@ def main() -> None:
                         "noexchange, noml, noq, nopv, noadd (`step_kernel`)")
     p.add_argument("--iters", type=int, default=30, help="traced calls per variant (default: %(default)s)")
     p.add_argument("--no-peers", action="store_true", help="only the persistent kernel")
+    p.add_argument("--chain", action="store_true", help="instead of the persistent step, session 42's GEMM kernel "
+                   "cut at each attention: a launch a layer between the engine's attention kernels (`chain`), and "
+                   "the launches alone")
     p.add_argument("--cpu-check", action="store_true",
                    help="Mosaic GPU's interpreter at small sizes on one CTA, against XLA, and exit")
     args = p.parse_args()
@@ -592,10 +643,15 @@ def main() -> None:
         h0, ws, att = inputs(dm, valid_prefix=100)
         ws = [w.astype(jnp.float32) for w in ws]   # f32 on the interpreter: the check is to f32 rounding
         att = (att[0].astype(jnp.float32), att[1].astype(jnp.float32), *att[2:])
-        want = reference(h0, ws, att, dm)
+        want = None if args.chain else reference(h0, ws, att, dm)
         # 40 ring slots: the one CTA holds each item's value tiles until its second pass, and the producer fills the
         # ring in order, so the last item's keys come after every other item's values (8 items of 4 tiles)
-        rel = _rel(step_kernel(dm, 1, 40, 2, 2, dtype=jnp.float32)(h0, kernel_weights(ws, dm), att), want)
+        if args.chain:   # one CTA; f32 both sides; the engine's attention in Pallas' interpret mode
+            layers, qkv0 = chain_layers(h0, ws, att, dm)
+            rel = _rel(chain(dm, 1, 8, 2, 2, dtype=jnp.float32)(h0, layers, qkv0, att),
+                       reference(h0, ws, identity_rope(att), dm))
+        else:
+            rel = _rel(step_kernel(dm, 1, 40, 2, 2, dtype=jnp.float32)(h0, kernel_weights(ws, dm), att), want)
         print(json.dumps({"rel_l2_vs_xla": rel}))
         sys.exit(0 if rel < 1e-5 else 1)
     if jax.default_backend() != "gpu" or not args.out:
@@ -607,7 +663,26 @@ def main() -> None:
     res = {"device": jax.devices()[0].device_kind, "jax": jax.__version__, "layers": dm.layers,
            "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()), "args": vars(args), "rows": {}}
     fns = {}
-    for ctas in map(int, args.ctas.split(",")):
+    if args.chain:
+        layers, qkv0 = chain_layers(h0, ws, att, dm)
+        want_chain = np.asarray(jax.jit(lambda h, w, a: reference(h, w, a, dm))(h0, ws, identity_rope(att)))
+    for ctas in map(int, args.ctas.split(",")) if args.chain else ():
+        for ring in map(int, args.ring.split(",")):
+            for attend in (True, False):
+                name = (f"chain ctas={ctas} ring={ring} xdepth={args.xdepth}: "
+                        + ("launches a layer + engine attention" if attend else "the launches alone"))
+                try:
+                    fn = chain(dm, ctas, ring, args.xdepth, args.splits, attend)
+                    got, again = (np.asarray(fn(h0, layers, qkv0, att)) for _ in range(2))
+                    res["rows"][name] = ({"rel_l2_vs_xla_identity_rope": _rel(got, want_chain),
+                                          "rel_l2_second_call": _rel(again, got), "nan": int(np.isnan(got).sum())}
+                                         if attend else {})
+                    fns[name] = functools.partial(fn, h0, layers, qkv0, att)
+                except Exception as e:   # a variant that fails to lower is a result, not the end of the run
+                    res["rows"][name] = {"error": f"{type(e).__name__}: {e}"[:3000]}
+                    traceback.print_exc()
+                print(name, res["rows"][name], flush=True)
+    for ctas in map(int, args.ctas.split(",")) if not args.chain else ():
         for ring in map(int, args.ring.split(",")):
             for ablate in [""] + args.ablate:
                 name = f"persistent step ctas={ctas} ring={ring} xdepth={args.xdepth}"
