@@ -193,7 +193,8 @@ def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, lhs: 
     squares). dtype: bf16 on a GPU (f32 in the interpreter's check). ablate (timing only, the result is wrong): a
     comma list of "nobarrier" (no phase waits for the one before), "nox" (no activation tile is brought: every GEMM
     reads stale tiles), "noconv" (the residual's f32 tiles are brought but not rounded into the GEMM's operand),
-    "x16" (q and g bring bf16 tiles, of q/k/v's buffer, as a bf16 copy of the residual would be). order: the
+    "x16" (q and g bring bf16 tiles, of q/k/v's buffer, as a bf16 copy of the residual would be), "nocopy" (h0
+    is not copied into h first: the cost of that phase, which a kernel taking h in place would not have). order: the
     phases' (`phases`); with "ogdq" the kernel takes the attention's output (64, a) bf16 after h0 and returns
     (h, qkv): one launch a layer between the attention's kernels (`mgpu_step_probe.py --chain`)."""
     ablate = set(filter(None, ablate.split(",")))
@@ -260,7 +261,8 @@ def layer_kernel(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, lhs: 
                 if regs:   # the accumulator, the norm's squares and a tile in flight, without spilling
                     plgpu.set_max_registers(regs, action="increase")
 
-                copy_columns(h0, h, o32, x_bar.at[0], c, ctas, dm.d)   # h <- h0
+                if "nocopy" not in ablate:
+                    copy_columns(h0, h, o32, x_bar.at[0], c, ctas, dm.d)   # h <- h0
                 signal(sem)
 
                 def f32_x(ph):   # whether the phase's activation tiles are the f32 residual's

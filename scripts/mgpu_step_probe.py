@@ -561,19 +561,20 @@ def engine_layers(dm: Dims):
     return jax.jit(run)
 
 
-def chain(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, attend: bool = True, dtype=jnp.bfloat16):
+def chain(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, attend: bool = True, dtype=jnp.bfloat16,
+          ablate: str = ""):
     """The step's layers as session 42's persistent GEMM kernel cut at each attention (`--chain`): one launch a
     layer of its phases after the attention, [o, g, d, the next layer's q] (`mgpu_layer_probe.layer_kernel`,
     order "ogdq": the weights stream without a break through four of a layer's five phases), and between launches
     the engine's split-key attention and merge (`expert_kernels.attention`, B = 1). No RoPE (the check takes it as
     the identity); q's scale 1 / 16 sits in w_q's q columns (a power of two: exact). attend=False: the launches
     alone, each on a fixed attention output (timing only). -> run(h0, layers, qkv0, att) -> h, with `layers` from
-    `chain_layers` and qkv0 the first layer's q/k/v."""
+    `chain_layers` and qkv0 the first layer's q/k/v. ablate: `mgpu_layer_probe.layer_kernel`'s (timing only)."""
     from pi0_jax.ops import expert_kernels as ek
     blocks = ek.Blocks()
     step = layer_kernel(LayerDims(d=dm.d, nq=dm.nq, a=dm.a, f=dm.f, layers=1), ctas, ring, xdepth, splits,
                         "smem" if jax.default_backend() == "cpu" else "regs", "tile", loop=True, dtype=dtype,
-                        order="ogdq")
+                        ablate=ablate, order="ogdq")
 
     def run(h0, layers, qkv0, att):
         _, _, key_ok, ends, _ = att
@@ -629,7 +630,8 @@ def main() -> None:
     p.add_argument("--layers", type=int, default=18, help="layers of distinct weights (default: %(default)s)")
     p.add_argument("--ablate", action="append", default=[],
                    help="a variant with parts left out, for timing only (repeatable): a comma list of noatt, "
-                        "noexchange, noml, noq, nopv, noadd (`step_kernel`)")
+                        "noexchange, noml, noq, nopv, noadd (`step_kernel`); with --chain, the launches alone with "
+                        "`mgpu_layer_probe.layer_kernel`'s")
     p.add_argument("--iters", type=int, default=30, help="traced calls per variant (default: %(default)s)")
     p.add_argument("--no-peers", action="store_true", help="only the persistent kernel")
     p.add_argument("--chain", action="store_true", help="instead of the persistent step, session 42's GEMM kernel "
@@ -668,11 +670,12 @@ def main() -> None:
         want_chain = np.asarray(jax.jit(lambda h, w, a: reference(h, w, a, dm))(h0, ws, identity_rope(att)))
     for ctas in map(int, args.ctas.split(",")) if args.chain else ():
         for ring in map(int, args.ring.split(",")):
-            for attend in (True, False):
+            for attend, ablate in [(True, ""), (False, "")] + [(False, a) for a in args.ablate]:
                 name = (f"chain ctas={ctas} ring={ring} xdepth={args.xdepth}: "
                         + ("launches a layer + engine attention" if attend else "the launches alone"))
+                name += f" -{ablate}" if ablate else ""
                 try:
-                    fn = chain(dm, ctas, ring, args.xdepth, args.splits, attend)
+                    fn = chain(dm, ctas, ring, args.xdepth, args.splits, attend, ablate=ablate)
                     got, again = (np.asarray(fn(h0, layers, qkv0, att)) for _ in range(2))
                     res["rows"][name] = ({"rel_l2_vs_xla_identity_rope": _rel(got, want_chain),
                                           "rel_l2_second_call": _rel(again, got), "nan": int(np.isnan(got).sum())}
