@@ -41,8 +41,14 @@ What it showed (docs/BENCHMARKS.md, session 43; us a layer, kernel time):
   - On 112 CTAs (an attention item on every CTA) the kept form is wrong too (1e-2), while 120-132 CTAs are right
     and session 42's layer probe is right on 112: the cause is not found, so correctness holds where measured.
 
+`--chain` (session 68) instead cuts session 42's kernel at each attention: a launch a layer of [o, g, d, the next
+q] (`chain`) with the engine's attention kernels between. On an H100: 40.5 us a layer against 41.5 for the engine's
+kernels; a launch alone 29.1-29.5 against 23.1 a layer in the one-launch kernel (each launch starts its weight
+stream from empty), so the cut keeps 2.5 % (docs/BENCHMARKS.md, session 68).
+
     python scripts/mgpu_step_probe.py --out step.json          # GPU (Hopper)
-    python scripts/mgpu_step_probe.py --cpu-check              # Mosaic GPU's interpreter, small, 1 CTA
+    python scripts/mgpu_step_probe.py --chain --out chain.json # the kernel cut at each attention
+    python scripts/mgpu_step_probe.py --cpu-check [--chain]    # Mosaic GPU's interpreter, small, 1 CTA
 """
 
 from __future__ import annotations
