@@ -43,8 +43,8 @@ What it showed (docs/BENCHMARKS.md, session 43; us a layer, kernel time):
 
 `--chain` (session 68) instead cuts session 42's kernel at each attention: a launch a layer of [o, g, d, the next
 q] (`chain`) with the engine's attention kernels between. On an H100: 40.5 us a layer against 41.5 for the engine's
-kernels; a launch alone 29.1-29.5 against 23.1 a layer in the one-launch kernel (each launch starts its weight
-stream from empty), so the cut keeps 2.5 % (docs/BENCHMARKS.md, session 68).
+kernels; a launch alone 29.1-29.5 against 23.1 a layer in the one-launch kernel, so the cut keeps 2.5 %
+(docs/BENCHMARKS.md, session 68).
 
     python scripts/mgpu_step_probe.py --out step.json          # GPU (Hopper)
     python scripts/mgpu_step_probe.py --chain --out chain.json # the kernel cut at each attention
