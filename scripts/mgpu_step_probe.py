@@ -639,7 +639,8 @@ def main() -> None:
                         "noexchange, noml, noq, nopv, noadd (`step_kernel`); with --chain, the launches alone with "
                         "`mgpu_layer_probe.layer_kernel`'s")
     p.add_argument("--iters", type=int, default=30, help="traced calls per variant (default: %(default)s)")
-    p.add_argument("--no-peers", action="store_true", help="only the persistent kernel")
+    p.add_argument("--no-peers", action="store_true", help="only the persistent kernel (with --chain, only the "
+                   "chain's rows)")
     p.add_argument("--chain", action="store_true", help="instead of the persistent step, session 42's GEMM kernel "
                    "cut at each attention: a launch a layer between the engine's attention kernels (`chain`), and "
                    "the launches alone")
@@ -667,7 +668,7 @@ def main() -> None:
     dm = Dims(layers=args.layers)
     h0, ws, att = inputs(dm, valid_prefix=816)
     kws = kernel_weights(ws, dm)
-    want = np.asarray(jax.jit(lambda h, w, a: reference(h, w, a, dm))(h0, ws, att))
+    want = np.asarray(jax.jit(lambda h, w, a: reference(h, w, a, dm))(h0, ws, att))   # the engine peer's too
     res = {"device": jax.devices()[0].device_kind, "jax": jax.__version__, "layers": dm.layers,
            "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()), "args": vars(args), "rows": {}}
     fns = {}
