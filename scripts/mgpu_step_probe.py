@@ -622,6 +622,31 @@ def per_layer(ws, att, dm: Dims) -> list:
     return [tuple(w[l] for w in (*ws, *att[:2])) for l in range(dm.layers)]
 
 
+def chain_rows(args, dm: Dims, h0, ws, att, res: dict, fns: dict) -> None:
+    """`--chain`'s rows into res["rows"] and their calls into fns: at each grid size and ring depth, the launches
+    with the engine's attention (checked against XLA's layers with RoPE as the identity, and a second call), the
+    launches alone, and the launches alone with each `--ablate`."""
+    layers, qkv0 = chain_layers(h0, ws, att, dm)
+    want_chain = np.asarray(jax.jit(lambda h, w, a: reference(h, w, a, dm))(h0, ws, identity_rope(att)))
+    for ctas in map(int, args.ctas.split(",")):
+        for ring in map(int, args.ring.split(",")):
+            for attend, ablate in [(True, ""), (False, "")] + [(False, a) for a in args.ablate]:
+                name = (f"chain ctas={ctas} ring={ring} xdepth={args.xdepth}: "
+                        + ("launches a layer + engine attention" if attend else "the launches alone"))
+                name += f" -{ablate}" if ablate else ""
+                try:
+                    fn = chain(dm, ctas, ring, args.xdepth, args.splits, attend, ablate=ablate)
+                    got, again = (np.asarray(fn(h0, layers, qkv0, att)) for _ in range(2))
+                    res["rows"][name] = ({"rel_l2_vs_xla_identity_rope": _rel(got, want_chain),
+                                          "rel_l2_second_call": _rel(again, got), "nan": int(np.isnan(got).sum())}
+                                         if attend else {})
+                    fns[name] = functools.partial(fn, h0, layers, qkv0, att)
+                except Exception as e:   # a variant that fails to lower is a result, not the end of the run
+                    res["rows"][name] = {"error": f"{type(e).__name__}: {e}"[:3000]}
+                    traceback.print_exc()
+                print(name, res["rows"][name], flush=True)
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", help="JSON file to write (GPU run)")
@@ -673,25 +698,7 @@ def main() -> None:
            "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()), "args": vars(args), "rows": {}}
     fns = {}
     if args.chain:
-        layers, qkv0 = chain_layers(h0, ws, att, dm)
-        want_chain = np.asarray(jax.jit(lambda h, w, a: reference(h, w, a, dm))(h0, ws, identity_rope(att)))
-    for ctas in map(int, args.ctas.split(",")) if args.chain else ():
-        for ring in map(int, args.ring.split(",")):
-            for attend, ablate in [(True, ""), (False, "")] + [(False, a) for a in args.ablate]:
-                name = (f"chain ctas={ctas} ring={ring} xdepth={args.xdepth}: "
-                        + ("launches a layer + engine attention" if attend else "the launches alone"))
-                name += f" -{ablate}" if ablate else ""
-                try:
-                    fn = chain(dm, ctas, ring, args.xdepth, args.splits, attend, ablate=ablate)
-                    got, again = (np.asarray(fn(h0, layers, qkv0, att)) for _ in range(2))
-                    res["rows"][name] = ({"rel_l2_vs_xla_identity_rope": _rel(got, want_chain),
-                                          "rel_l2_second_call": _rel(again, got), "nan": int(np.isnan(got).sum())}
-                                         if attend else {})
-                    fns[name] = functools.partial(fn, h0, layers, qkv0, att)
-                except Exception as e:   # a variant that fails to lower is a result, not the end of the run
-                    res["rows"][name] = {"error": f"{type(e).__name__}: {e}"[:3000]}
-                    traceback.print_exc()
-                print(name, res["rows"][name], flush=True)
+        chain_rows(args, dm, h0, ws, att, res, fns)
     for ctas in map(int, args.ctas.split(",")) if not args.chain else ():
         for ring in map(int, args.ring.split(",")):
             for ablate in [""] + args.ablate:
