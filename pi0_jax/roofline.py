@@ -26,6 +26,8 @@ from __future__ import annotations
 
 import dataclasses
 
+import jax.numpy as jnp
+
 from pi0_jax.config import Pi0Config
 from pi0_jax.ops.formats import QArray
 
@@ -144,8 +146,7 @@ def denoise_work(config: Pi0Config, batch: int, tokens: int, steps: int) -> Work
     rows = batch * a * steps
     _layers(work, "expert", g, rows, keys + a, g.depth, False, reads=steps)
     kv = config.paligemma.num_kv_heads * config.paligemma.head_dim
-    itemsize = 2 if config.dtype == "bfloat16" else 4
-    work.other_bytes = float(itemsize * batch * g.depth * keys * 2 * kv * steps)   # the cache's k and v, every step
+    work.other_bytes = float(jnp.dtype(config.dtype).itemsize * batch * g.depth * keys * 2 * kv * steps)   # the cache's k and v, every step
     if config.pi05:
         work.gemm("top/action_in_proj", rows, adim, g.width, reads=steps)
     else:   # the in-projection folded into the time MLP's first layer (its time half is made once a step count)
