@@ -33,7 +33,7 @@ import profile_engine  # noqa: E402
 from pi0_jax import benchmark  # noqa: E402
 from pi0_jax.config import get_config  # noqa: E402
 from pi0_jax.engine import Engine, layers, paths, programs, runtime, vision  # noqa: E402
-from pi0_jax.ops import expert_kernels, formats, fp8_geglu, layout, pallas_base  # noqa: E402
+from pi0_jax.ops import expert_kernels, formats, fp8_geglu, layout  # noqa: E402
 from pi0_jax.quant.schemes import SCHEMES  # noqa: E402
 
 GRAPHS = {"xla_gpu_graph_min_graph_size": 1}
@@ -137,8 +137,6 @@ VARIANTS = {
     # folded into the weights, `formats.fold_scales`)
     "geglu-bf16": {},
     "scales-apart": {},
-    # every Pallas Triton kernel triggering its dependents' launch as it starts (`pallas_base.EARLY_LAUNCH`)
-    "early-launch": {},
 }
 ENGINE_KW = {"unroll-steps": {"unroll_steps": True}, "no-overlap": {"overlap": "off"}, "overlap-on": {"overlap": "on"}}
 SCHEDULING = {"overlap-lhs": {"xla_gpu_command_buffer_scheduling_mode": "LHS"}}
@@ -176,8 +174,7 @@ PATCHES = {"gelu-tanh": (layers, {"gelu_tanh": lambda x: jax.nn.gelu(x, approxim
                                                                                   cluster=False)}),
            "fp8-tanh": (fp8_geglu, {"LAUNCH": dataclasses.replace(fp8_geglu.LAUNCH, tanh=True),
                                     "GELU_LAUNCH": dataclasses.replace(fp8_geglu.GELU_LAUNCH, tanh=True)}),
-           "scales-apart": (formats, {"fold_scales": lambda tree: tree}),
-           "early-launch": (pallas_base, {"EARLY_LAUNCH": True})}
+           "scales-apart": (formats, {"fold_scales": lambda tree: tree})}
 
 
 def conv_patch_embed(images, kernel, bias, p: int):

@@ -29,12 +29,6 @@ except ImportError:   # a jax without Pallas's Triton backend
 TRITON = plgpu is not None
 TRITON_DEPRECATION = r"The Pallas Triton backend is deprecated"
 ALIGN = 16  # Triton's smallest dot dimension
-# Programmatic dependent launch (PDL, Hopper): XLA launches its kernels and these (Triton, compiled by XLA) as
-# dependents of the kernel before them and starts each with griddepcontrol.wait, which returns once that kernel has
-# ended and its writes are visible. A dependent is launched only when every CTA of the kernel before it has
-# triggered (griddepcontrol.launch_dependents) or ended; XLA's kernels never trigger. With EARLY_LAUNCH each of these
-# kernels triggers as it starts, so the next kernel's launch and its CTAs' start overlap this one's work.
-EARLY_LAUNCH = False
 
 
 def row_shardings(mesh, sharding) -> tuple:
@@ -63,28 +57,8 @@ def _quiet_deprecation() -> None:
     warnings.filterwarnings("ignore", message=TRITON_DEPRECATION, category=DeprecationWarning)
 
 
-def _launch_dependents() -> None:
-    """griddepcontrol.launch_dependents (PTX ISA 7.8, sm_90). Pallas's inline assembly is pure, so its result (0)
-    decides a branch that never runs, which keeps it where it is."""
-    [zero] = plgpu.elementwise_inline_asm("griddepcontrol.launch_dependents;\n\tmov.b32 $0, 0;",
-                                          args=[jnp.zeros((1,), jnp.int32)], constraints="=r,r", pack=1,
-                                          result_shape_dtypes=[jax.ShapeDtypeStruct((1,), jnp.int32)])
-
-    @pl.when(jnp.sum(zero) != 0)
-    def _():
-        plgpu.debug_barrier()
-
-
-def _launching_early(kernel):
-    def body(*refs):
-        _launch_dependents()
-        kernel(*refs)
-    return body
-
-
 def call(kernel, *, grid, out_shape, name: str, num_warps: int, num_stages: int):
-    """`pl.pallas_call` on the default backend: Triton on a GPU (its dependents launched as it starts under
-    `EARLY_LAUNCH`), interpreted on a CPU."""
+    """`pl.pallas_call` on the default backend: Triton on a GPU, interpreted on a CPU."""
     on_cpu = jax.default_backend() == "cpu"
     if not on_cpu and not TRITON:
         raise RuntimeError(f"the Pallas kernel {name!r} runs on Pallas's Triton backend, which jax {jax.__version__} "
@@ -92,7 +66,5 @@ def call(kernel, *, grid, out_shape, name: str, num_warps: int, num_stages: int)
     if not on_cpu:
         _quiet_deprecation()
     params = None if on_cpu else plgpu.CompilerParams(num_warps=num_warps, num_stages=num_stages)
-    if EARLY_LAUNCH and not on_cpu:
-        kernel = _launching_early(kernel)
     return pl.pallas_call(kernel, grid=grid, out_shape=out_shape, interpret=on_cpu, compiler_params=params,
                           name=name)
