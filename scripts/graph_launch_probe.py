@@ -2,9 +2,12 @@
 kernels that XLA puts in one command buffer, and the host's time from the call to its return (the dispatch, not
 the GPU's work), after the GPU has gone idle (as a robot's call finds it) and back to back. Kinds: XLA fusions
 (`optimization_barrier` keeps each op a kernel of its own), cuBLAS GEMMs, XLA's Triton GEMMs (no cuBLAS fallback)
-and Pallas (Triton) kernels, at SigLIP's GEMM shape (768 x 1152 x 1152, bf16). A GPU probe, not a test.
+and Pallas (Triton) kernels, at SigLIP's GEMM shape (768 x 1152 x 1152, bf16); `--graph` compiles each with XLA's
+options for the command buffer's form (`GRAPHS`). A GPU probe, not a test. What the driver alone takes to launch
+a graph of as many kernels: `cuda_graph_launch.cu` and `torch_graph_launch.py`.
 
     python scripts/graph_launch_probe.py --kernels 16 --kernels 64 --out graph_launch_probe.json
+    python scripts/graph_launch_probe.py --kernels 128 --kind fusion --graph default --graph serialize-nopdl
 """
 
 from __future__ import annotations
@@ -26,6 +29,13 @@ from profile_engine import write_json  # noqa: E402
 ROWS, WIDTH = 768, 1152
 CUBLAS = {"xla_gpu_enable_triton_gemm": False}
 TRITON = {"xla_gpu_enable_triton_gemm": True, "xla_gpu_cublas_fallback": False}
+KINDS = {"fusion": {}, "pallas": {}, "cublas": CUBLAS, "triton-gemm": TRITON}   # each kind's XLA options
+# the command buffer's form: without PDL's programmatic edges, its commands in one order (a straight line), both, or
+# XLA's concurrent regions (jaxlib 0.11.2 has no `xla_gpu_experimental_enable_command_buffer_on_thunks`)
+GRAPHS = {"default": {}, "nopdl": {"xla_gpu_enable_pdl": False},
+          "serialize": {"xla_gpu_command_buffer_scheduling_mode": "SERIALIZE"},
+          "serialize-nopdl": {"xla_gpu_command_buffer_scheduling_mode": "SERIALIZE", "xla_gpu_enable_pdl": False},
+          "concurrent-region": {"xla_gpu_graph_enable_concurrent_region": True}}
 
 
 def _add_one(x_ref, o_ref):
@@ -72,15 +82,24 @@ def main() -> None:
     p.add_argument("--kernels", type=int, action="append", default=None,
                    help="kernels in each program's chain, repeatable (default: 1, 16 and 64)")
     p.add_argument("--iters", type=int, default=50, help="timed calls of each program (default: %(default)s)")
+    p.add_argument("--graph", action="append", choices=list(GRAPHS), default=None,
+                   help="the command buffer's XLA options, repeatable (default: default)")
+    p.add_argument("--kind", action="append", choices=list(KINDS), default=None,
+                   help="repeatable (default: all)")
     p.add_argument("--out", type=Path, default=None, help="JSON of every row")
     args = p.parse_args()
     x = jax.random.normal(jax.random.PRNGKey(0), (ROWS, WIDTH), jnp.bfloat16)
     w = jax.random.normal(jax.random.PRNGKey(1), (WIDTH, WIDTH), jnp.bfloat16) * WIDTH**-0.5
     rows = []
     for n in args.kernels or [1, 16, 64]:
-        for kind, options in (("fusion", None), ("pallas", None), ("cublas", CUBLAS), ("triton-gemm", TRITON)):
-            compiled = jax.jit(chain(kind, n)).lower(x, w).compile(compiler_options=options)
-            row = {"kind": kind, "kernels": n,
+        for kind, graph in ((k, g) for k in args.kind or list(KINDS) for g in args.graph or ["default"]):
+            try:
+                compiled = jax.jit(chain(kind, n)).lower(x, w).compile(
+                    compiler_options={**KINDS[kind], **GRAPHS[graph]} or None)
+            except Exception as e:   # an option this jaxlib does not define
+                print(json.dumps({"kind": kind, "kernels": n, "graph": graph, "error": str(e)[:300]}), flush=True)
+                continue
+            row = {"kind": kind, "kernels": n, "graph": graph,
                    "after_idle_us": dispatch_us(compiled, (x, w), args.iters, True),
                    "back_to_back_us": dispatch_us(compiled, (x, w), args.iters, False)}
             rows.append(row)

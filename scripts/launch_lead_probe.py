@@ -1,0 +1,93 @@
+"""Where a program's dispatch goes around its CUDA graph's launch: run under `launch_shim.py` (which logs each
+cuGraphLaunch's start and host time on the clock of `time.perf_counter`), it calls a program after the GPU went
+idle and splits each call's host time into before the first cuGraphLaunch, the launches, and after the last one.
+Programs: a chain of 1 or 128 XLA fusions in one command buffer (`graph_launch_probe.chain`) and the vision head of
+π0's call (the call's first program, random full-size weights). GPU only:
+
+    python3 scripts/launch_shim.py --out DIR -- python3 scripts/launch_lead_probe.py --out DIR/lead.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import graph_launch_probe  # noqa: E402
+from profile_engine import write_json  # noqa: E402
+
+
+def launches_since(log: Path, start_us: float) -> list[tuple[float, float]]:
+    """(start, duration) µs of every launch the shim logged from start_us on."""
+    rows = []
+    for line in log.read_text().splitlines():
+        parts = line.split()
+        if parts[0] == "launch" and len(parts) == 4 and float(parts[3]) >= start_us:
+            rows.append((float(parts[3]), float(parts[2])))
+    return rows
+
+
+def split(fn, args, log: Path, iters: int) -> dict:
+    out = fn(*args)
+    jax.block_until_ready(out)
+    rows = []
+    for _ in range(iters):
+        jax.block_until_ready(out)
+        time.sleep(0.002)   # the GPU idle, as a robot's call finds it
+        start = time.perf_counter() * 1e6
+        out = fn(*args)
+        end = time.perf_counter() * 1e6
+        launched = [r for r in launches_since(log, start) if r[0] <= end]
+        if launched:
+            first, last = launched[0], launched[-1]
+            rows.append((first[0] - start, sum(d for _, d in launched), end - (last[0] + last[1]), end - start,
+                         len(launched)))
+    jax.block_until_ready(out)
+    if not rows:
+        return {"launches": 0}
+    med = np.median(np.array(rows), axis=0)
+    return {"before_first_launch_us": round(med[0], 1), "in_launches_us": round(med[1], 1),
+            "after_last_launch_us": round(med[2], 1), "dispatch_us": round(med[3], 1), "launches": int(med[4])}
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--iters", type=int, default=30)
+    p.add_argument("--no-engine", action="store_true", help="the toy programs only")
+    p.add_argument("--out", type=Path, default=None)
+    args = p.parse_args()
+    log = Path(os.environ["SHIM_DIR"]) / "shim.log"
+    rows = []
+    x = jax.random.normal(jax.random.PRNGKey(0), (graph_launch_probe.ROWS, graph_launch_probe.WIDTH), jnp.bfloat16)
+    for n in (1, 128):
+        fn = jax.jit(graph_launch_probe.chain("fusion", n)).lower(x, x).compile()
+        rows.append({"program": f"{n} XLA fusions", **split(fn, (x, x), log, args.iters)})
+        print(json.dumps(rows[-1]), flush=True)
+    from pi0_jax import benchmark
+    if args.no_engine:
+        write_json(args.out, {"rows": rows, "env": benchmark.environment()})
+        return
+    from pi0_jax.config import get_config
+    from pi0_jax.engine import Engine
+    config = get_config("pi0_base", dtype="bfloat16")
+    engine = Engine(config, benchmark.random_params(config, 0), cache_dir=False)
+    obs, noise = benchmark.make_inputs(config, 1, 3, 48, 0)
+    cameras, bucket = engine.plan(obs)
+    head = engine.executable("vision_head", 1, 10, cameras, bucket)
+    images = jnp.asarray(engine.pack(obs, cameras, bucket)[0])
+    call = lambda w, im: head(w, im)   # noqa: E731
+    rows.append({"program": "π0's vision head (80 kernels)", **split(call, (engine.weights, images), log, args.iters)})
+    print(json.dumps(rows[-1]), flush=True)
+    write_json(args.out, {"rows": rows, "env": benchmark.environment()})
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,69 @@
+"""Where a program's CUDA graph launches go, without a profiler: runs a command with `cuda_launch_shim.c` preloaded
+(built here with gcc), which times every `cuGraphLaunch` the process makes and writes the first 40 graphs instantiated
+as DOT files (`cuGraphDebugDotPrint`: each node's type, kernel and parameters, and the edges), then sums them up: per
+graph executable, its launches and their median host time; per DOT file, its nodes by type and its edges. XLA looks
+the driver's entry points up by `dlsym`, which the shim answers for these two. GPU only, Linux:
+
+    python3 scripts/launch_shim.py --out DIR -- python3 scripts/graph_launch_probe.py --kernels 128 --kind fusion
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import os
+import re
+import statistics
+import subprocess
+import sys
+from pathlib import Path
+
+NODE_TYPES = ("KERNEL", "MEMSET", "MEMCPY", "CHILD_GRAPH", "EMPTY", "EVENT_RECORD", "WAIT_EVENT", "CONDITIONAL", "HOST",
+              "MEM_ALLOC", "MEM_FREE", "BATCH_MEM_OP")
+
+
+def summary(root: Path) -> dict:
+    launches, flags = collections.defaultdict(list), {}
+    for line in (root / "shim.log").read_text().splitlines():
+        parts = line.split()
+        if parts[0] == "launch":
+            launches[parts[1]].append(float(parts[2]))
+        elif parts[0] == "instantiate":
+            flags[parts[1]] = int(parts[3])
+    graphs = [{"exec": k, "launches": len(v), "median_us": round(statistics.median(v), 2), "min_us": min(v),
+               "instantiate_flags": flags.get(k)} for k, v in sorted(launches.items(), key=lambda kv: -len(kv[1]))]
+    dots = []
+    for path in sorted(root.glob("*.dot")):
+        text = path.read_text(errors="replace")
+        types = collections.Counter(re.findall(r"\b(" + "|".join(NODE_TYPES) + r")\b", text))
+        dots.append({"file": path.name, "nodes": dict(types), "edges": text.count("->"),
+                     "programmatic": len(re.findall(r"programmatic", text, re.I))})
+    return {"graphs": graphs, "dot_files": dots}
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", type=Path, required=True, help="folder for the shim's log, the DOT files and summary.json")
+    p.add_argument("command", nargs=argparse.REMAINDER, help="the command to run, after --")
+    args = p.parse_args()
+    command = args.command[1:] if args.command[:1] == ["--"] else args.command
+    if not command:
+        p.error("no command given (put it after --)")
+    args.out.mkdir(parents=True, exist_ok=True)
+    shim = args.out / "cuda_launch_shim.so"
+    subprocess.run(["gcc", "-shared", "-fPIC", "-O2", "-o", str(shim), str(Path(__file__).with_name("cuda_launch_shim.c")),
+                    "-ldl"], check=True)
+    env = {**os.environ, "LD_PRELOAD": str(shim.resolve()), "SHIM_DIR": str(args.out.resolve())}
+    code = subprocess.run(command, env=env).returncode
+    result = summary(args.out)
+    (args.out / "summary.json").write_text(json.dumps(result, indent=1))
+    for g in result["graphs"][:12]:
+        print(json.dumps(g))
+    for d in result["dot_files"]:
+        print(json.dumps(d))
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())
