@@ -1,10 +1,11 @@
-"""What a CUDA graph's launch costs the host, by the kind of kernel in it: one program per kind, a chain of N
-kernels that XLA puts in one command buffer, and the host's time from the call to its return (the dispatch, not
-the GPU's work), after the GPU has gone idle (as a robot's call finds it) and back to back. Kinds: XLA fusions
-(`optimization_barrier` keeps each op a kernel of its own), cuBLAS GEMMs, XLA's Triton GEMMs (no cuBLAS fallback)
-and Pallas (Triton) kernels, at SigLIP's GEMM shape (768 x 1152 x 1152, bf16); `--graph` compiles each with XLA's
-options for the command buffer's form (`GRAPHS`). A GPU probe, not a test. What the driver alone takes to launch
-a graph of as many kernels: `cuda_graph_launch.cu` and `torch_graph_launch.py`.
+"""What a program in one CUDA graph costs the host to dispatch, by the kind of kernel in it: one program per kind, a
+chain of N kernels that XLA puts in one command buffer, and the host's time from the call to its return (the
+dispatch, not the GPU's work; most of it XLA's work before the graph's launch: `launch_lead_probe.py`), after the
+GPU has gone idle (as a robot's call finds it) and back to back. Kinds: XLA fusions (`optimization_barrier` keeps
+each op a kernel of its own), cuBLAS GEMMs, XLA's Triton GEMMs (no cuBLAS fallback) and Pallas (Triton) kernels,
+at SigLIP's GEMM shape (768 x 1152 x 1152, bf16); `--graph` compiles each with XLA's options for the command
+buffer's form (`GRAPHS`). A GPU probe, not a test. What the driver alone takes to launch a graph of as many
+kernels: `cuda_graph_launch.cu` and `torch_graph_launch.py`.
 
     python scripts/graph_launch_probe.py --kernels 16 --kernels 64 --out graph_launch_probe.json
     python scripts/graph_launch_probe.py --kernels 128 --kind fusion --graph default --graph serialize-nopdl

@@ -91,8 +91,8 @@ VARIANTS = {
     # the call's vision tower as one program (RUNTIME), not two
     "one-vision-program": {},
     # every GEMM a Triton GEMM (no cuBLAS fallback) in the vision head's program ("vhead-") or both vision programs:
-    # the head's CUDA graph took 250-280 µs to launch with its cuBLAS calls; with Triton GEMMs longer, the call slower
-    # (a graph's launch grows by 1.4-6 µs a node of any kind: docs/BENCHMARKS.md, session 49)
+    # the head's dispatch was longer with Triton GEMMs, the call slower (docs/BENCHMARKS.md, session 49; the host's
+    # time grows by 1.4-6 µs a command of any kind, in XLA's work before the graph's launch, not in it: session 69)
     "vhead-triton": {"xla_gpu_enable_triton_gemm": True, "xla_gpu_cublas_fallback": False},
     "vision-triton": {"xla_gpu_enable_triton_gemm": True, "xla_gpu_cublas_fallback": False},
     # the denoise loop's GEMMs on cuBLAS, as `Policy`'s loop program chose them under an FP8 prefix until session 50
