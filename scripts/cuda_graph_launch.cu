@@ -12,9 +12,21 @@
 #include <vector>
 #include <algorithm>
 
-__global__ void step(float* x, int n) { int i = blockIdx.x * blockDim.x + threadIdx.x; if (i < n) x[i] = x[i] * 1.0001f + 0.5f; }
+__global__ void step(float* x, int n) {
+  int i = blockIdx.x * blockDim.x + threadIdx.x;
+  if (i < n) x[i] = x[i] * 1.0001f + 0.5f;
+}
 
-#define CK(x) do { CUresult r = (x); if (r != CUDA_SUCCESS) { const char* s; cuGetErrorString(r, &s); printf("%s: %s\n", #x, s); return 1; } } while (0)
+#define CK(x)                                                  \
+  do {                                                         \
+    CUresult r = (x);                                          \
+    if (r != CUDA_SUCCESS) {                                   \
+      const char* s;                                           \
+      cuGetErrorString(r, &s);                                 \
+      printf("%s: %s\n", #x, s);                               \
+      return 1;                                                \
+    }                                                          \
+  } while (0)
 
 int run(int nodes, bool node_priority_flag, bool set_priority, bool pdl_edges, CUstream stream, float* buf, int n) {
   CUgraph g; CK(cuGraphCreate(&g, 0));
@@ -27,7 +39,9 @@ int run(int nodes, bool node_priority_flag, bool set_priority, bool pdl_edges, C
     p.blockDimX = 256; p.blockDimY = 1; p.blockDimZ = 1; p.kernelParams = args;
     CUgraphNode node;
     if (prev && pdl_edges) {
-      CUgraphEdgeData e{}; e.from_port = CU_GRAPH_KERNEL_NODE_PORT_PROGRAMMATIC; e.type = CU_GRAPH_DEPENDENCY_TYPE_PROGRAMMATIC;
+      CUgraphEdgeData e{};
+      e.from_port = CU_GRAPH_KERNEL_NODE_PORT_PROGRAMMATIC;
+      e.type = CU_GRAPH_DEPENDENCY_TYPE_PROGRAMMATIC;
       CUgraphNodeParams np{}; np.type = CU_GRAPH_NODE_TYPE_KERNEL; np.kernel.func = p.func;
       np.kernel.gridDimX = p.gridDimX; np.kernel.gridDimY = 1; np.kernel.gridDimZ = 1;
       np.kernel.blockDimX = 256; np.kernel.blockDimY = 1; np.kernel.blockDimZ = 1; np.kernel.kernelParams = args;
@@ -53,16 +67,21 @@ int run(int nodes, bool node_priority_flag, bool set_priority, bool pdl_edges, C
   std::vector<double> idle, b2b;
   for (int it = 0; it < 60; ++it) {
     cuStreamSynchronize(stream);
-    auto t0 = std::chrono::steady_clock::now(); CK(cuGraphLaunch(exec, stream)); auto t1 = std::chrono::steady_clock::now();
+    auto t0 = std::chrono::steady_clock::now();
+    CK(cuGraphLaunch(exec, stream));
+    auto t1 = std::chrono::steady_clock::now();
     idle.push_back(std::chrono::duration<double, std::micro>(t1 - t0).count());
   }
   for (int it = 0; it < 60; ++it) {
-    auto t0 = std::chrono::steady_clock::now(); CK(cuGraphLaunch(exec, stream)); auto t1 = std::chrono::steady_clock::now();
+    auto t0 = std::chrono::steady_clock::now();
+    CK(cuGraphLaunch(exec, stream));
+    auto t1 = std::chrono::steady_clock::now();
     b2b.push_back(std::chrono::duration<double, std::micro>(t1 - t0).count());
   }
   cuStreamSynchronize(stream);
   std::sort(idle.begin(), idle.end()); std::sort(b2b.begin(), b2b.end());
-  printf("{\"nodes\": %d, \"instantiate_node_priority\": %d, \"priority_attr\": %d, \"pdl_edges\": %d, \"launch_after_idle_us\": %.1f, \"launch_back_to_back_us\": %.1f}\n",
+  printf("{\"nodes\": %d, \"instantiate_node_priority\": %d, \"priority_attr\": %d, \"pdl_edges\": %d, "
+         "\"launch_after_idle_us\": %.1f, \"launch_back_to_back_us\": %.1f}\n",
          nodes, node_priority_flag, set_priority, pdl_edges, idle[30], b2b[30]);
   cuGraphExecDestroy(exec); cuGraphDestroy(g);
   return 0;

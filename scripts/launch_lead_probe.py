@@ -1,8 +1,9 @@
 """Where a program's dispatch goes around its CUDA graph's launch: run under `launch_shim.py` (which logs each
 cuGraphLaunch's start and host time on the clock of `time.perf_counter`), it calls a program after the GPU went
 idle and splits each call's host time into before the first cuGraphLaunch, the launches, and after the last one.
-Programs: a chain of 1 or 128 XLA fusions in one command buffer (`graph_launch_probe.chain`) and the vision head of
-π0's call (the call's first program, random full-size weights). GPU only:
+Programs: a chain of 128 XLA fusions in one command buffer (`graph_launch_probe.chain`) and the vision head of π0's
+call (the call's first program, random full-size weights), each with the previous call's outputs kept alive during
+the call and dropped before it. GPU only:
 
     python3 scripts/launch_shim.py --out DIR -- python3 scripts/launch_lead_probe.py --out DIR/lead.json
 """
@@ -25,22 +26,26 @@ import graph_launch_probe  # noqa: E402
 from profile_engine import write_json  # noqa: E402
 
 
-def launches_since(log: Path, start_us: float) -> list[tuple[float, float]]:
-    """(start, duration) µs of every launch the shim logged from start_us on."""
+def launches_since(log: Path, start_us: float) -> list[tuple[float, float, int]]:
+    """(start, duration µs, kernel nodes updated before it) of every launch the shim logged from start_us on."""
     rows = []
     for line in log.read_text().splitlines():
         parts = line.split()
-        if parts[0] == "launch" and len(parts) == 4 and float(parts[3]) >= start_us:
-            rows.append((float(parts[3]), float(parts[2])))
+        if parts[0] == "launch" and float(parts[3]) >= start_us:
+            rows.append((float(parts[3]), float(parts[2]), int(parts[4])))
     return rows
 
 
-def split(fn, args, log: Path, iters: int) -> dict:
+def split(fn, args, log: Path, iters: int, keep: bool) -> dict:
+    """keep: the previous call's outputs stay alive during the call (its outputs then land elsewhere, and XLA updates
+    every node of a graph one of whose buffers moved), else they are dropped first, as `Policy.infer` drops them."""
     out = fn(*args)
     jax.block_until_ready(out)
     rows = []
     for _ in range(iters):
         jax.block_until_ready(out)
+        if not keep:
+            out = None
         time.sleep(0.002)   # the GPU idle, as a robot's call finds it
         start = time.perf_counter() * 1e6
         out = fn(*args)
@@ -48,14 +53,15 @@ def split(fn, args, log: Path, iters: int) -> dict:
         launched = [r for r in launches_since(log, start) if r[0] <= end]
         if launched:
             first, last = launched[0], launched[-1]
-            rows.append((first[0] - start, sum(d for _, d in launched), end - (last[0] + last[1]), end - start,
-                         len(launched)))
+            rows.append((first[0] - start, sum(r[1] for r in launched), end - (last[0] + last[1]), end - start,
+                         len(launched), sum(r[2] for r in launched)))
     jax.block_until_ready(out)
     if not rows:
         return {"launches": 0}
     med = np.median(np.array(rows), axis=0)
     return {"before_first_launch_us": round(med[0], 1), "in_launches_us": round(med[1], 1),
-            "after_last_launch_us": round(med[2], 1), "dispatch_us": round(med[3], 1), "launches": int(med[4])}
+            "after_last_launch_us": round(med[2], 1), "dispatch_us": round(med[3], 1), "launches": int(med[4]),
+            "node_updates": int(med[5])}
 
 
 def main() -> None:
@@ -67,10 +73,11 @@ def main() -> None:
     log = Path(os.environ["SHIM_DIR"]) / "shim.log"
     rows = []
     x = jax.random.normal(jax.random.PRNGKey(0), (graph_launch_probe.ROWS, graph_launch_probe.WIDTH), jnp.bfloat16)
-    for n in (1, 128):
+    for n in (128,):
         fn = jax.jit(graph_launch_probe.chain("fusion", n)).lower(x, x).compile()
-        rows.append({"program": f"{n} XLA fusions", **split(fn, (x, x), log, args.iters)})
-        print(json.dumps(rows[-1]), flush=True)
+        for keep in (True, False):
+            rows.append({"program": f"{n} XLA fusions", "keep": keep, **split(fn, (x, x), log, args.iters, keep)})
+            print(json.dumps(rows[-1]), flush=True)
     from pi0_jax import benchmark
     if args.no_engine:
         write_json(args.out, {"rows": rows, "env": benchmark.environment()})
@@ -84,8 +91,10 @@ def main() -> None:
     head = engine.executable("vision_head", 1, 10, cameras, bucket)
     images = jnp.asarray(engine.pack(obs, cameras, bucket)[0])
     call = lambda w, im: head(w, im)   # noqa: E731
-    rows.append({"program": "π0's vision head (80 kernels)", **split(call, (engine.weights, images), log, args.iters)})
-    print(json.dumps(rows[-1]), flush=True)
+    for keep in (True, False):
+        rows.append({"program": "π0's vision head (80 kernels)", "keep": keep,
+                     **split(call, (engine.weights, images), log, args.iters, keep)})
+        print(json.dumps(rows[-1]), flush=True)
     write_json(args.out, {"rows": rows, "env": benchmark.environment()})
 
 

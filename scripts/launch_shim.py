@@ -1,8 +1,10 @@
 """Where a program's CUDA graph launches go, without a profiler: runs a command with `cuda_launch_shim.c` preloaded
-(built here with gcc), which times every `cuGraphLaunch` the process makes and writes the first 40 graphs instantiated
-as DOT files (`cuGraphDebugDotPrint`: each node's type, kernel and parameters, and the edges), then sums them up: per
-graph executable, its launches and their median host time; per DOT file, its nodes by type and its edges. XLA looks
-the driver's entry points up by `dlsym`, which the shim answers for these two. GPU only, Linux:
+(built here with gcc), which times every `cuGraphLaunch` the process makes, counts the kernel nodes XLA updated in
+the graph before each launch (`cuGraphExecKernelNodeSetParams`: a command's buffers moved) and writes the first 40
+graphs instantiated as DOT files (`cuGraphDebugDotPrint`: each node's type, kernel and parameters, and the edges),
+then sums them up: per graph executable, its launches, their median host time and the node updates a launch; per
+DOT file, its nodes by type and its edges. XLA looks the driver's entry points up by `dlsym`, which the shim answers
+for these. GPU only, Linux:
 
     python3 scripts/launch_shim.py --out DIR -- python3 scripts/graph_launch_probe.py --kernels 128 --kind fusion
 """
@@ -24,15 +26,18 @@ NODE_TYPES = ("KERNEL", "MEMSET", "MEMCPY", "CHILD_GRAPH", "EMPTY", "EVENT_RECOR
 
 
 def summary(root: Path) -> dict:
-    launches, flags = collections.defaultdict(list), {}
-    for line in (root / "shim.log").read_text().splitlines():
+    launches, flags, updates = collections.defaultdict(list), {}, collections.defaultdict(list)
+    log = root / "shim.log"   # made at the process's first dlsym
+    for line in (log.read_text().splitlines() if log.exists() else ()):
         parts = line.split()
         if parts[0] == "launch":
             launches[parts[1]].append(float(parts[2]))
+            updates[parts[1]].append(int(parts[4]) if len(parts) > 4 else 0)
         elif parts[0] == "instantiate":
             flags[parts[1]] = int(parts[3])
     graphs = [{"exec": k, "launches": len(v), "median_us": round(statistics.median(v), 2), "min_us": min(v),
-               "instantiate_flags": flags.get(k)} for k, v in sorted(launches.items(), key=lambda kv: -len(kv[1]))]
+               "instantiate_flags": flags.get(k), "node_updates_per_launch": round(statistics.mean(updates[k]), 1)}
+              for k, v in sorted(launches.items(), key=lambda kv: -len(kv[1]))]
     dots = []
     for path in sorted(root.glob("*.dot")):
         text = path.read_text(errors="replace")
@@ -52,8 +57,8 @@ def main() -> int:
         p.error("no command given (put it after --)")
     args.out.mkdir(parents=True, exist_ok=True)
     shim = args.out / "cuda_launch_shim.so"
-    subprocess.run(["gcc", "-shared", "-fPIC", "-O2", "-o", str(shim), str(Path(__file__).with_name("cuda_launch_shim.c")),
-                    "-ldl"], check=True)
+    source = Path(__file__).with_name("cuda_launch_shim.c")
+    subprocess.run(["gcc", "-shared", "-fPIC", "-O2", "-o", str(shim), str(source), "-ldl"], check=True)
     env = {**os.environ, "LD_PRELOAD": str(shim.resolve()), "SHIM_DIR": str(args.out.resolve())}
     code = subprocess.run(command, env=env).returncode
     result = summary(args.out)

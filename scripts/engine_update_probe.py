@@ -1,0 +1,62 @@
+"""How many CUDA-graph nodes XLA updates in π0's call, by what the caller does with the last call's actions: run under
+`launch_shim.py` (which counts `cuGraphExecKernelNodeSetParams` before each graph launch), it times the engine's call
+(π0 full size, random weights, B = 1, 10 steps, the GPU idle 2 ms before each call) with the previous actions kept on
+the device during the call ("keep"), copied to a new device array that is kept ("keep-copy"), or taken to the host
+and dropped ("numpy", as `Policy.infer` does), two rounds of 40 calls each, and prints the median call and the node
+updates and graph launches a call. XLA updates every node of a graph one of whose buffers moved. GPU only:
+
+    python3 scripts/launch_shim.py --out DIR -- python3 scripts/engine_update_probe.py
+"""
+
+import json
+import os
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from pi0_jax import benchmark
+from pi0_jax.config import get_config
+from pi0_jax.engine import Engine
+
+MODES = ("keep", "keep-copy", "numpy")
+
+
+def log_lines(log: Path) -> list[str]:
+    return log.read_text().splitlines()
+
+
+def main() -> None:
+    log = Path(os.environ["SHIM_DIR"]) / "shim.log"
+    config = get_config("pi0_base", dtype="bfloat16")
+    engine = Engine(config, benchmark.random_params(config, 0), cache_dir=False)
+    obs, noise = benchmark.make_inputs(config, 1, 3, 48, 0)
+    actions = engine.sample_actions(obs, noise)
+    jax.block_until_ready(actions)
+    for mode in MODES * 2:
+        actions = engine.sample_actions(obs, noise)
+        jax.block_until_ready(actions)
+        start_line, times = len(log_lines(log)), []
+        for _ in range(40):
+            time.sleep(0.002)
+            start = time.perf_counter()
+            if mode == "keep":
+                actions = engine.sample_actions(obs, noise)
+                jax.block_until_ready(actions)
+            elif mode == "keep-copy":
+                actions = jnp.array(engine.sample_actions(obs, noise), copy=True)
+                jax.block_until_ready(actions)
+            else:
+                actions = None
+                actions = np.asarray(engine.sample_actions(obs, noise))
+            times.append(time.perf_counter() - start)
+        launches = [line.split() for line in log_lines(log)[start_line:] if line.startswith("launch")]
+        print(json.dumps({"mode": mode, "call_ms": round(float(np.median(times)) * 1e3, 3),
+                          "node_updates_per_call": sum(int(p[4]) for p in launches) / 40,
+                          "launches_per_call": len(launches) / 40}), flush=True)
+
+
+if __name__ == "__main__":
+    main()
