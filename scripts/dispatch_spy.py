@@ -1,7 +1,8 @@
 """Where the host's time goes inside a program's dispatch, by native stack samples (py-spy, not a dependency of the
-project: `pip install py-spy`): `run` calls a jitted chain of 128 XLA fusions in one command buffer (`graph_launch_probe
-.chain`) N times, its previous output alive during each call; `summary` reads py-spy's raw output and prints, over
-the samples inside XLA's `Execute`, each function's inclusive and self share. GPU only (to be meaningful):
+project: `pip install py-spy`): `run` calls a jitted chain of 128 XLA fusions in one command buffer
+(`graph_launch_probe.chain`) N times, its previous output alive during each call; `summary` reads py-spy's raw
+output and prints, over the samples inside XLA's `Execute`, each function's inclusive and self share. GPU only (to
+be meaningful):
 
     py-spy record --native --format raw -r 400 -o spy.txt -- python3 scripts/dispatch_spy.py run 3000
     python3 scripts/dispatch_spy.py summary spy.txt

@@ -25,6 +25,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import graph_launch_probe  # noqa: E402
 from profile_engine import write_json  # noqa: E402
 
+from pi0_jax import benchmark  # noqa: E402
+from pi0_jax.config import get_config  # noqa: E402
+from pi0_jax.engine import Engine  # noqa: E402
+
 
 def launches_since(log: Path, start_us: float) -> list[tuple[float, float, int]]:
     """(start, duration µs, kernel nodes updated before it) of every launch the shim logged from start_us on."""
@@ -73,27 +77,22 @@ def main() -> None:
     log = Path(os.environ["SHIM_DIR"]) / "shim.log"
     rows = []
     x = jax.random.normal(jax.random.PRNGKey(0), (graph_launch_probe.ROWS, graph_launch_probe.WIDTH), jnp.bfloat16)
-    for n in (128,):
-        fn = jax.jit(graph_launch_probe.chain("fusion", n)).lower(x, x).compile()
-        for keep in (True, False):
-            rows.append({"program": f"{n} XLA fusions", "keep": keep, **split(fn, (x, x), log, args.iters, keep)})
-            print(json.dumps(rows[-1]), flush=True)
-    from pi0_jax import benchmark
+    chain = jax.jit(graph_launch_probe.chain("fusion", 128)).lower(x, x).compile()
+    for keep in (True, False):
+        rows.append({"program": "128 XLA fusions", "keep": keep, **split(chain, (x, x), log, args.iters, keep)})
+        print(json.dumps(rows[-1]), flush=True)
     if args.no_engine:
         write_json(args.out, {"rows": rows, "env": benchmark.environment()})
         return
-    from pi0_jax.config import get_config
-    from pi0_jax.engine import Engine
     config = get_config("pi0_base", dtype="bfloat16")
     engine = Engine(config, benchmark.random_params(config, 0), cache_dir=False)
     obs, noise = benchmark.make_inputs(config, 1, 3, 48, 0)
     cameras, bucket = engine.plan(obs)
     head = engine.executable("vision_head", 1, 10, cameras, bucket)
     images = jnp.asarray(engine.pack(obs, cameras, bucket)[0])
-    call = lambda w, im: head(w, im)   # noqa: E731
     for keep in (True, False):
         rows.append({"program": "π0's vision head (80 kernels)", "keep": keep,
-                     **split(call, (engine.weights, images), log, args.iters, keep)})
+                     **split(head, (engine.weights, images), log, args.iters, keep)})
         print(json.dumps(rows[-1]), flush=True)
     write_json(args.out, {"rows": rows, "env": benchmark.environment()})
 
