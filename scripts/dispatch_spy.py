@@ -8,6 +8,7 @@ be meaningful):
     python3 scripts/dispatch_spy.py summary spy.txt
 """
 
+import argparse
 import collections
 import sys
 import time
@@ -53,10 +54,20 @@ def summary(path: str, top: int = 60) -> None:
             print(f"{n:6d} {100 * n / max(total, 1):5.1f}% {f[:150]}")
 
 
-if __name__ == "__main__":
-    if sys.argv[1:2] == ["run"]:
-        run(int(sys.argv[2]) if len(sys.argv) > 2 else 300)
-    elif sys.argv[1:2] == ["summary"]:
-        summary(sys.argv[2])
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="command", required=True)
+    r = sub.add_parser("run", help="call the toy program N times (run it under py-spy)")
+    r.add_argument("calls", type=int, nargs="?", default=300, help="calls (default: %(default)s)")
+    m = sub.add_parser("summary", help="the functions of py-spy's raw output inside XLA's Execute")
+    m.add_argument("raw", help="py-spy's --format raw output")
+    m.add_argument("--top", type=int, default=60, help="functions listed of each kind (default: %(default)s)")
+    args = p.parse_args()
+    if args.command == "run":
+        run(args.calls)
     else:
-        sys.exit(__doc__)
+        summary(args.raw, args.top)
+
+
+if __name__ == "__main__":
+    main()

@@ -2,12 +2,15 @@
 `launch_shim.py` (which counts `cuGraphExecKernelNodeSetParams` before each graph launch), it times the engine's call
 (π0 full size, random weights, B = 1, 10 steps, the GPU idle 2 ms before each call) with the previous actions kept on
 the device during the call ("keep"), copied to a new device array that is kept ("keep-copy"), or taken to the host
-and dropped ("numpy", as `Policy.infer` does), two rounds of 40 calls each, and prints the median call and the node
-updates and graph launches a call. XLA updates every node of a graph one of whose buffers moved. GPU only:
+and dropped ("numpy", as `Policy.infer` does), or dropped with the inputs rotating over four sets as the benchmark
+rotates them ("numpy-rotating"), two rounds of 40 calls each, and prints the median call and the node updates and
+graph launches a call. XLA updates each node of a graph whose buffers moved before it launches the graph. GPU only:
 
     python3 scripts/launch_shim.py --out DIR -- python3 scripts/engine_update_probe.py
+    python3 scripts/launch_shim.py --out DIR -- python3 scripts/engine_update_probe.py --mode numpy --mode numpy-rotating
 """
 
+import argparse
 import json
 import os
 import time
@@ -21,7 +24,7 @@ from pi0_jax import benchmark
 from pi0_jax.config import get_config
 from pi0_jax.engine import Engine
 
-MODES = ("keep", "keep-copy", "numpy")
+MODES = ("keep", "keep-copy", "numpy", "numpy-rotating")
 
 
 def log_lines(log: Path) -> list[str]:
@@ -29,17 +32,24 @@ def log_lines(log: Path) -> list[str]:
 
 
 def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--mode", action="append", choices=MODES, default=None,
+                   help="repeatable (default: keep, keep-copy, numpy)")
+    args = p.parse_args()
     log = Path(os.environ["SHIM_DIR"]) / "shim.log"
     config = get_config("pi0_base", dtype="bfloat16")
     engine = Engine(config, benchmark.random_params(config, 0), cache_dir=False)
-    obs, noise = benchmark.make_inputs(config, 1, 3, 48, 0)
+    sets = [benchmark.make_inputs(config, 1, 3, 48, seed) for seed in range(4)]   # as the benchmark's --input-sets
+    obs, noise = sets[0]
     actions = engine.sample_actions(obs, noise)
     jax.block_until_ready(actions)
-    for mode in MODES * 2:
+    for mode in (args.mode or list(MODES[:3])) * 2:
         actions = engine.sample_actions(obs, noise)
         jax.block_until_ready(actions)
         start_line, times = len(log_lines(log)), []
-        for _ in range(40):
+        for k in range(40):
+            if mode == "numpy-rotating":
+                obs, noise = sets[k % len(sets)]
             time.sleep(0.002)
             start = time.perf_counter()
             if mode == "keep":
@@ -52,6 +62,7 @@ def main() -> None:
                 actions = None
                 actions = np.asarray(engine.sample_actions(obs, noise))
             times.append(time.perf_counter() - start)
+        obs, noise = sets[0]
         launches = [line.split() for line in log_lines(log)[start_line:] if line.startswith("launch")]
         print(json.dumps({"mode": mode, "call_ms": round(float(np.median(times)) * 1e3, 3),
                           "node_updates_per_call": sum(int(p[4]) for p in launches) / 40,

@@ -41,8 +41,9 @@ def launches_since(log: Path, start_us: float) -> list[tuple[float, float, int]]
 
 
 def split(fn, args, log: Path, iters: int, keep: bool) -> dict:
-    """keep: the previous call's outputs stay alive during the call (its outputs then land elsewhere, and XLA updates
-    every node of a graph one of whose buffers moved), else they are dropped first, as `Policy.infer` drops them."""
+    """keep: the previous call's outputs stay alive during the call (its outputs and temporaries then land
+    elsewhere, and XLA updates the graph's nodes that use them), else they are dropped first, as `Policy.infer`
+    drops them."""
     out = fn(*args)
     jax.block_until_ready(out)
     rows = []

@@ -354,7 +354,7 @@ class Engine:
     def sample_actions(self, obs: pi0.Observation, noise: jax.Array, num_steps: int = 10) -> jax.Array:
         """Actions for a batch of observations (noise is not consumed: the programs donate no input). A caller that
         keeps the last actions on the device while it calls again moves the call's buffers, and XLA then updates
-        the nodes of its CUDA graphs before launching them (π0: about 500 a call against 13, 0.05-1.3 ms on an
+        the nodes of its CUDA graphs before launching them (π0: about 500 a call against 0-13, 0.05-1.3 ms on an
         H100, docs/BENCHMARKS.md, session 69): take them to the host, as `Policy.infer` does, or drop them first."""
         cameras, prompt_len = self.plan(obs)
         return self.sample_packed(self.pack(obs, cameras, prompt_len), jnp.asarray(noise, jnp.float32), num_steps,
