@@ -42,8 +42,7 @@ def summary(root: Path) -> dict:
     for path in sorted(root.glob("*.dot")):
         text = path.read_text(errors="replace")
         types = collections.Counter(re.findall(r"\b(" + "|".join(NODE_TYPES) + r")\b", text))
-        dots.append({"file": path.name, "nodes": dict(types), "edges": text.count("->"),
-                     "programmatic": len(re.findall(r"programmatic", text, re.I))})
+        dots.append({"file": path.name, "nodes": dict(types), "edges": text.count("->")})
     return {"graphs": graphs, "dot_files": dots}
 
 
