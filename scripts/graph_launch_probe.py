@@ -1,7 +1,8 @@
 """What a program in one CUDA graph costs the host to dispatch, by the kind of kernel in it: one program per kind, a
 chain of N kernels that XLA puts in one command buffer, and the host's time from the call to its return (the
-dispatch, not the GPU's work; most of it XLA's work before the graph's launch: `launch_lead_probe.py`), after the
-GPU has gone idle (as a robot's call finds it) and back to back. Kinds: XLA fusions (`optimization_barrier` keeps
+dispatch, not the GPU's work), after the GPU has gone idle (as a robot's call finds it) and back to back. Each call
+keeps the previous output alive, so XLA also updates the graph's nodes whose buffers moved; most of the time is
+jax's, PjRt's and XLA's work before the graph's launch (`launch_lead_probe.py`). Kinds: XLA fusions (`optimization_barrier` keeps
 each op a kernel of its own), cuBLAS GEMMs, XLA's Triton GEMMs (no cuBLAS fallback) and Pallas (Triton) kernels,
 at SigLIP's GEMM shape (768 x 1152 x 1152, bf16); `--graph` compiles each with XLA's options for the command
 buffer's form (`GRAPHS`). A GPU probe, not a test. What the driver alone takes to launch a graph of as many
