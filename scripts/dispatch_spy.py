@@ -11,7 +11,6 @@ be meaningful):
 import argparse
 import collections
 import sys
-import time
 from pathlib import Path
 
 
@@ -22,16 +21,7 @@ def run(n: int) -> None:
     import graph_launch_probe
     x = jax.random.normal(jax.random.PRNGKey(0), (graph_launch_probe.ROWS, graph_launch_probe.WIDTH), jnp.bfloat16)
     fn = jax.jit(graph_launch_probe.chain("fusion", 128)).lower(x, x).compile()
-    out = fn(x, x)
-    times = []
-    for _ in range(n):
-        out.block_until_ready()
-        start = time.perf_counter()
-        out = fn(x, x)
-        times.append(time.perf_counter() - start)
-    out.block_until_ready()
-    times.sort()
-    print("median dispatch us", times[len(times) // 2] * 1e6)
+    print("median dispatch us", graph_launch_probe.dispatch_us(fn, (x, x), n, blocked=True))
 
 
 def summary(path: str, top: int = 60) -> None:

@@ -13,6 +13,7 @@ graph launches a call. XLA updates each node of a graph whose buffers moved befo
 import argparse
 import json
 import os
+import sys
 import time
 from pathlib import Path
 
@@ -24,11 +25,10 @@ from pi0_jax import benchmark
 from pi0_jax.config import get_config
 from pi0_jax.engine import Engine
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from launch_shim import read_log  # noqa: E402
+
 MODES = ("keep", "keep-copy", "numpy", "numpy-rotating")
-
-
-def log_lines(log: Path) -> list[str]:
-    return log.read_text().splitlines()
 
 
 def main() -> None:
@@ -46,7 +46,7 @@ def main() -> None:
     for mode in (args.mode or list(MODES[:3])) * 2:
         actions = engine.sample_actions(obs, noise)
         jax.block_until_ready(actions)
-        start_line, times = len(log_lines(log)), []
+        seen, times = len(read_log(log)[0]), []
         for k in range(40):
             if mode == "numpy-rotating":
                 obs, noise = sets[k % len(sets)]
@@ -63,9 +63,9 @@ def main() -> None:
                 actions = np.asarray(engine.sample_actions(obs, noise))
             times.append(time.perf_counter() - start)
         obs, noise = sets[0]
-        launches = [line.split() for line in log_lines(log)[start_line:] if line.startswith("launch")]
+        launches = read_log(log)[0][seen:]
         print(json.dumps({"mode": mode, "call_ms": round(float(np.median(times)) * 1e3, 3),
-                          "node_updates_per_call": sum(int(p[4]) for p in launches) / 40,
+                          "node_updates_per_call": sum(r[3] for r in launches) / 40,
                           "launches_per_call": len(launches) / 40}), flush=True)
 
 

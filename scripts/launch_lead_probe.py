@@ -23,21 +23,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import graph_launch_probe  # noqa: E402
+from launch_shim import read_log  # noqa: E402
 from profile_engine import write_json  # noqa: E402
 
 from pi0_jax import benchmark  # noqa: E402
 from pi0_jax.config import get_config  # noqa: E402
 from pi0_jax.engine import Engine  # noqa: E402
-
-
-def launches_since(log: Path, start_us: float) -> list[tuple[float, float, int]]:
-    """(start, duration µs, kernel nodes updated before it) of every launch the shim logged from start_us on."""
-    rows = []
-    for line in log.read_text().splitlines():
-        parts = line.split()
-        if parts[0] == "launch" and float(parts[3]) >= start_us:
-            rows.append((float(parts[3]), float(parts[2]), int(parts[4])))
-    return rows
 
 
 def split(fn, args, log: Path, iters: int, keep: bool) -> dict:
@@ -55,11 +46,11 @@ def split(fn, args, log: Path, iters: int, keep: bool) -> dict:
         start = time.perf_counter() * 1e6
         out = fn(*args)
         end = time.perf_counter() * 1e6
-        launched = [r for r in launches_since(log, start) if r[0] <= end]
+        launched = [r for r in read_log(log)[0] if start <= r[2] <= end]   # (exec, host µs, start µs, nodes)
         if launched:
             first, last = launched[0], launched[-1]
-            rows.append((first[0] - start, sum(r[1] for r in launched), end - (last[0] + last[1]), end - start,
-                         len(launched), sum(r[2] for r in launched)))
+            rows.append((first[2] - start, sum(r[1] for r in launched), end - (last[2] + last[1]), end - start,
+                         len(launched), sum(r[3] for r in launched)))
     jax.block_until_ready(out)
     if not rows:
         return {"launches": 0}

@@ -25,16 +25,25 @@ NODE_TYPES = ("KERNEL", "MEMSET", "MEMCPY", "CHILD_GRAPH", "EMPTY", "EVENT_RECOR
               "MEM_ALLOC", "MEM_FREE", "BATCH_MEM_OP")
 
 
-def summary(root: Path) -> dict:
-    launches, flags, updates = collections.defaultdict(list), {}, collections.defaultdict(list)
-    log = root / "shim.log"   # made at the process's first dlsym
+def read_log(log: Path) -> tuple[list[tuple[str, float, float, int]], dict[str, int]]:
+    """The shim's log (made at the process's first dlsym): its launches in order, (graph executable, host µs, start µs
+    on the clock of `time.perf_counter`, kernel nodes updated before it), and each executable's instantiate flags."""
+    launched, flags = [], {}
     for line in (log.read_text().splitlines() if log.exists() else ()):
         parts = line.split()
         if parts[0] == "launch":
-            launches[parts[1]].append(float(parts[2]))
-            updates[parts[1]].append(int(parts[4]) if len(parts) > 4 else 0)
+            launched.append((parts[1], float(parts[2]), float(parts[3]), int(parts[4])))
         elif parts[0] == "instantiate":
             flags[parts[1]] = int(parts[3])
+    return launched, flags
+
+
+def summary(root: Path) -> dict:
+    launches, updates = collections.defaultdict(list), collections.defaultdict(list)
+    launched, flags = read_log(root / "shim.log")
+    for exec_, host_us, _, nodes in launched:
+        launches[exec_].append(host_us)
+        updates[exec_].append(nodes)
     graphs = [{"exec": k, "launches": len(v), "median_us": round(statistics.median(v), 2), "min_us": min(v),
                "instantiate_flags": flags.get(k), "node_updates_per_launch": round(statistics.mean(updates[k]), 1)}
               for k, v in sorted(launches.items(), key=lambda kv: -len(kv[1]))]
