@@ -166,10 +166,12 @@ def _round(acc, dtype):
 
 
 # -- split-K GEMM (with a norm's prologue) --------------------------------------------------------------------------
-def _partials_kernel(y_ref, mod_ref, w_ref, o_ref, *side, m, bm, bn, bk, chunk, mod_row, scaled, adaptive):
+def _partials_kernel(*refs, m, bm, bn, bk, chunk, mod_row, scaled, adaptive):
     """Program (i, j, s): rows block i, columns block j, K chunk s -> o[s] = y' @ w over the chunk, y' = y, or
     y * (1 + scale) (scaled). Side outputs: the chunk's sum of squares of y per row (scaled; by the j = 0 programs)
-    and shift @ w over the chunk (adaptive; by the i = 0 programs, 16 equal rows: a dot needs 16)."""
+    and shift @ w over the chunk (adaptive; by the i = 0 programs, 16 equal rows: a dot needs 16). refs: y, mods
+    (scaled only), w, o, the side outputs."""
+    y_ref, mod_ref, w_ref, o_ref, *side = refs if scaled else (refs[0], None, *refs[1:])
     i, j, s = pl.program_id(0), pl.program_id(1), pl.program_id(2)
     rows, cols = pl.ds(i * bm, bm), pl.ds(j * bn, bn)
     dtype = y_ref.dtype
@@ -217,8 +219,10 @@ def matmul_partials(y, w, mods=None, mod_row: int = 0, *, scaled: bool = False, 
     out = [jax.ShapeDtypeStruct((splits * m, n), jnp.float32)]
     out += [jax.ShapeDtypeStruct((splits * m,), jnp.float32)] if scaled else []
     out += [jax.ShapeDtypeStruct((splits * ALIGN, n), jnp.float32)] if adaptive else []
-    mods = jnp.zeros((1, ALIGN), y.dtype) if mods is None else mods
-    res = _call(kernel, (m // bm, n // bn, splits), out, name, blocks.num_warps, gemm.stages)(y, mods, w)
+    # mods only where read: a dummy operand would be a broadcast kernel of its own in every denoise step (XLA sinks
+    # the constant into the loop's body)
+    operands = (y, mods, w) if scaled else (y, w)
+    res = _call(kernel, (m // bm, n // bn, splits), out, name, blocks.num_warps, gemm.stages)(*operands)
     parts = res[0].reshape(splits, m, n)
     ss = res[1].reshape(splits, m) if scaled else None
     shift = res[-1].reshape(splits, ALIGN, n)[:, 0] if adaptive else None
