@@ -37,7 +37,7 @@ def split(fn, args, log: Path, iters: int, keep: bool) -> dict:
     drops them."""
     out = fn(*args)
     jax.block_until_ready(out)
-    rows = []
+    windows = []
     for _ in range(iters):
         jax.block_until_ready(out)
         if not keep:
@@ -45,13 +45,16 @@ def split(fn, args, log: Path, iters: int, keep: bool) -> dict:
         time.sleep(0.002)   # the GPU idle, as a robot's call finds it
         start = time.perf_counter() * 1e6
         out = fn(*args)
-        end = time.perf_counter() * 1e6
-        launched = [r for r in read_log(log)[0] if start <= r[2] <= end]   # (exec, host µs, start µs, nodes)
+        windows.append((start, time.perf_counter() * 1e6))
+    jax.block_until_ready(out)
+    log_rows = read_log(log)[0]   # (exec, host µs, start µs, nodes), read once after the calls
+    rows = []
+    for start, end in windows:
+        launched = [r for r in log_rows if start <= r[2] <= end]
         if launched:
             first, last = launched[0], launched[-1]
             rows.append((first[2] - start, sum(r[1] for r in launched), end - (last[2] + last[1]), end - start,
                          len(launched), sum(r[3] for r in launched)))
-    jax.block_until_ready(out)
     if not rows:
         return {"launches": 0}
     med = np.median(np.array(rows), axis=0)
