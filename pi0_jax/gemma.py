@@ -92,18 +92,26 @@ class FeedForward(nn.Module):
         return matmul("BTF,FD->BTD", gate * up, w_linear)
 
 
-def apply_rope(x: jax.Array, positions: jax.Array, max_wavelength: float = 10_000) -> jax.Array:
-    """Rotary embedding, half-split convention (= HF rotate_half). x: (B, T, N, H); positions: (B, T).
-
-    Angles and the rotation are computed in f32 (fp32 island: bf16 positions up to ~1000 would lose integers).
-    """
-    half = x.shape[-1] // 2
-    timescale = max_wavelength ** ((2.0 / x.shape[-1]) * jnp.arange(half, dtype=jnp.float32))
+def rope_angles(positions: jax.Array, head_dim: int, max_wavelength: float = 10_000) -> tuple:
+    """RoPE's (sin, cos) for positions (B, T): (B, T, 1, H/2) f32 each, the 1 broadcasting over heads. Angles in f32
+    (an fp32 island: bf16 positions up to ~1000 would lose integers)."""
+    half = head_dim // 2
+    timescale = max_wavelength ** ((2.0 / head_dim) * jnp.arange(half, dtype=jnp.float32))
     radians = positions[..., None].astype(jnp.float32) / timescale  # (B, T, H/2)
     radians = radians[..., None, :]  # broadcast over heads
-    sin, cos = jnp.sin(radians), jnp.cos(radians)
+    return jnp.sin(radians), jnp.cos(radians)
+
+
+def rotate(x: jax.Array, angles: tuple) -> jax.Array:
+    """x (B, T, N, H) rotated by `rope_angles`' (sin, cos), half-split convention (= HF rotate_half), in f32."""
+    sin, cos = angles
     x1, x2 = jnp.split(x.astype(jnp.float32), 2, axis=-1)
     return jnp.concatenate([x1 * cos - x2 * sin, x2 * cos + x1 * sin], axis=-1).astype(x.dtype)
+
+
+def apply_rope(x: jax.Array, positions: jax.Array, max_wavelength: float = 10_000) -> jax.Array:
+    """Rotary embedding of x (B, T, N, H) at positions (B, T): `rotate` by `rope_angles`."""
+    return rotate(x, rope_angles(positions, x.shape[-1], max_wavelength))
 
 
 class Attention(nn.Module):

@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pi0_jax import benchmark
+from pi0_jax import benchmark, gemma
 from pi0_jax.config import get_config
 from pi0_jax.engine import Engine, layers, programs
 from pi0_jax.ops import expert_kernels as ek, layout
@@ -169,11 +169,11 @@ def xla_stages(cfg, out, xs, w, pos, ck, cv, pmask, ys, hs, s, p, rnd, args):
     """The engine's own XLA ops for each stage, at the unpadded shapes."""
     dt, h, nk = jnp.bfloat16, cfg.head_dim, cfg.num_kv_heads
     x3 = [x[None, :s] for x in xs]
-    positions = pos[:, :s]
+    angles = gemma.rope_angles(pos[:, :s], h)
     out["xla"]["norm_qkv_rope"] = stage_ms(
-        lambda x, w: layers._qkv(layers.rms_norm(x, w["pre_attn"])[0], w["qkv"], cfg, positions), x3, (w,),
+        lambda x, w: layers._qkv(layers.rms_norm(x, w["pre_attn"])[0], w["qkv"], cfg, angles), x3, (w,),
         args.iters)
-    q5 = [layers._qkv(x, w["qkv"], cfg, positions)[0] for x in x3]
+    q5 = [layers._qkv(x, w["qkv"], cfg, angles)[0] for x in x3]
     kc, vc = ck[:p].reshape(1, p, nk, h), cv[:p].reshape(1, p, nk, h)
     km, vm = rnd(1, s, nk, h), rnd(1, s, nk, h)
     pm3 = jnp.broadcast_to(pmask[:, None, :p] != 0, (1, s, p))
@@ -188,7 +188,7 @@ def xla_stages(cfg, out, xs, w, pos, ck, cv, pmask, ys, hs, s, p, rnd, args):
     out["xla"]["down_residual"] = stage_ms(lambda hh, w, x: x + hh @ w["down"], [hh[None, :s] for hh in hs],
                                            (w, x3[0]), args.iters)
     out["xla"]["layer"] = stage_ms(
-        lambda x, w, kc, vc: layers.suffix_layer(cfg, w, x, positions, kc, vc, pm3, sm3)[0], x3,
+        lambda x, w, kc, vc: layers.suffix_layer(cfg, w, x, angles, kc, vc, pm3, sm3)[0], x3,
         ({k: w[k] for k in ("qkv", "attn_out", "gate_up", "down", "pre_attn")} | {"pre_ffw": w["pre_attn"]}, kc, vc),
         args.iters)
 

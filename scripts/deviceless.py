@@ -38,7 +38,7 @@ from jax._src.cudnn import fused_attention_stablehlo as cudnn
 from jax.experimental import topologies
 
 sys.path.insert(0, str(Path(__file__).parent))
-from profile_engine import count_ops  # noqa: E402
+from profile_engine import count_ops, loop_invariant_kernels  # noqa: E402
 
 from pi0_jax import benchmark, pi0  # noqa: E402
 from pi0_jax.config import IMAGE_KEYS, get_config  # noqa: E402
@@ -316,7 +316,8 @@ def main(argv=None) -> int:
             entry = next(v for k, v in counts.items() if k.startswith("ENTRY"))
             row = {"stage": stage, "compile_s": round(time.perf_counter() - start, 1), **kinds(hlo),
                    "entry_kernels": kernels(entry), "loop_bodies": {k: kernels(v) for k, v in bodies.items()},
-                   "counts": {"ENTRY": entry, **bodies}, "loop_sequences": {k: sequence(hlo, k) for k in bodies}}
+                   "counts": {"ENTRY": entry, **bodies}, "loop_sequences": {k: sequence(hlo, k) for k in bodies},
+                   "loop_invariant": loop_invariant_kernels(hlo)}
             results["programs"].append(row)
             for body, kernels_in_order in row["loop_sequences"].items() if args.sequence else ():
                 print(f"  {body}:")
@@ -325,6 +326,10 @@ def main(argv=None) -> int:
             print(f"{stage}: {row['entry_kernels']} kernels outside loops, loop bodies {row['loop_bodies']}, "
                   f"FP8 GEMMs {row['fp8_gemms']}, Mosaic GPU {row['mosaic_gpu']}, Triton {row['triton']} "
                   f"({row['compile_s']} s)", flush=True)
+            for body, same in row["loop_invariant"].items():
+                if same:
+                    listed = ", ".join(f"{n} ({op.split('/')[-1]})" for n, op in same)
+                    print(f"  {body}: {len(same)} kernels alike in every trip: {listed}")
         results["mosaic_gpu_kernels"] = ptxas_info(Path(dump))
         results["triton_kernels"] = triton_ptxas(Path(dump) / "xla", names)
     for k in results["mosaic_gpu_kernels"]:

@@ -56,6 +56,52 @@ def count_ops(hlo: str) -> dict:
     return {k: v for k, v in counts.items() if sum(v.values())}
 
 
+def loop_invariant_kernels(hlo: str) -> dict:
+    """{while body: [(kernel, op_name)]}: each kernel-level op (`count_ops`' fusions, calls and copies) of a while
+    loop's body whose inputs are all the same in every trip: constants, or carried values the body passes on
+    unchanged. Each is work a loop makes every trip that could be made once before it (XLA sinks constants into a
+    body and does not hoist what it computes from them: sessions 70-71, docs/BENCHMARKS.md)."""
+    comps, current = {}, None
+    for line in hlo.splitlines():
+        head = re.match(r"^(?:ENTRY )?%?([\w.\-]+) .*\{$", line)
+        if head:
+            current = comps.setdefault(head.group(1), [])
+        elif line.startswith("}"):
+            current = None
+        elif current is not None and line.strip():
+            current.append(line.strip())
+    found = {}
+    for body in sorted(set(re.findall(r"\bwhile\(.*?body=%?([\w.\-]+)", hlo))):
+        ops = {}
+        for line in comps.get(body, []):
+            m = re.match(r"(ROOT )?%([\w.\-]+) = .*? ([a-z\-]+)\((.*)$", line)
+            if not m:
+                continue
+            rest, depth, end = m.group(4), 1, 0
+            while depth and end < len(rest):   # the operand list ends at its closing parenthesis
+                depth += {"(": 1, ")": -1}.get(rest[end], 0)
+                end += 1
+            index = re.search(r"\bindex=(\d+)", rest[end:])
+            name = re.search(r'op_name="([^"]*)"', rest)
+            ops[m.group(2)] = (m.group(3), re.findall(r"%([\w.\-]+)", rest[:end]), index and int(index.group(1)),
+                               bool(m.group(1)), name.group(1) if name else "")
+        param = next(n for n, o in ops.items() if o[0] == "parameter")
+        root = next(o for o in ops.values() if o[3])
+        passed = {i for i, r in enumerate(root[1]) if ops.get(r, ("",))[0] == "get-tuple-element"
+                  and ops[r][1] == [param] and ops[r][2] == i}
+        same = {}
+        for n, (op, args, index, _, _) in ops.items():   # operands come before their users in HLO text
+            if op == "parameter":
+                same[n] = False
+            elif op == "get-tuple-element" and args == [param]:
+                same[n] = index in passed
+            else:
+                same[n] = all(same.get(a, True) for a in args if a in ops)
+        found[body] = [(n, o[4]) for n, o in ops.items()
+                       if same[n] and o[0] in ("fusion", "custom-call", "copy", "convolution", "dot")]
+    return found
+
+
 CALL = "profile_engine.call"   # the host's span of one traced call (`traced`), from dispatch to block_until_ready
 
 

@@ -362,6 +362,80 @@ def test_the_first_step_beside_the_prefix_is_the_same_call(model, monkeypatch):
         Engine(config, params, cache_dir=False, overlap="yes")
 
 
+# what a loop body must not compute from its invariants alone: each is a kernel, or a transcendental or reducing pass,
+# every trip (adds, casts, slices and reshapes of invariants are left out: XLA fuses them into their users)
+COSTLY = {"sin", "cos", "tan", "exp", "exp2", "log", "pow", "sqrt", "rsqrt", "tanh", "logistic", "erf", "div",
+          "reduce_sum", "reduce_max", "reduce_min", "argmax", "argmin", "cumsum", "sort", "dot_general",
+          "pallas_call"}
+
+
+def _subjaxprs(eqn):
+    return [v.jaxpr if isinstance(v, jax.extend.core.ClosedJaxpr) else v for v in eqn.params.values()
+            if isinstance(v, (jax.extend.core.ClosedJaxpr, jax.extend.core.Jaxpr))]
+
+
+def _costly_invariants(jaxpr, alike: list, found: list) -> list:
+    """Walk jaxpr with `alike` (its inputs alike in every trip or not), appending each COSTLY equation whose inputs
+    are all alike to found; -> its outputs' alike. A call's body is walked with its inputs' flags."""
+    flags = dict(zip(jaxpr.invars, alike)) | {v: True for v in jaxpr.constvars}
+
+    def flag(v):
+        return isinstance(v, jax.extend.core.Literal) or flags[v]
+
+    for eqn in jaxpr.eqns:
+        ins, subs = [flag(v) for v in eqn.invars], _subjaxprs(eqn)
+        if eqn.primitive.name in ("pjit", "closed_call", "custom_jvp_call", "custom_vjp_call") and subs \
+                and len(subs[0].invars) == len(ins):
+            outs = _costly_invariants(subs[0], ins, found)
+        else:
+            outs = [all(ins)] * len(eqn.outvars)
+            if all(ins) and eqn.primitive.name in COSTLY:
+                found.append(f"{eqn.primitive.name} -> {', '.join(str(v.aval) for v in eqn.outvars)}")
+        flags.update(zip(eqn.outvars, outs))
+    return [flag(v) for v in jaxpr.outvars]
+
+
+def loop_invariant_ops(jaxpr) -> list[list[str]]:
+    """For each loop (while, scan) in a jaxpr, the COSTLY ops of its body whose inputs are the same in every trip:
+    its constants, or carried values the body passes on unchanged. Work that could be made once before the loop (on a
+    GPU each is a kernel every trip, as XLA does not hoist it: docs/BENCHMARKS.md, session 71)."""
+    loops = []
+    for eqn in jaxpr.eqns:
+        name = eqn.primitive.name
+        if name in ("while", "scan"):
+            body = eqn.params["body_jaxpr" if name == "while" else "jaxpr"].jaxpr
+            consts = eqn.params["body_nconsts" if name == "while" else "num_consts"]
+            carry = len(body.outvars) if name == "while" else eqn.params["num_carry"]
+            passed = [out is inp for out, inp in zip(body.outvars[:carry], body.invars[consts:consts + carry])]
+            found = []
+            _costly_invariants(body, [True] * consts + passed + [False] * (len(body.invars) - consts - carry), found)
+            loops.append(found)
+        for sub in _subjaxprs(eqn):
+            loops += loop_invariant_ops(sub)
+    return loops
+
+
+def call_loop_invariants(engine, obs, batch: int, steps: int) -> list[list[str]]:
+    """`loop_invariant_ops` of the engine's last program of a call (the one with the denoise loop), as traced."""
+    from pi0_jax.engine.runtime import shapes
+
+    stage = engine.call_stages(batch, steps)[-1]
+    fn, args = engine._stage(stage, shapes(engine.stage_weights(stage)), batch, steps, *engine.plan(obs))
+    return loop_invariant_ops(jax.make_jaxpr(fn)(*args).jaxpr)
+
+
+@pytest.mark.parametrize("attention", ["xla", "denoise=cudnn"])
+def test_the_denoise_loop_makes_nothing_alike_in_every_step(model, attention):
+    """No costly op of the denoise loop reads only what is alike in every step. That (RoPE's angles at the suffix's
+    positions, the fused attention's key lengths) is made once before the loop (`programs.step_invariants`): XLA
+    does not hoist it, and on a GPU each was a kernel every step (docs/BENCHMARKS.md, session 71). Read from the
+    engine's program as traced, with XLA's and the fused denoise attention. (Before: sin, cos, pow and div of the
+    angles, and the key lengths' reduce_sum, in every step.)"""
+    config, params = model
+    loops = call_loop_invariants(Engine(config, params, cache_dir=False, attention=attention), make_obs(config), 2, 3)
+    assert loops and not any(loops), loops
+
+
 def test_the_state_token_runs_once_a_call(monkeypatch):
     """π0's state token attends to the prefix and to itself alone, so on the XLA expert it runs through the expert
     once a call (its keys and values after the prefix, or in the fused attention's first suffix slot) and each step

@@ -16,6 +16,7 @@ from pi0_jax.engine import Engine, layers, vision
 from pi0_jax.ops import formats, fp8_geglu, layout
 from pi0_jax.ops.fp8_geglu import Launch
 from pi0_jax.quant import schemes
+from test_engine import call_loop_invariants
 
 
 def _operands(m, k, f, down_scale):
@@ -63,14 +64,21 @@ def test_applies_only_to_fp8_x_fp8_weights_that_tile():
 
 def _fp8_call(config, scheme):
     """A function of nothing that runs the engine's 2-step call on `config`'s random weights in FP8 (`scheme`, scales
-    calibrated on two observations) as the module flags stand when it is called."""
+    calibrated on two observations) as the module flags stand when it is called; its `engine` the last call's,
+    its `obs` the observation."""
     params = benchmark.random_params(config, 0)
     calib = schemes.sample_observations(config, 2, seed=1)
     qp = schemes.quantize_params(params, scheme, schemes.calibrate(config, params, calib, scheme,
                                                                    percentile=None)["amax"])
     noise = jnp.asarray(np.random.default_rng(0).normal(size=(1, config.action_horizon, config.action_dim)),
                         jnp.float32)
-    return lambda: np.asarray(Engine(config, qp, cache_dir=False).sample_actions(calib[1], noise, num_steps=2))
+
+    def call():
+        call.engine = Engine(config, qp, cache_dir=False)
+        return np.asarray(call.engine.sample_actions(calib[1], noise, num_steps=2))
+
+    call.obs = calib[1]
+    return call
 
 
 def test_engine_fp8_call_with_the_kernel_matches_the_call_without(monkeypatch):
@@ -244,3 +252,6 @@ def test_engine_expert_on_the_kernel_matches_xla(monkeypatch):
     expert = [c for c in calls[prefix:] if c == (2 * config.action_expert.mlp_dim, 64)]
     assert len(expert) >= config.action_expert.depth
     assert np.isfinite(got).all() and np.linalg.norm(got - want) / np.linalg.norm(want) < 5e-3
+    # the kernel's column scales are the weights' alone: made before the denoise loop, not in every step
+    loops = call_loop_invariants(call.engine, call.obs, 1, 2)
+    assert loops and not any(loops), loops

@@ -76,7 +76,7 @@ def test_norm_qkv_rope_matches_xla(adaptive):
     positions = jnp.asarray([[77], [149]]) + jnp.arange(S)  # each element's valid prefix length, then the suffix
     (mods, row, _), norm_kw, _ = _mods(adaptive, w)
     h, _ = layers.rms_norm(x, **norm_kw)
-    q, k, v = layers._qkv(h, w["qkv"], CFG, positions)
+    q, k, v = layers._qkv(h, w["qkv"], CFG, gemma.rope_angles(positions, CFG.head_dim))
     sp = layout.suffix_rows(S)
     cos, sin = layout.rope_tables(jnp.pad(positions, ((0, 0), (0, sp - S))), CFG.head_dim)
     for splits in (1, 3):  # one K chunk; three (width 48: the sums of squares and shift products of 3 chunks)

@@ -158,8 +158,8 @@ def test_expert_without_triton_equals_xla(pi05, monkeypatch):
         w.update(pre_attn=_rand(16, d) * 0.2, pre_ffw=_rand(17, d) * 0.2)
     (_, _, _, ck, cv, pmask, smask), _ = _inputs(pi05)
     x, positions = _rand(18, B, S, d), 100 + jnp.arange(S)[None].repeat(B, 0)
-    want, _, _ = layers.suffix_layer(CFG, w, x, positions, ck, cv, jnp.broadcast_to(pmask[:, None], (B, S, P)), smask,
-                                     mods)
+    want, _, _ = layers.suffix_layer(CFG, w, x, gemma.rope_angles(positions, CFG.head_dim), ck, cv,
+                                     jnp.broadcast_to(pmask[:, None], (B, S, P)), smask, mods)
     blocks = ek.Blocks(mosaic_qkv=Launch(64, 2, 2), mosaic_mlp=Launch(64, 1, 3, geglu=True),
                        mosaic_out=Launch(64, 2, 1, 2), mosaic_down=Launch(128, 4, 1), mosaic_attention=True)
     assert ek.TRITON_FREE.mosaic_attention and ek.TRITON_FREE.xla_merge

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from pi0_jax import pi0
+from pi0_jax import gemma, pi0
 from pi0_jax.config import GemmaConfig
 from pi0_jax.engine import layers
 from pi0_jax.ops import expert_kernels as ek
@@ -112,7 +112,7 @@ def test_expert_layers_on_the_mosaic_gemm_equal_xla(pi05, blocks, monkeypatch):
     want = x
     for i, w in enumerate(weights):
         layer_mods = None if mods is None else (mods[0][i:i + 1], mods[1][i:i + 1])
-        want, _, _ = layers.suffix_layer(CFG, w, want, positions, ck[i], cv[i],
+        want, _, _ = layers.suffix_layer(CFG, w, want, gemma.rope_angles(positions, CFG.head_dim), ck[i], cv[i],
                                          jnp.broadcast_to(pmask[:, None], (B, S, P)), smask, layer_mods)
     calls = []
     for fn in ("partials", "geglu"):

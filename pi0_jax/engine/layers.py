@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 
 from pi0_jax.config import GemmaConfig
-from pi0_jax.gemma import _BIG_NEG, apply_rope
+from pi0_jax.gemma import _BIG_NEG, rotate
 from pi0_jax.ops import attention, expert_kernels, formats, fp8_geglu, layout, mosaic_gemm
 from pi0_jax.ops.formats import QArray
 from pi0_jax.ops.matmul import input_scale, matmul, raw_matmul
@@ -59,14 +59,15 @@ def _scaled_mm(xq, w, dtype):
     return (y.astype(jnp.float32) * scale).astype(dtype)
 
 
-def _qkv(h, w, cfg: GemmaConfig, positions):
+def _qkv(h, w, cfg: GemmaConfig, angles):
+    """q (scaled), k, v of the fused q/k/v GEMM, q and k rotated by `gemma.rope_angles`' (sin, cos) `angles`."""
     qkv = _mm(h, w)
     nq = cfg.num_heads * cfg.head_dim
     q = einops.rearrange(qkv[..., :nq], "B T (N H) -> B T N H", H=cfg.head_dim)
     k, v = einops.rearrange(qkv[..., nq:], "B T (two K H) -> two B T K H", two=2, H=cfg.head_dim)
-    q = apply_rope(q, positions)
+    q = rotate(q, angles)
     q = q * jnp.asarray(cfg.head_dim**-0.5, q.dtype)
-    k = apply_rope(k, positions)
+    k = rotate(k, angles)
     return einops.rearrange(q, "B T (K G) H -> B T K G H", K=cfg.num_kv_heads), k, v
 
 
@@ -105,19 +106,21 @@ def fp8_mlp_kernel() -> bool:
     return bool(FP8_GEGLU)
 
 
-def _mlp(h, w, kernel: bool = False):
+def _mlp(h, w, kernel: bool = False, scales=None):
     """Gemma's GeGLU MLP. FP8 x FP8: gate and up leave the GEMM unscaled and go through GeGLU in f32 straight into
     the down GEMM's e4m3 input (the kernel's numerics): in `ops.fp8_geglu` where `kernel` and `fp8_mlp_kernel()`
     allow it, else XLA's GEMM and one pass. Scaled and rounded to h's dtype first (`formats.qmatmul`'s end), gate
     and up cost the H200's compile (jax 0.11.2) no more kernels and the prefix fill 1.6 % more time; jaxlib 0.10.2's
-    compile for an H200 wrote the scaled gate half out in a pass of its own (docs/BENCHMARKS.md, session 56)."""
+    compile for an H200 wrote the scaled gate half out in a pass of its own (docs/BENCHMARKS.md, session 56).
+    scales: the kernel's column scales made before (`mlp_scales`), or None: made here."""
     gate_up, down = w["gate_up"], w["down"]
     if input_scale(gate_up) is None or input_scale(down) is None:
         gate, up = layout.split_gate_up(_mm(h, gate_up))
         return _mm(gelu_tanh(gate) * up, down)
     xq = formats.quantise(h, gate_up.act_scale)
     if kernel and fp8_mlp_kernel() and fp8_geglu.applies(gate_up, down):
-        y = fp8_geglu.geglu(xq.reshape(-1, xq.shape[-1]), gate_up, down.act_scale).reshape(*h.shape[:-1], -1)
+        y = fp8_geglu.geglu(xq.reshape(-1, xq.shape[-1]), gate_up, down.act_scale, scales=scales)
+        y = y.reshape(*h.shape[:-1], -1)
     else:
         product, scale = raw_mm(xq, gate_up, h.dtype)
         gate, up = layout.split_gate_up(product.astype(jnp.float32) * scale)
@@ -149,14 +152,15 @@ def _attend_fused(q, keys, values, kv_len):
     return einops.rearrange(out, "B (T G) K H -> B T (K G H)", G=g)
 
 
-def prefix_layer(cfg: GemmaConfig, w, x, positions, mask, kv_len=None, keys: int | None = None):
-    """One VLM layer over the prefix. x (B,P,D); mask (B,P,P). Returns (x, k, v) with k, v (B,P,K,H) post-RoPE.
+def prefix_layer(cfg: GemmaConfig, w, x, angles, mask, kv_len=None, keys: int | None = None):
+    """One VLM layer over the prefix. x (B,P,D); angles: RoPE's (sin, cos) at the rows' positions
+    (`gemma.rope_angles`); mask (B,P,P). Returns (x, k, v) with k, v (B,P,K,H) post-RoPE.
     kv_len: None for XLA attention under `mask`, else (B,) lengths for the fused kernel (the valid tokens are then
     each element's first kv_len, see `programs.fill_prefix_cache`). keys: with kv_len, k and v are zero-padded to
     this many keys first (the Pallas expert's cache length) and returned so; the fused kernel reads them padded,
     cut off by kv_len, so the cache needs no copy of its own."""
     h, _ = rms_norm(x, w["pre_attn"])
-    q, k, v = _qkv(h, w["qkv"], cfg, positions)
+    q, k, v = _qkv(h, w["qkv"], cfg, angles)
     if keys is not None and kv_len is not None:
         k, v = (jnp.pad(a, ((0, 0), (0, keys - a.shape[1]), (0, 0), (0, 0))) for a in (k, v))
     y = _attend(q, [k], [v], [mask], x.dtype) if kv_len is None else _attend_fused(q, k, v, kv_len)
@@ -221,20 +225,22 @@ def _attend_kernel(cfg: GemmaConfig, q, k, v, cache_k, cache_v, prefix_mask, suf
     return einops.rearrange(y, "B (T G) (K H) -> B T (K G H)", G=g, H=hd)
 
 
-def suffix_layer(cfg: GemmaConfig, w, x, positions, cache_k, cache_v, prefix_mask, suffix_mask, mods=None,
-                 kv_len=None, kernel: bool = False, slot: int = 0):
+def suffix_layer(cfg: GemmaConfig, w, x, angles, cache_k, cache_v, prefix_mask, suffix_mask, mods=None,
+                 kv_len=None, kernel: bool = False, slot: int = 0, mlp_scales=None):
     """One action-expert layer over the suffix, attending to [cached prefix | suffix]. Returns (x, k, v).
 
-    cache_k/v (B,P,K,H); prefix_mask (B,S,P); suffix_mask (B,S,S); mods: None (π0) or (attn, ffw) adaRMS outputs.
+    angles: RoPE's (sin, cos) at the rows' positions (`gemma.rope_angles`); cache_k/v (B,P,K,H); prefix_mask
+    (B,S,P); suffix_mask (B,S,S); mods: None (π0) or (attn, ffw) adaRMS outputs.
     With XLA's attention k, v are the suffix's own keys and values (B,S,K,H). kv_len: None for XLA attention, else
     (B,) key lengths for the fused kernel; cache_k/v are then the suffix-first buffers (B,S'+P,K,H) of
     `_attend_suffix_fused`, k, v come back as those buffers with this step's suffix keys in them from `slot` on, and
     suffix_mask is unused (every row sees every suffix key). kernel: the attention is the Pallas kernel's
-    (`_attend_kernel`; cache_k/v and the masks in its layout, returned as given).
+    (`_attend_kernel`; cache_k/v and the masks in its layout, returned as given). mlp_scales: this layer's
+    `mlp_scales`, or None.
     """
     mod_attn, mod_ffw = mods if mods is not None else (None, None)
     h, gate = rms_norm(x, w.get("pre_attn"), mod_attn)
-    q, k, v = _qkv(h, w["qkv"], cfg, positions)
+    q, k, v = _qkv(h, w["qkv"], cfg, angles)
     if kernel:
         y = _attend_kernel(cfg, q, k, v, cache_k, cache_v, prefix_mask, suffix_mask, input_scale(w["attn_out"]))
         k, v = cache_k, cache_v
@@ -246,9 +252,26 @@ def suffix_layer(cfg: GemmaConfig, w, x, positions, cache_k, cache_v, prefix_mas
     y = _scaled_mm(y, w["attn_out"], x.dtype) if y.dtype == formats.E4M3 else _mm(y, w["attn_out"])
     x = x + (y if gate is None else y * gate)
     h, gate = rms_norm(x, w.get("pre_ffw"), mod_ffw)
-    rows = h.size // h.shape[-1]
-    y = _mlp(h, w, kernel=FP8_GEGLU_EXPERT_ROWS is not None and rows >= FP8_GEGLU_EXPERT_ROWS)
+    y = _mlp(h, w, kernel=_expert_mlp_kernel(h.size // h.shape[-1]), scales=mlp_scales)
     return x + (y if gate is None else y * gate), k, v
+
+
+def _expert_mlp_kernel(rows: int) -> bool:
+    """Whether an expert layer of `rows` rows a step may run its FP8 MLP on the kernel (`FP8_GEGLU_EXPERT_ROWS`)."""
+    return FP8_GEGLU_EXPERT_ROWS is not None and rows >= FP8_GEGLU_EXPERT_ROWS
+
+
+def mlp_scales(weights, rows: int) -> tuple | None:
+    """The FP8 MLP kernel's column scales (`fp8_geglu.column_scales`) of each unrolled expert layer whose MLP at
+    `rows` rows runs on it (else None for that layer), for `suffix_layer`'s mlp_scales: they depend on the weights
+    alone, so a denoise loop makes them before its first step. None for stacked (scanned) layers, which the kernel
+    does not take."""
+    if not isinstance(weights, (list, tuple)):
+        return None
+    kernel = _expert_mlp_kernel(rows) and fp8_mlp_kernel()
+    return tuple(fp8_geglu.column_scales(w["gate_up"], w["down"].act_scale)
+                 if kernel and input_scale(w["gate_up"]) is not None and input_scale(w["down"]) is not None
+                 and fp8_geglu.applies(w["gate_up"], w["down"]) else None for w in weights)
 
 
 def run_layers(layer_fn, weights, x, per_layer=(), *, unroll: bool):

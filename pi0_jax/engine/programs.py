@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jnp
 
 from pi0_jax import pi0
+from pi0_jax.gemma import rope_angles
 from pi0_jax.config import Pi0Config
 from pi0_jax.engine import layers, paths, vision
 from pi0_jax.engine.paths import Attention
@@ -100,8 +101,9 @@ def fill_prefix_cache(config: Pi0Config, weights: dict, image_tokens, image_mask
     attn_mask = mask[:, None, :] & mask[:, :, None]
     kernel = paths.kernel_cache(kernels, attention, x.shape[0], weights.get("expert"))
     keys = layout.cache_len(x.shape[1]) if kernel else None   # each layer writes its cache padded
-    layer = functools.partial(layers.prefix_layer, config.paligemma, positions=positions, mask=attn_mask,
-                              kv_len=kv_len, keys=keys)
+    angles = rope_angles(positions, config.paligemma.head_dim)   # once for every layer
+    layer = functools.partial(layers.prefix_layer, config.paligemma, angles=angles, mask=attn_mask, kv_len=kv_len,
+                              keys=keys)
     _, (k, v) = layers.run_layers(layer, weights["vlm"], x, unroll=unroll)
     if kernel:  # once per call: no step pads
         head_dim = config.paligemma.head_dim
@@ -137,9 +139,10 @@ def _state_kv(config: Pi0Config, weights: dict, cache: PrefixCache, state_token,
     at each layer, (B, 1, K, H) per layer as the cache's own."""
     x = state_token[:, None, :].astype(jnp.dtype(config.dtype))
     own = jnp.ones((x.shape[0], 1, 1), bool)
+    angles = rope_angles(position, config.action_expert.head_dim)
 
     def layer(w, x, k, v):
-        return layers.suffix_layer(config.action_expert, w, x, position, k, v, cache.mask[:, None, :], own)
+        return layers.suffix_layer(config.action_expert, w, x, angles, k, v, cache.mask[:, None, :], own)
 
     _, (k, v) = layers.run_layers(layer, weights["expert"], x, [cache.k, cache.v], unroll=unroll)
     return k, v
@@ -164,11 +167,15 @@ def step_inputs(config: Pi0Config, weights: dict, cache: PrefixCache, state, bat
 
 def step_invariants(config: Pi0Config, weights: dict, cache: PrefixCache, state, batch: int, kernels: str,
                     attention: Attention, *, unroll: bool) -> dict:
-    """What every denoise step of one call computes alike, made once before the loop rather than in each step:
-    "state" π0's state token (B, D) in f32 (π0.5: None), "state_kv" its keys and values per layer where it runs once
-    a call (`paths.cached_state`; else None), "positions" (B, S) and "suffix_mask" (B, S, S) of the rows a step runs (S
-    without the state's row where it ran once), "tables" `layers.pallas_tables` for a cache in the kernels' layout
-    (`paths.kernel_cache`), else None."""
+    """What every denoise step of one call computes alike, made once before the loop rather than in each step (XLA
+    sinks constants into a loop's body but does not hoist what is computed from the call's inputs or weights, so
+    anything of this kind left in the step is a kernel every step): "state" π0's state token (B, D) in f32 (π0.5:
+    None), "state_kv" its keys and values per layer where it runs once a call (`paths.cached_state`; else None),
+    "positions" (B, S) and "suffix_mask" (B, S, S) of the rows a step runs (S without the state's row where it ran
+    once), "tables" `layers.pallas_tables` for a cache in the kernels' layout (`paths.kernel_cache`), else None; for
+    the XLA expert (else None): "angles" RoPE's (sin, cos) at `positions`, with `fp8_row_pad`'s rows, "kv_len" (B,)
+    the fused denoise attention's key lengths (`layers.suffix_layer`), "mlp_scales" per layer the FP8 MLP kernel's
+    column scales (`layers.mlp_scales`)."""
     ar_state = [] if config.pi05 else [True]   # π0's state token: a causal block of its own before the actions
     s = len(ar_state) + config.action_horizon
     ar = jnp.asarray(ar_state + [True] + [False] * (config.action_horizon - 1))
@@ -184,8 +191,16 @@ def step_invariants(config: Pi0Config, weights: dict, cache: PrefixCache, state,
     if paths.cached_state(config, attention, kernels, batch, weights["expert"]):
         state_kv = _state_kv(config, weights, cache, state_token, positions[:, :1], unroll=unroll)
         positions, suffix_mask = positions[:, 1:], suffix_mask[:, 1:, 1:]
+    angles = kv_len = mlp_scales = None
+    if paths.expert_path(kernels, batch, weights["expert"]) == "xla":
+        at_batch = attention.at_batch(batch, suffix_mask=not config.pi05)
+        pad = fp8_row_pad(config, weights, batch, positions.shape[1], at_batch)
+        angles = rope_angles(jnp.pad(positions, ((0, 0), (0, pad)), mode="edge"), config.action_expert.head_dim)
+        if at_batch.denoise == "cudnn":
+            kv_len = (config.suffix_len + jnp.sum(cache.mask, axis=-1)).astype(jnp.int32)
+        mlp_scales = layers.mlp_scales(weights["expert"], batch * (positions.shape[1] + pad))
     return {"state": state_token, "state_kv": state_kv, "positions": positions, "suffix_mask": suffix_mask,
-            "tables": tables}
+            "tables": tables, "angles": angles, "kv_len": kv_len, "mlp_scales": mlp_scales}
 
 
 def fp8_row_pad(config: Pi0Config, weights: dict, batch: int, s: int, attention: Attention) -> int:
@@ -258,20 +273,20 @@ def step_velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array
     if attention.denoise == "cudnn":   # no suffix mask: the action rows, and π0.5's, see every suffix key
         if not (config.pi05 or slot):
             raise ValueError("the fused denoise attention takes π0's state token once a call (`paths.cached_state`)")
-        kv_len = (config.suffix_len + jnp.sum(cache.mask, axis=-1)).astype(jnp.int32)
+        kv_len = fixed["kv_len"]
 
     pad = fp8_row_pad(config, weights, b, s, attention)
-    if pad:   # rows past s: zeros, at the last position, masked as keys by the kernel's tables; cut after the layers
-        x = jnp.pad(x, ((0, 0), (0, pad), (0, 0)))
-        positions = jnp.pad(positions, ((0, 0), (0, pad)), mode="edge")
+    if pad:   # rows past s: zeros, at the last position (`step_invariants`' angles), masked as keys by the kernel's
+        x = jnp.pad(x, ((0, 0), (0, pad), (0, 0)))   # tables; cut after the layers
 
-    def layer(w, x, k, v, *mod):
+    def layer(w, x, k, v, scales, *mod):
         m = None if mods is None else mod
-        x, k, v = layers.suffix_layer(config.action_expert, w, x, positions, k, v, prefix_mask, suffix_mask, m,
-                                      kv_len, kernel=attention.denoise == "pallas", slot=slot)
+        x, k, v = layers.suffix_layer(config.action_expert, w, x, fixed["angles"], k, v, prefix_mask, suffix_mask, m,
+                                      kv_len, kernel=attention.denoise == "pallas", slot=slot, mlp_scales=scales)
         return (x, k, v) if kv_len is not None else (x,)
 
     per_layer = [cache.k, cache.v] if kv is None else list(kv)
+    per_layer.append(fixed["mlp_scales"])
     if mods is not None:   # layer axis first: (L, B or 1, H or 1, 3D)
         per_layer += [_by_layer(jnp.moveaxis(m, 2, 0), unroll) for m in mods]
     x, outs = layers.run_layers(layer, weights["expert"], x, per_layer, unroll=unroll)

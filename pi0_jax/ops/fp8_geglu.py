@@ -203,15 +203,18 @@ def reference(xq, w: QArray, down_scale, launch: Launch | None = None) -> jax.Ar
     return jnp.clip(gelu_form(launch)(gate) * up, -formats.E4M3_MAX, formats.E4M3_MAX).astype(E4M3)
 
 
-def geglu(xq, w: QArray, down_scale, launch: Launch | None = None) -> jax.Array:
+def geglu(xq, w: QArray, down_scale, launch: Launch | None = None, scales=None) -> jax.Array:
     """xq (M, K) e4m3 @ w (2F, K) e4m3 in gate/up block pairs -> (M, F) e4m3: GELU-tanh(gate) * up quantised with
     `down_scale` (the down GEMM's activation scale), as `reference` computes it. `applies(w, down)` must hold.
-    launch: default `LAUNCH`."""
+    launch: default `LAUNCH`. scales: `column_scales(w, down_scale)` made before (a loop's invariant), or None."""
     k, n2 = w.q.shape[1], w.q.shape[0]
     launch = fit(LAUNCH if launch is None else launch, k, n2)
     if launch is None or xq.shape[1] != k:
         raise ValueError(f"x {xq.shape} @ w {w.q.shape}.T: no launch of the FP8 GeGLU kernel fits")
-    scales = column_scales(w, down_scale)
+    if scales is None:
+        scales = column_scales(w, down_scale)
+    elif scales.shape != (n2,):
+        raise ValueError(f"the FP8 GeGLU kernel's column scales must be ({n2},), got {scales.shape}")
     if jax.default_backend() == "cpu":   # the interpreter (its host callbacks cannot be partitioned): N-major weight
         return run(xq, w.q.T, scales, launch, interpret=True)
     return _partitioned(xq, w.q, scales, launch)
