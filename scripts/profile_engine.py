@@ -60,7 +60,7 @@ def loop_invariant_kernels(hlo: str) -> dict:
     """{while body: [(kernel, op_name)]}: each kernel-level op (`count_ops`' fusions, calls and copies) of a while
     loop's body whose inputs are all the same in every trip: constants, or carried values the body passes on
     unchanged. Each is work a loop makes every trip that could be made once before it (XLA sinks constants into a
-    body and does not hoist what it computes from them: sessions 70-71, docs/BENCHMARKS.md)."""
+    body and does not hoist what the body computes from invariant values: sessions 70-71, docs/BENCHMARKS.md)."""
     comps, current = {}, None
     for line in hlo.splitlines():
         head = re.match(r"^(?:ENTRY )?%?([\w.\-]+) .*\{$", line)

@@ -112,7 +112,7 @@ def _mlp(h, w, kernel: bool = False, scales=None):
     allow it, else XLA's GEMM and one pass. Scaled and rounded to h's dtype first (`formats.qmatmul`'s end), gate
     and up cost the H200's compile (jax 0.11.2) no more kernels and the prefix fill 1.6 % more time; jaxlib 0.10.2's
     compile for an H200 wrote the scaled gate half out in a pass of its own (docs/BENCHMARKS.md, session 56).
-    scales: the kernel's column scales made before (`mlp_scales`), or None: made here."""
+    scales: the kernel's column scales made before (`expert_mlp_scales`), or None: made here."""
     gate_up, down = w["gate_up"], w["down"]
     if input_scale(gate_up) is None or input_scale(down) is None:
         gate, up = layout.split_gate_up(_mm(h, gate_up))
@@ -236,7 +236,7 @@ def suffix_layer(cfg: GemmaConfig, w, x, angles, cache_k, cache_v, prefix_mask, 
     `_attend_suffix_fused`, k, v come back as those buffers with this step's suffix keys in them from `slot` on, and
     suffix_mask is unused (every row sees every suffix key). kernel: the attention is the Pallas kernel's
     (`_attend_kernel`; cache_k/v and the masks in its layout, returned as given). mlp_scales: this layer's
-    `mlp_scales`, or None.
+    `expert_mlp_scales`, or None.
     """
     mod_attn, mod_ffw = mods if mods is not None else (None, None)
     h, gate = rms_norm(x, w.get("pre_attn"), mod_attn)
@@ -261,7 +261,7 @@ def _expert_mlp_kernel(rows: int) -> bool:
     return FP8_GEGLU_EXPERT_ROWS is not None and rows >= FP8_GEGLU_EXPERT_ROWS
 
 
-def mlp_scales(weights, rows: int) -> tuple | None:
+def expert_mlp_scales(weights, rows: int) -> tuple | None:
     """The FP8 MLP kernel's column scales (`fp8_geglu.column_scales`) of each unrolled expert layer whose MLP at
     `rows` rows runs on it (else None for that layer), for `suffix_layer`'s mlp_scales: they depend on the weights
     alone, so a denoise loop makes them before its first step. None for stacked (scanned) layers, which the kernel

@@ -17,10 +17,10 @@ import jax
 import jax.numpy as jnp
 
 from pi0_jax import pi0
-from pi0_jax.gemma import rope_angles
 from pi0_jax.config import Pi0Config
 from pi0_jax.engine import layers, paths, vision
 from pi0_jax.engine.paths import Attention
+from pi0_jax.gemma import rope_angles
 from pi0_jax.ops import expert_kernels, layout
 from pi0_jax.ops.formats import QArray
 from pi0_jax.ops.matmul import input_scale
@@ -175,7 +175,7 @@ def step_invariants(config: Pi0Config, weights: dict, cache: PrefixCache, state,
     once), "tables" `layers.pallas_tables` for a cache in the kernels' layout (`paths.kernel_cache`), else None; for
     the XLA expert (else None): "angles" RoPE's (sin, cos) at `positions`, with `fp8_row_pad`'s rows, "kv_len" (B,)
     the fused denoise attention's key lengths (`layers.suffix_layer`), "mlp_scales" per layer the FP8 MLP kernel's
-    column scales (`layers.mlp_scales`)."""
+    column scales (`layers.expert_mlp_scales`)."""
     ar_state = [] if config.pi05 else [True]   # π0's state token: a causal block of its own before the actions
     s = len(ar_state) + config.action_horizon
     ar = jnp.asarray(ar_state + [True] + [False] * (config.action_horizon - 1))
@@ -198,7 +198,7 @@ def step_invariants(config: Pi0Config, weights: dict, cache: PrefixCache, state,
         angles = rope_angles(jnp.pad(positions, ((0, 0), (0, pad)), mode="edge"), config.action_expert.head_dim)
         if at_batch.denoise == "cudnn":
             kv_len = (config.suffix_len + jnp.sum(cache.mask, axis=-1)).astype(jnp.int32)
-        mlp_scales = layers.mlp_scales(weights["expert"], batch * (positions.shape[1] + pad))
+        mlp_scales = layers.expert_mlp_scales(weights["expert"], batch * (positions.shape[1] + pad))
     return {"state": state_token, "state_kv": state_kv, "positions": positions, "suffix_mask": suffix_mask,
             "tables": tables, "angles": angles, "kv_len": kv_len, "mlp_scales": mlp_scales}
 
