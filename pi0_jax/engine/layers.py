@@ -106,6 +106,13 @@ def fp8_mlp_kernel() -> bool:
     return bool(FP8_GEGLU)
 
 
+def _mlp_on_kernel(w) -> bool:
+    """Whether a layer's FP8 x FP8 MLP (w's gate_up and down) runs `ops.fp8_geglu` on this backend, rows allowing."""
+    gate_up, down = w["gate_up"], w["down"]
+    return (input_scale(gate_up) is not None and input_scale(down) is not None and fp8_mlp_kernel()
+            and fp8_geglu.applies(gate_up, down))
+
+
 def _mlp(h, w, kernel: bool = False, scales=None):
     """Gemma's GeGLU MLP. FP8 x FP8: gate and up leave the GEMM unscaled and go through GeGLU in f32 straight into
     the down GEMM's e4m3 input (the kernel's numerics): in `ops.fp8_geglu` where `kernel` and `fp8_mlp_kernel()`
@@ -118,7 +125,7 @@ def _mlp(h, w, kernel: bool = False, scales=None):
         gate, up = layout.split_gate_up(_mm(h, gate_up))
         return _mm(gelu_tanh(gate) * up, down)
     xq = formats.quantise(h, gate_up.act_scale)
-    if kernel and fp8_mlp_kernel() and fp8_geglu.applies(gate_up, down):
+    if kernel and _mlp_on_kernel(w):
         y = fp8_geglu.geglu(xq.reshape(-1, xq.shape[-1]), gate_up, down.act_scale, scales=scales)
         y = y.reshape(*h.shape[:-1], -1)
     else:
@@ -268,10 +275,8 @@ def expert_mlp_scales(weights, rows: int) -> tuple | None:
     does not take."""
     if not isinstance(weights, (list, tuple)):
         return None
-    kernel = _expert_mlp_kernel(rows) and fp8_mlp_kernel()
     return tuple(fp8_geglu.column_scales(w["gate_up"], w["down"].act_scale)
-                 if kernel and input_scale(w["gate_up"]) is not None and input_scale(w["down"]) is not None
-                 and fp8_geglu.applies(w["gate_up"], w["down"]) else None for w in weights)
+                 if _expert_mlp_kernel(rows) and _mlp_on_kernel(w) else None for w in weights)
 
 
 def run_layers(layer_fn, weights, x, per_layer=(), *, unroll: bool):
