@@ -399,9 +399,10 @@ def test_layer_norm_kernel_matches_xla(width):
 
 
 def test_layer_norm_kernel_reads_the_block_tables_in_place():
-    """In the engine's tower every LayerNorm kernel takes its vectors as a block's whole `vectors` table (the
-    encoder's final `norm` table), rows chosen statically: no slice of a weight is made before the kernel, which on a
-    GPU would be a copy kernel of its own (docs/BENCHMARKS.md, "The host's share of a call")."""
+    """In the engine's tower every LayerNorm kernel takes its vectors as the blocks' whole `vectors` table, (L, R, D)
+    seen as (L R, D) (a reshape: on a GPU a bitcast), or the encoder's final `norm` table, rows chosen statically: no
+    slice of a weight is made before the kernel, which on a GPU would be a copy kernel of its own
+    (docs/BENCHMARKS.md, "The host's share of a call")."""
     import functools
 
     from pi0_jax import benchmark
@@ -416,7 +417,8 @@ def test_layer_norm_kernel_reads_the_block_tables_in_place():
     norms = [e for e in jaxpr.eqns
              if e.primitive.name == "custom_partitioning" and "name=layer_norm" in str(e.params["call"])]
     assert len(norms) == 2 * config.siglip.depth + 1
-    tables = {id(v) for v in jaxpr.invars if v.aval.ndim == 2 and v.aval.shape[1] == config.siglip.width}
+    tables = {id(v) for v in jaxpr.invars if v.aval.ndim in (2, 3) and v.aval.shape[-1] == config.siglip.width}
+    tables |= {id(e.outvars[0]) for e in jaxpr.eqns if e.primitive.name == "reshape" and id(e.invars[0]) in tables}
     for eqn in norms:   # (x, vectors, act) or (x, f, f_vectors, f_scale, vectors, act)
         operands = [eqn.invars[1]] if len(eqn.invars) == 3 else [eqn.invars[2], eqn.invars[4]]
         assert all(id(v) in tables for v in operands)

@@ -228,9 +228,11 @@ def test_the_vision_tower_as_two_programs_in_the_policy(pi0_ckpt, monkeypatch):
         got[split] = Policy.from_checkpoint(pi0_ckpt[0], cache_dir=False).infer(libero_obs(), noise=noise)["actions"]
     np.testing.assert_array_equal(got[0], got[1])
     depth = pi0_ckpt[1].siglip.depth
-    per_block = (compiled["policy_encode"] - 6) // depth   # the patch embedding's 2, pos, the final norm, head's 2
-    assert (compiled["policy_encode_head"], compiled["policy_encode_tail"]) == (3 + per_block,
-                                                                                 3 + per_block * (depth - 1))
+    # the patch embedding's 2, pos, the blocks' table of vectors (both programs take it), the final norm, head's 2
+    per_block = (compiled["policy_encode"] - 7) // depth
+    assert per_block == 4   # q/k/v, out, fc1, fc2: their biases and norms are in the table
+    assert (compiled["policy_encode_head"], compiled["policy_encode_tail"]) == (4 + per_block,
+                                                                                 4 + per_block * (depth - 1))
 
 
 def test_engine_equals_reference_sampler_bf16(pi0_ckpt):

@@ -71,12 +71,14 @@ def splits_vision(config: Pi0Config, unroll: bool) -> bool:
 def stage_tree(weights: dict, stage: str, split: int | None = None) -> dict:
     """The engine weights a stage's program takes: `STAGE_WEIGHTS`' keys; the vision tower's two programs take
     its blocks before `split` (None: `VISION_SPLIT`) with the patch embedding ("vision_head"), or the others with
-    the final norm and the projection ("vision_tail")."""
+    the final norm and the projection ("vision_tail"), and both the blocks' one table of vectors."""
     if stage in ("vision_head", "vision_tail"):
         img, split = weights["img"], VISION_SPLIT if split is None else split
         if stage == "vision_head":
-            return {"img": {"embedding": img["embedding"], "pos": img["pos"], "blocks": img["blocks"][:split]}}
-        return {"img": {"blocks": img["blocks"][split:], "norm": img["norm"], "head": img["head"]}}
+            return {"img": {"embedding": img["embedding"], "pos": img["pos"], "blocks": img["blocks"][:split],
+                            "vectors": img["vectors"]}}
+        return {"img": {"blocks": img["blocks"][split:], "vectors": img["vectors"], "norm": img["norm"],
+                        "head": img["head"]}}
     return {k: weights[k] for k in STAGE_WEIGHTS[stage] if k in weights}
 
 

@@ -32,7 +32,7 @@ import jax.numpy as jnp
 
 from pi0_jax.config import SiglipConfig
 from pi0_jax.engine import layers
-from pi0_jax.engine.weights import FC2_BIAS, LN1_BIAS, LN1_SCALE, LN2_BIAS, LN2_SCALE, OUT_BIAS
+from pi0_jax.engine.weights import FC1_BIAS, FC2_BIAS, LN1_BIAS, LN1_SCALE, LN2_BIAS, LN2_SCALE, OUT_BIAS, QKV_BIAS
 from pi0_jax.ops import attention as ops_attention
 from pi0_jax.ops import formats, fp8_geglu, matmul
 from pi0_jax.ops import layer_norm as ops_layer_norm
@@ -86,49 +86,58 @@ def add_norm(x, f, norm_vectors, dtype, norm: str, quantise=None):
     return x, (h if quantise is None else formats.quantise(h, quantise))
 
 
-def _fc2(f):
-    """A block's MLP output as `add_norm` takes it: (raw product, its block's `vectors`, FP8 scale) -> the bias at
-    FC2_BIAS (None stays None)."""
-    return None if f is None else (f[0], (f[1], FC2_BIAS), f[2])
+def _bias(vectors, row: int, n: int, dtype):
+    """n values of a `weights.vision_weights` table from its row `row` on (over ceil(n / D) rows), in dtype."""
+    rows = -(-n // vectors.shape[-1])
+    return vectors[row:row + rows].reshape(-1)[:n].astype(dtype)
 
 
 def _dense(x, w, b):
     return layers._mm(x, w) + b
 
 
-def block(cfg: SiglipConfig, w, x, f, *, attention: str, norm: str = "xla"):
+def block(cfg: SiglipConfig, w, x, f, vectors, *, attention: str, norm: str = "xla"):
     """One pre-LN encoder block. x (B, T, D) the residual stream in the activation dtype, f the previous block's
-    MLP output (raw product, its block's `vectors` table with the bias, FP8 output scale or None) not yet added to
-    it (None before the first block) ->
+    MLP output (raw product, (table, row) of its bias, FP8 output scale or None) not yet added to it (None before
+    the first block); vectors: (table, first row) of this block's LayerNorm parameters and biases (the tower's
+    `vectors` as (L R, D), or one block's (R, D) rows with first row 0) ->
     (x, f) likewise: each residual add runs with the norm after it. With FP8 weights the activations' quantisation
     happens inside the kernels where there are kernels (the norms' and the Pallas attention's outputs, the
     attention's q/k/v scaling as it reads them)."""
     dtype = x.dtype
-    b, t = x.shape[:2]
-    vectors = w["vectors"]
-    x, h = add_norm(x, _fc2(f), (vectors, (LN1_SCALE, LN1_BIAS)), dtype, norm, matmul.input_scale(w["qkv"]))
+    b, t, d = x.shape
+    table, first = vectors
+    qkv_bias = _bias(table, first + QKV_BIAS, 3 * d, dtype)
+    x, h = add_norm(x, f, (table, (first + LN1_SCALE, first + LN1_BIAS)), dtype, norm, matmul.input_scale(w["qkv"]))
     qkv, scale = layers.raw_mm(h, w["qkv"], dtype)
     if attention == "pallas":   # reads q, k, v in place: no copies
-        bias = {} if scale is None else dict(col_scale=scale, bias=w["qkv_bias"])
-        qkv = qkv if scale is not None else qkv + w["qkv_bias"]
+        args = {} if scale is None else dict(col_scale=scale, bias=qkv_bias)
+        qkv = qkv if scale is not None else qkv + qkv_bias
         y = vision_attention.attention(qkv.reshape(b * t, -1), images=b, num_heads=cfg.num_heads,
-                                       quantise=matmul.input_scale(w["out"]), **bias).reshape(b, t, -1)
+                                       quantise=matmul.input_scale(w["out"]), **args).reshape(b, t, -1)
     else:
-        qkv = _finish(qkv, w["qkv_bias"], scale)
+        qkv = _finish(qkv, qkv_bias, scale)
         q, k, v = einops.rearrange(qkv, "B T (three N H) -> three B T N H", three=3, N=cfg.num_heads)
         y = ops_attention.fused(q, k, v) if attention == "cudnn" else nn.dot_product_attention(q, k, v, dtype=dtype)
         y = einops.rearrange(y, "B T N H -> B T (N H)")
     out, scale = layers.raw_mm(y, w["out"], dtype)
-    x, h = add_norm(x, (out, (vectors, OUT_BIAS), scale), (vectors, (LN2_SCALE, LN2_BIAS)), dtype, norm,
-                    matmul.input_scale(w["fc1"]))
+    x, h = add_norm(x, (out, (table, first + OUT_BIAS), scale), (table, (first + LN2_SCALE, first + LN2_BIAS)),
+                    dtype, norm, matmul.input_scale(w["fc1"]))
+    fc1_bias = _bias(table, first + FC1_BIAS, cfg.mlp_dim, dtype)
     if (FP8_GELU_ROWS is not None and b * t >= FP8_GELU_ROWS and layers.fp8_mlp_kernel()
             and fp8_geglu.gelu_applies(w["fc1"], w["fc2"])):   # h came quantised for fc1 (add_norm)
-        h = fp8_geglu.gelu(h.reshape(b * t, -1), w["fc1"], w["fc1_bias"], w["fc2"].act_scale).reshape(b, t, -1)
+        h = fp8_geglu.gelu(h.reshape(b * t, -1), w["fc1"], fc1_bias, w["fc2"].act_scale).reshape(b, t, -1)
     else:
         y, scale = layers.raw_mm(h, w["fc1"], dtype)
-        h = nn.gelu(_finish(y, w["fc1_bias"], scale), approximate=True)
+        h = nn.gelu(_finish(y, fc1_bias, scale), approximate=True)
     y, scale = layers.raw_mm(h, w["fc2"], dtype)
-    return x, (y, vectors, scale)
+    return x, (y, (table, first + FC2_BIAS), scale)
+
+
+def _table(w: dict):
+    """The tower's `vectors` (L, R, D) as one (L R, D) table and its rows a block."""
+    vectors = w["vectors"]
+    return vectors.reshape(-1, vectors.shape[-1]), vectors.shape[1]
 
 
 def encode(cfg: SiglipConfig, w: dict, images, *, dtype, unroll: bool, attention: str = "xla", norm: str = "xla"):
@@ -140,13 +149,20 @@ def encode(cfg: SiglipConfig, w: dict, images, *, dtype, unroll: bool, attention
         x, f = encode_head(cfg, w, images, dtype=dtype, attention=attention, norm=norm)
         return encode_tail(cfg, {**w, "blocks": []}, x, f, dtype=dtype, attention=attention, norm=norm)
     x = _embed(cfg, w, images, dtype)
-    blocks = w["blocks"]   # lax.scan's carry keeps one structure: a zero MLP output (x + 0 is x)
-    fp8 = matmul.input_scale(blocks["fc2"]) is not None
-    f = (jnp.zeros_like(x), jnp.zeros((FC2_BIAS + 1, x.shape[-1]), jnp.float32),
+    # lax.scan's carry keeps one structure: a zero MLP output (x + 0 is x) with its block's rows, the bias row fixed
+    fp8 = matmul.input_scale(w["blocks"]["fc2"]) is not None
+    f = (jnp.zeros_like(x), jnp.zeros(w["vectors"].shape[1:], jnp.float32),
          jnp.ones(x.shape[-1:], jnp.float32) if fp8 else None)
-    (x, f), _ = layers.run_layers(lambda wi, c: (block(cfg, wi, *c, attention=attention, norm=norm),), blocks,
-                                  (x, f), unroll=False)
-    return _project(w, x, f, dtype, norm)
+
+    def body(wi, carry):
+        x, (y, rows, scale) = carry
+        x, (y, (rows, _), scale) = block(cfg, wi["block"], x, (y, (rows, FC2_BIAS), scale), (wi["vectors"], 0),
+                                         attention=attention, norm=norm)
+        return ((x, (y, rows, scale)),)
+
+    (x, (y, rows, scale)), _ = layers.run_layers(body, {"block": w["blocks"], "vectors": w["vectors"]}, (x, f),
+                                                 unroll=False)
+    return _project(w, x, (y, (rows, FC2_BIAS), scale), dtype, norm)
 
 
 def _embed(cfg: SiglipConfig, w: dict, images, dtype):
@@ -156,22 +172,28 @@ def _embed(cfg: SiglipConfig, w: dict, images, dtype):
 
 def _project(w: dict, x, f, dtype, norm: str):
     """The last MLP output added, the final LayerNorm and the projection to the VLM's width."""
-    _, x = add_norm(x, _fc2(f), (w["norm"], (0, 1)), dtype, norm)
+    _, x = add_norm(x, f, (w["norm"], (0, 1)), dtype, norm)
     return _dense(x, w["head"]["kernel"], w["head"]["bias"])
 
 
 def encode_head(cfg: SiglipConfig, w: dict, images, *, dtype, attention: str = "xla", norm: str = "xla") -> tuple:
-    """The tower's first part: the patch embedding and the blocks of w["blocks"] (a list) -> (x, f), the residual
-    stream and the last block's MLP output not yet added (`block`'s; None without blocks)."""
+    """The tower's first part: the patch embedding and the blocks of w["blocks"] (a list: the tower's first blocks)
+    -> (x, f), the residual stream and the last block's MLP output not yet added, as (raw product, FP8 output scale
+    or None), its bias left in the table (None without blocks)."""
     x, f = _embed(cfg, w, images, dtype), None   # the first block has no MLP output to add
-    for wi in w["blocks"]:
-        x, f = block(cfg, wi, x, f, attention=attention, norm=norm)
-    return x, f
+    table, rows = _table(w)
+    for i, wi in enumerate(w["blocks"]):
+        x, f = block(cfg, wi, x, f, (table, i * rows), attention=attention, norm=norm)
+    return x, None if f is None else (f[0], f[2])
 
 
 def encode_tail(cfg: SiglipConfig, w: dict, x, f, *, dtype, attention: str = "xla", norm: str = "xla"):
-    """The tower after `encode_head`: the blocks of w["blocks"] (a list, maybe empty), the final norm and the
-    projection -> tokens (B, 256, out_dim)."""
-    for wi in w["blocks"]:
-        x, f = block(cfg, wi, x, f, attention=attention, norm=norm)
+    """The tower after `encode_head`, from its (x, f): the blocks of w["blocks"] (a list, maybe empty: the tower's
+    last blocks), the final norm and the projection -> tokens (B, 256, out_dim)."""
+    table, rows = _table(w)
+    first = w["vectors"].shape[0] - len(w["blocks"])   # the tower's blocks before these
+    if f is not None:   # block first - 1's MLP output
+        f = (f[0], (table, (first - 1) * rows + FC2_BIAS), f[1])
+    for i, wi in enumerate(w["blocks"], first):
+        x, f = block(cfg, wi, x, f, (table, i * rows), attention=attention, norm=norm)
     return _project(w, x, f, dtype, norm)

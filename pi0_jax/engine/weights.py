@@ -86,41 +86,61 @@ def _expert_weights(attn: dict, mlp: dict, suffix: str, dtype) -> dict:
     }
 
 
-# The rows of a SigLIP block's `vectors` (`vision_weights`): its LayerNorms' scales and biases, and the biases
-# of the two Dense outputs that are added to the residual stream (each inside the next LayerNorm); the encoder's
-# final norm has the first two rows only.
-LN1_SCALE, LN1_BIAS, LN2_SCALE, LN2_BIAS, OUT_BIAS, FC2_BIAS = range(6)
+# A SigLIP block's rows in the tower's `vectors` table (`vision_weights`): its LayerNorms' scales and biases, the
+# biases of the two Dense outputs that are added to the residual stream (each inside the next LayerNorm), then
+# q/k/v's bias (3 D values: SigLIP's heads span its width) over three rows and fc1's (F values) over the rows from
+# FC1_BIAS, zero-padded to whole rows (`vision_rows`); the encoder's final norm has a table of its own, its first two
+# rows.
+LN1_SCALE, LN1_BIAS, LN2_SCALE, LN2_BIAS, OUT_BIAS, FC2_BIAS, QKV_BIAS = range(7)
+FC1_BIAS = QKV_BIAS + 3
+
+
+def vision_rows(width: int, mlp_dim: int) -> int:
+    """The rows of a SigLIP block in the tower's `vectors` table."""
+    return FC1_BIAS + -(-mlp_dim // width)
 
 
 def _vectors(rows) -> jax.Array:
-    """(..., D) vectors -> one (..., R, D) f32 table: the norms' parameters as they are, the biases after their cast
-    to the activation dtype (exact in f32, cast back where they are added)."""
-    return jnp.stack([r.astype(jnp.float32) for r in rows], axis=-2)
+    """(..., n) vectors -> one (..., R, D) f32 table, D the first's length, each vector over ceil(n / D) rows,
+    zero-padded: the norms' parameters as they are, the biases after their cast to the activation dtype (exact in
+    f32, cast back where they are added)."""
+    d = rows[0].shape[-1]
+
+    def cut(r):
+        n = -(-r.shape[-1] // d) * d
+        r = jnp.pad(r.astype(jnp.float32), [(0, 0)] * (r.ndim - 1) + [(0, n - r.shape[-1])])
+        return r.reshape(*r.shape[:-1], n // d, d)
+
+    return jnp.concatenate([cut(r) for r in rows], axis=-2)
 
 
 def vision_weights(img: dict, dtype) -> dict:
-    """openpi's SigLIP tree (blocks stacked) -> `engine.vision`'s: q/k/v fused into one (D, 3 N H) GEMM with one
-    bias, the attention output as (N H, D); each block's LayerNorm parameters and residual biases as one table
-    (`vectors`, rows LN1_SCALE ... FC2_BIAS), which the LayerNorm kernel reads by row in place, and which a call takes
-    as one buffer where it took six (the host pays about 1.7 us per buffer per call: docs/BENCHMARKS.md, "The host's
-    share of a call"); the patch embedding and position table as they are (an f32 island)."""
+    """openpi's SigLIP tree (blocks stacked) -> `engine.vision`'s: q/k/v fused into one (D, 3 N H) GEMM, the
+    attention output as (N H, D); every block's LayerNorm parameters and biases in one table, `vectors` (L, R, D)
+    of f32 (rows LN1_SCALE ... FC1_BIAS), outside the blocks: XLA takes the biases out of it in one kernel for all
+    blocks, the LayerNorm kernel reads its rows in place, and a call takes it as one buffer where it took 4 L (the
+    host pays about 1.2-1.7 us per buffer per call: docs/BENCHMARKS.md, "The host's share of a call" and session
+    72); the patch embedding and position table as they are (an f32 island)."""
     blk = img["Transformer"]["encoderblock"]
     mha, mlp = blk["MultiHeadDotProductAttention_0"], blk["MlpBlock_0"]
     ln1, ln2 = blk["LayerNorm_0"], blk["LayerNorm_1"]
+    qkv_bias = jnp.concatenate([einops.rearrange(mha[n]["bias"], "L N H -> L (N H)")
+                                for n in ("query", "key", "value")], axis=-1)
+    if qkv_bias.shape[-1] != 3 * ln1["scale"].shape[-1]:
+        raise ValueError(f"SigLIP's q/k/v bias has {qkv_bias.shape[-1]} values a block, not 3 x its width "
+                         f"{ln1['scale'].shape[-1]}")
+    vectors = _vectors([ln1["scale"], ln1["bias"], ln2["scale"], ln2["bias"]]
+                       + [b.astype(dtype) for b in (mha["out"]["bias"], mlp["Dense_1"]["bias"], qkv_bias,
+                                                    mlp["Dense_0"]["bias"])])
     blocks = {
-        "vectors": _vectors([ln1["scale"], ln1["bias"], ln2["scale"], ln2["bias"],
-                             mha["out"]["bias"].astype(dtype), mlp["Dense_1"]["bias"].astype(dtype)]),
         "qkv": _fused([(mha[n]["kernel"], "L D N H -> L D (N H)") for n in ("query", "key", "value")], dtype),
-        "qkv_bias": jnp.concatenate([einops.rearrange(mha[n]["bias"], "L N H -> L (N H)")
-                                     for n in ("query", "key", "value")], axis=-1).astype(dtype),
         "out": _rearrange(mha["out"]["kernel"], "L N H D -> L (N H) D", dtype),
         "fc1": _rearrange(mlp["Dense_0"]["kernel"], "L D F -> L D F", dtype),
-        "fc1_bias": mlp["Dense_0"]["bias"].astype(dtype),
         "fc2": _rearrange(mlp["Dense_1"]["kernel"], "L F D -> L F D", dtype),
     }
     head = {"kernel": _rearrange(img["head"]["kernel"], "D E -> D E", dtype), "bias": img["head"]["bias"].astype(dtype)}
     norm = img["Transformer"]["encoder_norm"]
-    return {"embedding": img["embedding"], "pos": img["pos_embedding"], "blocks": blocks,
+    return {"embedding": img["embedding"], "pos": img["pos_embedding"], "blocks": blocks, "vectors": vectors,
             "norm": _vectors([norm["scale"], norm["bias"]]), "head": head}
 
 
