@@ -1,15 +1,16 @@
 """Does the host's dispatch of the vision program shrink with fewer weight buffers? The engine passes SigLIP's 27
-blocks as 7 buffers each (189 of the vision program's arguments; the host pays about 1 µs per buffer per call
-before the first kernel, docs/BENCHMARKS.md "The host's share of a call"). Here the blocks stay stacked, (27, ...)
-per weight, and the unrolled program slices each layer's weights inside itself. Variants, timed round-robin in one
-process as the whole call (vision program, then the engine's own prefix + denoise program):
+blocks as 4 matrices each and one table of every block's vectors (109 of the vision program's arguments; the host
+pays about 1-1.7 µs per buffer per call before the first kernel, docs/BENCHMARKS.md "The host's share of a call").
+Here the matrices stay stacked too, (27, ...) per weight, and the unrolled program slices each layer's weights
+inside itself. Variants, timed round-robin in one process as the whole call (vision program, then the engine's own
+prefix + denoise program):
 
   engine       the engine's call (`Engine.sample_packed`)
   stacked      the vision program on the stacked blocks (XLA's default options)
   stacked_dsf  the same with `xla_gpu_enable_dynamic_slice_fusion` (GEMMs read their operand slices in place)
-  stacked_small  only the blocks' vectors and biases stacked (3 of 7 buffers a block), the matrices per layer
 
-Each vision program's kernels from a profiler trace (a slice XLA copies shows as extra kernels and time).
+Each vision program's kernels from a profiler trace (a slice XLA copies shows as extra kernels and time). Session
+37 also had the vectors alone stacked, which the engine's layout now is (session 72).
 
     python scripts/stacked_probe.py --preset pi0_base --iters 40 --out stacked.json
 """
@@ -38,25 +39,16 @@ def main() -> None:
     sched = engine.schedule(args.steps)
     img = engine.weights["img"]
     depth = config.siglip.depth
-    small = ("vectors", "qkv_bias", "fc1_bias")   # the blocks' vectors, read by elementwise ops and epilogues
-    trees = {"stacked": {"img": {**img, "blocks": jax.tree.map(lambda *xs: jnp.stack(xs), *img["blocks"])}},
-             "stacked_small": {"img": {**img, "blocks": {
-                 "big": [{k: v for k, v in b.items() if k not in small} for b in img["blocks"]],
-                 "small": {k: jnp.stack([b[k] for b in img["blocks"]]) for k in small}}}}}
+    trees = {"stacked": {"img": {**img, "blocks": jax.tree.map(lambda *xs: jnp.stack(xs), *img["blocks"])}}}
 
     def encode(w, images):
-        blocks = w["img"]["blocks"]
-        if "big" in blocks:
-            blocks = [{**big, **sm} for big, sm in zip(blocks["big"], weights_lib.unstack(blocks["small"], depth))]
-        else:
-            blocks = weights_lib.unstack(blocks, depth)
+        blocks = weights_lib.unstack(w["img"]["blocks"], depth)
         return programs.encode_images(config, {"img": {**w["img"], "blocks": blocks}}, images, unroll=True,
                                       attention=engine.attention, kernels=engine.kernels)
 
     base_opts = matmul.compiler_options(engine.stage_weights("encode_images"), engine.gemm, vision_tower=True) or {}
     variants = {"stacked": ("stacked", base_opts),
-                "stacked_dsf": ("stacked", {**base_opts, "xla_gpu_enable_dynamic_slice_fusion": True}),
-                "stacked_small": ("stacked_small", base_opts)}
+                "stacked_dsf": ("stacked", {**base_opts, "xla_gpu_enable_dynamic_slice_fusion": True})}
     compiled = {name: (jax.jit(encode).lower(trees[tree], images).compile(compiler_options=opts), trees[tree])
                 for name, (tree, opts) in variants.items()}
     want = np.asarray(vision(engine.weights, images), np.float32)

@@ -89,15 +89,10 @@ def _expert_weights(attn: dict, mlp: dict, suffix: str, dtype) -> dict:
 # A SigLIP block's rows in the tower's `vectors` table (`vision_weights`): its LayerNorms' scales and biases, the
 # biases of the two Dense outputs that are added to the residual stream (each inside the next LayerNorm), then
 # q/k/v's bias (3 D values: SigLIP's heads span its width) over three rows and fc1's (F values) over the rows from
-# FC1_BIAS, zero-padded to whole rows (`vision_rows`); the encoder's final norm has a table of its own, its first two
-# rows.
+# FC1_BIAS, ceil(F / D) of them, zero-padded (`_vectors`); the encoder's final norm has a table of its own, its first
+# two rows.
 LN1_SCALE, LN1_BIAS, LN2_SCALE, LN2_BIAS, OUT_BIAS, FC2_BIAS, QKV_BIAS = range(7)
 FC1_BIAS = QKV_BIAS + 3
-
-
-def vision_rows(width: int, mlp_dim: int) -> int:
-    """The rows of a SigLIP block in the tower's `vectors` table."""
-    return FC1_BIAS + -(-mlp_dim // width)
 
 
 def _vectors(rows) -> jax.Array:

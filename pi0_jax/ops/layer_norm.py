@@ -93,8 +93,8 @@ def layer_norm(x, vectors, rows: tuple[int, int], *, residual=None, eps: float =
     op rounded to x's dtype as XLA rounds them. quantise: an activation scale (f32 scalar, `matmul.input_scale`):
     the LayerNorm, in dtype, then quantised to e4m3 as `formats.quantise` does (the input of an FP8 GEMM).
 
-    The vectors come as tables and rows (a block's `vectors`, `engine.weights.vision_weights`), so the kernel reads
-    them where they are: a vector sliced out before the call would be a copy of its own.
+    The vectors come as tables and rows (the tower's `vectors` as (L R, D), `engine.weights.vision_weights`), so the
+    kernel reads them where they are: a vector sliced out before the call would be a copy of its own.
 
     Under a sharded jit (the simulator's batch mesh) each device normalises its own rows: XLA cannot split a kernel
     it does not know, and would otherwise gather every row onto every device."""
