@@ -6,6 +6,7 @@ parser defines them (a --help test that only searched the printed text would pas
 import argparse
 import io
 
+import jax
 import pytest
 import sentencepiece
 
@@ -28,6 +29,39 @@ SLOW_FIRST = ("test_roadmap.py", "test_cli.py", "test_sim_distributed.py")
 
 def pytest_collection_modifyitems(items):
     items.sort(key=lambda item: item.path.name not in SLOW_FIRST)   # stable: the order within each group stays
+
+
+# Most of the suite's time is XLA:CPU compiling programs that then run once or twice. With jax's
+# `jax_disable_most_optimizations` (LLVM at -O0, its expensive passes off) they compile in a third to half the time and
+# run 2-3x slower. It is on except in the modules whose time is running programs (MJX's physics and rendering, the
+# demo, the trainer) and in tests marked `optimized`: those whose time is running too, and those whose FP8 results sit
+# on e4m3 rounding boundaries that LLVM's optimisations move (at -O0 the engine's FP8 path and the reference round
+# some values apart). A switch clears jax's caches, so no program compiled one way runs the other way.
+OPTIMIZED_MODULES = {"test_cli.py", "test_sim_distributed.py", "test_sim_env.py", "test_sim_policy.py",
+                     "test_sim_render.py", "test_sim_tasks.py", "test_train.py"}
+
+
+def pytest_configure(config):
+    config.addinivalue_line("markers", "optimized: compile with XLA's optimisations (conftest.py)")
+
+
+def _optimise(on: bool) -> None:
+    if jax.config.values["jax_disable_most_optimizations"] == on:
+        jax.clear_caches()
+        jax.config.update("jax_disable_most_optimizations", not on)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _module_optimisation(request):
+    """The module's setting, before its module fixtures compile anything."""
+    _optimise(request.path.name in OPTIMIZED_MODULES)
+
+
+@pytest.fixture(autouse=True)
+def _test_optimisation(request, _module_optimisation):
+    _optimise(request.path.name in OPTIMIZED_MODULES or request.node.get_closest_marker("optimized") is not None)
+    yield
+    _optimise(request.path.name in OPTIMIZED_MODULES)
 
 
 @pytest.fixture(scope="session")

@@ -257,6 +257,7 @@ def test_rtc_weights_follow_the_paper():
     assert 1.0 > w[2] > w[3] > w[4] > 0.0
 
 
+@pytest.mark.optimized   # its time is MJX's run
 def test_eval_cli_latency_execution_reuse(tmp_path, capsys):
     out = tmp_path / "eval"
     assert cli.main(["eval", "--policy", str(EMBEDDED), "--suite", TASKS[0], "--episodes-per-task", "2",
