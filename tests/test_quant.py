@@ -175,7 +175,7 @@ def _engine_and_reference(config, qp, params, obs, steps):
             np.asarray(_sample(config, params, obs, noise, steps)))
 
 
-@pytest.mark.optimized   # e4m3 boundaries (conftest.py)
+@pytest.mark.optimized   # its inputs' draw at -O0 puts a value on an e4m3 boundary (conftest.py)
 def test_engine_fp8_equals_the_reference_with_the_same_weights_and_hands_xla_fp8_dots(monkeypatch):
     """The engine's FP8 path (fused, re-laid-out QArrays) computes what the reference model computes with the same
     quantised params; its prefix and its SigLIP hand XLA e4m3 x e4m3 dots that contract the weight's last axis (the
@@ -219,7 +219,7 @@ def test_engine_fp8_equals_the_reference_with_the_same_weights_and_hands_xla_fp8
             assert re.search(rf"contracting_dims = \[\d+\] x \[{rhs_rank - 1}\]", line), line
 
 
-@pytest.mark.optimized   # e4m3 boundaries (conftest.py)
+@pytest.mark.optimized   # its inputs' draw at -O0 puts a value on an e4m3 boundary (conftest.py)
 def test_every_gemm_quantises_the_expert_activations_calibrated_over_the_denoise_loop():
     """"every-gemm": the action expert's GEMMs FP8 x FP8 too, with static scales calibrated over every denoise step
     (more steps record more, never less); the engine equals the reference with the same quantised params, and its
