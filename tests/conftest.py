@@ -55,15 +55,17 @@ def _optimise(on: bool) -> None:
 
 @pytest.fixture(autouse=True, scope="module")
 def _module_optimisation(request):
-    """The module's setting, before its module fixtures compile anything."""
-    _optimise(request.path.name in OPTIMIZED_MODULES)
+    """The module's setting, made before its module fixtures compile anything and restored after each test."""
+    optimised = request.path.name in OPTIMIZED_MODULES
+    _optimise(optimised)
+    return optimised
 
 
 @pytest.fixture(autouse=True)
 def _test_optimisation(request, _module_optimisation):
-    _optimise(request.path.name in OPTIMIZED_MODULES or request.node.get_closest_marker("optimized") is not None)
+    _optimise(_module_optimisation or request.node.get_closest_marker("optimized") is not None)
     yield
-    _optimise(request.path.name in OPTIMIZED_MODULES)
+    _optimise(_module_optimisation)
 
 
 @pytest.fixture(scope="session")

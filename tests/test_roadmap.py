@@ -110,10 +110,10 @@ def rollout():
         (state, pss, _), (acts, chunks) = jax.lax.scan(replan, (state, pss, keys), None, length=REPLANS)
         return acts.reshape((-1,) + acts.shape[2:]), chunks, state, pss
 
-    # The ten variants' rollout is one large program whose XLA:CPU compile is most of this module's time: LLVM at -O0
-    # compiles it in about 35 s instead of 80 (it runs 2 s slower). The test compares variants inside this program.
-    args = (tuple(p.params for p in pols), state, keys)
-    acts, chunks, state, pss = jax.jit(run).lower(*args).compile({"xla_backend_optimization_level": 0})(*args)
+    # The ten variants' rollout is one large program whose XLA:CPU compile is most of this module's time; like the
+    # module's other programs it compiles with LLVM at -O0 (conftest.py: about 35 s instead of 80, and it runs 2 s
+    # slower). The test compares variants inside this program.
+    acts, chunks, state, pss = jax.jit(run)(tuple(p.params for p in pols), state, keys)
     return {"acts": np.asarray(acts), "chunks": np.asarray(chunks), "state": state, "pss": pss, "qpos0": qpos0,
             "index": {k: i for i, k in enumerate(VARIANTS)}, "horizon": config.action_horizon}
 
