@@ -34,11 +34,9 @@ def pytest_collection_modifyitems(items):
 # Most of the suite's time is XLA:CPU compiling programs that then run once or twice. With jax's
 # `jax_disable_most_optimizations` (LLVM at -O0, its expensive passes off) they compile in a third to half the time and
 # run 2-3x slower. It is on except in the modules whose time is running programs (MJX's physics and rendering, the
-# demo, the trainer) and in tests marked `optimized`: those whose time is running too, and three FP8 comparisons that
-# sit on e4m3 rounding boundaries (at -O0 the GELU kernel and its XLA form round 0.12 % of values apart, not 0.05 %;
-# the FP8 engine tests' random inputs, drawn by jax, come out 1e-7 apart, and with those the engine and the reference
-# round a value apart however they are compiled: docs/BENCHMARKS.md, session 73). A switch clears jax's caches, so no
-# program compiled one way runs the other way.
+# demo, the trainer) and in tests marked `optimized`: those whose time is running too, and an FP8 comparison that sits
+# on e4m3 rounding boundaries (at -O0 the GELU kernel and its XLA form round 0.12 % of values apart, not 0.05 %:
+# docs/BENCHMARKS.md, session 73). A switch clears jax's caches, so no program compiled one way runs the other way.
 OPTIMIZED_MODULES = {"test_cli.py", "test_sim_distributed.py", "test_sim_env.py", "test_sim_policy.py",
                      "test_sim_render.py", "test_sim_tasks.py", "test_train.py"}
 

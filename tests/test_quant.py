@@ -164,18 +164,40 @@ def test_quantized_checkpoint_round_trips(dummy, tmp_path):
         checkpoint.save_checkpoint(tmp_path / "q", qp, config)
 
 
-def _engine_and_reference(config, qp, params, obs, steps):
-    """The engine's actions with the quantised params `qp`, and the reference sampler's with `qp` and with the plain
-    `params`, all from one noise: (engine, noise, engine's, reference's, plain reference's)."""
+# FP8's rounding is a step function: a value within an f32 ulp or two of a midpoint between e4m3 values rounds either
+# way as two programs sum the same products in other orders, and at the dummy size one flipped element moves the
+# actions by 1e-4 to 2e-2. About a quarter of the draws hold such a value somewhere (the engine against the reference:
+# 7 and 9 of 30 draws for "all" and "every-gemm"; the reference against itself with its images scaled by 1 + 2e-7:
+# 12 of 30), so the FP8 paths are compared over a few draws: equal to 1e-5 on one at least, finite on all.
+# A defect of the FP8 path (a scale, a layout, a product left unquantised) shows on every draw.
+DRAWS = 4
+
+
+def _draws(config):
+    """DRAWS observations (apart from the calibration set's) with a noise each."""
+    rng = np.random.default_rng(0)
+    return [(obs, jnp.asarray(rng.normal(size=(1, config.action_horizon, config.action_dim)), jnp.float32))
+            for obs in schemes.sample_observations(config, DRAWS, seed=7)]
+
+
+def _relative(got, want) -> np.ndarray:
+    return np.array([np.linalg.norm(g - w) / np.linalg.norm(w) for g, w in zip(got, want)])
+
+
+def _equal_but_for_e4m3_flips(got, want) -> None:
+    err = _relative(got, want)
+    assert np.isfinite(got).all() and err.min() < 1e-5, err
+
+
+def _engine_and_reference(config, qp, params, draws, steps):
+    """The engine with the quantised params `qp`, and on each draw its actions, the reference sampler's with `qp`
+    and the reference's with the plain `params`: (engine, engine's, reference's, plain reference's)."""
     engine = Engine(config, qp, cache_dir=False)
-    noise = jnp.asarray(np.random.default_rng(0).normal(size=(1, config.action_horizon, config.action_dim)),
-                        jnp.float32)
-    got = np.asarray(engine.sample_actions(obs, noise, num_steps=steps))
-    return (engine, noise, got, np.asarray(_sample(config, qp, obs, noise, steps)),
-            np.asarray(_sample(config, params, obs, noise, steps)))
+    got = [np.asarray(engine.sample_actions(obs, noise, num_steps=steps)) for obs, noise in draws]
+    return (engine, got, [np.asarray(_sample(config, qp, obs, noise, steps)) for obs, noise in draws],
+            [np.asarray(_sample(config, params, obs, noise, steps)) for obs, noise in draws])
 
 
-@pytest.mark.optimized   # its inputs' draw at -O0 puts a value on an e4m3 boundary (conftest.py)
 def test_engine_fp8_equals_the_reference_with_the_same_weights_and_hands_xla_fp8_dots(monkeypatch):
     """The engine's FP8 path (fused, re-laid-out QArrays) computes what the reference model computes with the same
     quantised params; its prefix and its SigLIP hand XLA e4m3 x e4m3 dots that contract the weight's last axis (the
@@ -185,20 +207,21 @@ def test_engine_fp8_equals_the_reference_with_the_same_weights_and_hands_xla_fp8
     calib = schemes.sample_observations(config, 2, seed=1)
     qp = schemes.quantize_params(params, "all", schemes.calibrate(config, params, calib, "all",
                                                                   percentile=None)["amax"])
-    engine, noise, got, want, plain = _engine_and_reference(config, qp, params, calib[1], 2)
-    assert np.linalg.norm(got - want) / np.linalg.norm(want) < 1e-5
-    assert np.linalg.norm(want - plain) / np.linalg.norm(plain) > 1e-3  # FP8 is in use
+    draws = _draws(config)
+    engine, got, want, plain = _engine_and_reference(config, qp, params, draws, 2)
+    _equal_but_for_e4m3_flips(got, want)
+    assert (_relative(want, plain) > 1e-3).all()  # FP8 is in use
     qarrays = [w for w in jax.tree.leaves(engine.weights, is_leaf=lambda v: isinstance(v, formats.QArray))
                if isinstance(w, formats.QArray) and w.act_scale is not None]
     assert qarrays and all(w.folded for w in qarrays)   # each product's output scale made with the weights
     for norm in ("xla", "pallas"):   # the vision kernels between FP8 GEMMs: attention, and the LayerNorm too
         monkeypatch.setattr(paths, "vision_norm", lambda kernels, images, platform=None, n=norm: n)
         kernel = Engine(config, qp, attention="vision=pallas", cache_dir=False)
-        np.testing.assert_allclose(kernel.sample_actions(calib[1], noise, num_steps=2), got, rtol=1e-5,
-                                   atol=1e-5)
+        _equal_but_for_e4m3_flips([np.asarray(kernel.sample_actions(obs, noise, num_steps=2))
+                                   for obs, noise in draws], got)
     monkeypatch.undo()
 
-    cameras, bucket = engine.plan(calib[1])
+    cameras, bucket = engine.plan(draws[0][0])
     spec = jax.ShapeDtypeStruct
     weights = jax.tree.map(lambda x: spec(x.shape, x.dtype), engine.weights)
     image_tokens = spec((1, len(cameras) * config.siglip.num_patches, config.paligemma.width), jnp.float32)
@@ -219,7 +242,6 @@ def test_engine_fp8_equals_the_reference_with_the_same_weights_and_hands_xla_fp8
             assert re.search(rf"contracting_dims = \[\d+\] x \[{rhs_rank - 1}\]", line), line
 
 
-@pytest.mark.optimized   # its inputs' draw at -O0 puts a value on an e4m3 boundary (conftest.py)
 def test_every_gemm_quantises_the_expert_activations_calibrated_over_the_denoise_loop():
     """"every-gemm": the action expert's GEMMs FP8 x FP8 too, with static scales calibrated over every denoise step
     (more steps record more, never less); the engine equals the reference with the same quantised params, and its
@@ -239,20 +261,22 @@ def test_every_gemm_quantises_the_expert_activations_calibrated_over_the_denoise
     gate_up = schemes._get(qp, ("PaliGemma", "llm", "layers", "mlp_1", "gating_einsum"))
     np.testing.assert_allclose(np.asarray(gate_up.act_scale), three["expert/gate_up"] / 448, rtol=1e-6)
 
-    engine, noise, got, want, plain = _engine_and_reference(config, qp, params, calib[1], 3)
-    weights_only = np.asarray(_sample(config, schemes.quantize_params(params, "all", three), calib[1], noise, 3))
-    assert np.linalg.norm(got - want) / np.linalg.norm(want) < 1e-5
-    assert np.linalg.norm(want - weights_only) / np.linalg.norm(weights_only) > 1e-4   # activations quantised too
-    assert report.cosine(want, plain) > 0.99
+    draws = _draws(config)
+    engine, got, want, plain = _engine_and_reference(config, qp, params, draws, 3)
+    _equal_but_for_e4m3_flips(got, want)
+    weights_only = schemes.quantize_params(params, "all", three)
+    weights_only = [np.asarray(_sample(config, weights_only, obs, noise, 3)) for obs, noise in draws]
+    assert (_relative(want, weights_only) > 1e-4).all()   # activations quantised too
+    assert all(report.cosine(w, p) > 0.99 for w, p in zip(want, plain))
 
-    cameras, bucket = engine.plan(calib[1])
+    cameras, bucket = engine.plan(draws[0][0])
     spec = jax.ShapeDtypeStruct
     weights = jax.tree.map(lambda x: spec(x.shape, x.dtype), engine.weights)
     size = config.image_size
     fused = jax.jit(functools.partial(programs.infer, config, num_steps=3, unroll=True, unroll_steps=False)).lower(
         weights, engine.schedule(3), spec((len(cameras), 1, size, size, 3), jnp.float32),
         spec((len(cameras), 1), bool), spec((1, bucket), jnp.int32), spec((1, bucket), bool),
-        spec((1, config.action_dim), jnp.float32), noise)
+        spec((1, config.action_dim), jnp.float32), draws[0][1])
     dots = [line for line in fused.as_text().splitlines() if "dot_general" in line and "f8E4M3FN" in line]
     # vision (4 per block + the head) and prefix (the last layer: K/V only) as above; π0's state token once a call
     # through the expert (as the prefix: its keys and values are all that is read); the expert's loop: 4 per layer
