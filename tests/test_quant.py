@@ -180,6 +180,11 @@ def _draws(config):
             for obs in schemes.sample_observations(config, DRAWS, seed=7)]
 
 
+def _on_draws(sample, draws) -> list:
+    """sample(obs, noise) on each draw, as numpy."""
+    return [np.asarray(sample(obs, noise)) for obs, noise in draws]
+
+
 def _relative(got, want) -> np.ndarray:
     return np.array([np.linalg.norm(g - w) / np.linalg.norm(w) for g, w in zip(got, want)])
 
@@ -193,9 +198,9 @@ def _engine_and_reference(config, qp, params, draws, steps):
     """The engine with the quantised params `qp`, and on each draw its actions, the reference sampler's with `qp`
     and the reference's with the plain `params`: (engine, engine's, reference's, plain reference's)."""
     engine = Engine(config, qp, cache_dir=False)
-    got = [np.asarray(engine.sample_actions(obs, noise, num_steps=steps)) for obs, noise in draws]
-    return (engine, got, [np.asarray(_sample(config, qp, obs, noise, steps)) for obs, noise in draws],
-            [np.asarray(_sample(config, params, obs, noise, steps)) for obs, noise in draws])
+    return (engine, _on_draws(functools.partial(engine.sample_actions, num_steps=steps), draws),
+            _on_draws(lambda obs, noise: _sample(config, qp, obs, noise, steps), draws),
+            _on_draws(lambda obs, noise: _sample(config, params, obs, noise, steps), draws))
 
 
 def test_engine_fp8_equals_the_reference_with_the_same_weights_and_hands_xla_fp8_dots(monkeypatch):
@@ -217,8 +222,7 @@ def test_engine_fp8_equals_the_reference_with_the_same_weights_and_hands_xla_fp8
     for norm in ("xla", "pallas"):   # the vision kernels between FP8 GEMMs: attention, and the LayerNorm too
         monkeypatch.setattr(paths, "vision_norm", lambda kernels, images, platform=None, n=norm: n)
         kernel = Engine(config, qp, attention="vision=pallas", cache_dir=False)
-        _equal_but_for_e4m3_flips([np.asarray(kernel.sample_actions(obs, noise, num_steps=2))
-                                   for obs, noise in draws], got)
+        _equal_but_for_e4m3_flips(_on_draws(functools.partial(kernel.sample_actions, num_steps=2), draws), got)
     monkeypatch.undo()
 
     cameras, bucket = engine.plan(draws[0][0])
@@ -264,8 +268,8 @@ def test_every_gemm_quantises_the_expert_activations_calibrated_over_the_denoise
     draws = _draws(config)
     engine, got, want, plain = _engine_and_reference(config, qp, params, draws, 3)
     _equal_but_for_e4m3_flips(got, want)
-    weights_only = schemes.quantize_params(params, "all", three)
-    weights_only = [np.asarray(_sample(config, weights_only, obs, noise, 3)) for obs, noise in draws]
+    fp8_weights = schemes.quantize_params(params, "all", three)   # the activations unquantised
+    weights_only = _on_draws(lambda obs, noise: _sample(config, fp8_weights, obs, noise, 3), draws)
     assert (_relative(want, weights_only) > 1e-4).all()   # activations quantised too
     assert all(report.cosine(w, p) > 0.99 for w, p in zip(want, plain))
 
