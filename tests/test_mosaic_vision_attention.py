@@ -35,8 +35,8 @@ def _flax(qkv, images, heads):
 
 @pytest.mark.parametrize("images,tokens,heads,head_dim", [(3, 64, 2, 20), (2, 64, 4, 24), (1, 64, 2, 72)])
 def test_kernel_matches_flax_f32(images, tokens, heads, head_dim):
-    """Every head of every image, the last pair's value columns reaching past the row's end (the interpreter pads
-    them with zeros, as TMA reads them)."""
+    """Every head of every image: each of a pair's two windows (at 20 and 24 the second starts inside the first
+    head, at 72 at column 64)."""
     qkv = _qkv(images, tokens, heads, head_dim)
     np.testing.assert_allclose(mva.attention(qkv, images=images, num_heads=heads), _flax(qkv, images, heads), **TOL)
 

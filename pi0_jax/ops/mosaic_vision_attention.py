@@ -43,7 +43,8 @@ SMEM_BYTES = 227 * 1024
 
 
 def _smem(tokens: int, head_dim: int, itemsize: int) -> int:
-    """Shared memory bytes of a CTA: the pair's keys and values, and per warpgroup its queries and output."""
+    """Shared memory bytes of a CTA, at most: the pair's keys and values, and per warpgroup its queries (no wider
+    than the pair) and output."""
     return itemsize * (2 * tokens * 2 * head_dim + 2 * ROWS * (2 * head_dim + head_dim))
 
 
