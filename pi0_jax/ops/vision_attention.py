@@ -153,13 +153,13 @@ def attention(qkv, *, images: int, num_heads: int, col_scale=None, bias=None, qu
     pieces(hd)
     if min(fit(blocks.q, t), fit(blocks.kv, t)) < ALIGN:
         raise ValueError(f"the Pallas vision attention needs T divisible by {ALIGN}, got {t}")
+    if jax.default_backend() == "cpu" and _mosaic(qkv.dtype, t, num_heads, hd, scaled or quantise is not None):
+        # the interpreter's host callbacks cannot be partitioned
+        return mosaic_vision_attention.attention(qkv, images=images, num_heads=num_heads)
     # the unused operands are numpy constants, not traced ops (XLA still fills a splat once a call, a broadcast)
     cs = col_scale.astype(jnp.float32) if scaled else np.ones((c,), np.float32)
     b = bias if scaled else np.zeros((c,), qkv.dtype)
     act = np.ones((1,), np.float32) if quantise is None else jnp.reshape(quantise, (1,)).astype(jnp.float32)
-    if jax.default_backend() == "cpu" and _mosaic(qkv.dtype, t, num_heads, hd, scaled or quantise is not None):
-        # the interpreter's host callbacks cannot be partitioned
-        return mosaic_vision_attention.attention(qkv, images=images, num_heads=num_heads)
     return _partitioned(qkv, cs, b, act, images, num_heads, blocks, scaled, quantise is not None)
 
 
