@@ -33,7 +33,7 @@ import profile_engine  # noqa: E402
 from pi0_jax import benchmark  # noqa: E402
 from pi0_jax.config import get_config  # noqa: E402
 from pi0_jax.engine import Engine, layers, paths, programs, runtime, vision  # noqa: E402
-from pi0_jax.ops import expert_kernels, formats, fp8_geglu, layout, vision_attention  # noqa: E402
+from pi0_jax.ops import expert_kernels, formats, fp8_geglu, layout  # noqa: E402
 from pi0_jax.quant.schemes import SCHEMES  # noqa: E402
 
 GRAPHS = {"xla_gpu_graph_min_graph_size": 1}
@@ -137,9 +137,6 @@ VARIANTS = {
     # folded into the weights, `formats.fold_scales`)
     "geglu-bf16": {},
     "scales-apart": {},
-    # SigLIP's attention in bf16 on the Mosaic GPU kernel (PATCHES: `vision_attention.MOSAIC`,
-    # `ops.mosaic_vision_attention`), where the engine runs the Pallas Triton kernel
-    "mosaic-vision-attention": {},
 }
 ENGINE_KW = {"unroll-steps": {"unroll_steps": True}, "no-overlap": {"overlap": "off"}, "overlap-on": {"overlap": "on"}}
 SCHEDULING = {"overlap-lhs": {"xla_gpu_command_buffer_scheduling_mode": "LHS"}}
@@ -177,8 +174,7 @@ PATCHES = {"gelu-tanh": (layers, {"gelu_tanh": lambda x: jax.nn.gelu(x, approxim
                                                                                   cluster=False)}),
            "fp8-tanh": (fp8_geglu, {"LAUNCH": dataclasses.replace(fp8_geglu.LAUNCH, tanh=True),
                                     "GELU_LAUNCH": dataclasses.replace(fp8_geglu.GELU_LAUNCH, tanh=True)}),
-           "scales-apart": (formats, {"fold_scales": lambda tree: tree}),
-           "mosaic-vision-attention": (vision_attention, {"MOSAIC": True})}
+           "scales-apart": (formats, {"fold_scales": lambda tree: tree})}
 
 
 def conv_patch_embed(images, kernel, bias, p: int):

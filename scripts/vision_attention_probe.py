@@ -1,6 +1,5 @@
 """SigLIP's attention alone at the tower's shape (π0 and π0.5 So400m: 16 heads of 72, 256 tokens an image, 3 images
-at B = 1): the Pallas Triton kernel (`ops.vision_attention`) at several block settings and the Mosaic GPU kernel
-(`ops.mosaic_vision_attention`), against cuDNN's fused attention on
+at B = 1): the Pallas kernel (`ops.vision_attention`) at several block settings, against cuDNN's fused attention on
 the same q/k/v (three copies first, as the engine's cuDNN path) and XLA's. Kernel µs per call from a jax.profiler
 trace (`profile_engine.kernel_times`), and each output's largest difference from XLA's in f32 of the same bf16
 inputs. A GPU probe, not a test.
@@ -27,7 +26,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from profile_engine import kernel_times, write_json  # noqa: E402
 
-from pi0_jax.ops import attention as ops_attention, mosaic_vision_attention, vision_attention  # noqa: E402
+from pi0_jax.ops import attention as ops_attention, vision_attention  # noqa: E402
 
 HEADS, HEAD_DIM, TOKENS = 16, 72, 256
 DEFAULT_BLOCKS = ("128,64,4,2", "64,64,4,2", "64,128,4,2", "64,256,4,1", "64,256,8,1", "32,256,4,1", "32,256,2,1",
@@ -55,7 +54,6 @@ def main() -> None:
         ref = ref.reshape(images * TOKENS, -1)
         fns = {"xla": jax.jit(lambda x: nn.dot_product_attention(*split(x, images), dtype=jnp.bfloat16)),
                "cudnn": jax.jit(lambda x: ops_attention.fused(*split(x, images)))}
-        fns["mosaic"] = jax.jit(lambda x: mosaic_vision_attention.attention(x, images=images, num_heads=HEADS))
         for spec in args.blocks or DEFAULT_BLOCKS:
             bq, bkv, warps, stages = (int(s) for s in spec.split(","))
             blocks = vision_attention.Blocks(q=bq, kv=bkv, num_warps=warps, num_stages=stages)

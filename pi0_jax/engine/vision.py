@@ -10,10 +10,9 @@ to the activation dtype (the variance in two passes, the mean then the mean of s
 E[x²] - E[x]²: equal to f32 rounding, and XLA makes it one kernel where it made two, docs/BENCHMARKS.md); each
 Dense in the activation dtype with its bias added in it; GELU-tanh; attention as Flax's `dot_product_attention`
 ("xla"), cuDNN's fused kernel ("cudnn"), or a Pallas kernel that reads q, k and v in place from the fused GEMM's
-output ("pallas", `ops.vision_attention`; in bf16 on a Hopper GPU its Mosaic GPU form can take it,
-`ops.mosaic_vision_attention`, off until timed). Each residual add is done with the LayerNorm after it
-(`add_norm`): XLA's ops, or one Pallas kernel (norm="pallas", `ops.layer_norm`), so a block hands the next its MLP
-output with the bias not yet added.
+output ("pallas", `ops.vision_attention`). Each residual add is done with the LayerNorm after it (`add_norm`): XLA's
+ops, or one Pallas kernel (norm="pallas", `ops.layer_norm`), so a block hands the next its MLP output with the bias
+not yet added.
 
 FP8 x FP8 GEMMs (`matmul.raw_matmul`) take an e4m3 input and give a raw product whose f32 output scale is applied by
 whoever reads it. With the kernels, that is no pass of its own: the LayerNorm kernel writes the next GEMM's e4m3

@@ -22,10 +22,6 @@ to the normalised output (the weights sum to 1). So the kernel agrees with XLA's
 to bf16 rounding in bf16. Triton divides f32 approximately (within 2 ulp), so a value that close to a rounding
 boundary of e4m3 may round the other way: rare, one e4m3 step.
 
-In bf16 without FP8's ends on a Hopper GPU, `attention` can run the Mosaic GPU kernel of
-`ops.mosaic_vision_attention` instead (`MOSAIC`, off until timed), which takes a pair of heads a CTA and all of an
-image's keys at once.
-
 Axis legend: R rows (images x T tokens, image-major), T tokens per image, N heads, H head dim.
 """
 
@@ -43,16 +39,10 @@ from jax.experimental.custom_partitioning import custom_partitioning
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from pi0_jax.ops import mosaic_vision_attention
 from pi0_jax.ops.formats import E4M3, E4M3_MAX
 from pi0_jax.ops.pallas_base import ALIGN, call, dot, fit, plgpu
 
 NEG = float(np.finfo(np.float32).min)  # the running max before any key (no key is masked here)
-# bf16 without FP8's ends on a Hopper GPU: the Mosaic GPU kernel (`ops.mosaic_vision_attention`) where it applies.
-# Off until timed on a GPU (compiled for sm_90a without one: 158 registers a thread, no spills; session 75). On a CPU
-# only with MOSAIC_ON_CPU too (tests: its interpreter is slower than the Triton kernel's)
-MOSAIC = False
-MOSAIC_ON_CPU = False
 
 
 @dataclasses.dataclass(frozen=True)
@@ -153,20 +143,11 @@ def attention(qkv, *, images: int, num_heads: int, col_scale=None, bias=None, qu
     pieces(hd)
     if min(fit(blocks.q, t), fit(blocks.kv, t)) < ALIGN:
         raise ValueError(f"the Pallas vision attention needs T divisible by {ALIGN}, got {t}")
-    if jax.default_backend() == "cpu" and _mosaic(qkv.dtype, t, num_heads, hd, scaled or quantise is not None):
-        # the interpreter's host callbacks cannot be partitioned
-        return mosaic_vision_attention.attention(qkv, images=images, num_heads=num_heads)
     # the unused operands are numpy constants, not traced ops (XLA still fills a splat once a call, a broadcast)
     cs = col_scale.astype(jnp.float32) if scaled else np.ones((c,), np.float32)
     b = bias if scaled else np.zeros((c,), qkv.dtype)
     act = np.ones((1,), np.float32) if quantise is None else jnp.reshape(quantise, (1,)).astype(jnp.float32)
     return _partitioned(qkv, cs, b, act, images, num_heads, blocks, scaled, quantise is not None)
-
-
-def _mosaic(dtype, tokens: int, num_heads: int, head_dim: int, fp8_ends: bool) -> bool:
-    """Whether the Mosaic GPU kernel takes this attention (`MOSAIC`, `MOSAIC_ON_CPU`)."""
-    return (MOSAIC and not fp8_ends and (MOSAIC_ON_CPU or jax.default_backend() != "cpu")
-            and mosaic_vision_attention.applies(dtype, tokens=tokens, num_heads=num_heads, head_dim=head_dim))
 
 
 def scale_bias(qkv, col_scale, bias):
@@ -208,8 +189,6 @@ _partitioned.def_partition(partition=_partition, infer_sharding_from_operands=_i
 def _attention(qkv, cs, b, act, images: int, num_heads: int, blocks: Blocks, scaled: bool, quantised: bool):
     r, c = qkv.shape
     hd, t = c // (3 * num_heads), r // images
-    if _mosaic(qkv.dtype, t, num_heads, hd, scaled or quantised):
-        return mosaic_vision_attention.attention(qkv, images=images, num_heads=num_heads)
     bq, bkv = fit(blocks.q, t), fit(blocks.kv, t)
     kernel = functools.partial(_kernel, t=t, bq=bq, bkv=bkv, width=num_heads * hd, hd=hd, parts=pieces(hd),
                                scale=float(hd) ** -0.5, scaled=scaled)
