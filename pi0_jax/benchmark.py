@@ -35,7 +35,7 @@ import numpy as np
 from pi0_jax import pi0, roofline
 from pi0_jax.pi0 import random_params
 from pi0_jax.config import IMAGE_KEYS, PRESETS, Pi0Config, get_config
-from pi0_jax.engine import Engine, layers, programs, store, vision
+from pi0_jax.engine import Engine, dispatch, layers, programs, store, vision
 from pi0_jax.engine.paths import KERNELS, OVERLAPS, attention_spec, vision_norm
 from pi0_jax.ops import expert_kernels, formats, pallas_base
 from pi0_jax.ops.matmul import GEMMS
@@ -185,7 +185,7 @@ def environment() -> dict:
             "flax": flax.__version__, "python": platform.python_version(),
             "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
             "commit": _git_commit(), "source": source_digest(), "xla_flags": os.environ.get("XLA_FLAGS", ""),
-            "pallas_triton": pallas_base.TRITON}
+            "pallas_triton": pallas_base.TRITON, "dispatch": "direct" if dispatch.DIRECT else "jax"}
 
 
 def _git_commit() -> str | None:

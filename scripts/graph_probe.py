@@ -137,6 +137,9 @@ VARIANTS = {
     # folded into the weights, `formats.fold_scales`)
     "geglu-bf16": {},
     "scales-apart": {},
+    # every program called through jax's own call (`dispatch.Dispatch.direct` off), where the engine hands the
+    # executable its buffers without jax's checks of weights it was given before
+    "jax-dispatch": {},
 }
 ENGINE_KW = {"unroll-steps": {"unroll_steps": True}, "no-overlap": {"overlap": "off"}, "overlap-on": {"overlap": "on"}}
 SCHEDULING = {"overlap-lhs": {"xla_gpu_command_buffer_scheduling_mode": "LHS"}}
@@ -265,6 +268,8 @@ def main() -> None:
                 print(json.dumps({"variant": name, "batch": batch, "error": str(e)[:400]}), flush=True)
                 report.setdefault("errors", []).append({"variant": name, "batch": batch, "error": str(e)[:2000]})
                 continue
+            for prog in engine._executables.values():
+                prog.dispatch.direct = name != "jax-dispatch"
             row = {"variant": name, "options": extra, "batch": batch, "kernels_per_call": {}, "span_ms": {},
                    "idle_ms": {}, "compile_s": {k[0]: round(v, 2) for k, v in engine.compile_seconds.items()}}
             if batch <= args.trace_max_batch:

@@ -32,7 +32,7 @@ import numpy as np
 
 from pi0_jax import pi0
 from pi0_jax.config import IMAGE_KEYS, Pi0Config
-from pi0_jax.engine import paths, programs, weights as weights_lib
+from pi0_jax.engine import dispatch as dispatch_lib, paths, programs, weights as weights_lib
 from pi0_jax.engine.store import ProgramStore, shapes
 from pi0_jax.ops import matmul
 
@@ -86,15 +86,20 @@ def stage_tree(weights: dict, stage: str, split: int | None = None) -> dict:
 class Program:
     """A compiled stage program and the engine weights it reads: called with the engine's whole weights tree, it
     hands the program only those (`stage_tree` of its stage: under the top-level `keys`), so the host never
-    dispatches a buffer the program does not read."""
+    dispatches a buffer the program does not read; and without jax's checks of weights it was given before
+    (`dispatch.Dispatch`)."""
 
     compiled: jax.stages.Compiled
     keys: tuple[str, ...]
     stage: str
     split: int   # the vision tower's first program's blocks (`stage_tree`)
+    dispatch: dispatch_lib.Dispatch = dataclasses.field(init=False, repr=False, compare=False)
+
+    def __post_init__(self):
+        object.__setattr__(self, "dispatch", dispatch_lib.Dispatch(self.compiled))
 
     def __call__(self, weights: dict, *args):
-        return self.compiled(stage_tree(weights, self.stage, self.split), *args)
+        return self.dispatch(stage_tree(weights, self.stage, self.split), *args)
 
     def as_text(self) -> str:
         return self.compiled.as_text()

@@ -171,6 +171,11 @@ class _Loaded:
         return self._compiled.as_text()
 
     @property
+    def compiled(self):
+        """The loaded (or, after a failed first call, recompiled) program."""
+        return self._compiled
+
+    @property
     def out_info(self):
         return self._compiled.out_info
 
