@@ -8,8 +8,9 @@ back from `store.ProgramStore` without tracing, and anything else compiled from 
 A call (`sample_actions`) is two programs, dispatched one after the other with no host round trip between them:
 the vision tower, then the prefix fill and the denoise loop (three where the first denoise step overlaps the prefix
 fill, and the tower itself two at full size: `Engine.call_stages`). Each takes only its own weights (`stage_tree`):
-the host pays about 1.2-1.7 µs per buffer a call takes before its first kernel runs, and each program's dispatch
-runs while the GPU runs the one before. And the vision program gets its own GEMM library (`matmul.compiler_options`).
+the host pays about 1.2-1.7 µs per buffer a call takes before its first kernel runs (about 0.9 µs of it jax's
+checks, which `dispatch.Dispatch` skips for weights it was given before), and each program's dispatch runs while
+the GPU runs the one before. And the vision program gets its own GEMM library (`matmul.compiler_options`).
 At batch 1 and 2 on a GPU the second program runs its first denoise step beside the prefix fill (`Engine.overlaps`).
 On an H200, π0 at B = 1 in a loop of calls: 16.1 ms against 17.2 ms for the one fused program (`infer`, kept for
 comparison and for callers that embed the pipeline in a larger program); docs/BENCHMARKS.md, "The call as two
