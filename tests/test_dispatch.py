@@ -102,7 +102,7 @@ def test_new_weights_are_checked_used_and_the_old_ones_not_kept(engine):
 
 def test_a_stored_program_is_called_direct_after_its_first_call():
     """A program loaded from the store checks itself on its first call (`store._Loaded`); the direct path takes
-    what it loaded after that, and a program with host callbacks always goes through jax."""
+    what it loaded after that. A program with host callbacks or a donated input always goes through jax."""
     w, x = {"a": jnp.arange(6.0).reshape(2, 3)}, jnp.ones((3, 4))
     compiled = jax.jit(lambda w, x: w["a"] @ x).lower(w, x).compile()
     call = dispatch.Dispatch(store._Loaded(compiled, Path("unused.pkl"), None))
@@ -118,4 +118,8 @@ def test_a_stored_program_is_called_direct_after_its_first_call():
     call = dispatch.Dispatch(jax.jit(noisy).lower(w, x).compile())
     for _ in range(2):
         np.testing.assert_array_equal(np.asarray(call(w, x)), want)
+    assert call.direct_calls == 0
+    call = dispatch.Dispatch(jax.jit(lambda w, x: w["a"] @ x, donate_argnums=1).lower(w, x).compile())
+    for _ in range(2):
+        np.testing.assert_array_equal(np.asarray(call(w, jnp.ones((3, 4)))), want)
     assert call.direct_calls == 0

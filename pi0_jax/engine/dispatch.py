@@ -9,9 +9,9 @@ so a replaced tree is freed) is not checked again; a new weight and every other 
 (type, shape, dtype, sharding against the compiled program's). Anything that does not pass goes through jax's own
 call, which raises jax's error: PjRt alone checks only each buffer's size in bytes, so a transposed argument of
 the same size would run. So does a program this path does not cover (more than one device, effects, host
-callbacks, constants of its own, jax's NaN checks on), and the first call of each program (a stored program
-checks itself on it: `store._Loaded`). On an H200, π0's vision program took 2.38 against 2.50 ms a call
-(docs/BENCHMARKS.md, session 76).
+callbacks, constants of its own, donated or relaid-out inputs, jax's NaN checks on), and the first call of each
+program (a stored program checks itself on it: `store._Loaded`). On an H200, π0's vision program took 2.38 against
+2.50 ms a call (docs/BENCHMARKS.md, session 76).
 
 It reads jax's internals (`Compiled._executable`, `._params`, the executable's `unsafe_call`); where a jax has moved
 them, every call is jax's own. The engine's tests check that its calls take this path (`direct_calls`), so such a
@@ -56,7 +56,8 @@ def plan(compiled, args: tuple) -> _Plan | None:
         params, run = compiled._params, compiled._executable.unsafe_call
         if (ArrayImpl is None or params.const_args or params.is_high or run.ordered_effects
                 or run.has_unordered_effects or run.has_host_callbacks or run.mut or run.pgle_profiler is not None
-                or len(run.xla_executable.local_devices()) != 1):
+                or len(run.xla_executable.local_devices()) != 1 or compiled.donate_argnums
+                or any(x is not None for x in compiled._executable._dispatch_in_layouts)):
             return None
         # one of each a flat argument (a sharding None where the program does not read it)
         avals = params.in_tree.flatten_up_to(compiled.in_avals)
