@@ -10,8 +10,9 @@ so a replaced tree is freed) is not checked again; a new weight and every other 
 call, which raises jax's error: PjRt alone checks only each buffer's size in bytes, so a transposed argument of
 the same size would run. So does a program this path does not cover (more than one device, effects, host
 callbacks, constants of its own, donated or relaid-out inputs, jax's NaN checks on), and the first call of each
-program (a stored program checks itself on it: `store._Loaded`). On an H200, π0's vision program took 2.38 against
-2.50 ms a call (docs/BENCHMARKS.md, session 76).
+program (a stored program checks itself on it: `store._Loaded`). On an H200 the same call without any check took
+π0's vision program from 2.50 to 2.38 ms (docs/BENCHMARKS.md, session 76; these checks cost 11-13 µs more on a
+CPU core at 115-300 arguments).
 
 It reads jax's internals (`Compiled._executable`, `._params`, the executable's `unsafe_call`); where a jax has moved
 them, every call is jax's own. The engine's tests check that its calls take this path (`direct_calls`), so such a
