@@ -31,7 +31,7 @@ from profile_engine import round_robin, write_json  # noqa: E402
 from pi0_jax import benchmark  # noqa: E402
 from pi0_jax.config import get_config  # noqa: E402
 from pi0_jax.engine import Engine, dispatch  # noqa: E402
-from pi0_jax.engine.runtime import stage_tree  # noqa: E402
+from pi0_jax.engine.runtime import run_call, stage_tree  # noqa: E402
 
 
 def bare(compiled):
@@ -91,15 +91,7 @@ def main() -> None:
            "engine": lambda p: p}
 
     def call(ps, i):   # `Engine.sample_packed` on these programs
-        images, image_masks, tokens, token_mask, state = packed[i % 4]
-        if progs[0].stage == "vision_head":
-            head, tail, act, *rest = ps
-            image_tokens = tail(w, *head(w, images))
-        else:
-            vis, act, *rest = ps
-            image_tokens = vis(w, images)
-        out = act(w, sched, image_tokens, image_masks, tokens, token_mask, state, sets[i % 4][1])
-        return rest[0](w, sched, *out) if rest else out
+        return run_call(ps, progs[0].stage == "vision_head", w, sched, packed[i % 4], sets[i % 4][1])
 
     calls, count, want = {}, iter(range(10**9)), None
     for name, make in way.items():

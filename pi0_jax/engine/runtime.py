@@ -83,6 +83,21 @@ def stage_tree(weights: dict, stage: str, split: int | None = None) -> dict:
     return {k: weights[k] for k in STAGE_WEIGHTS[stage] if k in weights}
 
 
+def run_call(progs: Sequence, split_vision: bool, weights: dict, sched, packed: tuple, noise: jax.Array):
+    """A call's programs (`Engine.call_programs`, or callables taking the same arguments) on `pack`'s arrays, each
+    dispatched while the GPU runs the one before: the vision tower (two programs where `split_vision`), then the
+    prefix fill and the denoise loop (one program, or the first step's and the loop's)."""
+    images, image_masks, tokens, token_mask, state = packed
+    if split_vision:
+        head, tail, act, *rest = progs
+        image_tokens = tail(weights, *head(weights, images))
+    else:
+        vision, act, *rest = progs
+        image_tokens = vision(weights, images)
+    out = act(weights, sched, image_tokens, image_masks, tokens, token_mask, state, noise)
+    return rest[0](weights, sched, *out) if rest else out
+
+
 @dataclasses.dataclass(frozen=True)
 class Program:
     """A compiled stage program and the engine weights it reads: called with the engine's whole weights tree, it
@@ -372,17 +387,8 @@ class Engine:
                       prompt_len: int) -> jax.Array:
         """`sample_actions` on `pack`'s arrays: the call's programs (`call_stages`), each dispatched while the GPU
         runs the one before (no host round trip between them). noise (B, H, action_dim) f32."""
-        images, image_masks, tokens, token_mask, state = packed
         progs = self.call_programs(noise.shape[0], num_steps, cameras, prompt_len)
-        w, sched = self.weights, self.schedule(num_steps)
-        if progs[0].stage == "vision_head":
-            head, tail, act, *rest = progs
-            image_tokens = tail(w, *head(w, images))
-        else:
-            vision, act, *rest = progs
-            image_tokens = vision(w, images)
-        out = act(w, sched, image_tokens, image_masks, tokens, token_mask, state, noise)
-        return rest[0](w, sched, *out) if rest else out
+        return run_call(progs, progs[0].stage == "vision_head", self.weights, self.schedule(num_steps), packed, noise)
 
     def run_stages(self, obs: pi0.Observation, noise: jax.Array, num_steps: int = 10):
         """The three stage programs one after another (for per-stage timing); returns (image_tokens, cache, actions)."""
