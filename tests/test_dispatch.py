@@ -34,12 +34,12 @@ def _inputs(engine, seed):
 
 
 @pytest.mark.parametrize("split", [0, 1])
-def test_the_engines_calls_take_the_direct_path_and_equal_jaxs(model, engine, split, monkeypatch):
+def test_the_engines_calls_take_the_direct_path_and_equal_jaxs(model, split, monkeypatch):
     """Every program of the call (the tower whole or as two programs) runs direct from its second call on, inputs
     changing between calls, and gives jax's call's actions bit for bit; so a jax that moved the internals the path
     reads fails here."""
     monkeypatch.setattr(runtime, "VISION_SPLIT", split)
-    eng = Engine(*model, cache_dir=False) if split else engine
+    eng = Engine(*model, cache_dir=False)   # its own programs, so their counts are this test's
     sets = [_inputs(eng, seed) for seed in range(2)]
     got = [np.asarray(eng.sample_actions(*sets[i % 2], 3)) for i in range(4)]
     progs = eng.call_programs(2, 3, *eng.plan(sets[0][0]))
