@@ -46,7 +46,7 @@ class _Plan:
     kept_weights: frozenset
     kept_rest: tuple
     execute: Any        # the executable's execute_sharded
-    handlers: tuple     # its outputs' array handlers
+    handlers: list      # its outputs' array handlers
     out_tree: Any
 
 
@@ -68,7 +68,7 @@ def plan(compiled, args: tuple) -> _Plan | None:
         weights, kept = len(jax.tree.leaves(args[0])), tuple(sorted(run.kept_var_idx))
         return _Plan(params.in_tree, tuple(avals), tuple(shardings), weights, kept,
                      frozenset(i for i in kept if i < weights), tuple(i for i in kept if i >= weights),
-                     run.xla_executable.execute_sharded, tuple(run.out_handler.handlers), compiled.out_tree)
+                     run.xla_executable.execute_sharded, list(run.out_handler.handlers), compiled.out_tree)
     except (AttributeError, TypeError, ValueError):   # a jax whose internals differ
         return None
 
@@ -90,6 +90,7 @@ class Dispatch:
         if not self._planned:
             out = self.compiled(*args)
             self._plan, self._planned = plan(getattr(self.compiled, "compiled", self.compiled), args), True
+            self._seen = [None] * (self._plan.weights if self._plan else 0)
             return out
         p = self._plan
         if p is None or not (DIRECT and self.direct) or jax.config.jax_debug_nans or jax.config.jax_debug_infs:
@@ -98,15 +99,13 @@ class Dispatch:
         if tree != p.in_tree or not self._checked(p, leaves):
             return self.compiled(*args)
         self.direct_calls += 1
-        out = p.execute([leaves[i] for i in p.kept]).consume_with_handlers(list(p.handlers))
+        out = p.execute([leaves[i] for i in p.kept]).consume_with_handlers(p.handlers)
         return jax.tree.unflatten(p.out_tree, out)
 
     def _checked(self, p: _Plan, leaves: list) -> bool:
         """Whether every argument the executable takes is the array it expects: the weights seen before by
         identity, the rest by type, shape, dtype and sharding."""
         seen = self._seen
-        if len(seen) != p.weights:
-            seen[:] = [None] * p.weights
         for i in p.kept_weights:
             x, ref = leaves[i], seen[i]
             if ref is None or ref() is not x:
