@@ -88,8 +88,8 @@ VARIANTS = {
     "attention-ends-off": {},
     # the same kernel with a kv head's query heads folded into its rows from B = 4 (`expert_kernels.FOLD_FROM`), not 8
     "fold-from-4": {},
-    # the call's vision tower as one program (RUNTIME), not two
-    "one-vision-program": {},
+    # the call's vision tower as one program (RUNTIME), not two, or cut after 5, 7 or 13 blocks, not 9
+    "one-vision-program": {}, "vision-split-5": {}, "vision-split-7": {}, "vision-split-13": {},
     # every GEMM a Triton GEMM (no cuBLAS fallback) in the vision head's program ("vhead-") or both vision programs:
     # the head's dispatch was longer with Triton GEMMs, the call slower (docs/BENCHMARKS.md, session 49; the host's
     # time grows by 1.4-6 µs a command of any kind, in XLA's work before the graph's launch, not in it: session 69)
@@ -146,7 +146,9 @@ SCHEDULING = {"overlap-lhs": {"xla_gpu_command_buffer_scheduling_mode": "LHS"}}
 STAGES = {"one-loop-program": lambda self, batch, num_steps: (
     *(s for s in Engine.call_stages(self, batch, num_steps) if s in runtime.VISION_STAGES), "prefix_denoise")}
 STEP_ENDS = {"unfolded": {"FOLD_ACTION_IN": False}, "fp8-row-pad-off": {"FP8_ROW_PAD": False}}
-RUNTIME = {"one-vision-program": {"VISION_SPLIT": 0}}
+# the tower cut after other blocks than `runtime.VISION_SPLIT` (0: one program)
+RUNTIME = {"one-vision-program": {"VISION_SPLIT": 0}, "vision-split-5": {"VISION_SPLIT": 5},
+           "vision-split-7": {"VISION_SPLIT": 7}, "vision-split-13": {"VISION_SPLIT": 13}}
 
 
 def scaled_geglu(h, w, kernel=False):
