@@ -26,7 +26,7 @@ from pi0_jax import benchmark, checkpoint
 from pi0_jax import normalize as nz
 from pi0_jax import policy as policy_module
 from pi0_jax.config import IMAGE_KEYS, get_config
-from pi0_jax.engine import Engine, prompt_bucket
+from pi0_jax.engine import Engine, dispatch, prompt_bucket
 from pi0_jax.policy import Policy, find_tokenizer
 from pi0_jax.tokenizer import PaligemmaTokenizer
 
@@ -43,6 +43,21 @@ def timed(fn, iters: int, warmup: int) -> dict:
         times.append((time.perf_counter() - start) * 1e3)
     return {"median_ms": float(np.median(times)), "p90_ms": float(np.percentile(times, 90)),
             "min_ms": float(np.min(times))}
+
+
+def in_turns(fns: dict, iters: int, warmup: int) -> dict:
+    """`timed` for several callables, one call of each a round (drift between rows cancels)."""
+    for fn in fns.values():
+        for _ in range(warmup):
+            jax.block_until_ready(fn())
+    times = {k: [] for k in fns}
+    for _ in range(iters):
+        for k, fn in fns.items():
+            start = time.perf_counter()
+            jax.block_until_ready(fn())
+            times[k].append((time.perf_counter() - start) * 1e3)
+    return {k: {"median_ms": float(np.median(t)), "p90_ms": float(np.percentile(t, 90)), "min_ms": float(np.min(t))}
+            for k, t in times.items()}
 
 
 def observations(policy: Policy, n: int, cameras: int) -> list[dict]:
@@ -74,6 +89,9 @@ def main() -> int:
     p.add_argument("--copy-back-ab", action="store_true",
                    help="also time, in turns, a Policy whose actions are copied back after the call instead of by its "
                         "last program (`policy._to_host`)")
+    p.add_argument("--dispatch-ab", action="store_true",
+                   help="also time, in turns, Policy.infer and the engine's call with their programs called direct "
+                        "and through jax's own call (`engine.dispatch.DIRECT`)")
     p.add_argument("--out", type=Path, default=Path("policy_bench.json"), help="JSON results (default: %(default)s)")
     args = p.parse_args()
 
@@ -154,10 +172,10 @@ def main() -> int:
     rows["policy_run_group"] = timed(lambda: policy._run_group([policy.prepare(obs[0])])[0], args.iters, args.warmup)
     # the images as one array a camera (today's call) against one array of all cameras, into a program that only
     # reads them: what a transfer costs at the call's start
-    cams = host[0]
-    stacked = np.stack(cams)
+    frames = host[0]
+    stacked = np.stack(frames)
     touch = jax.jit(lambda *xs: sum(x[..., :1, :1, :].astype(jnp.float32).sum() for x in xs))
-    rows["images_one_array_a_camera"] = timed(lambda: touch(*cams), args.iters, args.warmup)
+    rows["images_one_array_a_camera"] = timed(lambda: touch(*frames), args.iters, args.warmup)
     rows["images_one_array"] = timed(lambda: touch(stacked), args.iters, args.warmup)
     rows["images_on_device"] = timed(lambda: touch(*on_device[0]), args.iters, args.warmup)
     # the frames staged through pinned host memory first (a host copy, then a DMA), where the device has it: into the
@@ -170,9 +188,9 @@ def main() -> int:
         def via_pinned(xs):
             return jax.device_put(jax.device_put(xs, pinned), device)
 
-        rows["images_to_pinned_host"] = timed(lambda: jax.device_put(cams, pinned), args.iters, args.warmup)
-        rows["images_via_pinned_host"] = timed(lambda: touch(*via_pinned(cams)), args.iters, args.warmup)
-        rows["images_device_put"] = timed(lambda: touch(*jax.device_put(cams, device)), args.iters, args.warmup)
+        rows["images_to_pinned_host"] = timed(lambda: jax.device_put(frames, pinned), args.iters, args.warmup)
+        rows["images_via_pinned_host"] = timed(lambda: touch(*via_pinned(frames)), args.iters, args.warmup)
+        rows["images_device_put"] = timed(lambda: touch(*jax.device_put(frames, device)), args.iters, args.warmup)
         rows["policy_call_images_via_pinned_host"] = timed(
             lambda: np.asarray(policy_call(policy._norm, via_pinned(host[0]), *host[1:])), args.iters, args.warmup)
         rows["policy_call_numpy_again"] = timed(lambda: np.asarray(policy_call(policy._norm, *host)), args.iters,
@@ -208,6 +226,21 @@ def main() -> int:
         batch_obs = [obs[k % len(obs)] for k in range(args.batch)]
         rows[f"infer_batch_{args.batch}"] = timed(lambda: policy.infer_batch(batch_obs)[-1]["actions"], args.iters,
                                                   args.warmup)
+    if args.dispatch_ab:
+        def switched(fn, direct):
+            def run():
+                dispatch.DIRECT = direct
+                try:
+                    return fn()
+                finally:
+                    dispatch.DIRECT = True
+            return run
+
+        infer = lambda: policy.infer(obs[0])["actions"]   # noqa: E731
+        rows.update(in_turns({"policy_infer_direct": switched(infer, True),
+                              "policy_infer_jax_call": switched(infer, False),
+                              "engine_direct": switched(call, True), "engine_jax_call": switched(call, False)},
+                             args.iters, args.warmup))
     if args.copy_back_ab:
         # the same Policy with the actions' copy back after the call (as before session 48), timed in turns with it
         own = policy_module._to_host
