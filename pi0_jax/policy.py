@@ -33,7 +33,6 @@ from pi0_jax import normalize as _norm
 from pi0_jax import pi0
 from pi0_jax.config import Pi0Config
 from pi0_jax.engine import enable_compilation_cache, paths, prompt_bucket, runtime
-from pi0_jax.engine.dispatch import Dispatch
 from pi0_jax.engine.runtime import STAGE_WEIGHTS
 from pi0_jax.engine.store import ProgramStore, shapes
 from pi0_jax.observation import DEFAULT_OPTIONAL_CAMERAS, ObservationError, Prepared, Validator
@@ -217,7 +216,7 @@ class Policy:
         first denoise step overlaps the prefix fill: `act_first`, then `act_rest` on the expert's weights; and the
         tower itself two, `encode_head` and `encode_tail`, where the engine cuts it: `runtime.splits_vision`), each
         dispatched while the GPU runs the one before, as `Engine.sample_actions`; the reference sampler is one
-        program. Each is called through `engine.dispatch.Dispatch` (its `programs`), numpy inputs included."""
+        program."""
         key = (cameras, tuple((x.shape, x.dtype.str) for x in jax.tree.leaves(host_args)))
         with self._lock:
             if key not in self._executables:   # the shapes' tree only here: 17 µs a call (a CPU core)
@@ -232,24 +231,17 @@ class Policy:
         parts = (repr(core.config), core.sampler, core.num_steps, core.action_dims, core.unroll, core.kernels,
                  repr(core.attention), core.gemm, core.overlap, cameras)
 
-        programs = []   # each called without jax's checks of weights it was given before (`engine.dispatch`)
-
         def compile_(name, fn, args, options):
-            programs.append(Dispatch(self.store.compile(f"policy_{name}", parts, fn, args, options)))
-            return programs[-1]
-
-        def out(prog):   # a program's outputs, the next program's arguments
-            return shapes(prog.compiled.out_info)
+            return self.store.compile(f"policy_{name}", parts, fn, args, options)
 
         if core.sampler != "engine":
             @_to_host
             def fn(model, norm, images, image_masks, tokens, token_mask, state, noise):
                 return core.program(model, norm, images, cameras, image_masks, tokens, token_mask, state, noise)
 
-            call = functools.partial(compile_("reference", fn, (core.model, self._norm, *spec),
-                                              matmul.compiler_options(core.model, core.gemm)), core.model)
-            call.programs = tuple(programs)
-            return call
+            exe = compile_("reference", fn, (core.model, self._norm, *spec),
+                           matmul.compiler_options(core.model, core.gemm))
+            return functools.partial(exe, core.model)
         vision, rest = core.split_model(core.model)
         images = spec[0]
 
@@ -262,14 +254,14 @@ class Policy:
                                                                                                "vision_tail"))
             head = compile_("encode_head", core.encode_head, (head_w, images), vision_options)
             tail_fn = functools.partial(core.encode_tail, cameras=len(cameras))
-            tail = compile_("encode_tail", tail_fn, (tail_w, *out(head)), vision_options)
+            tail = compile_("encode_tail", tail_fn, (tail_w, *shapes(head.out_info)), vision_options)
 
             def encode(images):
                 return tail(tail_w, *head(head_w, images))
         else:
             tail = compile_("encode", core.encode, (vision, images), vision_options)
             encode = functools.partial(tail, vision)
-        tokens = out(tail)   # the image tokens, read off the tower's last program
+        tokens = shapes(tail.out_info)   # the image tokens, read off the tower's last program
         peel = paths.first_step_overlap(core.overlap, core.kernels, spec[-1].shape[0], rest["weights"]["expert"])
         options = options_for("prefix_denoise", rest)
         if peel and core.num_steps > 1:   # the loop as a program of its own, as `Engine.call_stages`
@@ -278,19 +270,19 @@ class Policy:
                              paths.overlap_options(options_for("prefix_first_step", rest), True))
             loop = {**rest, "weights": {k: rest["weights"][k] for k in STAGE_WEIGHTS["denoise_rest"]
                                         if k in rest["weights"]}}
-            last = compile_("act_rest", _to_host(core.act_rest), (loop, self._norm, *out(first)),
+            last = compile_("act_rest", _to_host(core.act_rest), (loop, self._norm, *shapes(first.out_info)),
                             options_for("denoise_rest", loop))
 
             def call(norm, images, *args):
                 return last(loop, norm, *first(rest, norm, encode(images), *args))
-        else:
-            act = compile_("act", _to_host(functools.partial(core.act, peel_first=peel)),
-                           (rest, self._norm, tokens, *spec[1:]), paths.overlap_options(options, peel))
 
-            def call(norm, images, *args):
-                return act(rest, norm, encode(images), *args)
+            return call
+        act = compile_("act", _to_host(functools.partial(core.act, peel_first=peel)),
+                       (rest, self._norm, tokens, *spec[1:]), paths.overlap_options(options, peel))
 
-        call.programs = tuple(programs)
+        def call(norm, images, *args):
+            return act(rest, norm, encode(images), *args)
+
         return call
 
     @property

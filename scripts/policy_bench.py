@@ -26,7 +26,7 @@ from pi0_jax import benchmark, checkpoint
 from pi0_jax import normalize as nz
 from pi0_jax import policy as policy_module
 from pi0_jax.config import IMAGE_KEYS, get_config
-from pi0_jax.engine import Engine, dispatch, prompt_bucket
+from pi0_jax.engine import Engine, prompt_bucket
 from pi0_jax.policy import Policy, find_tokenizer
 from pi0_jax.tokenizer import PaligemmaTokenizer
 
@@ -43,21 +43,6 @@ def timed(fn, iters: int, warmup: int) -> dict:
         times.append((time.perf_counter() - start) * 1e3)
     return {"median_ms": float(np.median(times)), "p90_ms": float(np.percentile(times, 90)),
             "min_ms": float(np.min(times))}
-
-
-def in_turns(fns: dict, iters: int, warmup: int) -> dict:
-    """`timed` for several callables, one call of each a round (drift between rows cancels)."""
-    for fn in fns.values():
-        for _ in range(warmup):
-            jax.block_until_ready(fn())
-    times = {k: [] for k in fns}
-    for _ in range(iters):
-        for k, fn in fns.items():
-            start = time.perf_counter()
-            jax.block_until_ready(fn())
-            times[k].append((time.perf_counter() - start) * 1e3)
-    return {k: {"median_ms": float(np.median(t)), "p90_ms": float(np.percentile(t, 90)), "min_ms": float(np.min(t))}
-            for k, t in times.items()}
 
 
 def observations(policy: Policy, n: int, cameras: int) -> list[dict]:
@@ -89,9 +74,6 @@ def main() -> int:
     p.add_argument("--copy-back-ab", action="store_true",
                    help="also time, in turns, a Policy whose actions are copied back after the call instead of by its "
                         "last program (`policy._to_host`)")
-    p.add_argument("--dispatch-ab", action="store_true",
-                   help="also time, in turns, Policy.infer and the engine's call with their programs called direct "
-                        "and through jax's own call (`engine.dispatch.DIRECT`)")
     p.add_argument("--out", type=Path, default=Path("policy_bench.json"), help="JSON results (default: %(default)s)")
     args = p.parse_args()
 
@@ -226,21 +208,6 @@ def main() -> int:
         batch_obs = [obs[k % len(obs)] for k in range(args.batch)]
         rows[f"infer_batch_{args.batch}"] = timed(lambda: policy.infer_batch(batch_obs)[-1]["actions"], args.iters,
                                                   args.warmup)
-    if args.dispatch_ab:
-        def switched(fn, direct):
-            def run():
-                dispatch.DIRECT = direct
-                try:
-                    return fn()
-                finally:
-                    dispatch.DIRECT = True
-            return run
-
-        infer = lambda: policy.infer(obs[0])["actions"]   # noqa: E731
-        rows.update(in_turns({"policy_infer_direct": switched(infer, True),
-                              "policy_infer_jax_call": switched(infer, False),
-                              "engine_direct": switched(call, True), "engine_jax_call": switched(call, False)},
-                             args.iters, args.warmup))
     if args.copy_back_ab:
         # the same Policy with the actions' copy back after the call (as before session 48), timed in turns with it
         own = policy_module._to_host

@@ -14,9 +14,6 @@ import pytest
 from pi0_jax import pi0
 from pi0_jax.config import get_config
 from pi0_jax.engine import Engine, dispatch, runtime, store
-from pi0_jax.normalize import Normalizer
-from pi0_jax.policy import Policy
-from pi0_jax.tokenizer import PaligemmaTokenizer
 from test_model import make_obs, randomize
 
 
@@ -126,39 +123,3 @@ def test_a_stored_program_is_called_direct_after_its_first_call():
     for _ in range(2):
         np.testing.assert_array_equal(np.asarray(call(w, jnp.ones((3, 4)))), np.full((3, 4), 16.0))
     assert call.direct_calls == 0
-
-
-def test_numpy_arguments_of_the_compiled_shape_go_direct_and_the_rest_through_jax():
-    """A C-ordered numpy argument of the compiled shape and dtype goes to the device on the direct path, with jax's
-    result; one of another dtype or shape, or not C-ordered, goes through jax's call (which converts, or raises)."""
-    w, x = {"a": jnp.arange(6.0).reshape(2, 3)}, np.arange(12.0, dtype=np.float32).reshape(3, 4)
-    compiled = jax.jit(lambda w, x: w["a"] @ x).lower(w, x).compile()
-    call = dispatch.Dispatch(compiled)
-    want = np.asarray(compiled(w, x))
-    for i in range(3):
-        np.testing.assert_array_equal(np.asarray(call(w, x + i)), np.asarray(compiled(w, x + i)))
-    assert call.direct_calls == 2
-    np.testing.assert_array_equal(np.asarray(call(w, np.asfortranarray(x))), want)   # the same values, F-ordered
-    with pytest.raises(TypeError, match="[Aa]rgument"):
-        call(w, x.reshape(4, 3))
-    with pytest.raises(TypeError, match="[Aa]rgument"):
-        call(w, x.astype(np.int32))
-    assert call.direct_calls == 2
-
-
-def test_the_policys_programs_take_the_direct_path_and_equal_jaxs(model, sp_model_path, monkeypatch):
-    """`Policy.infer` from numpy observations runs every program of its call on the direct path from the second
-    call on, with jax's call's actions bit for bit."""
-    config, params = model
-    policy = Policy(config, params, PaligemmaTokenizer(sp_model_path, config.max_token_len), Normalizer.identity(),
-                    num_steps=3, cache_dir=False)
-    obs = [policy.example_observation(seed=s) for s in range(2)]
-    noise = np.random.default_rng(0).normal(size=(config.action_horizon, config.action_dim)).astype(np.float32)
-    got = [policy.infer(obs[i % 2], noise)["actions"] for i in range(3)]
-    (call,) = policy._executables.values()
-    assert len(call.programs) >= 2 and all(p.direct_calls == 2 for p in call.programs), \
-        [p.direct_calls for p in call.programs]
-    monkeypatch.setattr(dispatch, "DIRECT", False)
-    for i in range(2):
-        np.testing.assert_array_equal(policy.infer(obs[i], noise)["actions"], got[i])
-    assert all(p.direct_calls == 2 for p in call.programs)

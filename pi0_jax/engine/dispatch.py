@@ -6,15 +6,13 @@ program of 115 small arguments 236 against 134 µs a call; 0.3-0.6 µs on a CPU 
 40-230 weight buffers. `Dispatch` makes the call that jax's ends in, the executable's `execute_sharded`, itself. A
 weight that is the same array object as at an earlier call here (jax arrays are immutable; held by weak reference,
 so a replaced tree is freed) is not checked again; a new weight and every other argument is checked as jax would
-(type, shape, dtype, sharding against the compiled program's); a numpy argument (`Policy`'s inputs) of the compiled
-shape and dtype, C-ordered, goes to the device through the function jax's own call uses for it
-(`pxla.batched_device_put`). Anything that does not pass goes through jax's own
+(type, shape, dtype, sharding against the compiled program's). Anything that does not pass goes through jax's own
 call, which raises jax's error: PjRt alone checks only each buffer's size in bytes, so a transposed argument of
 the same size would run. So does a program this path does not cover (more than one device, effects, host
 callbacks, constants of its own, donated or relaid-out inputs, jax's NaN checks on), and the first call of each
 program (a stored program checks itself on it: `store._Loaded`). On an H200 the same call without any check took
-π0's vision program from 2.50 to 2.38 ms, and this one from 2.70 to 2.50 ms on an H100 (docs/BENCHMARKS.md,
-sessions 76-77; these checks cost 11-13 µs more on a CPU core at 115-300 arguments).
+π0's vision program from 2.50 to 2.38 ms (docs/BENCHMARKS.md, session 76; these checks cost 11-13 µs more on a
+CPU core at 115-300 arguments).
 
 It reads jax's internals (`Compiled._executable`, `._params`, the executable's `unsafe_call`); where a jax has moved
 them, every call is jax's own. The engine's tests check that its calls take this path (`direct_calls`), so such a
@@ -28,13 +26,11 @@ import weakref
 from typing import Any
 
 import jax
-import numpy as np
 
 try:
     from jax._src.array import ArrayImpl
-    from jax._src.interpreters.pxla import batched_device_put
-except ImportError:   # a jax without them: every call is jax's own
-    ArrayImpl = batched_device_put = None
+except ImportError:   # a jax without it: every call is jax's own
+    ArrayImpl = None
 
 # off: every call through jax's own (the benchmark JSON's `env.dispatch`)
 DIRECT = True
@@ -49,7 +45,6 @@ class _Plan:
     kept: tuple         # the flat arguments the executable takes (XLA drops the unused)
     kept_weights: frozenset
     kept_rest: tuple
-    devices: tuple      # each flat argument's device where a host array may go there (its default memory), or None
     execute: Any        # the executable's execute_sharded
     handlers: list      # its outputs' array handlers
     out_tree: Any
@@ -60,7 +55,7 @@ def plan(compiled, args: tuple) -> _Plan | None:
     path does not cover it."""
     try:
         params, run = compiled._params, compiled._executable.unsafe_call
-        if (ArrayImpl is None or batched_device_put is None or params.const_args or params.is_high or run.ordered_effects
+        if (ArrayImpl is None or params.const_args or params.is_high or run.ordered_effects
                 or run.has_unordered_effects or run.has_host_callbacks or run.mut or run.pgle_profiler is not None
                 or len(run.xla_executable.local_devices()) != 1 or compiled.donate_argnums
                 or any(x is not None for x in compiled._executable._dispatch_in_layouts)):
@@ -73,7 +68,6 @@ def plan(compiled, args: tuple) -> _Plan | None:
         weights, kept = len(jax.tree.leaves(args[0])), tuple(sorted(run.kept_var_idx))
         return _Plan(params.in_tree, tuple(avals), tuple(shardings), weights, kept,
                      frozenset(i for i in kept if i < weights), tuple(i for i in kept if i >= weights),
-                     tuple(_host_target(s) for s in shardings),
                      run.xla_executable.execute_sharded, list(run.out_handler.handlers), compiled.out_tree)
     except (AttributeError, TypeError, ValueError):   # a jax whose internals differ
         return None
@@ -104,17 +98,13 @@ class Dispatch:
         leaves, tree = jax.tree.flatten((args, {}))
         if tree != p.in_tree or not self._checked(p, leaves):
             return self.compiled(*args)
-        for i in p.kept_rest:   # host arrays of the compiled shape and dtype: to the device as jax's call would
-            if type(leaves[i]) is np.ndarray:
-                leaves[i] = batched_device_put(p.avals[i], p.shardings[i], [leaves[i]], p.devices[i])
         self.direct_calls += 1
         out = p.execute([leaves[i] for i in p.kept]).consume_with_handlers(p.handlers)
         return jax.tree.unflatten(p.out_tree, out)
 
     def _checked(self, p: _Plan, leaves: list) -> bool:
         """Whether every argument the executable takes is the array it expects: the weights seen before by
-        identity, the rest by type, shape, dtype and sharding (or a C-ordered numpy array of the shape and dtype,
-        as `Policy` passes its inputs)."""
+        identity, the rest by type, shape, dtype and sharding."""
         seen = self._seen
         for i in p.kept_weights:
             x, ref = leaves[i], seen[i]
@@ -122,23 +112,10 @@ class Dispatch:
                 if not _fits(p, i, x):
                     return False
                 seen[i] = weakref.ref(x)
-        return all(_fits(p, i, leaves[i]) or _fits_host(p, i, leaves[i]) for i in p.kept_rest)
+        return all(_fits(p, i, leaves[i]) for i in p.kept_rest)
 
 
 def _fits(p: _Plan, i: int, x) -> bool:
     aval = p.avals[i]
     return (type(x) is ArrayImpl and x.shape == aval.shape and x.dtype == aval.dtype
             and x.sharding == p.shardings[i])
-
-
-def _fits_host(p: _Plan, i: int, x) -> bool:
-    aval = p.avals[i]
-    return (type(x) is np.ndarray and p.devices[i] is not None and x.shape == aval.shape and x.dtype == aval.dtype
-            and x.flags.c_contiguous)
-
-
-def _host_target(sharding) -> list | None:
-    if sharding is None:
-        return None
-    devices = list(sharding.device_set)
-    return devices if sharding.memory_kind in (None, devices[0].default_memory().kind) else None
