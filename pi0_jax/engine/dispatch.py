@@ -12,7 +12,8 @@ the same size would run. So does a program this path does not cover (more than o
 callbacks, constants of its own, donated or relaid-out inputs, jax's NaN checks on), and the first call of each
 program (a stored program checks itself on it: `store._Loaded`). On an H200 the same call without any check took
 π0's vision program from 2.50 to 2.38 ms (docs/BENCHMARKS.md, session 76; these checks cost 11-13 µs more on a
-CPU core at 115-300 arguments).
+CPU core at 115-300 arguments); in this form on H100s, 0-0.06 ms, and π0's call is level: it waits on the GPU
+after its first program, whose ~40 weights gain 24 µs, and the host's time a call is 0.3 ms shorter (session 77).
 
 It reads jax's internals (`Compiled._executable`, `._params`, the executable's `unsafe_call`); where a jax has moved
 them, every call is jax's own. The engine's tests check that its calls take this path (`direct_calls`), so such a
