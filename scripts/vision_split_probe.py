@@ -1,10 +1,14 @@
-"""The vision program cut in two: does the call start sooner?
+"""The vision program cut in two or more: does the call start sooner?
 
 The call's first program is the vision tower, and the host dispatches it before any kernel runs: its 195 weight
 buffers cost the host about 1.2-1.7 µs each (docs/BENCHMARKS.md, "The host's share of a call"), all on the call's
 critical path. The programs after it are dispatched while the GPU runs the one before. Here the tower runs as two
 programs: the patch embedding and the first `n` blocks (7 buffers a block), then the other blocks, the final norm
-and the projection, dispatched while the GPU runs the first. The call's other programs are the engine's own.
+and the projection, dispatched while the GPU runs the first. A cut of several points (`--split 3,9`) runs the
+blocks between them as programs of their own, each dispatched while the GPU runs the one before: a small first
+program starts the GPU sooner, and the next ones must each be dispatched before the GPU has run the one before.
+Every program here is called as the engine calls its own (`engine.dispatch`). The call's other programs are the
+engine's own.
 
 Timed round-robin in one process against the call with the tower as one program (the engine's call before session
 46, when this probe led to `runtime.VISION_SPLIT`), with each variant's host time until its first program is
@@ -12,6 +16,7 @@ dispatched (the call returns before the GPU is done), its kernel span and count 
 against the one-program call's.
 
     python scripts/vision_split_probe.py --split 3 --split 6 --split 9 --split 13 --out vision_split.json
+    python scripts/vision_split_probe.py --split 9 --split 3,9 --split 2,6,13 --out vision_splits.json
 """
 
 from __future__ import annotations
@@ -27,28 +32,57 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent))
 import profile_engine  # noqa: E402
 
-from pi0_jax.engine import programs, runtime  # noqa: E402
+from pi0_jax.engine import dispatch, paths, programs, runtime, vision  # noqa: E402
 from pi0_jax.ops import matmul  # noqa: E402
 
 
-def split_programs(engine, images, n: int):
-    """(head, tail, head weights, tail weights): the tower's first n blocks and the rest as the engine's two vision
-    programs run them (`programs.encode_images_head` / `encode_images_tail` on `runtime.stage_tree`'s weights),
-    compiled for `images` (C, B, H, W, 3) with the cut at n."""
-    head_w, tail_w = (runtime.stage_tree(engine.weights, s, n) for s in ("vision_head", "vision_tail"))
+def split_programs(engine, images, cuts: tuple[int, ...]):
+    """[(program, weights), ...]: the tower cut before each block of `cuts` as the engine's two vision programs run
+    it (`programs.encode_images_head` / `encode_images_tail` on `runtime.stage_tree`'s weights), with the blocks
+    between two cuts as programs of their own (`encode_middle`), compiled for `images` (C, B, H, W, 3) and called
+    through `engine.dispatch`."""
     kw = {"attention": engine.attention, "kernels": engine.kernels}
-    head = functools.partial(programs.encode_images_head, engine.config, **kw)
-    tail = functools.partial(programs.encode_images_tail, engine.config, cameras=images.shape[0], **kw)
+    head_w, tail_w = runtime.stage_tree(engine.weights, "vision_head", cuts[0]), \
+        runtime.stage_tree(engine.weights, "vision_tail", cuts[-1])
     options = matmul.compiler_options(head_w, engine.gemm, vision_tower=True)
-    head_c = jax.jit(head).lower(head_w, images).compile(options)
-    tail_c = jax.jit(tail).lower(tail_w, *head_c.out_info).compile(options)
-    return head_c, tail_c, head_w, tail_w
+    head = jax.jit(functools.partial(programs.encode_images_head, engine.config, **kw)).lower(head_w, images)
+    out = [(head.compile(options), head_w)]
+    img = engine.weights["img"]
+    for a, b in zip(cuts, cuts[1:]):
+        w = {"img": {"blocks": img["blocks"][a:b], "vectors": img["vectors"]}}
+        fn = functools.partial(encode_middle, engine.config, first=a, attention=engine.attention,
+                               kernels=engine.kernels)
+        out.append((jax.jit(fn).lower(w, *out[-1][0].out_info).compile(options), w))
+    tail = functools.partial(programs.encode_images_tail, engine.config, cameras=images.shape[0], **kw)
+    out.append((jax.jit(tail).lower(tail_w, *out[-1][0].out_info).compile(options), tail_w))
+    return [(dispatch.Dispatch(c), w) for c, w in out]
+
+
+def encode_middle(config, w, x, f, *, first: int, attention, kernels):
+    """Blocks first .. first + len(w["img"]["blocks"]) of the tower from the (x, f) of the blocks before them, as
+    `vision.encode_head` returns it -> the same (x, f) after them."""
+    table, rows = vision._table(w["img"])
+    norm = paths.vision_norm(kernels, x.shape[0])
+    if f is not None:   # block first - 1's MLP output
+        f = (f[0], (table, (first - 1) * rows + vision.FC2_BIAS), f[1])
+    for i, wi in enumerate(w["img"]["blocks"], first):
+        x, f = vision.block(config.siglip, wi, x, f, (table, i * rows), attention=attention.vision, norm=norm)
+    return x, (f[0], f[2])
+
+
+def run_split(parts, images):
+    (head, hw), *rest = parts
+    out = head(hw, images)
+    for prog, w in rest:
+        out = prog(w, *(out if isinstance(out, tuple) else (out,)))
+    return out
 
 
 def main() -> None:
     p = profile_engine.probe_arguments(__doc__, 40, "each variant's call, dispatch and kernels")
-    p.add_argument("--split", type=int, action="append", default=None,
-                   help="blocks in the first vision program, repeatable (default: 3, 6, 9, 13)")
+    p.add_argument("--split", action="append", default=None,
+                   help="blocks in the first vision program, or the blocks before each of several programs "
+                        "comma-separated (3,9: blocks 0-2, 3-8 and 9 on); repeatable (default: 3, 6, 9, 13)")
     args = p.parse_args()
     config, engine, noise, cameras, bucket, packed = profile_engine.probe_engine(args)
     images, image_masks, tokens, token_mask, state = packed
@@ -63,11 +97,14 @@ def main() -> None:
 
     calls = {"one program": lambda: finish(vision_p(w, images))}
     firsts = {"one program": lambda: vision_p(w, images)}
-    for n in args.split or [3, 6, 9, 13]:
-        head, tail, hw, tw = split_programs(engine, images, n)
-        calls[f"split {n}"] = functools.partial(lambda h, t, hw, tw: finish(t(tw, *h(hw, images))), head, tail, hw, tw)
-        firsts[f"split {n}"] = functools.partial(lambda h, hw: h(hw, images), head, hw)
-        print(f"split {n}: head {len(jax.tree.leaves(hw))} buffers, tail {len(jax.tree.leaves(tw))}", flush=True)
+    for spec in args.split or ["3", "6", "9", "13"]:
+        cuts = tuple(int(c) for c in spec.split(","))
+        if list(cuts) != sorted(set(cuts)) or not 0 < cuts[0] or cuts[-1] >= config.siglip.depth:
+            p.error(f"--split {spec}: cuts must rise within 1 .. {config.siglip.depth - 1}")
+        parts = split_programs(engine, images, cuts)
+        calls[f"split {spec}"] = functools.partial(lambda parts: finish(run_split(parts, images)), parts)
+        firsts[f"split {spec}"] = functools.partial(lambda h, hw: h(hw, images), *parts[0])
+        print(f"split {spec}: buffers " + ", ".join(str(len(jax.tree.leaves(w))) for _, w in parts), flush=True)
     want = np.asarray(calls["one program"](), np.float64)
     report = {"env": profile_engine.benchmark.environment(), "rows": {}}
     for name, fn in calls.items():
