@@ -1,10 +1,10 @@
 """The vision program cut in two or more: does the call start sooner?
 
-The call's first program is the vision tower, and the host dispatches it before any kernel runs: its 195 weight
-buffers cost the host about 1.2-1.7 µs each (docs/BENCHMARKS.md, "The host's share of a call"), all on the call's
-critical path. The programs after it are dispatched while the GPU runs the one before. Here the tower runs as two
-programs: the patch embedding and the first `n` blocks (7 buffers a block), then the other blocks, the final norm
-and the projection, dispatched while the GPU runs the first. A cut of several points (`--split 3,9`) runs the
+The call's first program is the vision tower, and the host dispatches it before any kernel runs: its 115 weight
+buffers and 202 kernels (π0, B = 1), all on the call's critical path (docs/BENCHMARKS.md, "The host's share of a
+call", sessions 49 and 69). The programs after it are dispatched while the GPU runs the one before. Here the tower
+runs as two programs: the patch embedding and the first `n` blocks (4 buffers a block), then the other blocks, the
+final norm and the projection, dispatched while the GPU runs the first. A cut of several points (`--split 3,9`) runs the
 blocks between them as programs of their own, each dispatched while the GPU runs the one before: a small first
 program starts the GPU sooner, and the next ones must each be dispatched before the GPU has run the one before.
 Every program here is called as the engine calls its own (`engine.dispatch`). The call's other programs are the
@@ -71,10 +71,11 @@ def encode_middle(config, w, x, f, *, first: int, attention, kernels):
 
 
 def run_split(parts, images):
+    """The image tokens through `split_programs`' programs, each taking the (x, f) of the one before."""
     (head, hw), *rest = parts
     out = head(hw, images)
     for prog, w in rest:
-        out = prog(w, *(out if isinstance(out, tuple) else (out,)))
+        out = prog(w, *out)
     return out
 
 
@@ -98,8 +99,9 @@ def main() -> None:
     calls = {"one program": lambda: finish(vision_p(w, images))}
     firsts = {"one program": lambda: vision_p(w, images)}
     for spec in args.split or ["3", "6", "9", "13"]:
-        cuts = tuple(int(c) for c in spec.split(","))
-        if list(cuts) != sorted(set(cuts)) or not 0 < cuts[0] or cuts[-1] >= config.siglip.depth:
+        cuts = tuple(int(c) for c in spec.split(",") if c.strip().isdigit())
+        if len(cuts) != len(spec.split(",")) or list(cuts) != sorted(set(cuts)) or not 0 < cuts[0] \
+                or cuts[-1] >= config.siglip.depth:
             p.error(f"--split {spec}: cuts must rise within 1 .. {config.siglip.depth - 1}")
         parts = split_programs(engine, images, cuts)
         calls[f"split {spec}"] = functools.partial(lambda parts: finish(run_split(parts, images)), parts)
