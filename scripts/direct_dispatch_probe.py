@@ -36,13 +36,14 @@ from pi0_jax.engine.runtime import run_call, stage_tree  # noqa: E402
 
 def bare(compiled):
     """The executable called with its buffers and nothing checked (jax's call without its front)."""
-    run = compiled._executable.unsafe_call
-    kept, handlers = sorted(run.kept_var_idx), run.out_handler.handlers
+    plans = []   # `dispatch.plan`'s reading of jax's internals, made at the first call
 
     def call(*args):
-        leaves = jax.tree.leaves(args)
-        out = run.xla_executable.execute_sharded([leaves[i] for i in kept]).consume_with_handlers(handlers)
-        return jax.tree.unflatten(compiled.out_tree, out)
+        if not plans:
+            plans.append(dispatch.plan(compiled, args))
+        p, leaves = plans[0], jax.tree.leaves(args)
+        out = p.execute([leaves[i] for i in p.kept]).consume_with_handlers(p.handlers)
+        return jax.tree.unflatten(p.out_tree, out)
     return call
 
 

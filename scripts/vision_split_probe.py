@@ -61,12 +61,8 @@ def split_programs(engine, images, cuts: tuple[int, ...]):
 def encode_middle(config, w, x, f, *, first: int, attention, kernels):
     """Blocks first .. first + len(w["img"]["blocks"]) of the tower from the (x, f) of the blocks before them, as
     `vision.encode_head` returns it -> the same (x, f) after them."""
-    table, rows = vision._table(w["img"])
-    norm = paths.vision_norm(kernels, x.shape[0])
-    if f is not None:   # block first - 1's MLP output
-        f = (f[0], (table, (first - 1) * rows + vision.FC2_BIAS), f[1])
-    for i, wi in enumerate(w["img"]["blocks"], first):
-        x, f = vision.block(config.siglip, wi, x, f, (table, i * rows), attention=attention.vision, norm=norm)
+    x, f = vision.blocks_from(config.siglip, w["img"], x, f, first, attention=attention.vision,
+                              norm=paths.vision_norm(kernels, x.shape[0]))
     return x, (f[0], f[2])
 
 

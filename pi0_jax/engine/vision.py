@@ -190,10 +190,17 @@ def encode_head(cfg: SiglipConfig, w: dict, images, *, dtype, attention: str = "
 def encode_tail(cfg: SiglipConfig, w: dict, x, f, *, dtype, attention: str = "xla", norm: str = "xla"):
     """The tower after `encode_head`, from its (x, f): the blocks of w["blocks"] (a list, maybe empty: the tower's
     last blocks), the final norm and the projection -> tokens (B, 256, out_dim)."""
-    table, rows = _table(w)
     first = w["vectors"].shape[0] - len(w["blocks"])   # the tower's blocks before these
+    x, f = blocks_from(cfg, w, x, f, first, attention=attention, norm=norm)
+    return _project(w, x, f, dtype, norm)
+
+
+def blocks_from(cfg: SiglipConfig, w: dict, x, f, first: int, *, attention: str, norm: str) -> tuple:
+    """Blocks first, first + 1, ... (w["blocks"]) from the (x, f) of the blocks before them (`encode_head`'s) -> (x,
+    f) with f as `block` gives it."""
+    table, rows = _table(w)
     if f is not None:   # block first - 1's MLP output
         f = (f[0], (table, (first - 1) * rows + FC2_BIAS), f[1])
     for i, wi in enumerate(w["blocks"], first):
         x, f = block(cfg, wi, x, f, (table, i * rows), attention=attention, norm=norm)
-    return _project(w, x, f, dtype, norm)
+    return x, f
