@@ -207,6 +207,11 @@ def main() -> None:
     p.add_argument("--stage", action="append", default=None,
                    choices=("encode_images", "fill_prefix_cache", "denoise", "infer", "call"),
                    help="repeatable: only these programs (default: all; the actions compared are infer's, else call's)")
+    p.add_argument("--settle", type=int, default=0,
+                   help="untimed calls of a variant's stage right before each timed one, so that its buffers lie "
+                        "where its CUDA graphs last saw them (after another variant's call XLA may update the graphs' "
+                        "nodes first: up to 0.3 ms on the call's median and 1 ms on its p90, docs/BENCHMARKS.md, "
+                        "session 78; default: %(default)s)")
     p.add_argument("--sequence", action="store_true", help="keep each stage's kernels in launch order (one call)")
     p.add_argument("--marks", action="store_true",
                    help="with the call stage: the host's untraced time to each program's dispatch and to the call's "
@@ -226,7 +231,8 @@ def main() -> None:
     params = benchmark.random_params(config, 0)
     if args.quant:
         params = benchmark.fp8_params(config, params, args.quant, num_steps=args.steps)
-    report = {"preset": args.preset, "quant": args.quant, "env": benchmark.environment(), "rows": []}
+    report = {"preset": args.preset, "quant": args.quant, "settle": args.settle, "env": benchmark.environment(),
+              "rows": []}
     own_options, own_embed, own_concurrent = runtime.matmul.compiler_options, vision.patch_embed, paths.CONCURRENT
     own_ends = {k: getattr(programs, k) for k in ("FOLD_ACTION_IN", "FP8_ROW_PAD")}
     own_split = runtime.VISION_SPLIT
@@ -304,7 +310,7 @@ def main() -> None:
             setattr(programs, k, v)
         for (m, k), v in own_attrs.items():
             setattr(m, k, v)
-        times = profile_engine.round_robin(timed, args.iters)
+        times = profile_engine.round_robin(timed, args.iters, settle=args.settle)
         if args.loop:
             loops = {(row["variant"], stage): profile_engine.looping(timed[row["variant"], stage], args.loop)
                      for row in rows for stage in LOOPED if (row["variant"], stage) in timed}
@@ -312,11 +318,13 @@ def main() -> None:
         for row in rows:
             row["median_ms"] = {stage: float(np.median(t)) for (name, stage), t in times.items()
                                 if name == row["variant"]}
+            row["p90_ms"] = {stage: float(np.percentile(t, 90)) for (name, stage), t in times.items()
+                             if name == row["variant"]}
             if args.loop:
                 row["in_a_loop_ms"] = {stage: float(np.median(looped[row["variant"], stage])) / args.loop
                                        for stage in LOOPED if (row["variant"], stage) in looped}
-            shown = ("variant", "batch", "median_ms", "in_a_loop_ms", "marks_us", "kernels_per_call", "kernel_ms",
-                     "span_ms", "idle_ms", "rel_l2_vs_first")
+            shown = ("variant", "batch", "median_ms", "p90_ms", "in_a_loop_ms", "marks_us", "kernels_per_call",
+                     "kernel_ms", "span_ms", "idle_ms", "rel_l2_vs_first")
             print(json.dumps({k: row[k] for k in shown if k in row}), flush=True)
         report["rows"] += rows
     profile_engine.write_json(args.out, report)

@@ -11,12 +11,15 @@ Every program here is called as the engine calls its own (`engine.dispatch`). Th
 engine's own.
 
 Timed round-robin in one process against the call with the tower as one program (the engine's call before session
-46, when this probe led to `runtime.VISION_SPLIT`), with each variant's host time until its first program is
-dispatched (the call returns before the GPU is done), its kernel span and count from a trace, and its actions
-against the one-program call's.
+46, when this probe led to `runtime.VISION_SPLIT`) and the engine's own call, with each variant's host time until
+its first program is dispatched (the call returns before the GPU is done), its kernel span and count from a trace,
+and its actions against the one-program call's. Each call is timed twice: right after the other variants' calls,
+and after `--settle` untimed calls of its own (XLA may first update the CUDA graphs' nodes of a call whose buffers
+moved since its last: session 78 found the first way 0.25-0.3 ms slower at the median and 1 ms at the p90, and
+the last variant of a round, run twice in a row at each turn, favoured; docs/BENCHMARKS.md).
 
     python scripts/vision_split_probe.py --split 3 --split 6 --split 9 --split 13 --out vision_split.json
-    python scripts/vision_split_probe.py --split 9 --split 3,9 --split 2,6,13 --out vision_splits.json
+    python scripts/vision_split_probe.py --split 9 --split 1,9 --split 3,9 --iters 100 --out vision_splits.json
 """
 
 from __future__ import annotations
@@ -80,6 +83,9 @@ def main() -> None:
     p.add_argument("--split", action="append", default=None,
                    help="blocks in the first vision program, or the blocks before each of several programs "
                         "comma-separated (3,9: blocks 0-2, 3-8 and 9 on); repeatable (default: 3, 6, 9, 13)")
+    p.add_argument("--settle", type=int, default=2,
+                   help="also time each variant's call after this many untimed calls of it in a row, its buffers "
+                        "where its CUDA graphs last saw them (0: not; default: %(default)s)")
     args = p.parse_args()
     config, engine, noise, cameras, bucket, packed = profile_engine.probe_engine(args)
     images, image_masks, tokens, token_mask, state = packed
@@ -92,8 +98,10 @@ def main() -> None:
         out = act(w, sched, image_tokens, image_masks, tokens, token_mask, state, noise)
         return rest[0](w, sched, *out) if rest else out
 
-    calls = {"one program": lambda: finish(vision_p(w, images))}
-    firsts = {"one program": lambda: vision_p(w, images)}
+    calls = {"one program": lambda: finish(vision_p(w, images)),
+             "the engine's call": lambda: engine.sample_packed(packed, noise, args.steps, cameras, bucket)}
+    head_p = engine.call_programs(args.batch, args.steps, cameras, bucket)[0]
+    firsts = {"one program": lambda: vision_p(w, images), "the engine's call": lambda: head_p(w, images)}
     for spec in args.split or ["3", "6", "9", "13"]:
         cuts = tuple(int(c) for c in spec.split(",") if c.strip().isdigit())
         if len(cuts) != len(spec.split(",")) or list(cuts) != sorted(set(cuts)) or not 0 < cuts[0] \
@@ -123,10 +131,12 @@ def main() -> None:
             jax.block_until_ready(out)
         report["rows"][name]["first_dispatch_ms"] = float(np.median(ts))
     times = profile_engine.round_robin(calls, args.iters)
-    loops = profile_engine.round_robin({k: profile_engine.looping(fn, 10) for k, fn in calls.items()}, args.iters // 4)
+    settled = profile_engine.round_robin(calls, args.iters, settle=args.settle) if args.settle else {}
     for name, row in report["rows"].items():
-        row["call_ms"] = float(np.median(times[name]))
-        row["in_a_loop_ms"] = float(np.median(loops[name])) / 10
+        for key, t in (("call", times), ("settled_call", settled)):
+            if t:
+                row[f"{key}_ms"] = float(np.median(t[name]))
+                row[f"{key}_p10_p90_ms"] = [float(np.percentile(t[name], q)) for q in (10, 90)]
         print(name, {k: round(v, 4) if isinstance(v, float) else v for k, v in row.items()}, flush=True)
     profile_engine.write_json(args.out, report)
 
