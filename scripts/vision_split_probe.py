@@ -120,11 +120,12 @@ def main() -> None:
         report["rows"][name] = {"rel_l2_vs_one": float(np.linalg.norm(got - want) / np.linalg.norm(want)),
                                 "kernels_per_call": t["kernels_per_call"], "span_ms": t["span_ms"],
                                 "idle_ms": t["idle_ms"]}
-    # the host's time to dispatch each variant's first program (it returns before its kernels run)
+    # the host's time to dispatch each variant's first program (it returns before its kernels run), after a call of
+    # the variant itself (after another's, the program's buffers may have moved: see the module doc)
     for name, fn in firsts.items():
         ts = []
         for _ in range(args.iters):
-            jax.block_until_ready(calls["one program"]())
+            jax.block_until_ready(calls[name]())
             start = time.perf_counter()
             out = fn()
             ts.append((time.perf_counter() - start) * 1e3)
