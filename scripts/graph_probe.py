@@ -210,8 +210,8 @@ def main() -> None:
     p.add_argument("--settle", type=int, default=0,
                    help="untimed calls of a variant's stage right before each timed one, so that its buffers lie "
                         "where its CUDA graphs last saw them (after another variant's call XLA may update the graphs' "
-                        "nodes first: up to 0.3 ms on the call's median and 1 ms on its p90, docs/BENCHMARKS.md, "
-                        "session 78; default: %(default)s)")
+                        "nodes first: 0.3-1.4 ms on the call's median on two H100s, docs/BENCHMARKS.md, session "
+                        "78; default: %(default)s)")
     p.add_argument("--sequence", action="store_true", help="keep each stage's kernels in launch order (one call)")
     p.add_argument("--marks", action="store_true",
                    help="with the call stage: the host's untraced time to each program's dispatch and to the call's "

@@ -15,8 +15,8 @@ Timed round-robin in one process against the call with the tower as one program 
 its first program is dispatched (the call returns before the GPU is done), its kernel span and count from a trace,
 and its actions against the one-program call's. Each call is timed twice: right after the other variants' calls,
 and after `--settle` untimed calls of its own (XLA may first update the CUDA graphs' nodes of a call whose buffers
-moved since its last: session 78 found the first way 0.25-0.3 ms slower at the median and 1 ms at the p90, and
-the last variant of a round, run twice in a row at each turn, favoured; docs/BENCHMARKS.md).
+moved since its last: session 78 found the first way 0.3-1.4 ms slower at the median on two H100s, and the last
+variant of a round, run twice in a row at each turn, favoured; docs/BENCHMARKS.md).
 
     python scripts/vision_split_probe.py --split 3 --split 6 --split 9 --split 13 --out vision_split.json
     python scripts/vision_split_probe.py --split 9 --split 1,9 --split 3,9 --iters 100 --out vision_splits.json
