@@ -131,8 +131,13 @@ def main() -> None:
             ts.append((time.perf_counter() - start) * 1e3)
             jax.block_until_ready(out)
         report["rows"][name]["first_dispatch_ms"] = float(np.median(ts))
+    # the phases' times on `time.perf_counter`'s clock, which `launch_shim.py`'s log of graph launches shares
+    report["phases_s"] = {"round_robin": [time.perf_counter()]}
     times = profile_engine.round_robin(calls, args.iters)
+    report["phases_s"]["round_robin"].append(time.perf_counter())
+    report["phases_s"]["settled"] = [time.perf_counter()]
     settled = profile_engine.round_robin(calls, args.iters, settle=args.settle) if args.settle else {}
+    report["phases_s"]["settled"].append(time.perf_counter())
     for name, row in report["rows"].items():
         for key, t in (("call", times), ("settled_call", settled)):
             if t:
