@@ -207,11 +207,11 @@ def main() -> None:
     p.add_argument("--stage", action="append", default=None,
                    choices=("encode_images", "fill_prefix_cache", "denoise", "infer", "call"),
                    help="repeatable: only these programs (default: all; the actions compared are infer's, else call's)")
-    p.add_argument("--settle", type=int, default=0,
+    p.add_argument("--settle", type=int, default=1,
                    help="untimed calls of a variant's stage right before each timed one, so that its buffers lie "
                         "where its CUDA graphs last saw them (after another variant's call XLA may update the graphs' "
                         "nodes first: 0.3-1.4 ms on the call's median on two H100s, docs/BENCHMARKS.md, session "
-                        "78; default: %(default)s)")
+                        "78; 0: as the probe timed before it; default: %(default)s)")
     p.add_argument("--sequence", action="store_true", help="keep each stage's kernels in launch order (one call)")
     p.add_argument("--marks", action="store_true",
                    help="with the call stage: the host's untraced time to each program's dispatch and to the call's "
@@ -314,7 +314,7 @@ def main() -> None:
         if args.loop:
             loops = {(row["variant"], stage): profile_engine.looping(timed[row["variant"], stage], args.loop)
                      for row in rows for stage in LOOPED if (row["variant"], stage) in timed}
-            looped = profile_engine.round_robin(loops, args.iters)
+            looped = profile_engine.round_robin(loops, args.iters, settle=0)   # a loop settles itself
         for row in rows:
             row["median_ms"] = {stage: float(np.median(t)) for (name, stage), t in times.items()
                                 if name == row["variant"]}

@@ -263,12 +263,13 @@ def probe_engine(args, **engine_options) -> tuple:
     return config, engine, noise, cameras, bucket, engine.pack(obs, cameras, bucket)
 
 
-def round_robin(calls: dict, iters: int, warmup: int = 3, settle: int = 0) -> dict:
+def round_robin(calls: dict, iters: int, warmup: int = 3, settle: int = 1) -> dict:
     """ms of each no-argument call, blocked on its output: one call of each per round, the order reversed every
     other round (a program timed right after another runs 1-3 % slower, docs/BENCHMARKS.md). settle: untimed calls
-    of a variant right before its timed one, so that its buffers lie where its CUDA graphs last saw them (after
-    another variant's call they may not, and XLA then updates the graphs' nodes before launching them: up to 1.3 ms
-    a call, docs/BENCHMARKS.md, session 69)."""
+    of a variant right before its timed one, so that its buffers lie where its CUDA graphs last saw them: after
+    another variant's call they do not, and XLA updates the graphs' nodes before launching them (0.3-1.4 ms on π0's
+    call on two H100s; one untimed call takes the updates to none; docs/BENCHMARKS.md, session 78). Before session
+    78 the probes timed with settle = 0."""
     times = {k: [] for k in calls}
     for i in range(warmup + iters):
         for name, fn in (calls.items() if i % 2 else reversed(calls.items())):

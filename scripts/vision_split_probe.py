@@ -83,7 +83,7 @@ def main() -> None:
     p.add_argument("--split", action="append", default=None,
                    help="blocks in the first vision program, or the blocks before each of several programs "
                         "comma-separated (3,9: blocks 0-2, 3-8 and 9 on); repeatable (default: 3, 6, 9, 13)")
-    p.add_argument("--settle", type=int, default=2,
+    p.add_argument("--settle", type=int, default=1,
                    help="also time each variant's call after this many untimed calls of it in a row, its buffers "
                         "where its CUDA graphs last saw them (0: not; default: %(default)s)")
     args = p.parse_args()
@@ -133,7 +133,7 @@ def main() -> None:
         report["rows"][name]["first_dispatch_ms"] = float(np.median(ts))
     # the phases' times on `time.perf_counter`'s clock, which `launch_shim.py`'s log of graph launches shares
     report["phases_s"] = {"round_robin": [time.perf_counter()]}
-    times = profile_engine.round_robin(calls, args.iters)
+    times = profile_engine.round_robin(calls, args.iters, settle=0)
     report["phases_s"]["round_robin"].append(time.perf_counter())
     report["phases_s"]["settled"] = [time.perf_counter()]
     settled = profile_engine.round_robin(calls, args.iters, settle=args.settle) if args.settle else {}
