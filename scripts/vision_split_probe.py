@@ -88,17 +88,16 @@ def main() -> None:
                         "where its CUDA graphs last saw them (0: not; default: %(default)s)")
     args = p.parse_args()
     config, engine, noise, cameras, bucket, packed = profile_engine.probe_engine(args)
-    images, image_masks, tokens, token_mask, state = packed
+    images = packed[0]
     after = [s for s in engine.call_stages(args.batch, args.steps) if s not in runtime.VISION_STAGES]
     vision_p, act, *rest = (engine.executable(s, args.batch, args.steps, cameras, bucket)
                             for s in ("encode_images", *after))
     w, sched = engine.weights, engine.schedule(args.steps)
 
-    def finish(image_tokens):
-        out = act(w, sched, image_tokens, image_masks, tokens, token_mask, state, noise)
-        return rest[0](w, sched, *out) if rest else out
+    def call_with(vision):   # the engine's call with the tower as `vision(weights, images)` runs it
+        return runtime.run_call((vision, act, *rest), False, w, sched, packed, noise)
 
-    calls = {"one program": lambda: finish(vision_p(w, images)),
+    calls = {"one program": lambda: call_with(vision_p),
              "the engine's call": lambda: engine.sample_packed(packed, noise, args.steps, cameras, bucket)}
     head_p = engine.call_programs(args.batch, args.steps, cameras, bucket)[0]
     firsts = {"one program": lambda: vision_p(w, images), "the engine's call": lambda: head_p(w, images)}
@@ -108,7 +107,7 @@ def main() -> None:
                 or cuts[-1] >= config.siglip.depth:
             p.error(f"--split {spec}: cuts must rise within 1 .. {config.siglip.depth - 1}")
         parts = split_programs(engine, images, cuts)
-        calls[f"split {spec}"] = functools.partial(lambda parts: finish(run_split(parts, images)), parts)
+        calls[f"split {spec}"] = functools.partial(lambda parts: call_with(lambda _, x: run_split(parts, x)), parts)
         firsts[f"split {spec}"] = functools.partial(lambda h, hw: h(hw, images), *parts[0])
         print(f"split {spec}: buffers " + ", ".join(str(len(jax.tree.leaves(w))) for _, w in parts), flush=True)
     want = np.asarray(calls["one program"](), np.float64)
