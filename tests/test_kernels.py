@@ -222,7 +222,8 @@ def test_mlp_kernels_match_xla(adaptive):
                                    blocks=Blocks(mlp=Gemm(64, splits)))
         np.testing.assert_allclose(_unrows(got_hidden, CFG.mlp_dim), hidden, **TOL)
     for splits in (1, 2):  # one kernel, and split-K (96 = 2 x 48)
-        got = ek.matmul_residual(got_hidden, wk["down"], layout.rows(x, sp), mods, gate_row, gemm=Gemm(64, splits))
+        gate_kw = {} if gate_row is None else {"gate": mods[gate_row]}
+        got = ek.matmul_residual(got_hidden, wk["down"], layout.rows(x, sp), gemm=Gemm(64, splits), **gate_kw)
         np.testing.assert_allclose(_unrows(got, CFG.width), want, **TOL)
 
 

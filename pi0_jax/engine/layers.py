@@ -333,25 +333,29 @@ def suffix_layers_pallas(cfg: GemmaConfig, weights, x, positions, cache_k, cache
     blocks = expert_kernels.default_blocks() if blocks is None else blocks
     b, s, d = x.shape
     sp = layout.suffix_rows(s)
-    rows = layout.rows(x, sp)
+    # The residual after each GEMM fuses into the next norm's XLA (Triton) fusion only where its inputs are buffers of
+    # their own: the first layer's rows not a pad XLA could fuse into it, and π0.5's gates not slices of its tables.
+    # Else the residual is a kernel of its own: 18 a step more for π0.5 (docs/BENCHMARKS.md, session 79)
+    rows = jax.lax.optimization_barrier(layout.rows(x, sp))
     cos, sin, pmask, smask = pallas_tables(cfg, positions, prefix_mask, suffix_mask) if tables is None else tables
     heads = {"num_heads": cfg.num_heads, "num_kv_heads": cfg.num_kv_heads}
     adaptive = mods is not None
     if adaptive:
         mods_attn, mods_ffw = layout.mods(mods[0], d), layout.mods(mods[1], d)
+        gates = jax.lax.optimization_barrier([(mods_attn[3 * i + 2], mods_ffw[3 * i + 2]) for i in range(len(weights))])
     for i, w in enumerate(weights):
         w = layout.expert_weights(w, cfg)
         if adaptive:  # layer i's rows of the step's table: scale 3i, shift 3i + 1, gate 3i + 2
-            (ma, ra, ga), (mf, rf, gf) = (mods_attn, 3 * i, 3 * i + 2), (mods_ffw, 3 * i, 3 * i + 2)
+            (ma, ra, ga), (mf, rf, gf) = (mods_attn, 3 * i, gates[i][0]), (mods_ffw, 3 * i, gates[i][1])
         else:
             (ma, ra, ga), (mf, rf, gf) = (w["pre_attn"], 0, None), (w["pre_ffw"], 0, None)
         qkv = expert_kernels.norm_qkv_rope(rows, ma, ra, adaptive, w["qkv"], cos, sin, width=d,
                                            head_dim=cfg.head_dim, blocks=blocks, **heads)
         k, v = (c[i].reshape(b * c[i].shape[1], -1) for c in (cache_k, cache_v))
         y = expert_kernels.attention(qkv, k, v, pmask, smask, batch=b, blocks=blocks, **heads)
-        rows = expert_kernels.matmul_residual(y, w["attn_out"], rows, ma, ga, gemm=blocks.out, blocks=blocks,
+        rows = expert_kernels.matmul_residual(y, w["attn_out"], rows, ga, gemm=blocks.out, blocks=blocks,
                                               name="expert_attn_out", mosaic=blocks.mosaic_out)
         h = expert_kernels.norm_geglu(rows, mf, rf, adaptive, w["gate_up"], width=d, blocks=blocks)
-        rows = expert_kernels.matmul_residual(h, w["down"], rows, mf, gf, gemm=blocks.down, blocks=blocks,
+        rows = expert_kernels.matmul_residual(h, w["down"], rows, gf, gemm=blocks.down, blocks=blocks,
                                               name="expert_down", mosaic=blocks.mosaic_down)
     return rows.reshape(b, sp, -1)[:, :s, :d]

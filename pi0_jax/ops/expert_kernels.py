@@ -512,17 +512,17 @@ def merge_xla(o, lse, *, parts: int, num_heads: int, batch: int = 1, kept: int |
 
 
 # -- GEMM + (gated) residual, norm + gate/up GEMM + GeGLU --------------------------------------------------------------
-def matmul_residual(y, w, x, mods=None, gate_row: int | None = None, *, gemm: Gemm, blocks: Blocks = Blocks(),
-                    name: str = "matmul_partials", mosaic: Launch | None = None):
-    """x + (y @ w) [* mods[gate_row]]: y (M, E), w (E, D), x (M, D); the π0.5 adaRMS gate is a row of mods (R, D).
-    The split sum is rounded to the dtype, then the gate and the residual (the XLA path's ops, in its order).
-    mosaic: the GEMM as `ops.mosaic_gemm` with this launch, where it applies."""
+def matmul_residual(y, w, x, gate=None, *, gemm: Gemm, blocks: Blocks = Blocks(), name: str = "matmul_partials",
+                    mosaic: Launch | None = None):
+    """x + (y @ w) [* gate]: y (M, E), w (E, D), x (M, D); gate (D,), π0.5's adaRMS gate. The split sum is rounded to
+    the dtype, then the gate and the residual (the XLA path's ops, in its order). mosaic: the GEMM as
+    `ops.mosaic_gemm` with this launch, where it applies."""
     if _mosaic(y, w, mosaic):
         parts = mosaic_gemm.partials(y, w, mosaic, name=name).astype(jnp.float32)
     else:
         parts, _, _ = matmul_partials(y, w, gemm=gemm, blocks=blocks, name=name)
     z = sum(list(parts)).astype(x.dtype)
-    return x + (z if gate_row is None else z * mods[gate_row])
+    return x + (z if gate is None else z * gate)
 
 
 def norm_geglu(x, mods, mod_row: int, adaptive: bool, w_gate_up, *, width: int, blocks: Blocks = Blocks()):
