@@ -8,7 +8,8 @@ another tiling or split-K on a GPU the counts may differ by those kernels: compa
 (`profile_engine.py`, `graph_probe.py`) before trusting a difference.
 
 It needs the CUDA plugin of the installed jaxlib (`pip install "jax[cuda12]==$(python -c 'import jax;
-print(jax.__version__)')"`), not a GPU or a driver: the plugin's compiler is used, with the device described by
+print(jax.__version__)')"`; the GPU image's compiler, jax 0.11.2 with CUDA 13, is `pip install "jax[cuda13]==0.11.2"` in
+a Python 3.12 environment), not a GPU or a driver: the plugin's compiler is used, with the device described by
 `TARGET` (an H200's figures), and jax's own device queries in the engine (`jax.devices()`, `jax.default_backend()`)
 answer as that GPU would. The weights are shapes only (`pi0.param_shapes`; FP8 scales from unit amaxes), so a
 full-size preset compiles in a few GB of host memory. Without the plugin, `abstract_engine` lowers the programs for
@@ -22,6 +23,8 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import importlib
+import importlib.util
 import json
 import os
 import re
@@ -87,12 +90,21 @@ def as_target():
     cudnn.check_compute_capability = lambda c: cc >= tuple(map(int, c.split(".")))
     cudnn.is_cuda_compute_capability_equal = lambda c: cc == tuple(map(int, c.split(".")))
     cudnn.check_cudnn_version = lambda: TargetDevice.cudnn_version
+    # jax 0.11's Pallas Triton lowering asks the default device (here the CPU) for its GPU (the GPU image's jax)
+    triton_gpu = importlib.util.find_spec("jax._src.pallas.triton.gpu_info") and \
+        importlib.import_module("jax._src.pallas.triton.gpu_info")
+    if triton_gpu:
+        saved_info = triton_gpu.get_gpu_info
+        triton_gpu.get_gpu_info = lambda: triton_gpu.GpuInfo(gpu_version=None, compute_capability=cc[0] * 10 + cc[1],
+                                                              arch_name=TargetDevice.compute_capability)
     try:
         yield
     finally:
         jax.devices, jax.default_backend = saved[:2]
         for n, f in zip(names, saved[2:]):
             setattr(cudnn, n, f)
+        if triton_gpu:
+            triton_gpu.get_gpu_info = saved_info
 
 
 def target_devices(n: int = 1) -> list:
