@@ -123,8 +123,9 @@ def _mlp(h, w, kernel: bool = False, scales=None):
     gate_up, down = w["gate_up"], w["down"]
     if input_scale(gate_up) is None or input_scale(down) is None:
         gate, up = layout.split_gate_up(_mm(h, gate_up))
-        # GELU in f32, rounded to the dtype where the reference's ends: in the dtype, XLA wrote the gate half out in a
-        # pass of its own before the GeGLU pass (π0's prefix: 17 a call, 20 µs each on an H100; session 79)
+        # GELU in f32, rounded to the dtype at its end as the reference's is. With GELU in the dtype, XLA wrote the
+        # gate half out in a pass of its own before the GeGLU pass (17 a prefix fill at B = 1: docs/BENCHMARKS.md,
+        # session 79)
         return _mm(gelu_tanh(gate.astype(jnp.float32)).astype(gate.dtype) * up, down)
     xq = formats.quantise(h, gate_up.act_scale)
     if kernel and _mlp_on_kernel(w):
