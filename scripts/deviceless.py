@@ -23,8 +23,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import importlib
-import importlib.util
 import json
 import os
 import re
@@ -91,8 +89,10 @@ def as_target():
     cudnn.is_cuda_compute_capability_equal = lambda c: cc == tuple(map(int, c.split(".")))
     cudnn.check_cudnn_version = lambda: TargetDevice.cudnn_version
     # jax 0.11's Pallas Triton lowering asks the default device (here the CPU) for its GPU (the GPU image's jax)
-    triton_gpu = importlib.util.find_spec("jax._src.pallas.triton.gpu_info") and \
-        importlib.import_module("jax._src.pallas.triton.gpu_info")
+    try:
+        from jax._src.pallas.triton import gpu_info as triton_gpu
+    except ImportError:   # jaxlib 0.10
+        triton_gpu = None
     if triton_gpu:
         saved_info = triton_gpu.get_gpu_info
         triton_gpu.get_gpu_info = lambda: triton_gpu.GpuInfo(gpu_version=None, compute_capability=cc[0] * 10 + cc[1],
