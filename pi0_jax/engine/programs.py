@@ -93,11 +93,17 @@ def fill_prefix_cache(config: Pi0Config, weights: dict, image_tokens, image_mask
     positions = jnp.cumsum(mask, axis=1) - 1
     kv_len = None
     if "cudnn" in (attention.prefix, attention.denoise):
-        order = jnp.argsort(~mask, axis=1, stable=True)
+        # A stable partition, valid first, as counts: the j-th valid token is the one with j valid tokens before it
+        # (positions), the j-th padded one the one with j padded before it. One reduction where XLA's sort took 10 µs.
+        rank = jnp.arange(mask.shape[1], dtype=positions.dtype)
+        n = jnp.sum(mask, axis=1, keepdims=True, dtype=positions.dtype)
+        before = jnp.where((rank < n)[:, :, None], positions[:, None, :] < rank[:, None],
+                           (rank - positions - 1)[:, None, :] < (rank - n)[:, :, None])
+        order = jnp.sum(before, axis=2, dtype=positions.dtype)
         x = jnp.take_along_axis(x, order[..., None], axis=1)
         positions, mask = (jnp.take_along_axis(a, order, axis=1) for a in (positions, mask))
         if attention.prefix == "cudnn":
-            kv_len = jnp.sum(mask, axis=1, dtype=jnp.int32)
+            kv_len = n[:, 0].astype(jnp.int32)
     attn_mask = mask[:, None, :] & mask[:, :, None]
     kernel = paths.kernel_cache(kernels, attention, x.shape[0], weights.get("expert"))
     keys = layout.cache_len(x.shape[1]) if kernel else None   # each layer writes its cache padded
