@@ -237,7 +237,7 @@ def step_velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array
     attention = attention.at_batch(b, suffix_mask=not config.pi05)
 
     def at_step(key):   # the schedule row of `key` for every action: (1, 1, ...) or, with `frozen`, (B, H, ...)
-        now = sched[key][step][None, None]
+        now = jax.lax.dynamic_index_in_dim(sched[key], step, keepdims=False, allow_negative_indices=False)[None, None]
         if frozen is None:
             return now
         where = frozen.reshape(frozen.shape + (1,) * (now.ndim - 2))
