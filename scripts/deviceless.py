@@ -248,7 +248,7 @@ def sequence(hlo: str, computation: str) -> list[list[str]]:
     for line in lines[start + 1:]:
         if line.startswith("}"):
             break
-        m = re.search(r"^\s*(?:ROOT )?%([\w.\-]+) = .*?\b(fusion|custom-call|copy)\(", line)
+        m = re.search(r"^\s*(?:ROOT )?%([\w.\-]+) = .*?\b(fusion|custom-call|copy)(?:-start)?\(", line)
         if m:
             how = (re.search(r'custom_call_target="([^"]+)"', line) or re.search(r'"kind":"(\w+)"', line)
                    or re.search(r"kind=(k\w+)", line))

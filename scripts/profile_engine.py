@@ -41,7 +41,9 @@ from pi0_jax.quant import schemes
 
 
 def count_ops(hlo: str) -> dict:
-    """Kernel-level op counts per HLO computation ('ENTRY' and each while body)."""
+    """Kernel-level op counts per HLO computation ('ENTRY' and each while body). An async fusion or copy counts
+    at its start (`fusion-start`: XLA runs a dynamic slice of a contiguous block as a memcpy, `memcpy32_post` in a
+    trace; its `-done` is no kernel)."""
     counts, current = {}, None
     for line in hlo.splitlines():
         head = re.match(r"^(ENTRY )?%?([\w.\-]+) .*\{$", line)
@@ -49,7 +51,7 @@ def count_ops(hlo: str) -> dict:
             current = ("ENTRY " if head.group(1) else "") + head.group(2)
             counts[current] = {"fusion": 0, "custom-call": 0, "copy": 0, "while": 0, "other": 0}
             continue
-        m = re.search(r"=.*?\b(fusion|custom-call|copy|while|convolution|dot)\(", line)
+        m = re.search(r"=.*?\b(fusion|custom-call|copy|while|convolution|dot)(-start)?\(", line)
         if current and m:
             kind = m.group(1)
             counts[current][kind if kind in counts[current] else "other"] += 1
@@ -98,7 +100,8 @@ def loop_invariant_kernels(hlo: str) -> dict:
             else:
                 same[n] = all(same.get(a, True) for a in args if a in ops)
         found[body] = [(n, o[4]) for n, o in ops.items()
-                       if same[n] and o[0] in ("fusion", "custom-call", "copy", "convolution", "dot")]
+                       if same[n] and o[0] in ("fusion", "fusion-start", "custom-call", "copy", "copy-start",
+                                               "convolution", "dot")]
     return found
 
 
