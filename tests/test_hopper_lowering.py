@@ -50,3 +50,28 @@ def test_call_lowers_for_an_h200(preset, batch, quant, fp8_mlp, monkeypatch):
             program = engine.executable(stage, batch, 10, IMAGE_KEYS, runtime.prompt_bucket(48, config.max_token_len))
             got[stage] = dict(collections.Counter(re.findall(r"stablehlo.custom_call @([\w$.]+)", program.as_text())))
     assert got == EXPECTED[preset, batch, quant, fp8_mlp]
+
+
+def test_kernel_counts_take_an_async_fusion_at_its_start():
+    """XLA runs a dynamic slice of a contiguous block as an async fusion, a memcpy on the GPU (π0.5's step reads its
+    adaRMS row so): one kernel, at its start; its done, the bitcast and the while are none."""
+    from profile_engine import count_ops
+
+    body = """%body.1 (p: (s32[], bf16[10,54,1024])) -> (s32[], bf16[10,54,1024]) {
+  %p = (s32[], bf16[10,54,1024]{2,1,0}) parameter(0)
+  %i = s32[] get-tuple-element(%p), index=0
+  %t = bf16[10,54,1024]{2,1,0} get-tuple-element(%p), index=1
+  %fusion-start = ((bf16[10,54,1024], s32[]), bf16[1,54,1024]{2,1,0}, u32[]) fusion-start(%t, %i), kind=kLoop, calls=%f
+  %fusion-done = bf16[1,54,1024]{2,1,0} fusion-done(%fusion-start)
+  %b = bf16[54,1024]{1,0} bitcast(%fusion-done)
+  %loop_add_fusion = s32[] fusion(%i), kind=kLoop, calls=%g
+  %c = (f32[8]{0}) custom-call(%b), custom_call_target="__gpu$xla.gpu.triton"
+  %copy-start = (s32[], s32[], u32[]) copy-start(%i)
+  %copy-done = s32[] copy-done(%copy-start)
+  ROOT %r = (s32[], bf16[10,54,1024]{2,1,0}) tuple(%loop_add_fusion, %t)
+}
+"""
+    assert count_ops(body)["body.1"] == {"fusion": 2, "custom-call": 1, "copy": 1, "while": 0, "other": 0}
+    assert [row[:2] for row in deviceless.sequence(body, "body.1")] == [
+        ["fusion-start", "kLoop"], ["loop_add_fusion", "kLoop"], ["c", "__gpu$xla.gpu.triton"],
+        ["copy-start", "copy"]]
