@@ -87,6 +87,18 @@ def test_norm_qkv_rope_matches_xla(adaptive):
         np.testing.assert_allclose(got[:, :, : CFG.num_heads], q.reshape(B, S, CFG.num_heads, -1), **TOL)
         np.testing.assert_allclose(got[:, :, CFG.num_heads: -1], k, **TOL)
         np.testing.assert_allclose(got[:, :, -1:], v, **TOL)
+    if adaptive:   # the table as step 1 of a stack of three steps' tables, read in place at a traced step
+        table = _rand(7, 2, 3 * CFG.width, scale=0.3)
+        stack = jnp.stack([_rand(8, 2, 3 * CFG.width), table, _rand(9, 2, 3 * CFG.width)])
+        stacked = layout.mods(stack.reshape(-1, 3 * CFG.width), CFG.width)
+
+        @jax.jit
+        def at_step(step):
+            return ek.norm_qkv_rope(layout.rows(x, sp), stacked, row, True, layout.expert_weights(w, CFG)["qkv"], cos,
+                                    sin, width=CFG.width, num_heads=CFG.num_heads, num_kv_heads=CFG.num_kv_heads,
+                                    head_dim=CFG.head_dim, blocks=Blocks(qkv=Gemm(128, 3)), step=ek.Step(step, 6))
+        np.testing.assert_allclose(at_step(jnp.int32(1)), out, **TOL)
+        assert not np.allclose(at_step(jnp.int32(2)), out, **TOL)
 
 
 def _attention_inputs(pi05):

@@ -321,7 +321,7 @@ def pallas_tables(cfg: GemmaConfig, positions, prefix_mask, suffix_mask, blocks=
 
 
 def suffix_layers_pallas(cfg: GemmaConfig, weights, x, positions, cache_k, cache_v, prefix_mask, suffix_mask,
-                         mods=None, blocks: expert_kernels.Blocks | None = None, tables=None):
+                         mods=None, blocks: expert_kernels.Blocks | None = None, tables=None, step=None):
     """All action-expert layers as Pallas kernels (`pi0_jax.ops`): per layer four split-K GEMMs and the attention,
     each followed by one XLA fusion (norm, RoPE, GeGLU, residuals, the split merges); the same function as
     `suffix_layer` applied layer by layer.
@@ -329,7 +329,8 @@ def suffix_layers_pallas(cfg: GemmaConfig, weights, x, positions, cache_k, cache
     weights: the engine's per-layer dicts, laid out for the kernels here (`ops.layout.expert_weights`: reshapes that
     XLA makes free at full size, where nothing is padded); cache_k/v: per layer (B, Pp, K, 2hp)
     and prefix_mask (B, Pp) in kernel layout (`ops.layout.cache_kv`); x (B, S, D); positions (B, S); suffix_mask
-    (B, S, S); mods: None (π0) or a step's π0.5 adaRMS outputs (attn, ffw), (L, 3D) each; tables: `pallas_tables`
+    (B, S, S); mods: None (π0) or a step's π0.5 adaRMS outputs (attn, ffw), (L, 3D) each, or with step (an int32
+    scalar) every step's, (T, L, 3D) each, which the kernels read at the step's rows in place; tables: `pallas_tables`
     of these, made once per call by the caller (None: made here); blocks: the kernels' launch (None: this jax's,
     `expert_kernels.default_blocks`). Returns x (B, S, D).
     """
@@ -343,9 +344,11 @@ def suffix_layers_pallas(cfg: GemmaConfig, weights, x, positions, cache_k, cache
     cos, sin, pmask, smask = pallas_tables(cfg, positions, prefix_mask, suffix_mask) if tables is None else tables
     heads = {"num_heads": cfg.num_heads, "num_kv_heads": cfg.num_kv_heads}
     adaptive = mods is not None
+    at = None if step is None or not adaptive else expert_kernels.Step(jnp.asarray(step, jnp.int32), 3 * len(weights))
     if adaptive:
-        mods_attn, mods_ffw = layout.mods(mods[0], d), layout.mods(mods[1], d)
-        gates = jax.lax.optimization_barrier([(mods_attn[3 * i + 2], mods_ffw[3 * i + 2]) for i in range(len(weights))])
+        mods_attn, mods_ffw = (layout.mods(m.reshape(-1, m.shape[-1]), d) for m in mods)
+        gates = jax.lax.optimization_barrier([tuple(expert_kernels.table_row(m, 3 * i + 2, at)
+                                                    for m in (mods_attn, mods_ffw)) for i in range(len(weights))])
     for i, w in enumerate(weights):
         w = layout.expert_weights(w, cfg)
         if adaptive:  # layer i's rows of the step's table: scale 3i, shift 3i + 1, gate 3i + 2
@@ -353,12 +356,12 @@ def suffix_layers_pallas(cfg: GemmaConfig, weights, x, positions, cache_k, cache
         else:
             (ma, ra, ga), (mf, rf, gf) = (w["pre_attn"], 0, None), (w["pre_ffw"], 0, None)
         qkv = expert_kernels.norm_qkv_rope(rows, ma, ra, adaptive, w["qkv"], cos, sin, width=d,
-                                           head_dim=cfg.head_dim, blocks=blocks, **heads)
+                                           head_dim=cfg.head_dim, blocks=blocks, step=at, **heads)
         k, v = (c[i].reshape(b * c[i].shape[1], -1) for c in (cache_k, cache_v))
         y = expert_kernels.attention(qkv, k, v, pmask, smask, batch=b, blocks=blocks, **heads)
         rows = expert_kernels.matmul_residual(y, w["attn_out"], rows, ga, gemm=blocks.out, blocks=blocks,
                                               name="expert_attn_out", mosaic=blocks.mosaic_out)
-        h = expert_kernels.norm_geglu(rows, mf, rf, adaptive, w["gate_up"], width=d, blocks=blocks)
+        h = expert_kernels.norm_geglu(rows, mf, rf, adaptive, w["gate_up"], width=d, blocks=blocks, step=at)
         rows = expert_kernels.matmul_residual(h, w["down"], rows, gf, gemm=blocks.down, blocks=blocks,
                                               name="expert_down", mosaic=blocks.mosaic_down)
     return rows.reshape(b, sp, -1)[:, :s, :d]

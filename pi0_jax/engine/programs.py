@@ -265,9 +265,10 @@ def step_velocity(config: Pi0Config, weights: dict, sched: dict, step: jax.Array
     if paths.expert_path(kernels, b, weights["expert"]) == "pallas":
         if frozen is not None:
             raise ValueError("committed actions (training-time action conditioning) run on the XLA expert path")
+        # π0.5's adaRMS tables whole, read at the step's rows by the kernels (`expert_kernels.Step`)
         x = layers.suffix_layers_pallas(config.action_expert, weights["expert"], x, positions, cache.k, cache.v,
-                                        cache.mask, suffix_mask, None if mods is None else tuple(m[0, 0] for m in mods),
-                                        tables=fixed["tables"])
+                                        cache.mask, suffix_mask, None if mods is None else
+                                        (sched["mods_attn"], sched["mods_ffw"]), tables=fixed["tables"], step=step)
         return _top(config, weights, final_mod, x), kv
 
     kv_len = None

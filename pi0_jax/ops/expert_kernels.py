@@ -68,6 +68,27 @@ class Gemm:
 
 
 @dataclasses.dataclass(frozen=True)
+class Step:
+    """A denoise step's rows in a stack of every step's tables (T R, D): the step (an int32 scalar, traced in the
+    loop) and a table's rows, R. The split-K kernel takes the stack whole and reads the step's rows in place: a
+    step's table sliced out for it would be a copy in every step, as a custom call's operand is a buffer of its own
+    (XLA's async memcpy of the slice, docs/BENCHMARKS.md, session 80). XLA's ops read a row as a dynamic index,
+    which fuses."""
+
+    index: jax.Array
+    rows: int
+
+    def row(self, mods, r: int):
+        at = self.index * self.rows + r
+        return jax.lax.dynamic_index_in_dim(mods, at, keepdims=False, allow_negative_indices=False)
+
+
+def table_row(mods, r: int, step: Step | None):
+    """Row r of a table (step None), or of the step's table in a stack."""
+    return mods[r] if step is None else step.row(mods, r)
+
+
+@dataclasses.dataclass(frozen=True)
 class Blocks:
     """Tile sizes (powers of two; each is shrunk to divide its padded dimension), split counts and Triton launch
     parameters. Defaults: the fastest of the sweeps at π0 full size, B=1, on an H200 (docs/BENCHMARKS.md, "Fused
@@ -155,7 +176,8 @@ def _call(kernel, grid, out_shape, name: str, num_warps: int, num_stages: int):
 
 def _scaled(x_ref, mod_ref, rows, cols, mod_row, dtype):
     """One tile of x in f32 (for the statistics) and of x * (1 + scale) in the dtype (the GEMM input of a norm, before
-    the row's 1 / rms). (1 + scale) is formed in the scale's dtype first, as the reference does."""
+    the row's 1 / rms). (1 + scale) is formed in the scale's dtype first, as the reference does. mod_row may be
+    traced (a row of a stack of steps' tables)."""
     x = x_ref[rows, cols].astype(jnp.float32)
     return x, (x * (1 + mod_ref[pl.ds(mod_row, 1), cols]).astype(jnp.float32)).astype(dtype)
 
@@ -166,12 +188,19 @@ def _round(acc, dtype):
 
 
 # -- split-K GEMM (with a norm's prologue) --------------------------------------------------------------------------
-def _partials_kernel(*refs, m, bm, bn, bk, chunk, mod_row, scaled, adaptive):
+def _partials_kernel(*refs, m, bm, bn, bk, chunk, mod_row, scaled, adaptive, step_rows):
     """Program (i, j, s): rows block i, columns block j, K chunk s -> o[s] = y' @ w over the chunk, y' = y, or
     y * (1 + scale) (scaled). Side outputs: the chunk's sum of squares of y per row (scaled; by the j = 0 programs)
     and shift @ w over the chunk (adaptive; by the i = 0 programs, 16 equal rows: a dot needs 16). refs: y, mods
-    (scaled only), w, o, the side outputs."""
-    y_ref, mod_ref, w_ref, o_ref, *side = refs if scaled else (refs[0], None, *refs[1:])
+    (scaled only), the step (step_rows only), w, o, the side outputs. step_rows: mods is a stack of steps' tables of
+    that many rows, and the scale is row step * step_rows + mod_row."""
+    if not scaled:
+        refs = (refs[0], None, *refs[1:])
+    if not step_rows:
+        refs = (*refs[:2], None, *refs[2:])
+    y_ref, mod_ref, step_ref, w_ref, o_ref, *side = refs
+    if step_rows:
+        mod_row = step_ref[0] * step_rows + mod_row
     i, j, s = pl.program_id(0), pl.program_id(1), pl.program_id(2)
     rows, cols = pl.ds(i * bm, bm), pl.ds(j * bn, bn)
     dtype = y_ref.dtype
@@ -204,24 +233,26 @@ def _partials_kernel(*refs, m, bm, bn, bk, chunk, mod_row, scaled, adaptive):
 
 
 def matmul_partials(y, w, mods=None, mod_row: int = 0, *, scaled: bool = False, adaptive: bool = False,
-                    gemm: Gemm, blocks: Blocks = Blocks(), name: str = "matmul_partials"):
+                    gemm: Gemm, blocks: Blocks = Blocks(), name: str = "matmul_partials", step: Step | None = None):
     """y (M, E) @ w (E, N) as `gemm.splits` f32 partials over K chunks -> (parts (S, M, N), sums of squares (S, M) or
     None, shift products (S, N) or None). scaled: y * (1 + mods[mod_row]) enters the GEMM (a norm's scale; mods (R, E));
     adaptive: also mods[mod_row + 1] @ w (adaRMS's shift). splits falls back to 1 where E does not split into
-    multiples of 16. name: the kernel's (a profile tells the GEMMs apart by it)."""
+    multiples of 16. name: the kernel's (a profile tells the GEMMs apart by it). step: mods is a stack of steps'
+    tables (`Step`), read at the step's rows in place."""
     m, e = y.shape
     n = w.shape[1]
     splits = gemm.splits if e % (ALIGN * gemm.splits) == 0 else 1
     chunk = e // splits
     bm, bn, bk = fit(blocks.rows, m), fit(gemm.cols, n), fit(blocks.k, chunk)
+    step_rows = step.rows if scaled and step is not None else 0
     kernel = functools.partial(_partials_kernel, m=m, bm=bm, bn=bn, bk=bk, chunk=chunk, mod_row=mod_row,
-                               scaled=scaled, adaptive=adaptive)
+                               scaled=scaled, adaptive=adaptive, step_rows=step_rows)
     out = [jax.ShapeDtypeStruct((splits * m, n), jnp.float32)]
     out += [jax.ShapeDtypeStruct((splits * m,), jnp.float32)] if scaled else []
     out += [jax.ShapeDtypeStruct((splits * ALIGN, n), jnp.float32)] if adaptive else []
     # mods only where read: a dummy operand would be a broadcast kernel of its own in every denoise step (XLA sinks
     # the constant into the loop's body)
-    operands = (y, mods, w) if scaled else (y, w)
+    operands = (y, mods, *([step.index.reshape(1)] if step_rows else []), w) if scaled else (y, w)
     res = _call(kernel, (m // bm, n // bn, splits), out, name, blocks.num_warps, gemm.stages)(*operands)
     parts = res[0].reshape(splits, m, n)
     ss = res[1].reshape(splits, m) if scaled else None
@@ -233,37 +264,38 @@ def _mosaic(y, w, launch: Launch | None) -> bool:
     return launch is not None and mosaic_gemm.applies(y, w, launch)
 
 
-def _norm(x, mods, mod_row, adaptive, width):
+def _norm(x, mods, mod_row, adaptive, width, step=None):
     """RMSNorm (or adaRMS) of the rows in `layers.rms_norm`'s order, rounded to the dtype: the input of a plain GEMM."""
     inv = jax.lax.rsqrt(jnp.sum(jnp.square(x.astype(jnp.float32)), axis=1, keepdims=True) / width + EPS)
-    h = x * inv * (1 + mods[mod_row])
-    return (h + mods[mod_row + 1] if adaptive else h).astype(x.dtype)
+    h = x * inv * (1 + table_row(mods, mod_row, step))
+    return (h + table_row(mods, mod_row + 1, step) if adaptive else h).astype(x.dtype)
 
 
-def _normed_product(x, mods, mod_row, adaptive, w, *, width, gemm, blocks, name, mosaic=None):
+def _normed_product(x, mods, mod_row, adaptive, w, *, width, gemm, blocks, name, mosaic=None, step=None):
     """norm(x) @ w as the GEMM's f32 result (before rounding): the split sum times 1 / rms, plus shift @ w. With a
     Mosaic launch: the norm first, in `layers.rms_norm`'s order (one XLA fusion), then the plain GEMM."""
     if _mosaic(x, w, mosaic):
-        h = _norm(x, mods, mod_row, adaptive, width)
+        h = _norm(x, mods, mod_row, adaptive, width, step)
         return sum(list(mosaic_gemm.partials(h, w, mosaic, name=name).astype(jnp.float32)))
     parts, ss, shift = matmul_partials(x, w, mods, mod_row, scaled=True, adaptive=adaptive, gemm=gemm,
-                                       blocks=blocks, name=name)
+                                       blocks=blocks, name=name, step=step)
     inv = jax.lax.rsqrt(sum(list(ss)) / width + EPS)[:, None]
     acc = sum(list(parts)) * inv
     return acc + sum(list(shift))[None] if adaptive else acc
 
 
 def norm_qkv_rope(x, mods, mod_row: int, adaptive: bool, w_qkv, cos, sin, *, width: int, num_heads: int,
-                  num_kv_heads: int, head_dim: int, blocks: Blocks = Blocks()):
+                  num_kv_heads: int, head_dim: int, blocks: Blocks = Blocks(), step: Step | None = None):
     """x (M, D) -> qkv (M, (N + 2K) * 2hp): normed, projected, q/k rotated, q scaled by head_dim^-0.5.
 
-    mods (R, D): row mod_row is the norm scale, +1 the adaRMS shift (adaptive); w_qkv (D, (N + 2K) * 2hp);
-    cos / sin (M, hp) f32 (`layout.rope_tables`); width: the true D (the mean's divisor).
+    mods (R, D): row mod_row is the norm scale, +1 the adaRMS shift (adaptive); with step, every step's tables
+    stacked (T R, D), read at the step's; w_qkv (D, (N + 2K) * 2hp); cos / sin (M, hp) f32 (`layout.rope_tables`);
+    width: the true D (the mean's divisor).
     """
     m, dtype = x.shape[0], x.dtype
     heads, hp = num_heads + 2 * num_kv_heads, cos.shape[1]
     acc = _normed_product(x, mods, mod_row, adaptive, w_qkv, width=width, gemm=blocks.qkv, blocks=blocks,
-                          name="expert_qkv", mosaic=blocks.mosaic_qkv)
+                          name="expert_qkv", mosaic=blocks.mosaic_qkv, step=step)
     a = _round(acc, dtype).reshape(m, heads, 2, hp)
     a1, a2, c, s = a[:, :, 0], a[:, :, 1], cos[:, None], sin[:, None]
     # RoPE in f32, then the dtype, for q and k heads; q is then scaled in the dtype (q_scale is a dtype value). On a
@@ -525,18 +557,19 @@ def matmul_residual(y, w, x, gate=None, *, gemm: Gemm, blocks: Blocks = Blocks()
     return x + (z if gate is None else z * gate)
 
 
-def norm_geglu(x, mods, mod_row: int, adaptive: bool, w_gate_up, *, width: int, blocks: Blocks = Blocks()):
+def norm_geglu(x, mods, mod_row: int, adaptive: bool, w_gate_up, *, width: int, blocks: Blocks = Blocks(),
+               step: Step | None = None):
     """gelu_tanh(h @ w_gate) * (h @ w_up) with h = norm(x): x (M, D), w_gate_up (D, 2F) in `layout.gate_up_block`
-    pairs -> (M, F)."""
+    pairs -> (M, F). mods, step: as `norm_qkv_rope`'s."""
     dtype = x.dtype
     launch = blocks.mosaic_mlp
     if launch is not None and launch.geglu:
         if _mosaic(x, w_gate_up, launch):
-            return mosaic_gemm.geglu(_norm(x, mods, mod_row, adaptive, width), w_gate_up, launch,
+            return mosaic_gemm.geglu(_norm(x, mods, mod_row, adaptive, width, step), w_gate_up, launch,
                                      name="expert_gate_up")
         launch = None   # the Triton kernel
     acc = _normed_product(x, mods, mod_row, adaptive, w_gate_up, width=width, gemm=blocks.mlp, blocks=blocks,
-                          name="expert_gate_up", mosaic=launch)
+                          name="expert_gate_up", mosaic=launch, step=step)
     gate, up = layout.split_gate_up(acc)
     gate = _round(jax.nn.gelu(_round(gate, dtype), approximate=True), dtype)
     return (gate * _round(up, dtype)).astype(dtype)
