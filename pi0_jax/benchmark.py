@@ -37,7 +37,7 @@ from pi0_jax.pi0 import random_params
 from pi0_jax.config import IMAGE_KEYS, PRESETS, Pi0Config, get_config
 from pi0_jax.engine import Engine, dispatch, layers, programs, store, vision
 from pi0_jax.engine.paths import KERNELS, OVERLAPS, attention_spec, vision_norm
-from pi0_jax.ops import expert_kernels, formats, pallas_base
+from pi0_jax.ops import expert_attention, expert_kernels, formats, pallas_base
 from pi0_jax.ops.matmul import GEMMS
 from pi0_jax.quant.schemes import SCHEMES
 
@@ -246,7 +246,7 @@ def bench_engine(engine: Engine, args, batch: int) -> list[dict]:
                "denoise_per_step_ms": t_den["median_ms"] / steps}
         if "denoise=pallas" in row["attention"]:   # the Pallas expert's, or the XLA expert's on the kernel attention
             launch = expert_kernels.attention_blocks(batch, xla_expert=row["kernels"] == "xla")
-            row["denoise_attention_launch"] = expert_kernels.attention_launch(launch, caches[0].mask.shape[-1])
+            row["denoise_attention_launch"] = expert_attention.attention_launch(launch, caches[0].mask.shape[-1])
         if args.fused_steps is None or steps in args.fused_steps:
             row["total"] = time_calls(lambda p, n: engine.sample_packed(p, n, steps, cameras, bucket),
                                       [(p, n) for p, (_, n) in zip(packed, sets)], args.iters, args.warmup)

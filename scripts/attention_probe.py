@@ -24,6 +24,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from profile_engine import kernel_times  # noqa: E402
 
+from pi0_jax.ops import expert_attention as ea  # noqa: E402
 from pi0_jax.ops import expert_kernels as ek  # noqa: E402
 
 ROWS, PREFIX, SUFFIX, HEAD_DIM = 448, 832, 64, 256   # π0 at B = 8: 51 x 8 folded rows in whole 64-blocks
@@ -60,7 +61,7 @@ def main() -> None:
     res = {"device": jax.devices()[0].device_kind, "jax": jax.__version__, "batch": b}
     for name, blocks in variants.items():
         def attend(q, kv, ck, cv, pm, sm, blocks=blocks):
-            return ek.attention(q, ck, cv, pm, sm, batch=b, num_heads=1, num_kv_heads=1, blocks=blocks, kv=kv)
+            return ea.attention(q, ck, cv, pm, sm, batch=b, num_heads=1, num_kv_heads=1, blocks=blocks, kv=kv)
         res[name] = timed(name, attend, q, kv, ck, cv, pmask, smask, calls=args.calls)
     for splits in (1, 2, 7):   # its keys split over the batch axis; 128 query rows a CTA (512 an element)
         keys = (PREFIX + SUFFIX) // splits

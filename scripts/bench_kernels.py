@@ -33,7 +33,7 @@ import numpy as np
 from pi0_jax import benchmark, gemma
 from pi0_jax.config import get_config
 from pi0_jax.engine import Engine, layers, programs
-from pi0_jax.ops import expert_kernels as ek, layout
+from pi0_jax.ops import expert_attention as ea, expert_kernels as ek, layout
 
 sys.path.insert(0, str(Path(__file__).parent))
 from profile_engine import count_ops, kernel_times  # noqa: E402
@@ -253,7 +253,7 @@ def stages(config, args, key):
     calls = {
         "norm_qkv_rope": (lambda bl: lambda x, w: ek.norm_qkv_rope(x, scale, 0, False, w, cos, sin, width=d,
                                                                    head_dim=h, blocks=bl, **kw), each(xs, "qkv"), ()),
-        "attention": (lambda bl: lambda q, ck, cv: ek.attention(q, ck, cv, pmask, smask, batch=1, blocks=bl, **kw),
+        "attention": (lambda bl: lambda q, ck, cv: ea.attention(q, ck, cv, pmask, smask, batch=1, blocks=bl, **kw),
                       [(q, *kv) for q, kv in zip(qkvs, caches)], ()),
         "out_residual": (lambda bl: lambda y, w, x: ek.matmul_residual(y, w, x, gemm=bl.out, blocks=bl),
                          each(ys, "attn_out"), (xs[0],)),

@@ -546,7 +546,7 @@ def kernel_weights(ws, dm: Dims):
 def engine_layers(dm: Dims):
     """The engine's own kernels for the same layers (`expert_kernels`, B = 1): q/k/v with its norm and RoPE, the
     split-key attention and its merge, out with its residual, gate/up with GeGLU, down with its residual."""
-    from pi0_jax.ops import expert_kernels as ek
+    from pi0_jax.ops import expert_attention as ea, expert_kernels as ek
     blocks = ek.Blocks()
     mods = jnp.zeros((2, dm.d), jnp.bfloat16)
 
@@ -557,7 +557,7 @@ def engine_layers(dm: Dims):
         for wq, wo, wg, wd, ck, cv in layers:
             qkv = ek.norm_qkv_rope(x, mods, 0, False, wq, rope[0], rope[1], width=dm.d, num_heads=dm.heads,
                                    num_kv_heads=1, head_dim=dm.hd, blocks=blocks)
-            o = ek.attention(qkv, ck, cv, pmask, smask, batch=1, num_heads=dm.heads, num_kv_heads=1,
+            o = ea.attention(qkv, ck, cv, pmask, smask, batch=1, num_heads=dm.heads, num_kv_heads=1,
                              blocks=blocks)
             x2 = ek.matmul_residual(o, wo, x, gemm=blocks.out, blocks=blocks, name="expert_out")
             g = ek.norm_geglu(x2, mods, 0, False, wg, width=dm.d, blocks=blocks)
@@ -572,11 +572,11 @@ def chain(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, attend: bool
     """The step's layers as session 42's persistent GEMM kernel cut at each attention (`--chain`): one launch a
     layer of its phases after the attention, [o, g, d, the next layer's q] (`mgpu_layer_probe.layer_kernel`,
     order "ogdq": the weights stream without a break through four of a layer's five phases), and between launches
-    the engine's split-key attention and merge (`expert_kernels.attention`, B = 1). No RoPE (the check takes it as
+    the engine's split-key attention and merge (`expert_attention.attention`, B = 1). No RoPE (the check takes it as
     the identity); q's scale 1 / 16 sits in w_q's q columns (a power of two: exact). attend=False: the launches
     alone, each on a fixed attention output (timing only). -> run(h0, layers, qkv0, att) -> h, with `layers` from
     `chain_layers` and qkv0 the first layer's q/k/v. ablate: `mgpu_layer_probe.layer_kernel`'s (timing only)."""
-    from pi0_jax.ops import expert_kernels as ek
+    from pi0_jax.ops import expert_attention as ea, expert_kernels as ek
     blocks = ek.Blocks()
     step = layer_kernel(LayerDims(d=dm.d, nq=dm.nq, a=dm.a, f=dm.f, layers=1), ctas, ring, xdepth, splits,
                         "smem" if jax.default_backend() == "cpu" else "regs", "tile", loop=True, dtype=dtype,
@@ -588,7 +588,7 @@ def chain(dm: Dims, ctas: int, ring: int, xdepth: int, splits: int, attend: bool
         smask = (jnp.arange(ROWS)[None] < ends[:, None]).astype(jnp.int32)
         h, qkv, o_fixed = h0, qkv0, qkv0[:, :dm.a]
         for wq_next, wo, wg, wd, ck, cv in layers:
-            o = (ek.attention(qkv, ck, cv, pmask, smask, batch=1, num_heads=dm.heads, num_kv_heads=1,
+            o = (ea.attention(qkv, ck, cv, pmask, smask, batch=1, num_heads=dm.heads, num_kv_heads=1,
                               blocks=blocks) if attend else o_fixed)
             h, qkv = step(h, o, [wq_next, wo, wg, wd])
         return h

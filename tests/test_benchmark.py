@@ -83,19 +83,19 @@ def test_benchmark_names_the_denoise_attention_kernels_launch(tmp_path):
 def test_the_pallas_experts_own_attention_is_named_with_its_launch(tmp_path):
     """The Pallas expert (interpreted here; B <= 2 on a GPU by default) runs its own split-key attention, which
     `Attention.at_batch` leaves at the XLA expert's choice: the row names it, with the launch the kernel makes over
-    the cache. π0.5's 1,024 prefix keys run in 8 splits of 2 blocks (`expert_kernels.key_splits`), π0's 832 in 13
+    the cache. π0.5's 1,024 prefix keys run in 8 splits of 2 blocks (`expert_attention.key_splits`), π0's 832 in 13
     of 1."""
-    from pi0_jax.ops import expert_kernels
+    from pi0_jax.ops import expert_attention, expert_kernels
 
     results = _benchmark(tmp_path, "--steps", "2", "--batch", "1", "--iters", "1", "--warmup", "1", "--input-sets",
                          "1", "--kernels", "pallas")
     (row,) = results["rows"]
     assert row["kernels"] == "pallas" and row["attention"] == "vision=xla,prefix=xla,denoise=pallas"
-    launch = expert_kernels.attention_launch(expert_kernels.default_blocks(), 832)
+    launch = expert_attention.attention_launch(expert_kernels.default_blocks(), 832)
     assert row["denoise_attention_launch"] == launch and launch["splits"] == 13   # the dummy's cache: 832 keys
     blocks = expert_kernels.Blocks()
-    assert [(expert_kernels.attention_launch(blocks, keys)["splits"],
-             expert_kernels.attention_launch(blocks, keys)["key_blocks_per_split"]) for keys in (1024, 832)] == [
+    assert [(expert_attention.attention_launch(blocks, keys)["splits"],
+             expert_attention.attention_launch(blocks, keys)["key_blocks_per_split"]) for keys in (1024, 832)] == [
         (8, 2), (13, 1)]
 
 

@@ -15,6 +15,7 @@ import pytest
 from pi0_jax import gemma, pi0
 from pi0_jax.config import IMAGE_KEYS, get_config
 from pi0_jax.engine import Engine, layers, paths, programs
+from pi0_jax.ops import expert_attention as ea
 from pi0_jax.ops import expert_kernels as ek
 from pi0_jax.ops import formats, layout
 from pi0_jax.ops.expert_kernels import Blocks, Gemm
@@ -66,7 +67,7 @@ def _mods(adaptive, w):
 
 
 def test_big_negative_fill_is_the_models():
-    assert ek.BIG_NEG == gemma._BIG_NEG
+    assert ea.BIG_NEG == gemma._BIG_NEG
 
 
 @pytest.mark.parametrize("adaptive", [False, True])
@@ -123,9 +124,9 @@ def kernel_operands(cfg, q, k, v, ck, cv, pmask, smask) -> tuple:
 
 
 def kernel_attention(cfg, q, k, v, ck, cv, pmask, smask, blocks):
-    """`ek.attention` on these inputs (`kernel_operands`) -> (B, S, N H), as the XLA path returns it."""
+    """`ea.attention` on these inputs (`kernel_operands`) -> (B, S, N H), as the XLA path returns it."""
     b, s = q.shape[:2]
-    out = ek.attention(*kernel_operands(cfg, q, k, v, ck, cv, pmask, smask), batch=b, num_heads=cfg.num_heads,
+    out = ea.attention(*kernel_operands(cfg, q, k, v, ck, cv, pmask, smask), batch=b, num_heads=cfg.num_heads,
                        num_kv_heads=cfg.num_kv_heads, blocks=blocks)
     return layout.unheads(out.reshape(b, layout.suffix_rows(s), -1)[:, :s], cfg.head_dim)
 
@@ -152,11 +153,11 @@ def test_attention_matches_xla_with_masked_camera_and_padded_prompt(pi05):
 def test_the_attention_launches_no_split_past_the_cache(monkeypatch):
     """The prefix's key blocks are shared out so that no split is empty: 6 blocks of 32 keys asked into 4 splits run
     as 3 splits of 2 (and the suffix's part), 16 blocks into 13 as 8 of 2 (π0.5's 1,024 prefix keys)."""
-    assert [ek.key_splits(n, s) for n, s in ((16, 13), (13, 13), (6, 4), (6, 3), (6, 1), (2, 13), (0, 13))] == [
+    assert [ea.key_splits(n, s) for n, s in ((16, 13), (13, 13), (6, 4), (6, 3), (6, 1), (2, 13), (0, 13))] == [
         (8, 2), (13, 1), (3, 2), (3, 2), (1, 6), (2, 1), (1, 1)]
     parts = []
-    own_merge = ek.merge
-    monkeypatch.setattr(ek, "merge", lambda o, lse, *, parts_=parts, **kw: parts_.append(kw["parts"]) or own_merge(
+    own_merge = ea.merge
+    monkeypatch.setattr(ea, "merge", lambda o, lse, *, parts_=parts, **kw: parts_.append(kw["parts"]) or own_merge(
         o, lse, **kw))
     q, k, v, ck, cv, pmask, smask = _attention_inputs(False)
     want = layers._attend(q, [ck, k], [cv, v], [jnp.broadcast_to(pmask[:, None], (B, S, P)), smask], jnp.float32)
@@ -173,8 +174,8 @@ def test_xla_experts_call_of_the_attention_kernel_folds_query_heads(pi05, monkey
     want = layers._attend(q, [ck, k], [cv, v], [jnp.broadcast_to(pmask[:, None], (B, S, P)), smask], jnp.float32)
     ck, cv = (layout.cache_kv(c, CFG.head_dim) for c in (ck, cv))
     packed = []
-    own = ek.attention
-    monkeypatch.setattr(ek, "attention", lambda *a, **kw: packed.append(kw.get("packed", False)) or own(*a, **kw))
+    own = ea.attention
+    monkeypatch.setattr(ea, "attention", lambda *a, **kw: packed.append(kw.get("packed", False)) or own(*a, **kw))
     for fold, rows, q_block, pack in ((False, 16, 16, True), (True, 48, 16, True), (True, 64, 32, True),
                                       (True, 48, 16, False)):
         blocks = Blocks(q=q_block, kv=32, kv_splits=3, fold=fold)
@@ -202,18 +203,18 @@ def test_attention_merge_cuts_pad_rows_and_quantises():
     o = _rand(60, parts * batch * rows, heads * hd).astype(jnp.bfloat16)
     lse = _rand(61, parts * batch * rows, heads, scale=3.0)
     kw = dict(parts=parts, num_heads=heads, batch=batch)
-    full = np.asarray(ek.merge(o, lse, **kw)).reshape(batch, rows, -1)
-    np.testing.assert_allclose(full.astype(np.float32), np.asarray(ek.merge_xla(o, lse, **kw), np.float32).reshape(
+    full = np.asarray(ea.merge(o, lse, **kw)).reshape(batch, rows, -1)
+    np.testing.assert_allclose(full.astype(np.float32), np.asarray(ea.merge_xla(o, lse, **kw), np.float32).reshape(
         full.shape), rtol=1e-2, atol=1e-2)
     scale = jnp.full((1, 1), 0.004, jnp.float32)   # |x| > 1.8 saturates
     for kept in (24, 20, 18):
-        cut = ek.merge(o, lse, kept=kept, **kw)
+        cut = ea.merge(o, lse, kept=kept, **kw)
         np.testing.assert_array_equal(cut, full[:, :kept].reshape(batch * kept, -1))
-        q = ek.merge(o, lse, kept=kept, scale=scale, **kw)
+        q = ea.merge(o, lse, kept=kept, scale=scale, **kw)
         assert q.dtype == E4M3 and q.shape == (batch * kept, heads * hd)
         np.testing.assert_array_equal(q.astype(np.float32), formats.quantise(cut, scale).astype(np.float32))
         assert np.abs(q.astype(np.float32)).max() == formats.E4M3_MAX
-        qx = ek.merge_xla(o, lse, kept=kept, scale=scale, **kw).astype(np.float32)
+        qx = ea.merge_xla(o, lse, kept=kept, scale=scale, **kw).astype(np.float32)
         assert qx.shape == q.shape and np.mean(np.asarray(qx) == np.asarray(q.astype(np.float32))) > 0.95
 
 

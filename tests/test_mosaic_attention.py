@@ -14,6 +14,7 @@ import pytest
 from pi0_jax import gemma, pi0
 from pi0_jax.config import GemmaConfig
 from pi0_jax.engine import layers
+from pi0_jax.ops import expert_attention as ea
 from pi0_jax.ops import expert_kernels as ek
 from pi0_jax.ops import layout, mosaic_attention
 from test_kernels import kernel_attention, kernel_operands
@@ -44,7 +45,7 @@ _kernel_attention = functools.partial(kernel_attention, CFG)
 
 
 def test_constants_are_the_models():
-    assert mosaic_attention.BIG_NEG == ek.BIG_NEG == gemma._BIG_NEG
+    assert mosaic_attention.BIG_NEG == ea.BIG_NEG == gemma._BIG_NEG
     assert mosaic_attention.BLOCK == layout.KEY_PAD
 
 
@@ -84,9 +85,9 @@ def test_kernel_splits_equal_the_triton_kernels(monkeypatch):
     """The Mosaic kernel's per-split outputs and log-sum-exps are the Triton kernel's (lse in its own layout)."""
     qkv, ck, cv, pmask, smask = kernel_operands(CFG, *_inputs(False)[0])
     sp, h = layout.suffix_rows(S), CFG.head_dim
-    monkeypatch.setattr(ek, "merge_xla", lambda o, lse, **kw: (o, lse))   # the splits themselves
+    monkeypatch.setattr(ea, "merge_xla", lambda o, lse, **kw: (o, lse))   # the splits themselves
     (o_t, lse_t), (o_m, lse_m) = (
-        ek._attention(qkv, qkv, ck, cv, pmask, smask, None, B, CFG.num_heads, CFG.num_kv_heads, (2 * h, 3 * h),
+        ea._attention(qkv, qkv, ck, cv, pmask, smask, None, B, CFG.num_heads, CFG.num_kv_heads, (2 * h, 3 * h),
                       ek.Blocks(mosaic_attention=mosaic, xla_merge=True, kv_splits=2))
         for mosaic in (False, True))
     assert o_t.shape == o_m.shape == (3 * B * sp, 2 * h) and lse_m.shape == (3, CFG.num_heads, B * sp)
@@ -134,7 +135,7 @@ def test_blocks_at_a_batch_keeps_short_splits_on_the_mosaic_kernel():
     for batch in (1, 3, 8, 16):
         at = ek.blocks_at(batch, ek.TRITON_FREE)
         assert at.kv_splits == 6 and at.fold == (batch >= 8)
-    splits = ek.blocks_at(8, ek.TRITON_FREE).kv_splits + 1   # as `ek._attention` passes it
+    splits = ek.blocks_at(8, ek.TRITON_FREE).kv_splits + 1   # as `ea._attention` passes it
     shape = functools.partial(jax.ShapeDtypeStruct, dtype=jnp.bfloat16)
     args = (shape((8 * 448, 256)), shape((8 * 64, 512)), shape((8 * 832, 256)), shape((8 * 832, 256)),
             jax.ShapeDtypeStruct((8, 832), jnp.int32), jax.ShapeDtypeStruct((8 * 448,), jnp.int32))

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 
 from pi0_jax.config import GemmaConfig
 from pi0_jax.gemma import _BIG_NEG, rotate
-from pi0_jax.ops import attention, expert_kernels, formats, fp8_geglu, layout, mosaic_gemm
+from pi0_jax.ops import attention, expert_attention, expert_kernels, formats, fp8_geglu, layout, mosaic_gemm
 from pi0_jax.ops.formats import QArray
 from pi0_jax.ops.matmul import input_scale, matmul, raw_matmul
 
@@ -91,11 +91,11 @@ FP8_GEGLU = "auto"
 FP8_GEGLU_EXPERT_ROWS = 256
 
 # The XLA expert's attention kernel with folded query heads (B >= 8) takes its queries and the suffix's keys and values
-# in one buffer (`expert_kernels.attention`'s packed), which one XLA fusion makes from q/k/v's GEMM output: else two
+# in one buffer (`expert_attention.attention`'s packed), which one XLA fusion makes from q/k/v's GEMM output: else two
 # (an A/B switch, read when traced).
 PACK_ATTENTION_INPUT = True
 # The same kernel's split merge writes only each element's real rows and, before an FP8 x FP8 out-projection, its e4m3
-# input (`expert_kernels.merge`'s kept and scale): else one XLA fusion cuts and quantises after it (A/B, when traced).
+# input (`expert_attention.merge`'s kept and scale): else one XLA fusion cuts and quantises after it (A/B, when traced).
 ATTENTION_ENDS_IN_MERGE = True
 
 
@@ -202,7 +202,7 @@ def query_rows(cfg: GemmaConfig, s: int, blocks: expert_kernels.Blocks) -> int:
 
 
 def _attend_kernel(cfg: GemmaConfig, q, k, v, cache_k, cache_v, prefix_mask, suffix_mask, out_scale=None):
-    """The Pallas expert's split-key attention (`ops.expert_kernels.attention`) for the XLA expert's q (B,T,K,G,H)
+    """The Pallas expert's split-key attention (`ops.expert_attention.attention`) for the XLA expert's q (B,T,K,G,H)
     (post-RoPE, scaled), k, v (B,T,K,H), over the cache in the kernels' layout (B,Pp,K,2hp); masks as
     `pallas_tables` makes them at `expert_kernels.blocks_at`'s launch. Unfolded, one row block of [q | k | v] per
     element, suffix rows padded to Sp. Folded (MQA), the G query heads of a kv head are rows (T G) of one head, as
@@ -218,7 +218,7 @@ def _attend_kernel(cfg: GemmaConfig, q, k, v, cache_k, cache_v, prefix_mask, suf
     if not blocks.fold:
         qkv = jnp.concatenate([q.reshape(b, t, -1, hd), k, v], axis=2).reshape(b, t, -1)
         qkv = layout.rows(layout.heads(qkv, -1, hd), sp)
-        y = expert_kernels.attention(qkv, *cache, prefix_mask, suffix_mask, batch=b, num_heads=cfg.num_heads,
+        y = expert_attention.attention(qkv, *cache, prefix_mask, suffix_mask, batch=b, num_heads=cfg.num_heads,
                                      num_kv_heads=kv_heads, blocks=blocks, **ends)
         return layout.unheads(y.reshape(b, -1, y.shape[-1])[:, :t], hd)
     rows = query_rows(cfg, t, blocks)
@@ -227,10 +227,10 @@ def _attend_kernel(cfg: GemmaConfig, q, k, v, cache_k, cache_v, prefix_mask, suf
     heads = dict(batch=b, num_heads=kv_heads, num_kv_heads=kv_heads, blocks=blocks, **ends)
     if PACK_ATTENTION_INPUT and not blocks.mosaic_attention and rows % 2 == 0:
         packed = jnp.concatenate([qf.reshape(b, rows, -1), kv.reshape(b, 2 * sp, -1)], axis=1)
-        y = expert_kernels.attention(packed.reshape(-1, qf.shape[1]), *cache, prefix_mask, suffix_mask, packed=True,
+        y = expert_attention.attention(packed.reshape(-1, qf.shape[1]), *cache, prefix_mask, suffix_mask, packed=True,
                                      **heads)
     else:
-        y = expert_kernels.attention(qf, *cache, prefix_mask, suffix_mask, kv=kv, **heads)
+        y = expert_attention.attention(qf, *cache, prefix_mask, suffix_mask, kv=kv, **heads)
     y = layout.unheads(y.reshape(b, -1, y.shape[-1])[:, : t * g], hd)
     return einops.rearrange(y, "B (T G) (K H) -> B T (K G H)", G=g, H=hd)
 
@@ -358,7 +358,7 @@ def suffix_layers_pallas(cfg: GemmaConfig, weights, x, positions, cache_k, cache
         qkv = expert_kernels.norm_qkv_rope(rows, ma, ra, adaptive, w["qkv"], cos, sin, width=d,
                                            head_dim=cfg.head_dim, blocks=blocks, step=at, **heads)
         k, v = (c[i].reshape(b * c[i].shape[1], -1) for c in (cache_k, cache_v))
-        y = expert_kernels.attention(qkv, k, v, pmask, smask, batch=b, blocks=blocks, **heads)
+        y = expert_attention.attention(qkv, k, v, pmask, smask, batch=b, blocks=blocks, **heads)
         rows = expert_kernels.matmul_residual(y, w["attn_out"], rows, ga, gemm=blocks.out, blocks=blocks,
                                               name="expert_attn_out", mosaic=blocks.mosaic_out)
         h = expert_kernels.norm_geglu(rows, mf, rf, adaptive, w["gate_up"], width=d, blocks=blocks, step=at)

@@ -127,7 +127,7 @@ class Attention:
     flash kernel, `ops.attention.fused`: cuDNN on a GPU, its XLA form elsewhere; masks by lengths, so the prefix
     fill puts each element's valid tokens first). Vision's may also be "pallas" (`ops.vision_attention`: q, k and v
     read in place from the fused GEMM's output). The denoise step's may also be "pallas" (the XLA expert's layers
-    with the Pallas expert's split-key attention, `ops.expert_kernels.attention`, over a cache in its layout; not
+    with the Pallas expert's split-key attention, `ops.expert_attention.attention`, over a cache in its layout; not
     differentiable) or "auto": "cudnn" from CUDNN_DENOISE_MIN_BATCH on, else "xla", but "pallas" at
     PALLAS_DENOISE_BATCHES (π0: PALLAS_DENOISE_BATCHES_MASKED) (`at_batch` resolves it; the programs do). It is
     unused by the Pallas expert, which has its own."""

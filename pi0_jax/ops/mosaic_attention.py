@@ -1,12 +1,12 @@
 """The denoise step's split-key attention as one Pallas Mosaic GPU kernel (Hopper: TMA, wgmma), the form of
-`expert_kernels.attention` that needs no Triton.
+`expert_attention.attention` that needs no Triton.
 
 A CTA takes one head's block of 64 query rows and one split of the keys: a run of consecutive 64-key blocks, the
 cached prefix's and then the suffix's own 64 keys (the last block of the last split). TMA brings each block into a
 ring of shared-memory slots, the next ones in flight while one is computed. QK^T and PV run on wgmma, the softmax on
 the accumulator in registers, online across the run's blocks (each block's row maximum taken first, what came
 before rescaled to it). It writes the split's normalised output in the dtype and its log-sum-exp in f32, as the
-Triton kernel does; `expert_kernels.merge` (or `merge_xla`) makes them one.
+Triton kernel does; `expert_attention.merge` (or `merge_xla`) makes them one.
 
 Masks, in the layout the accumulator's rows and columns take: the prefix mask as the element's int32 row of keys
 (one TMA-loaded vector a block), and the suffix mask as each query row's count of visible suffix keys: π0's and
@@ -32,7 +32,7 @@ from pi0_jax.ops.mosaic_gemm import _interpret, hopper, transforms
 
 BLOCK = 64   # query rows and keys a block: one warpgroup's wgmma rows, and the kernels' prefix key padding
 SMEM_BYTES = 220 * 1024   # a Hopper CTA's shared memory (227 KB), less the masks' and barriers'
-BIG_NEG = -2.3819763e38  # expert_kernels.BIG_NEG (a test checks they agree)
+BIG_NEG = -2.3819763e38  # expert_attention.BIG_NEG (a test checks they agree)
 
 
 def applies(dtype, *, head_dim: int, query_rows: int, suffix_keys: int, prefix_keys: int) -> bool:
@@ -203,7 +203,7 @@ def _call(m: int, sq: int, sk: int, pp: int, hd: int, batch: int, num_heads: int
 
 def attention(q, kv, cache_k, cache_v, prefix_mask, ends, *, batch: int, num_heads: int, num_kv_heads: int,
               kv_cols: tuple, sk: int, splits: int):
-    """The split-key softmaxes of `expert_kernels.attention`'s kernel: q (M, >= N hd) query rows (an element's M / B
+    """The split-key softmaxes of `expert_attention.attention`'s kernel: q (M, >= N hd) query rows (an element's M / B
     rows), kv (B sk, .) holding the suffix's keys and values at kv_cols[0] and [1] (+ the kv head's offset), cache_k /
     cache_v (B P, K hd), prefix_mask (B, P) int32, ends (M,) int32 (`suffix_ends`) -> (o (S M, N hd) in the dtype,
     normalised per split; lse (S, N, M) f32). The key blocks, the prefix's 64-key blocks and then the suffix's, run
