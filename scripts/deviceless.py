@@ -1,4 +1,5 @@
-"""Compile the engine's programs for an H200 on a machine with no GPU: XLA's deviceless ahead-of-time compile.
+"""Compile the engine's programs for an H200 (or an H100) on a machine with no GPU: XLA's deviceless ahead-of-time
+compile.
 
 What it shows without a GPU: whether every kernel of the engine compiles for sm_90a (Pallas Triton and Mosaic GPU
 through ptxas; their registers and spills a thread), the optimized HLO's kernel counts per program and per denoise step
@@ -10,8 +11,9 @@ another tiling or split-K on a GPU the counts may differ by those kernels: compa
 It needs the CUDA plugin of the installed jaxlib (`pip install "jax[cuda12]==$(python -c 'import jax;
 print(jax.__version__)')"`; the GPU image's compiler, jax 0.11.2 with CUDA 13, is `pip install "jax[cuda13]==0.11.2"` in
 a Python 3.12 environment), not a GPU or a driver: the plugin's compiler is used, with the device described by
-`TARGET` (an H200's figures), and jax's own device queries in the engine (`jax.devices()`, `jax.default_backend()`)
-answer as that GPU would. The weights are shapes only (`pi0.param_shapes`; FP8 scales from unit amaxes), so a
+`TARGET` (an H200's figures; `--target h100` an H100 SXM's, whose lower memory bandwidth moves XLA's fusion cost
+model: docs/BENCHMARKS.md, session 82), and jax's own device queries in the engine (`jax.devices()`,
+`jax.default_backend()`) answer as that GPU would. The weights are shapes only (`pi0.param_shapes`; FP8 scales from unit amaxes), so a
 full-size preset compiles in a few GB of host memory. Without the plugin, `abstract_engine` lowers the programs for
 CUDA and stops there: `tests/test_hopper_lowering.py` lowers the engine's calls so, with every kernel at its shapes.
 
@@ -66,6 +68,13 @@ device_description_str: "NVIDIA H200"
 """
 
 
+# an H100 SXM (80 GB HBM3): the H200's figures but its memory and 3.35 TB/s
+H100 = (TARGET.replace("memory_bandwidth: 4800000000000", "memory_bandwidth: 3350000000000")
+        .replace("device_memory_size: 151397597184", "device_memory_size: 85520809984")
+        .replace('device_description_str: "NVIDIA H200"', 'device_description_str: "NVIDIA H100 80GB HBM3"'))
+TARGETS = {"h200": (TARGET, "NVIDIA H200"), "h100": (H100, "NVIDIA H100 80GB HBM3")}
+
+
 class TargetDevice:
     """What the engine asks of `jax.devices()[0]` (`ops.mosaic_gemm.hopper`, `ops.fp8_geglu`), as the H200 answers."""
 
@@ -107,8 +116,14 @@ def as_target():
             triton_gpu.get_gpu_info = saved_info
 
 
+def use_target(name: str) -> None:
+    """Compile for `TARGETS[name]` from here on: XLA's device description and what `jax.devices()` answers."""
+    global TARGET
+    TARGET, TargetDevice.device_kind = TARGETS[name]
+
+
 def target_devices(n: int = 1) -> list:
-    """n described H200s of one host (the CUDA plugin's topology)."""
+    """n described GPUs of one host (the CUDA plugin's topology), `TARGET`'s."""
     return topologies.get_topology_desc(platform="cuda", topology_name="h200", target_config=TARGET,
                                         topology=f"1x1x{n}").devices
 
@@ -260,6 +275,8 @@ def sequence(hlo: str, computation: str) -> list[list[str]]:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--target", choices=sorted(TARGETS), default="h200",
+                   help="the GPU compiled for: its figures go to XLA's cost model (default: %(default)s)")
     p.add_argument("--preset", default="pi0_base", help="model preset (default: %(default)s)")
     p.add_argument("--batch", type=int, default=1, help="batch size (default: %(default)s)")
     p.add_argument("--steps", type=int, default=10, help="denoise steps (default: %(default)s)")
@@ -296,6 +313,7 @@ def main(argv=None) -> int:
 
     os.environ.setdefault("JAX_PLATFORMS", "cpu")   # the CUDA plugin is loaded for its compiler, not for a device
     os.environ.setdefault("JAX_SKIP_CUDA_CONSTRAINTS_CHECK", "1")   # its check needs a driver
+    use_target(args.target)
     config = get_config(args.preset)
     cameras = IMAGE_KEYS[:args.cameras]
     bucket = runtime.prompt_bucket(args.prompt, config.max_token_len)

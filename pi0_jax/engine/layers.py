@@ -123,10 +123,13 @@ def _mlp(h, w, kernel: bool = False, scales=None):
     gate_up, down = w["gate_up"], w["down"]
     if input_scale(gate_up) is None or input_scale(down) is None:
         gate, up = layout.split_gate_up(_mm(h, gate_up))
-        # GELU in f32, rounded to the dtype at its end as the reference's is. With GELU in the dtype, XLA wrote the
-        # gate half out in a pass of its own before the GeGLU pass (17 a prefix fill at B = 1: docs/BENCHMARKS.md,
-        # session 79)
-        return _mm(gelu_tanh(gate.astype(jnp.float32)).astype(gate.dtype) * up, down)
+        # GELU in f32, rounded to the dtype at its end as the reference's is; then the dtype's product, written as the
+        # product of the two rounded values in f32 rounded once (exact in f32 for bf16 and fp16 operands, so the same
+        # numbers). With GELU in the dtype XLA wrote the gate half out in a pass of its own before the GeGLU pass (17
+        # a prefix fill at B = 1, session 79); with the product in the dtype its cost model still did so for an H100's
+        # bandwidth, not an H200's (20 us a layer on an H100: docs/BENCHMARKS.md, session 82)
+        g = gelu_tanh(gate.astype(jnp.float32)).astype(gate.dtype)
+        return _mm((g.astype(jnp.float32) * up.astype(jnp.float32)).astype(gate.dtype), down)
     xq = formats.quantise(h, gate_up.act_scale)
     if kernel and _mlp_on_kernel(w):
         y = fp8_geglu.geglu(xq.reshape(-1, xq.shape[-1]), gate_up, down.act_scale, scales=scales)
