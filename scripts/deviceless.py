@@ -13,11 +13,13 @@ print(jax.__version__)')"`; the GPU image's compiler, jax 0.11.2 with CUDA 13, i
 a Python 3.12 environment), not a GPU or a driver: the plugin's compiler is used, with the device described by
 `TARGET` (an H200's figures; `--target h100` an H100 SXM's, whose lower memory bandwidth moves XLA's fusion cost
 model: docs/BENCHMARKS.md, session 82), and jax's own device queries in the engine (`jax.devices()`,
-`jax.default_backend()`) answer as that GPU would. The weights are shapes only (`pi0.param_shapes`; FP8 scales from unit amaxes), so a
-full-size preset compiles in a few GB of host memory. Without the plugin, `abstract_engine` lowers the programs for
-CUDA and stops there: `tests/test_hopper_lowering.py` lowers the engine's calls so, with every kernel at its shapes.
+`jax.default_backend()`) answer as that GPU would. The weights are shapes only (`pi0.param_shapes`; FP8 scales from
+unit amaxes), so a full-size preset compiles in a few GB of host memory. Without the plugin, `abstract_engine` lowers
+the programs for CUDA and stops there: `tests/test_hopper_lowering.py` lowers the engine's calls so, with every
+kernel at its shapes.
 
     python3 scripts/deviceless.py --preset pi0_base --batch 1 --steps 10 --out deviceless.json
+    python3 scripts/deviceless.py --target h100 --preset pi0_base --batch 1 --steps 10
     python3 scripts/deviceless.py --preset pi0_base --quant prefix-all --fp8-mlp-kernel on --batch 8
 """
 
@@ -72,6 +74,7 @@ device_description_str: "NVIDIA H200"
 H100 = (TARGET.replace("memory_bandwidth: 4800000000000", "memory_bandwidth: 3350000000000")
         .replace("device_memory_size: 151397597184", "device_memory_size: 85520809984")
         .replace('device_description_str: "NVIDIA H200"', 'device_description_str: "NVIDIA H100 80GB HBM3"'))
+assert "3350000000000" in H100 and "85520809984" in H100 and "H100" in H100, "TARGET's figures changed: mend H100"
 TARGETS = {"h200": (TARGET, "NVIDIA H200"), "h100": (H100, "NVIDIA H100 80GB HBM3")}
 
 
