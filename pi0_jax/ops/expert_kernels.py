@@ -160,11 +160,6 @@ def default_blocks() -> Blocks:
     return Blocks() if pallas_base.TRITON else TRITON_FREE
 
 
-def _call(kernel, grid, out_shape, name: str, num_warps: int, num_stages: int):
-    return pallas_base.call(kernel, grid=grid, out_shape=out_shape, name=name, num_warps=num_warps,
-                            num_stages=num_stages)
-
-
 def _scaled(x_ref, mod_ref, rows, cols, mod_row, dtype):
     """One tile of x in f32 (for the statistics) and of x * (1 + scale) in the dtype (the GEMM input of a norm, before
     the row's 1 / rms). (1 + scale) is formed in the scale's dtype first, as the reference does. mod_row may be
@@ -244,7 +239,8 @@ def matmul_partials(y, w, mods=None, mod_row: int = 0, *, scaled: bool = False, 
     # mods only where read: a dummy operand would be a broadcast kernel of its own in every denoise step (XLA sinks
     # the constant into the loop's body)
     operands = (y, mods, *([step.index.reshape(1)] if step_rows else []), w) if scaled else (y, w)
-    res = _call(kernel, (m // bm, n // bn, splits), out, name, blocks.num_warps, gemm.stages)(*operands)
+    res = pallas_base.call(kernel, grid=(m // bm, n // bn, splits), out_shape=out, name=name,
+                           num_warps=blocks.num_warps, num_stages=gemm.stages)(*operands)
     parts = res[0].reshape(splits, m, n)
     ss = res[1].reshape(splits, m) if scaled else None
     shift = res[-1].reshape(splits, ALIGN, n)[:, 0] if adaptive else None
