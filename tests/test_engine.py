@@ -668,6 +668,28 @@ def test_a_second_process_loads_the_programs_without_compiling(tmp_path):
     np.testing.assert_array_equal(runs[0]["actions"], runs[1]["actions"])
 
 
+def test_the_geglu_product_is_formed_in_f32_from_the_rounded_halves():
+    """`layers._mlp` in bf16 forms gelu(gate) * up as the product of the two bf16 values in f32, rounded to bf16 once:
+    the dtype's own product (exact in f32). In that form XLA's cost model for an H100 reads the gate half inside the
+    GeGLU pass; with the product in bf16 it wrote the gate half out in a pass of its own, 17 a prefix fill
+    (docs/BENCHMARKS.md, sessions 82-83). No CPU test sees that GPU fusion; this one sees the form it needs."""
+    d, f = 8, 16
+    w = {"gate_up": jnp.ones((d, 2 * f), jnp.bfloat16), "down": jnp.ones((f, d), jnp.bfloat16)}
+    jaxpr = jax.make_jaxpr(layers._mlp)(jnp.ones((1, 4, d), jnp.bfloat16), w).jaxpr
+    made = {v: e for e in jaxpr.eqns for v in e.outvars}
+
+    def op(v, name, dtype):
+        e = made[v]
+        assert e.primitive.name == name and e.outvars[0].aval.dtype == dtype, (e, name, dtype)
+        return e
+
+    down = [e for e in jaxpr.eqns if e.primitive.name == "dot_general"][-1]
+    product = made[op(down.invars[0], "convert_element_type", jnp.bfloat16).invars[0]]
+    assert product.primitive.name == "mul" and product.outvars[0].aval.dtype == jnp.float32, product
+    for v in product.invars:   # gelu(gate) and up, each a bf16 value widened
+        assert op(v, "convert_element_type", jnp.float32).invars[0].aval.dtype == jnp.bfloat16
+
+
 def test_the_engines_gelu_is_jaxs_tanh_gelu():
     """`layers.gelu_tanh` (x sigmoid(2 z), the engine's GeGLU) is jax's GELU-tanh to f32 rounding, saturating alike
     (0 far left, x far right, no NaN from x³ overflowing); in bf16 within a rounding step of the f32 value of the
