@@ -112,6 +112,14 @@ STEP_SWEEPS = {
     "mosaic_pair": {"default": {}, "mlp geglu 64 4st": dict(mosaic_mlp=L(64, 1, 4, geglu=True)),
                     "mlp geglu 64 8st": dict(mosaic_mlp=L(64, 1, 8, geglu=True)),
                     "mlp geglu 64 8st d1": dict(mosaic_mlp=L(64, 1, 8, geglu=True, delay=1))},
+    # q/k/v with its norm's statistics, 1/rms, RoPE and q's scale in one Mosaic GPU kernel (`mosaic_gemm.qkv_rope`: 20
+    # CTAs at π0's shapes, 151 kernels a step against 169; at most 5 deep in shared memory), against the plain Mosaic
+    # GEMM in one and two K chunks (its norm and epilogue apart); prepared in session 84, which had no GPU
+    "mosaic_qkv_rope": {"default": {}, "qkv rope 64 3st": dict(mosaic_qkv=L(64, 1, 3, rope=True)),
+                        "qkv rope 64 4st": dict(mosaic_qkv=L(64, 1, 4, rope=True)),
+                        "qkv rope 64 5st": dict(mosaic_qkv=L(64, 1, 5, rope=True)),
+                        "qkv mosaic 64 1s 8st": dict(mosaic_qkv=L(64, 1, 8)),
+                        "qkv mosaic 64 2s 6st": dict(mosaic_qkv=L(64, 2, 6))},
     # programs a GEMM launches against the SMs (session 31: q/k/v at 128 x 8 is 160 programs on 132 SMs, 1.2 waves)
     "waves": {"default": {}, "qkv 128x4": dict(qkv=G(128, 4)), "qkv 128x2": dict(qkv=G(128, 2)),
               "qkv 256x4": dict(qkv=G(256, 4)), "qkv 64x4": dict(qkv=G(64, 4)), "out 64x8": dict(out=G(64, 8)),

@@ -4,6 +4,7 @@ expert's layers with every GEMM on it equal the XLA layer, for π0 and π0.5's a
 head), MLP 256, which every launch below tiles. f32: the kernel and XLA differ only in summation order."""
 
 import dataclasses
+import functools
 import warnings
 
 import jax
@@ -24,6 +25,11 @@ B, S, P = 1, 11, 100   # a 100-key prefix (padded to 128, the padding masked) an
 MOSAIC = ek.Blocks(mosaic_qkv=Launch(64, 2, 2), mosaic_mlp=Launch(64, 1, 3, 2), mosaic_out=Launch(64, 2, 1, 2),
                    mosaic_down=Launch(128, 4, 1))
 GEGLU = dataclasses.replace(MOSAIC, mosaic_mlp=Launch(64, 1, 3, geglu=True))
+ROPE = dataclasses.replace(GEGLU, mosaic_qkv=Launch(32, 1, 2, rope=True))   # CFG's RoPE halves are 32 wide
+# q/k/v with RoPE (`mosaic_gemm.qkv_rope`) takes x^T as a wgmma operand, which Mosaic GPU's interpreter runs from jax
+# 0.11 (the GPU image's); its GPU form lowers on either (`test_kernels_lower_for_hopper`)
+TRANSPOSED_WGMMA = pytest.mark.skipif(jax.__version_info__ < (0, 11),
+                                      reason="Mosaic GPU's interpreter takes a transposed wgmma operand from jax 0.11")
 
 
 def _rand(key, *shape, scale=1.0):
@@ -106,8 +112,10 @@ def _layers_inputs(pi05: bool):
     return weights, mods, x, positions, ck, cv, pmask, smask
 
 
-@pytest.mark.parametrize("pi05,blocks", [(False, MOSAIC), (True, MOSAIC), (False, GEGLU), (True, GEGLU)])
+@pytest.mark.parametrize("pi05,blocks", [(False, MOSAIC), (True, MOSAIC), (False, GEGLU), (True, GEGLU),
+                                         pytest.param(False, ROPE, marks=TRANSPOSED_WGMMA), (True, ROPE)])
 def test_expert_layers_on_the_mosaic_gemm_equal_xla(pi05, blocks, monkeypatch):
+    """π0.5 with the q/k/v RoPE launch keeps the Triton q/k/v (its adaRMS shift is that kernel's own product)."""
     weights, mods, x, positions, ck, cv, pmask, smask = _layers_inputs(pi05)
     want = x
     for i, w in enumerate(weights):
@@ -115,14 +123,15 @@ def test_expert_layers_on_the_mosaic_gemm_equal_xla(pi05, blocks, monkeypatch):
         want, _, _ = layers.suffix_layer(CFG, w, want, gemma.rope_angles(positions, CFG.head_dim), ck[i], cv[i],
                                          jnp.broadcast_to(pmask[:, None], (B, S, P)), smask, layer_mods)
     calls = []
-    for fn in ("partials", "geglu"):
+    for fn in ("partials", "geglu", "qkv_rope"):
         kernel = getattr(mosaic_gemm, fn)
         monkeypatch.setattr(mosaic_gemm, fn,
                             lambda *a, kernel=kernel, **kw: calls.append(kw["name"]) or kernel(*a, **kw))
     cache_k, cache_v = ([layout.cache_kv(c[i], CFG.head_dim) for i in range(CFG.depth)] for c in (ck, cv))
     got = layers.suffix_layers_pallas(CFG, weights, x, positions, cache_k, cache_v, layout.cache_mask(pmask), smask,
                                       mods, blocks=blocks)
-    assert calls == ["expert_qkv", "expert_attn_out", "expert_gate_up", "expert_down"] * CFG.depth
+    on_triton = pi05 and blocks.mosaic_qkv.rope
+    assert calls == ["expert_qkv"] * (not on_triton) + ["expert_attn_out", "expert_gate_up", "expert_down"] * CFG.depth
     np.testing.assert_allclose(got, want, **TOL)
     # the norm scale / adaRMS shift enter: without them the result differs
     if pi05:
@@ -132,6 +141,32 @@ def test_expert_layers_on_the_mosaic_gemm_equal_xla(pi05, blocks, monkeypatch):
     other = layers.suffix_layers_pallas(CFG, weights, x, positions, cache_k, cache_v, layout.cache_mask(pmask), smask,
                                         mods, blocks=blocks)
     assert not np.allclose(other, want, **TOL)
+
+
+@TRANSPOSED_WGMMA
+def test_qkv_rope_equals_the_triton_kernel_and_its_epilogue():
+    """`mosaic_gemm.qkv_rope` against `expert_kernels.norm_qkv_rope`'s Triton GEMM and XLA epilogue: 50 rows (padded
+    to 64), two q heads, two kv heads, 64-wide RoPE halves in two blocks a CTA (cols 32); f32, so only the sums'
+    order differs. RoPE turns q and k, not v; q alone is scaled; each head's two halves land in their own columns."""
+    d, n, kh, hd, m = 128, 2, 2, 128, 50
+    hp = layout.half_dim(hd)
+    x, scale = _rand(70, m, d), _rand(71, 1, d, scale=0.2)
+    w = layout.heads(_rand(72, d, (n + 2 * kh) * hd, scale=d**-0.5), -1, hd)
+    cos, sin = layout.rope_tables(jnp.arange(m)[None] * 7 % 300, hd)
+    kw = dict(width=d, num_heads=n, num_kv_heads=kh, head_dim=hd)
+    want = ek.norm_qkv_rope(x, scale, 0, False, w, cos, sin, blocks=ek.Blocks(), **kw)
+    launch = Launch(32, 1, 2, rope=True)
+    assert mosaic_gemm.applies(x, w, launch, half=hp)
+    got = ek.norm_qkv_rope(x, scale, 0, False, w, cos, sin, blocks=ek.Blocks(mosaic_qkv=launch), **kw)
+    np.testing.assert_allclose(got, want, **TOL)
+    q, k, v = np.split(np.asarray(got), [n * 2 * hp, (n + kh) * 2 * hp], axis=1)
+    plain = ek.norm_qkv_rope(x, scale, 0, False, w, jnp.ones_like(cos), jnp.zeros_like(sin), blocks=ek.Blocks(), **kw)
+    pq, pk, pv = np.split(np.asarray(plain), [n * 2 * hp, (n + kh) * 2 * hp], axis=1)
+    np.testing.assert_allclose(v, pv, **TOL)    # v unturned, unscaled
+    assert not np.allclose(k, pk, **TOL) and not np.allclose(q, pq, **TOL)
+    with pytest.raises(ValueError, match="RoPE"):
+        Launch(64, 2, rope=True)
+    assert not mosaic_gemm.applies(x, w, Launch(128, rope=True), half=hp)   # a block wider than a half
 
 
 def test_interpreter_warns_where_xla_cpu_scheduler_may_hang_it(monkeypatch):
@@ -162,3 +197,8 @@ def test_kernels_lower_for_hopper(monkeypatch):
                         "64x4096xbf16")):
         text = jax.jit(fn).trace(aval((50, 1024), bf), aval(w, bf)).lower(lowering_platforms=("cuda",)).as_text()
         assert "mosaic_gpu" in text and f"tensor<{out}>" in text
+    rope = functools.partial(mosaic_gemm.qkv_rope, launch=Launch(64, 1, 4, rope=True), width=1024, num_heads=8,
+                             num_kv_heads=1, q_scale=0.0625, eps=1e-6)   # q/k/v with its norm and RoPE: 64 rows out
+    text = jax.jit(rope).trace(aval((50, 1024), bf), aval((50, 1024), bf), aval((1024, 2560), bf),
+                               *(aval((50, 128), jnp.float32),) * 2).lower(lowering_platforms=("cuda",)).as_text()
+    assert "mosaic_gpu" in text and "tensor<64x2560xbf16>" in text

@@ -342,8 +342,11 @@ def suffix_layers_pallas(cfg: GemmaConfig, weights, x, positions, cache_k, cache
     sp = layout.suffix_rows(s)
     # The residual after each GEMM fuses into the next norm's XLA (Triton) fusion only where its inputs are buffers of
     # their own: the first layer's rows not a pad XLA could fuse into it, and π0.5's gates not slices of its tables.
-    # Else the residual is a kernel of its own: 18 a step more for π0.5 (docs/BENCHMARKS.md, session 79)
-    rows = jax.lax.optimization_barrier(layout.rows(x, sp))
+    # Else the residual is a kernel of its own: 18 a step more for π0.5 (docs/BENCHMARKS.md, session 79). q/k/v with
+    # RoPE on Mosaic GPU (π0) takes no norm fusion: the pad then fuses with its scaled input (session 84)
+    rows = layout.rows(x, sp)
+    if not (blocks.mosaic_qkv is not None and blocks.mosaic_qkv.rope and mods is None):
+        rows = jax.lax.optimization_barrier(rows)
     cos, sin, pmask, smask = pallas_tables(cfg, positions, prefix_mask, suffix_mask) if tables is None else tables
     heads = {"num_heads": cfg.num_heads, "num_kv_heads": cfg.num_kv_heads}
     adaptive = mods is not None

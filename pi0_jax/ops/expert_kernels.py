@@ -16,7 +16,9 @@ Any of the four GEMMs may instead run `ops.mosaic_gemm` (a TMA-pipelined Mosaic 
 Blocks field mosaic_<gemm> names its launch; gate/up's may end in GeGLU. Its GEMM is plain, so a norm before it is
 one XLA fusion in `layers.rms_norm`'s order, and the product is the XLA path's to f32 rounding. (The norm inside
 the kernel, as the Triton prologue, cost gate/up 3 us and did not pay for q/k/v: docs/BENCHMARKS.md, "A Mosaic GPU
-GEMM".)
+GEMM".) q/k/v's launch with `rope` is `mosaic_gemm.qkv_rope` instead, for π0: the rows' sums of squares, 1 / rms,
+RoPE and q's scale inside the kernel, which takes x and x * (1 + scale) (an output of the residual pass before it)
+and leaves no pass after it (151 kernels a step against 169, compiled for an H100 or H200; not yet timed).
 
 Kernel layout (`pi0_jax.ops.layout`): rows are (batch, suffix padded to Sp) flattened; each head is stored as
 [x1 | 0 | x2 | 0], the two RoPE halves each padded to hp (a multiple of 16); widths are multiples of 16 (Triton's
@@ -281,8 +283,16 @@ def norm_qkv_rope(x, mods, mod_row: int, adaptive: bool, w_qkv, cos, sin, *, wid
     """
     m, dtype = x.shape[0], x.dtype
     heads, hp = num_heads + 2 * num_kv_heads, cos.shape[1]
+    q_scale = float(np.asarray(head_dim**-0.5, dtype))
+    launch = blocks.mosaic_qkv
+    if launch is not None and launch.rope:
+        if not adaptive and mosaic_gemm.applies(x, w_qkv, launch, half=hp):
+            xs = (x.astype(jnp.float32) * (1 + table_row(mods, mod_row, step)).astype(jnp.float32)).astype(dtype)
+            return mosaic_gemm.qkv_rope(x, xs, w_qkv, cos, sin, launch, width=width, num_heads=num_heads,
+                                        num_kv_heads=num_kv_heads, q_scale=q_scale, eps=EPS, name="expert_qkv")
+        launch = None   # the Triton kernel (π0.5's adaRMS shift is its own product there)
     acc = _normed_product(x, mods, mod_row, adaptive, w_qkv, width=width, gemm=blocks.qkv, blocks=blocks,
-                          name="expert_qkv", mosaic=blocks.mosaic_qkv, step=step)
+                          name="expert_qkv", mosaic=launch, step=step)
     a = _round(acc, dtype).reshape(m, heads, 2, hp)
     a1, a2, c, s = a[:, :, 0], a[:, :, 1], cos[:, None], sin[:, None]
     # RoPE in f32, then the dtype, for q and k heads; q is then scaled in the dtype (q_scale is a dtype value). On a
@@ -291,7 +301,6 @@ def norm_qkv_rope(x, mods, mod_row: int, adaptive: bool, w_qkv, cos, sin, *, wid
     rotary = (jnp.arange(heads) < num_heads + num_kv_heads)[None, :, None]
     r1 = jnp.where(rotary, _round(a1 * c - a2 * s, dtype), a1)
     r2 = jnp.where(rotary, _round(a2 * c + a1 * s, dtype), a2)
-    q_scale = float(np.asarray(head_dim**-0.5, dtype))
     scale = jnp.where(jnp.arange(heads) < num_heads, q_scale, 1.0)[None, :, None, None]
     return (jnp.stack([r1, r2], axis=2) * scale).astype(dtype).reshape(m, heads * 2 * hp)
 

@@ -17,6 +17,10 @@ takes 64 units' gate and up, on twice the CTAs (128 for the expert): the kernel 
 GELU-tanh and the product in f32, rounded once; XLA's fusion may round between its bf16 ops, so the two agree to
 bf16 rounding (in f32, to f32 rounding).
 
+`qkv_rope` is the action expert's normed q/k/v with RoPE in one such kernel (π0: no partials, no pass after it; its
+rows' sums of squares as a third wgmma), an option of `expert_kernels.Blocks.mosaic_qkv` (`Launch.rope`) prepared in
+session 84 without a GPU: compiled for sm_90a, not yet timed (docs/BENCHMARKS.md).
+
 bf16 only on a GPU (wgmma would take f32 as tf32); `applies` says when. On a CPU the kernel runs in Mosaic GPU's
 interpreter (tests). Axis legend: M rows, K contraction, N output columns, S splits.
 """
@@ -45,7 +49,8 @@ TK = 64  # a swizzled tile's contraction: one 128-byte row of bf16; a pipeline s
 class Launch:
     """Output columns per compute warpgroup (`geglu`: the accumulator's, one block pair of gate and up), K chunks (one
     CTA each per column block), TMA pipeline depth, compute warpgroups per CTA, whether the gate/up GEMM ends in
-    GeGLU (`geglu`; one chunk, one warpgroup), and how many steps' wgmma may still run when the next is issued
+    GeGLU (`geglu`; one chunk, one warpgroup), whether it is `qkv_rope`'s kernel (`rope`: `cols` a RoPE half's block,
+    one chunk, one warpgroup), and how many steps' wgmma may still run when the next is issued
     (`delay`: their tiles are released that many steps later), and the contraction rows a pipeline step brings (`tk`,
     a multiple of TK: each step's barrier handshake is paid once for that many rows; 128 took gate/up alone 5 %
     faster and the step not at all, docs/BENCHMARKS.md, session 30). On a GPU, cols is a multiple of 64: 32-column
@@ -58,12 +63,16 @@ class Launch:
     geglu: bool = False
     delay: int = 0
     tk: int = TK
+    rope: bool = False
 
     def __post_init__(self):
         if self.tk % TK:
             raise ValueError(f"{self}: tk must be a multiple of {TK}")
         if self.geglu and (self.splits, self.wgs) != (1, 1):
             raise ValueError(f"{self}: the GeGLU epilogue needs the whole K in one CTA of one compute warpgroup")
+        if self.rope and (self.splits, self.wgs, self.delay, self.tk, self.geglu) != (1, 1, 0, TK, False):
+            raise ValueError(f"{self}: the q/k/v kernel with RoPE takes the whole K in one CTA of one compute "
+                             f"warpgroup, {TK} rows a step, no delay")
         if not 0 <= self.delay < self.stages:
             raise ValueError(f"{self}: delay must be below the pipeline depth (stages)")
 
@@ -92,13 +101,15 @@ def hopper() -> bool:
     return jax.default_backend() == "gpu" and getattr(jax.devices()[0], "compute_capability", "") == "9.0"
 
 
-def applies(x, w, launch: Launch) -> bool:
+def applies(x, w, launch: Launch, half: int | None = None) -> bool:
     """Whether this kernel takes x @ w: bf16 on a Hopper GPU (or any float on the CPU interpreter), K splitting into
     steps of `launch.tk` rows (more than `delay` of them), N into column blocks (geglu: `cols` is one block pair of the
-    fused weight, `ops.layout.gate_up_block`)."""
+    fused weight, `ops.layout.gate_up_block`; rope: of each head's RoPE halves of `half` columns)."""
     k, n = w.shape
     if launch.geglu:   # one block pair of the fused weight a CTA
         tiles = launch.cols == 2 * gate_up_block(n // 2)
+    elif launch.rope:
+        tiles = half is not None and half % launch.cols == 0 and n % (2 * half) == 0
     else:
         tiles = n % (launch.cols * launch.wgs) == 0
     tiles = tiles and k % (launch.splits * launch.tk) == 0
@@ -200,5 +211,103 @@ def _call(m: int, k: int, n: int, dtype, launch: Launch, name: str):
     return plgpu.kernel(kernel, out_type=jax.ShapeDtypeStruct((splits * m, n), out_dtype),
                         grid=(n // (out_cols * wgs), splits, m // ROWS), grid_names=("n", "s", "m"),
                         num_threads=wgs + 1, thread_name="wg", kernel_name=name,
+                        compiler_params=plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup),
+                        **({"interpret": _interpret()} if on_cpu else {}))
+
+
+# -- q/k/v with the norm and RoPE inside -------------------------------------------------------------------------------
+def qkv_rope(x, xs, w, cos, sin, launch: Launch, *, width: int, num_heads: int, num_kv_heads: int, q_scale: float,
+             eps: float, name: str = "expert_qkv_rope"):
+    """The action expert's normed q/k/v in one kernel: x (M, D) the residual rows, xs (M, D) = x * (1 + the norm's
+    scale) in x's dtype, w (D, heads * 2hp) in the kernel layout (`ops.layout`: each head [x1 | 0 | x2 | 0]), cos /
+    sin (M, hp) f32 -> (M, heads * 2hp) in x's dtype: (xs @ w) / rms(x), rounded; q and k heads rotated in f32 and
+    rounded; q heads times q_scale. `expert_kernels.norm_qkv_rope`'s numbers in its order (its XLA epilogue's
+    roundings; the product in one K chunk, so its sum's order differs), with no partials and no pass after it.
+
+    A CTA takes a head's column block `cols` wide in both RoPE halves (two accumulators, so RoPE pairs stay in one
+    CTA) over all of K, and its rows' sums of squares as a third wgmma, x @ x^T over each x tile (its diagonal:
+    bf16 squares are exact in the f32 accumulator). The norm is then a row scale after the GEMM, as the Triton kernel
+    applies it. Rows are padded to a multiple of ROWS (zeros) and cut back."""
+    assert launch.rope, launch
+    (xp, mp), (xsp, _) = _padded(x), _padded(xs)
+    hp = cos.shape[1]
+    if mp != x.shape[0]:
+        cos, sin = (jnp.pad(t, ((0, mp - x.shape[0]), (0, 0))) for t in (cos, sin))
+    call = _rope_call(mp, x.shape[1], w.shape[1], hp, x.dtype, launch.cols, launch.stages, width,
+                      num_heads + num_kv_heads, num_heads, float(q_scale), float(eps), name)
+    return call(xp, xsp, w, cos, sin)[:x.shape[0]]
+
+
+@functools.lru_cache(maxsize=None)
+def _rope_call(m: int, k: int, n: int, hp: int, dtype, cols: int, stages: int, width: int, rotary: int, queries: int,
+               q_scale: float, eps: float, name: str):
+    blocks = hp // cols   # column blocks a RoPE half
+    f32 = jnp.float32
+
+    def pipeline(body, context):
+        spec = functools.partial(plgpu.BlockSpec, memory_space=plgpu.SMEM)
+        x_spec = spec((ROWS, TK), lambda kk: (0, kk), transforms=transforms(TK, dtype))
+        w_spec = spec((TK, cols), lambda kk: (kk, 0), transforms=transforms(cols, dtype))
+        return plgpu.emit_pipeline_warp_specialized(
+            body, grid=(k // TK,), memory_registers=40, wg_axis="wg", num_compute_wgs=1,
+            max_concurrent_steps=stages, compute_context=context, in_specs=[x_spec, x_spec, w_spec, w_spec])
+
+    def kernel(x_gmem, xs_gmem, w_gmem, cos_gmem, sin_gmem, o_gmem):
+        j, i = lax.axis_index("n"), lax.axis_index("m")
+        head, block = lax.div(j, blocks), lax.rem(j, blocks)
+        first = head * 2 * hp + block * cols   # the block's columns in the first half; + hp in the second
+        rows = pl.ds(i * ROWS, ROWS)
+        operands = (x_gmem.at[rows], xs_gmem.at[rows], w_gmem.at[:, pl.ds(first, cols)],
+                    w_gmem.at[:, pl.ds(first + hp, cols)])
+
+        def nothing(*_, **__):
+            return None
+
+        @functools.partial(pl.run_scoped, allocs=pipeline(nothing, nothing).get_allocations(*operands),
+                           out_smem=plgpu.SMEM((2, ROWS, cols), dtype, transforms=transforms(cols, dtype)),
+                           trig=plgpu.SMEM((2, ROWS, cols), f32, transforms=transforms(cols, f32)),
+                           loaded=plgpu.Barrier(num_arrivals=2), collective_axes="wg")
+        def scope(allocs, out_smem, trig, loaded):
+            def context(run):
+                @functools.partial(pl.run_scoped, y1=plgpu.ACC((ROWS, cols), f32), y2=plgpu.ACC((ROWS, cols), f32),
+                                   squares=plgpu.ACC((ROWS, ROWS), f32))
+                def accumulate(y1, y2, squares):
+                    angles = pl.ds(block * cols, cols)
+                    plgpu.copy_gmem_to_smem(cos_gmem.at[rows, angles], trig.at[0], loaded)
+                    plgpu.copy_gmem_to_smem(sin_gmem.at[rows, angles], trig.at[1], loaded)
+                    run((y1, y2, squares))
+                    iota = [plgpu.broadcasted_iota(jnp.int32, (ROWS, ROWS), a, layout=plgpu.Layout.WGMMA)
+                            for a in (0, 1)]
+                    diagonal = (iota[0] == iota[1]).astype(f32)
+                    inv = lax.rsqrt(jnp.sum(squares[...] * diagonal, axis=1) / width + eps)
+                    inv = lax.broadcast_in_dim(inv, (ROWS, cols), [0])
+                    a1, a2 = ((y[...] * inv).astype(dtype).astype(f32) for y in (y1, y2))
+                    plgpu.barrier_wait(loaded)
+                    # per-CTA scalars as arithmetic (a scalar select does not broadcast here): v heads keep cos 1,
+                    # sin 0, an exact identity; q_scale - 1 is exact for q_scale a power of two or a dtype value
+                    turn = (head < rotary).astype(f32)
+                    c, s = (plgpu.layout_cast(trig[t], plgpu.Layout.WGMMA) for t in (0, 1))
+                    c, s = c * turn + (1 - turn), s * turn
+                    scale = 1 + (head < queries).astype(f32) * np.float32(q_scale - 1)
+                    out_smem[0] = ((a1 * c - a2 * s).astype(dtype).astype(f32) * scale).astype(dtype)
+                    out_smem[1] = ((a2 * c + a1 * s).astype(dtype).astype(f32) * scale).astype(dtype)
+                    plgpu.commit_smem()
+                    for half in range(2):
+                        plgpu.copy_smem_to_gmem(out_smem.at[half], o_gmem.at[rows, pl.ds(first + half * hp, cols)])
+                    plgpu.wait_smem_to_gmem(0)
+
+            def step(_, x_smem, xs_smem, w1_smem, w2_smem, accs):
+                y1, y2, squares = accs
+                plgpu.wgmma(y1, xs_smem, w1_smem)
+                plgpu.wgmma(y2, xs_smem, w2_smem)
+                plgpu.wgmma(squares, x_smem, x_smem.T)
+                plgpu.wgmma_wait(0)
+                return accs
+
+            pipeline(step, context)(*operands, allocations=allocs)
+
+    on_cpu = jax.default_backend() == "cpu"
+    return plgpu.kernel(kernel, out_type=jax.ShapeDtypeStruct((m, n), dtype), grid=(n // (2 * cols), m // ROWS),
+                        grid_names=("n", "m"), num_threads=2, thread_name="wg", kernel_name=name,
                         compiler_params=plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup),
                         **({"interpret": _interpret()} if on_cpu else {}))
