@@ -113,8 +113,9 @@ STEP_SWEEPS = {
                     "mlp geglu 64 8st": dict(mosaic_mlp=L(64, 1, 8, geglu=True)),
                     "mlp geglu 64 8st d1": dict(mosaic_mlp=L(64, 1, 8, geglu=True, delay=1))},
     # q/k/v with its norm's statistics, 1/rms, RoPE and q's scale in one Mosaic GPU kernel (`mosaic_gemm.qkv_rope`: 20
-    # CTAs at π0's shapes, 151 kernels a step against 169; at most 5 deep in shared memory), against the plain Mosaic
-    # GEMM in one and two K chunks (its norm and epilogue apart); prepared in session 84, which had no GPU
+    # CTAs at π0's shapes, 151 kernels a step against 169, π0.5 154 against 170; at most 5 deep in shared memory),
+    # against the plain Mosaic GEMM in one and two K chunks (its norm and epilogue apart); prepared in session 84,
+    # which had no GPU
     "mosaic_qkv_rope": {"default": {}, "qkv rope 64 3st": dict(mosaic_qkv=L(64, 1, 3, rope=True)),
                         "qkv rope 64 4st": dict(mosaic_qkv=L(64, 1, 4, rope=True)),
                         "qkv rope 64 5st": dict(mosaic_qkv=L(64, 1, 5, rope=True)),

@@ -93,7 +93,7 @@ def test_applies_only_where_the_launch_tiles():
     assert mosaic_gemm.applies(x, jnp.zeros((256, 128)), Launch(64, 2, tk=128))
 
 
-def _layers_inputs(pi05: bool):
+def _layers_inputs(pi05: bool, S: int = S):
     d, f, n, kh, h = CFG.width, CFG.mlp_dim, CFG.num_heads, CFG.num_kv_heads, CFG.head_dim
     weights = [{"qkv": _rand(10 * i, d, (n + 2 * kh) * h, scale=d**-0.5),
                 "attn_out": _rand(10 * i + 1, n * h, d, scale=0.1),
@@ -112,16 +112,18 @@ def _layers_inputs(pi05: bool):
     return weights, mods, x, positions, ck, cv, pmask, smask
 
 
-@pytest.mark.parametrize("pi05,blocks", [(False, MOSAIC), (True, MOSAIC), (False, GEGLU), (True, GEGLU),
-                                         pytest.param(False, ROPE, marks=TRANSPOSED_WGMMA), (True, ROPE)])
-def test_expert_layers_on_the_mosaic_gemm_equal_xla(pi05, blocks, monkeypatch):
-    """π0.5 with the q/k/v RoPE launch keeps the Triton q/k/v (its adaRMS shift is that kernel's own product)."""
-    weights, mods, x, positions, ck, cv, pmask, smask = _layers_inputs(pi05)
+@pytest.mark.parametrize("pi05,blocks,s", [(False, MOSAIC, S), (True, MOSAIC, S), (False, GEGLU, S), (True, GEGLU, S),
+                                           pytest.param(False, ROPE, S, marks=TRANSPOSED_WGMMA),
+                                           pytest.param(True, ROPE, S, marks=TRANSPOSED_WGMMA), (True, ROPE, 64)])
+def test_expert_layers_on_the_mosaic_gemm_equal_xla(pi05, blocks, s, monkeypatch):
+    """π0.5's q/k/v with RoPE on Mosaic GPU takes its adaRMS shift in a padding row; with 64 suffix rows (none is
+    padding) it keeps the Triton kernel."""
+    weights, mods, x, positions, ck, cv, pmask, smask = _layers_inputs(pi05, s)
     want = x
     for i, w in enumerate(weights):
         layer_mods = None if mods is None else (mods[0][i:i + 1], mods[1][i:i + 1])
         want, _, _ = layers.suffix_layer(CFG, w, want, gemma.rope_angles(positions, CFG.head_dim), ck[i], cv[i],
-                                         jnp.broadcast_to(pmask[:, None], (B, S, P)), smask, layer_mods)
+                                         jnp.broadcast_to(pmask[:, None], (B, s, P)), smask, layer_mods)
     calls = []
     for fn in ("partials", "geglu", "qkv_rope"):
         kernel = getattr(mosaic_gemm, fn)
@@ -130,7 +132,7 @@ def test_expert_layers_on_the_mosaic_gemm_equal_xla(pi05, blocks, monkeypatch):
     cache_k, cache_v = ([layout.cache_kv(c[i], CFG.head_dim) for i in range(CFG.depth)] for c in (ck, cv))
     got = layers.suffix_layers_pallas(CFG, weights, x, positions, cache_k, cache_v, layout.cache_mask(pmask), smask,
                                       mods, blocks=blocks)
-    on_triton = pi05 and blocks.mosaic_qkv.rope
+    on_triton = pi05 and blocks.mosaic_qkv.rope and s == 64
     assert calls == ["expert_qkv"] * (not on_triton) + ["expert_attn_out", "expert_gate_up", "expert_down"] * CFG.depth
     np.testing.assert_allclose(got, want, **TOL)
     # the norm scale / adaRMS shift enter: without them the result differs
@@ -164,6 +166,12 @@ def test_qkv_rope_equals_the_triton_kernel_and_its_epilogue():
     pq, pk, pv = np.split(np.asarray(plain), [n * 2 * hp, (n + kh) * 2 * hp], axis=1)
     np.testing.assert_allclose(v, pv, **TOL)    # v unturned, unscaled
     assert not np.allclose(k, pk, **TOL) and not np.allclose(q, pq, **TOL)
+    # π0.5: adaRMS's scale and shift rows of a table (the shift rides in row 63, a padding row of the 64)
+    mods = jnp.concatenate([scale, _rand(73, 1, d, scale=0.3)])
+    want = ek.norm_qkv_rope(x, mods, 0, True, w, cos, sin, blocks=ek.Blocks(), **kw)
+    got = ek.norm_qkv_rope(x, mods, 0, True, w, cos, sin, blocks=ek.Blocks(mosaic_qkv=launch), pad_row=True, **kw)
+    np.testing.assert_allclose(got, want, **TOL)
+    assert not np.allclose(ek.norm_qkv_rope(x, mods, 0, False, w, cos, sin, blocks=ek.Blocks(), **kw), want, **TOL)
     with pytest.raises(ValueError, match="RoPE"):
         Launch(64, 2, rope=True)
     assert not mosaic_gemm.applies(x, w, Launch(128, rope=True), half=hp)   # a block wider than a half
@@ -199,6 +207,8 @@ def test_kernels_lower_for_hopper(monkeypatch):
         assert "mosaic_gpu" in text and f"tensor<{out}>" in text
     rope = functools.partial(mosaic_gemm.qkv_rope, launch=Launch(64, 1, 4, rope=True), width=1024, num_heads=8,
                              num_kv_heads=1, q_scale=0.0625, eps=1e-6)   # q/k/v with its norm and RoPE: 64 rows out
-    text = jax.jit(rope).trace(aval((50, 1024), bf), aval((50, 1024), bf), aval((1024, 2560), bf),
-                               *(aval((50, 128), jnp.float32),) * 2).lower(lowering_platforms=("cuda",)).as_text()
-    assert "mosaic_gpu" in text and "tensor<64x2560xbf16>" in text
+    for shift in (None, aval((1024,), bf)):   # π0 and π0.5 (adaRMS's shift)
+        text = jax.jit(rope).trace(aval((50, 1024), bf), aval((50, 1024), bf), aval((1024, 2560), bf),
+                                   *(aval((50, 128), jnp.float32),) * 2,
+                                   shift=shift).lower(lowering_platforms=("cuda",)).as_text()
+        assert "mosaic_gpu" in text and "tensor<64x2560xbf16>" in text

@@ -343,9 +343,11 @@ def suffix_layers_pallas(cfg: GemmaConfig, weights, x, positions, cache_k, cache
     # The residual after each GEMM fuses into the next norm's XLA (Triton) fusion only where its inputs are buffers of
     # their own: the first layer's rows not a pad XLA could fuse into it, and π0.5's gates not slices of its tables.
     # Else the residual is a kernel of its own: 18 a step more for π0.5 (docs/BENCHMARKS.md, session 79). q/k/v with
-    # RoPE on Mosaic GPU (π0) takes no norm fusion: the pad then fuses with its scaled input (session 84)
+    # RoPE on Mosaic GPU takes no norm fusion: the pad then fuses with its scaled input (session 84). π0.5's takes its
+    # adaRMS shift in the last row of each of the kernel's row blocks, where that row is padding
+    pad_row = all(r % sp >= s for r in range(mosaic_gemm.ROWS - 1, b * sp, mosaic_gemm.ROWS))
     rows = layout.rows(x, sp)
-    if not (blocks.mosaic_qkv is not None and blocks.mosaic_qkv.rope and mods is None):
+    if not (blocks.mosaic_qkv is not None and blocks.mosaic_qkv.rope and (mods is None or pad_row)):
         rows = jax.lax.optimization_barrier(rows)
     cos, sin, pmask, smask = pallas_tables(cfg, positions, prefix_mask, suffix_mask) if tables is None else tables
     heads = {"num_heads": cfg.num_heads, "num_kv_heads": cfg.num_kv_heads}
@@ -362,7 +364,7 @@ def suffix_layers_pallas(cfg: GemmaConfig, weights, x, positions, cache_k, cache
         else:
             (ma, ra, ga), (mf, rf, gf) = (w["pre_attn"], 0, None), (w["pre_ffw"], 0, None)
         qkv = expert_kernels.norm_qkv_rope(rows, ma, ra, adaptive, w["qkv"], cos, sin, width=d,
-                                           head_dim=cfg.head_dim, blocks=blocks, step=at, **heads)
+                                           head_dim=cfg.head_dim, blocks=blocks, step=at, pad_row=pad_row, **heads)
         k, v = (c[i].reshape(b * c[i].shape[1], -1) for c in (cache_k, cache_v))
         y = expert_attention.attention(qkv, k, v, pmask, smask, batch=b, blocks=blocks, **heads)
         rows = expert_kernels.matmul_residual(y, w["attn_out"], rows, ga, gemm=blocks.out, blocks=blocks,

@@ -16,9 +16,10 @@ Any of the four GEMMs may instead run `ops.mosaic_gemm` (a TMA-pipelined Mosaic 
 Blocks field mosaic_<gemm> names its launch; gate/up's may end in GeGLU. Its GEMM is plain, so a norm before it is
 one XLA fusion in `layers.rms_norm`'s order, and the product is the XLA path's to f32 rounding. (The norm inside
 the kernel, as the Triton prologue, cost gate/up 3 us and did not pay for q/k/v: docs/BENCHMARKS.md, "A Mosaic GPU
-GEMM".) q/k/v's launch with `rope` is `mosaic_gemm.qkv_rope` instead, for π0: the rows' sums of squares, 1 / rms,
-RoPE and q's scale inside the kernel, which takes x and x * (1 + scale) (an output of the residual pass before it)
-and leaves no pass after it (151 kernels a step against 169, compiled for an H100 or H200; not yet timed).
+GEMM".) q/k/v's launch with `rope` is `mosaic_gemm.qkv_rope` instead: the rows' sums of squares, 1 / rms, RoPE
+and q's scale inside the kernel, which takes x and x * (1 + scale) (an output of the residual pass before it), and
+π0.5's adaRMS shift in a padding row, and leaves no pass after it (π0 151 kernels a step against 169, π0.5 154
+against 170, compiled for an H100 or H200; not yet timed).
 
 Kernel layout (`pi0_jax.ops.layout`): rows are (batch, suffix padded to Sp) flattened; each head is stored as
 [x1 | 0 | x2 | 0], the two RoPE halves each padded to hp (a multiple of 16); widths are multiples of 16 (Triton's
@@ -274,23 +275,26 @@ def _normed_product(x, mods, mod_row, adaptive, w, *, width, gemm, blocks, name,
 
 
 def norm_qkv_rope(x, mods, mod_row: int, adaptive: bool, w_qkv, cos, sin, *, width: int, num_heads: int,
-                  num_kv_heads: int, head_dim: int, blocks: Blocks = Blocks(), step: Step | None = None):
+                  num_kv_heads: int, head_dim: int, blocks: Blocks = Blocks(), step: Step | None = None,
+                  pad_row: bool = False):
     """x (M, D) -> qkv (M, (N + 2K) * 2hp): normed, projected, q/k rotated, q scaled by head_dim^-0.5.
 
     mods (R, D): row mod_row is the norm scale, +1 the adaRMS shift (adaptive); with step, every step's tables
     stacked (T R, D), read at the step's; w_qkv (D, (N + 2K) * 2hp); cos / sin (M, hp) f32 (`layout.rope_tables`);
-    width: the true D (the mean's divisor).
+    width: the true D (the mean's divisor); pad_row: the last row of every `mosaic_gemm.ROWS` is padding, which
+    π0.5's q/k/v on `mosaic_gemm.qkv_rope` needs (its adaRMS shift rides there).
     """
     m, dtype = x.shape[0], x.dtype
     heads, hp = num_heads + 2 * num_kv_heads, cos.shape[1]
     q_scale = float(np.asarray(head_dim**-0.5, dtype))
     launch = blocks.mosaic_qkv
     if launch is not None and launch.rope:
-        if not adaptive and mosaic_gemm.applies(x, w_qkv, launch, half=hp):
+        if (pad_row or not adaptive) and mosaic_gemm.applies(x, w_qkv, launch, half=hp):
             xs = (x.astype(jnp.float32) * (1 + table_row(mods, mod_row, step)).astype(jnp.float32)).astype(dtype)
             return mosaic_gemm.qkv_rope(x, xs, w_qkv, cos, sin, launch, width=width, num_heads=num_heads,
-                                        num_kv_heads=num_kv_heads, q_scale=q_scale, eps=EPS, name="expert_qkv")
-        launch = None   # the Triton kernel (π0.5's adaRMS shift is its own product there)
+                                        num_kv_heads=num_kv_heads, q_scale=q_scale, eps=EPS, name="expert_qkv",
+                                        shift=table_row(mods, mod_row + 1, step) if adaptive else None)
+        launch = None   # the Triton kernel
     acc = _normed_product(x, mods, mod_row, adaptive, w_qkv, width=width, gemm=blocks.qkv, blocks=blocks,
                           name="expert_qkv", mosaic=launch, step=step)
     a = _round(acc, dtype).reshape(m, heads, 2, hp)

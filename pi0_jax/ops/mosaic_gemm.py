@@ -17,7 +17,7 @@ takes 64 units' gate and up, on twice the CTAs (128 for the expert): the kernel 
 GELU-tanh and the product in f32, rounded once; XLA's fusion may round between its bf16 ops, so the two agree to
 bf16 rounding (in f32, to f32 rounding).
 
-`qkv_rope` is the action expert's normed q/k/v with RoPE in one such kernel (π0: no partials, no pass after it; its
+`qkv_rope` is the action expert's normed q/k/v with RoPE in one such kernel (no partials, no pass after it; its
 rows' sums of squares as a third wgmma), an option of `expert_kernels.Blocks.mosaic_qkv` (`Launch.rope`) prepared in
 session 84 without a GPU: compiled for sm_90a, not yet timed (docs/BENCHMARKS.md).
 
@@ -217,7 +217,7 @@ def _call(m: int, k: int, n: int, dtype, launch: Launch, name: str):
 
 # -- q/k/v with the norm and RoPE inside -------------------------------------------------------------------------------
 def qkv_rope(x, xs, w, cos, sin, launch: Launch, *, width: int, num_heads: int, num_kv_heads: int, q_scale: float,
-             eps: float, name: str = "expert_qkv_rope"):
+             eps: float, shift=None, name: str = "expert_qkv_rope"):
     """The action expert's normed q/k/v in one kernel: x (M, D) the residual rows, xs (M, D) = x * (1 + the norm's
     scale) in x's dtype, w (D, heads * 2hp) in the kernel layout (`ops.layout`: each head [x1 | 0 | x2 | 0]), cos /
     sin (M, hp) f32 -> (M, heads * 2hp) in x's dtype: (xs @ w) / rms(x), rounded; q and k heads rotated in f32 and
@@ -227,20 +227,27 @@ def qkv_rope(x, xs, w, cos, sin, launch: Launch, *, width: int, num_heads: int, 
     A CTA takes a head's column block `cols` wide in both RoPE halves (two accumulators, so RoPE pairs stay in one
     CTA) over all of K, and its rows' sums of squares as a third wgmma, x @ x^T over each x tile (its diagonal:
     bf16 squares are exact in the f32 accumulator). The norm is then a row scale after the GEMM, as the Triton kernel
-    applies it. Rows are padded to a multiple of ROWS (zeros) and cut back."""
+    applies it. Rows are padded to a multiple of ROWS (zeros) and cut back.
+
+    shift (D,) in x's dtype, π0.5's adaRMS shift: (norm(x) + shift) @ w as (xs @ w) / rms(x) + shift @ w, the
+    Triton kernel's order. The shift rides in the GEMM as the last row of each ROWS-row block, whose own output is
+    then not a number anyone may read: the caller passes a shift only where those rows are padding."""
     assert launch.rope, launch
     (xp, mp), (xsp, _) = _padded(x), _padded(xs)
     hp = cos.shape[1]
     if mp != x.shape[0]:
         cos, sin = (jnp.pad(t, ((0, mp - x.shape[0]), (0, 0))) for t in (cos, sin))
+    if shift is not None:
+        last = (jnp.arange(mp) % ROWS == ROWS - 1)[:, None]
+        xsp = jnp.where(last, shift.astype(xs.dtype)[None], xsp)
     call = _rope_call(mp, x.shape[1], w.shape[1], hp, x.dtype, launch.cols, launch.stages, width,
-                      num_heads + num_kv_heads, num_heads, float(q_scale), float(eps), name)
+                      num_heads + num_kv_heads, num_heads, float(q_scale), float(eps), shift is not None, name)
     return call(xp, xsp, w, cos, sin)[:x.shape[0]]
 
 
 @functools.lru_cache(maxsize=None)
 def _rope_call(m: int, k: int, n: int, hp: int, dtype, cols: int, stages: int, width: int, rotary: int, queries: int,
-               q_scale: float, eps: float, name: str):
+               q_scale: float, eps: float, shift: bool, name: str):
     blocks = hp // cols   # column blocks a RoPE half
     f32 = jnp.float32
 
@@ -281,7 +288,15 @@ def _rope_call(m: int, k: int, n: int, hp: int, dtype, cols: int, stages: int, w
                     diagonal = (iota[0] == iota[1]).astype(f32)
                     inv = lax.rsqrt(jnp.sum(squares[...] * diagonal, axis=1) / width + eps)
                     inv = lax.broadcast_in_dim(inv, (ROWS, cols), [0])
-                    a1, a2 = ((y[...] * inv).astype(dtype).astype(f32) for y in (y1, y2))
+                    ys = [y[...] for y in (y1, y2)]
+                    if shift:   # + the last row's product (shift @ w) on every row, after 1 / rms
+                        last = (plgpu.broadcasted_iota(jnp.int32, (ROWS, cols), 0, layout=plgpu.Layout.WGMMA)
+                                == ROWS - 1).astype(f32)
+                        adds = [jnp.sum(y * last, axis=0) for y in ys]
+                        ys = [y * inv + lax.broadcast_in_dim(a, (ROWS, cols), [1]) for y, a in zip(ys, adds)]
+                    else:
+                        ys = [y * inv for y in ys]
+                    a1, a2 = (y.astype(dtype).astype(f32) for y in ys)
                     plgpu.barrier_wait(loaded)
                     # per-CTA scalars as arithmetic (a scalar select does not broadcast here): v heads keep cos 1,
                     # sin 0, an exact identity; q_scale - 1 is exact for q_scale a power of two or a dtype value
