@@ -229,8 +229,8 @@ def qkv_rope(x, xs, w, cos, sin, launch: Launch, *, width: int, num_heads: int, 
     bf16 squares are exact in the f32 accumulator). The norm is then a row scale after the GEMM, as the Triton kernel
     applies it. Rows are padded to a multiple of ROWS (zeros) and cut back.
 
-    shift (D,) in x's dtype, π0.5's adaRMS shift: (norm(x) + shift) @ w as (xs @ w) / rms(x) + shift @ w, the
-    Triton kernel's order. The shift rides in the GEMM as the last row of each ROWS-row block, whose own output is
+    shift (D,) in x's dtype, π0.5's adaRMS shift: (norm(x) (1 + scale) + shift) @ w as (xs @ w) / rms(x) + shift @ w,
+    the Triton kernel's order. The shift rides in the GEMM as the last row of each ROWS-row block, whose own output is
     then not a number anyone may read: the caller passes a shift only where those rows are padding."""
     assert launch.rope, launch
     (xp, mp), (xsp, _) = _padded(x), _padded(xs)
