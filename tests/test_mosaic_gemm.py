@@ -29,7 +29,9 @@ ROPE = dataclasses.replace(GEGLU, mosaic_qkv=Launch(32, 1, 2, rope=True))   # CF
 # q/k/v with RoPE (`mosaic_gemm.qkv_rope`) takes x^T as a wgmma operand, which Mosaic GPU's interpreter runs from jax
 # 0.11 (the GPU image's); its GPU form lowers on either (`test_kernels_lower_for_hopper`)
 TRANSPOSED_WGMMA = pytest.mark.skipif(jax.__version_info__ < (0, 11),
-                                      reason="Mosaic GPU's interpreter takes a transposed wgmma operand from jax 0.11")
+                                      reason="Mosaic GPU's interpreter before jax 0.11 takes no transposed wgmma "
+                                             "operand; jax 0.11 (the GPU image's) runs it, and the GPU form's "
+                                             "lowering is tested on any jax (test_kernels_lower_for_hopper)")
 
 
 def _rand(key, *shape, scale=1.0):

@@ -347,7 +347,7 @@ def suffix_layers_pallas(cfg: GemmaConfig, weights, x, positions, cache_k, cache
     # adaRMS shift in the last row of each of the kernel's row blocks, where that row is padding
     pad_row = all(r % sp >= s for r in range(mosaic_gemm.ROWS - 1, b * sp, mosaic_gemm.ROWS))
     rows = layout.rows(x, sp)
-    if not (blocks.mosaic_qkv is not None and blocks.mosaic_qkv.rope and (mods is None or pad_row)):
+    if expert_kernels.rope_launch(blocks, mods is not None, pad_row) is None:
         rows = jax.lax.optimization_barrier(rows)
     cos, sin, pmask, smask = pallas_tables(cfg, positions, prefix_mask, suffix_mask) if tables is None else tables
     heads = {"num_heads": cfg.num_heads, "num_kv_heads": cfg.num_kv_heads}

@@ -274,6 +274,13 @@ def _normed_product(x, mods, mod_row, adaptive, w, *, width, gemm, blocks, name,
     return acc + sum(list(shift))[None] if adaptive else acc
 
 
+def rope_launch(blocks: Blocks, adaptive: bool, pad_row: bool) -> Launch | None:
+    """q/k/v's `mosaic_gemm.qkv_rope` launch where it may take a layer (a `rope` launch; π0.5's only where its adaRMS
+    shift has a padding row to ride in), else None. Where it runs, no norm fusion comes before q/k/v."""
+    launch = blocks.mosaic_qkv
+    return launch if launch is not None and launch.rope and (pad_row or not adaptive) else None
+
+
 def norm_qkv_rope(x, mods, mod_row: int, adaptive: bool, w_qkv, cos, sin, *, width: int, num_heads: int,
                   num_kv_heads: int, head_dim: int, blocks: Blocks = Blocks(), step: Step | None = None,
                   pad_row: bool = False):
@@ -287,16 +294,15 @@ def norm_qkv_rope(x, mods, mod_row: int, adaptive: bool, w_qkv, cos, sin, *, wid
     m, dtype = x.shape[0], x.dtype
     heads, hp = num_heads + 2 * num_kv_heads, cos.shape[1]
     q_scale = float(np.asarray(head_dim**-0.5, dtype))
+    rope = rope_launch(blocks, adaptive, pad_row)
+    if rope is not None and mosaic_gemm.applies(x, w_qkv, rope, half=hp):
+        xs = (x.astype(jnp.float32) * (1 + table_row(mods, mod_row, step)).astype(jnp.float32)).astype(dtype)
+        return mosaic_gemm.qkv_rope(x, xs, w_qkv, cos, sin, rope, width=width, num_heads=num_heads,
+                                    num_kv_heads=num_kv_heads, q_scale=q_scale, eps=EPS, name="expert_qkv",
+                                    shift=table_row(mods, mod_row + 1, step) if adaptive else None)
     launch = blocks.mosaic_qkv
-    if launch is not None and launch.rope:
-        if (pad_row or not adaptive) and mosaic_gemm.applies(x, w_qkv, launch, half=hp):
-            xs = (x.astype(jnp.float32) * (1 + table_row(mods, mod_row, step)).astype(jnp.float32)).astype(dtype)
-            return mosaic_gemm.qkv_rope(x, xs, w_qkv, cos, sin, launch, width=width, num_heads=num_heads,
-                                        num_kv_heads=num_kv_heads, q_scale=q_scale, eps=EPS, name="expert_qkv",
-                                        shift=table_row(mods, mod_row + 1, step) if adaptive else None)
-        launch = None   # the Triton kernel
     acc = _normed_product(x, mods, mod_row, adaptive, w_qkv, width=width, gemm=blocks.qkv, blocks=blocks,
-                          name="expert_qkv", mosaic=launch, step=step)
+                          name="expert_qkv", mosaic=None if launch is not None and launch.rope else launch, step=step)
     a = _round(acc, dtype).reshape(m, heads, 2, hp)
     a1, a2, c, s = a[:, :, 0], a[:, :, 1], cos[:, None], sin[:, None]
     # RoPE in f32, then the dtype, for q and k heads; q is then scaled in the dtype (q_scale is a dtype value). On a
