@@ -28,7 +28,7 @@ import jax.experimental.pallas.mosaic_gpu as plgpu
 import jax.numpy as jnp
 from jax import lax
 
-from pi0_jax.ops.mosaic_gemm import _interpret, hopper, transforms
+from pi0_jax.ops.mosaic_gemm import hopper, transforms, warpgroup_kernel
 
 BLOCK = 64   # query rows and keys a block: one warpgroup's wgmma rows, and the kernels' prefix key padding
 SMEM_BYTES = 220 * 1024   # a Hopper CTA's shared memory (227 KB), less the masks' and barriers'
@@ -194,11 +194,8 @@ def _call(m: int, sq: int, sk: int, pp: int, hd: int, batch: int, num_heads: int
 
     out = (jax.ShapeDtypeStruct((parts * m, num_heads * hd), dtype),
            jax.ShapeDtypeStruct((parts, num_heads, m), jnp.float32))
-    on_cpu = jax.default_backend() == "cpu"
-    return plgpu.kernel(entry, out_type=out, grid=(num_heads * (sq // bq), parts, batch), grid_names=("h", "s", "b"),
-                        num_threads=1, thread_name="wg", kernel_name="expert_attention_mosaic",
-                        compiler_params=plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Warpgroup),
-                        **({"interpret": _interpret()} if on_cpu else {}))
+    return warpgroup_kernel(entry, out, (num_heads * (sq // bq), parts, batch), ("h", "s", "b"), 1,
+                            "expert_attention_mosaic")
 
 
 def attention(q, kv, cache_k, cache_v, prefix_mask, ends, *, batch: int, num_heads: int, num_kv_heads: int,

@@ -207,11 +207,11 @@ def _call(m: int, k: int, n: int, dtype, launch: Launch, name: str):
 
             pipeline(step, context)(x_gmem.at[rows, ks], w_tile, allocations=allocs)
 
-    return _kernel(kernel, jax.ShapeDtypeStruct((splits * m, n), out_dtype), (n // (out_cols * wgs), splits, m // ROWS),
-                   ("n", "s", "m"), wgs + 1, name)
+    return warpgroup_kernel(kernel, jax.ShapeDtypeStruct((splits * m, n), out_dtype),
+                            (n // (out_cols * wgs), splits, m // ROWS), ("n", "s", "m"), wgs + 1, name)
 
 
-def _kernel(kernel, out_type, grid, grid_names, threads: int, name: str):
+def warpgroup_kernel(kernel, out_type, grid, grid_names, threads: int, name: str):
     """A warpgroup-semantics Mosaic GPU kernel over `grid` (its interpreter on a CPU)."""
     on_cpu = jax.default_backend() == "cpu"
     return plgpu.kernel(kernel, out_type=out_type, grid=grid, grid_names=grid_names, num_threads=threads,
@@ -326,4 +326,5 @@ def _rope_call(m: int, k: int, n: int, hp: int, dtype, cols: int, stages: int, w
 
             pipeline(step, context)(*operands, allocations=allocs)
 
-    return _kernel(kernel, jax.ShapeDtypeStruct((m, n), dtype), (n // (2 * cols), m // ROWS), ("n", "m"), 2, name)
+    return warpgroup_kernel(kernel, jax.ShapeDtypeStruct((m, n), dtype), (n // (2 * cols), m // ROWS), ("n", "m"), 2,
+                            name)
