@@ -395,6 +395,17 @@ def _costly_invariants(jaxpr, alike: list, found: list) -> list:
     return [flag(v) for v in jaxpr.outvars]
 
 
+def _loop_operands(eqn) -> tuple[int, int]:
+    """A while's or scan's count of body constants and carried values. jax 0.11's scan gives its operands as a tree
+    (`ft_in`: constants, carry, xs), jax 0.10's the counts (`num_consts`, `num_carry`)."""
+    if eqn.primitive.name == "while":
+        return eqn.params["body_nconsts"], len(eqn.params["body_jaxpr"].jaxpr.outvars)
+    if "ft_in" in eqn.params:
+        consts, carry, _ = map(list, eqn.params["ft_in"].update(eqn.invars).unpack())
+        return len(consts), len(carry)
+    return eqn.params["num_consts"], eqn.params["num_carry"]
+
+
 def loop_invariant_ops(jaxpr) -> list[list[str]]:
     """For each loop (while, scan) in a jaxpr, the COSTLY ops of its body whose inputs are the same in every trip:
     its constants, or carried values the body passes on unchanged. Work that could be made once before the loop (on a
@@ -404,8 +415,7 @@ def loop_invariant_ops(jaxpr) -> list[list[str]]:
         name = eqn.primitive.name
         if name in ("while", "scan"):
             body = eqn.params["body_jaxpr" if name == "while" else "jaxpr"].jaxpr
-            consts = eqn.params["body_nconsts" if name == "while" else "num_consts"]
-            carry = len(body.outvars) if name == "while" else eqn.params["num_carry"]
+            consts, carry = _loop_operands(eqn)
             passed = [out is inp for out, inp in zip(body.outvars[:carry], body.invars[consts:consts + carry])]
             found = []
             _costly_invariants(body, [True] * consts + passed + [False] * (len(body.invars) - consts - carry), found)
