@@ -105,7 +105,7 @@ def test_a_stored_program_is_called_direct_after_its_first_call():
     what it loaded after that. A program with host callbacks or a donated input always goes through jax."""
     w, x = {"a": jnp.arange(6.0).reshape(2, 3)}, jnp.ones((3, 4))
     compiled = jax.jit(lambda w, x: w["a"] @ x).lower(w, x).compile()
-    call = dispatch.Dispatch(store._Loaded(compiled, Path("unused.pkl"), None))
+    call = dispatch.Dispatch(store._Loaded(compiled, Path("unused.pkl"), None, None))
     want = np.asarray(compiled(w, x))
     for _ in range(3):
         np.testing.assert_array_equal(np.asarray(call(w, x)), want)

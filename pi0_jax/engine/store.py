@@ -19,7 +19,7 @@ GPU only (`PLATFORMS`): on a CPU (jaxlib 0.10.2) a loaded executable failed to r
 or the one that read it, had compiled other programs first ("Function broadcast_maximum_fusion not found", "Function
 dot_kernel not found"), so there the programs compile as before, from XLA's cache; the CPU tests run loaded programs
 only in fresh processes. A loaded program's first call is checked wherever the store is on (`_Loaded`): one that
-fails to run is dropped and compiled again.
+fails to run is compiled again and its entry written anew.
 """
 
 from __future__ import annotations
@@ -96,15 +96,18 @@ class ProgramStore:
                 compiled = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
                 self.loaded += 1
                 _touch(path)   # in use: the age the pruning reads
-                return _Loaded(compiled, path, fresh)
+                return _Loaded(compiled, path, fresh, functools.partial(self._store, path))
             except Exception as e:   # a truncated or foreign file: say so, drop it, compile again
                 warnings.warn(f"compiled program {path} did not load ({type(e).__name__}: {e}); compiling again",
                               stacklevel=2)
                 path.unlink(missing_ok=True)
         compiled = fresh()
-        self._write(path, pickle.dumps(serialize_executable.serialize(compiled)))
+        self._store(path, compiled)
         self.prune()
         return compiled
+
+    def _store(self, path: Path, compiled) -> None:
+        self._write(path, pickle.dumps(serialize_executable.serialize(compiled)))
 
     def prune(self, now: float | None = None) -> list[Path]:
         """Remove entries older than `max_age_s` (by modification time, which a load renews) and temporary files
@@ -145,12 +148,14 @@ def _touch(path: Path) -> None:
 
 class _Loaded:
     """A stored executable whose first call waits for its result: if it fails to run for want of a function of its
-    own (the CPU failure of the module doc: "Function ... not found"), its entry is removed, the program compiled
-    here and the call made again (programs donate no input, so the arguments are intact). Any other error (out of
-    memory, say) is the caller's, and the entry stays."""
+    own (the CPU failure of the module doc: "Function ... not found"), the program is compiled here, written over
+    its entry (the failure is the process's: a fresh one loads it) and the call made again (programs donate no
+    input, so the arguments are intact). Any other error (out of memory, say) is the caller's, and the entry
+    stays."""
 
-    def __init__(self, compiled, path: Path, recompile: Callable):
-        self._compiled, self._path, self._recompile, self._checked = compiled, path, recompile, False
+    def __init__(self, compiled, path: Path, recompile: Callable, write: Callable):
+        self._compiled, self._path, self._recompile, self._write = compiled, path, recompile, write
+        self._checked = False
 
     def __call__(self, *args):
         if self._checked:
@@ -161,8 +166,8 @@ class _Loaded:
             if "not found" not in str(e):
                 raise
             warnings.warn(f"compiled program {self._path} failed to run ({e}); compiling it again", stacklevel=2)
-            self._path.unlink(missing_ok=True)
             self._compiled = self._recompile()
+            self._write(self._compiled)
             out = self._compiled(*args)
         self._checked = True
         return out
