@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import inspect
 
 import jax
 import jax.experimental.pallas as pl
@@ -59,6 +60,8 @@ from pi0_jax.ops.pallas_base import row_shardings
 F32 = jnp.float32
 MIN_K = 32   # an e4m3 wgmma's contraction
 TMA_ROWS = 8   # a TMA copy's row tiling: a global array's rows are a multiple of it
+# plgpu.load's index of a whole ref: jax 0.10 needs one (()); jax 0.11 takes none (an index beside it is deprecated)
+_WHOLE = ((),) if inspect.signature(plgpu.load).parameters["idx"].default is inspect.Parameter.empty else ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -429,7 +432,7 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
                         # the interpreter has no plgpu.load; on a GPU it gives the scales the accumulator's columns'
                         # layout
                         def row(ref):
-                            v = ref[...] if interpret else plgpu.load(ref, (), layout=plgpu.Layout.WGMMA.reduce(0))
+                            v = ref[...] if interpret else plgpu.load(ref, *_WHOLE, layout=plgpu.Layout.WGMMA.reduce(0))
                             return lax.broadcast_in_dim(v, (tm, wg_n), [1])   # as jax's Mosaic kernels do
 
                         if gelu:
@@ -459,7 +462,7 @@ def _call(m: int, k: int, n2: int, launch: Launch, interpret: bool, out: str = "
                 def body(_, x_smem, w_smem, acc):
                     cols = pl.ds(wg * wg_n, wg_n)
                     plgpu.wgmma(acc, x_smem, w_smem.at[:, cols] if interpret
-                                else plgpu.transpose_ref(w_smem.at[cols], (1, 0)))
+                                else w_smem.at[cols].transpose((1, 0)))
                     plgpu.wgmma_wait(launch.delay)
                     return acc
 
