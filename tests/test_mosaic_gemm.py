@@ -1,7 +1,8 @@
-"""The Mosaic GPU GEMM (`pi0_jax.ops.mosaic_gemm`, Mosaic GPU's interpreter on CPU) equals XLA's product, and the
-expert's layers with every GEMM on it equal the XLA layer, for π0 and π0.5's adaRMS. The `dummy` expert's widths
-(48) do not tile its 64-wide K steps, so these tests build their own expert: width 128, two heads of 64 (one kv
-head), MLP 256, which every launch below tiles. f32: the kernel and XLA differ only in summation order."""
+"""The Mosaic GPU GEMM (`pi0_jax.ops.mosaic_gemm`, Mosaic GPU's interpreter on CPU) equals XLA's product, the
+expert's layers with every GEMM on it equal the XLA layer, for π0 and π0.5's adaRMS, and the engine's call on it
+equals the reference sampler. The `dummy` expert's widths (48) do not tile its 64-wide K steps, so these tests build
+their own expert: width 128, two heads of 64 (one kv head), MLP 256, which every launch below tiles (the engine's test
+takes the embedded model's towers). f32: the kernel and XLA differ only in summation order."""
 
 import dataclasses
 import functools
@@ -13,11 +14,12 @@ import numpy as np
 import pytest
 
 from pi0_jax import gemma, pi0
-from pi0_jax.config import GemmaConfig
-from pi0_jax.engine import layers
+from pi0_jax.config import GemmaConfig, get_config
+from pi0_jax.engine import Engine, layers
 from pi0_jax.ops import expert_kernels as ek
 from pi0_jax.ops import layout, mosaic_gemm
 from pi0_jax.ops.mosaic_gemm import Launch
+from test_model import make_obs, randomize
 
 TOL = {"rtol": 1e-5, "atol": 1e-5}
 CFG = GemmaConfig(width=128, depth=1, mlp_dim=256, num_heads=2, num_kv_heads=1, head_dim=64)
@@ -145,6 +147,35 @@ def test_expert_layers_on_the_mosaic_gemm_equal_xla(pi05, blocks, s, monkeypatch
     other = layers.suffix_layers_pallas(CFG, weights, x, positions, cache_k, cache_v, layout.cache_mask(pmask), smask,
                                         mods, blocks=blocks)
     assert not np.allclose(other, want, **TOL)
+
+
+@pytest.mark.parametrize("preset,blocks", [pytest.param("dummy", GEGLU, id="pi0-geglu"),
+                                           pytest.param("dummy_pi05", GEGLU, id="pi05-geglu"),
+                                           pytest.param("dummy", ROPE, marks=TRANSPOSED_WGMMA, id="pi0-rope"),
+                                           pytest.param("dummy_pi05", ROPE, marks=TRANSPOSED_WGMMA, id="pi05-rope")])
+def test_engine_on_the_mosaic_gemms_matches_the_reference(preset, blocks, monkeypatch):
+    """The engine's call with the expert's GEMMs on Mosaic GPU as its default launch (q/k/v with RoPE on `qkv_rope`
+    or on the split-K kernel) equals the reference sampler. The test presets with the embedded model's towers, two
+    layers each, whose widths and 32-wide RoPE halves the launches tile; B = 2 with element 1's last camera masked
+    and prompts padded; π0.5's 2 x 10 step rows leave its adaRMS shift a padding row."""
+    config = get_config(preset, dtype="float32", paligemma_variant="gemma_small_2l",
+                        action_expert_variant="gemma_small_expert_2l")
+    params = randomize(pi0.param_shapes(config))
+    obs = make_obs(config)
+    noise = jax.random.normal(jax.random.key(1), (2, config.action_horizon, config.action_dim))
+    want = jax.jit(pi0.sample_actions, static_argnums=(0, 4))(config, params, obs, noise, 2)
+    calls = []
+    for fn in ("partials", "geglu", "qkv_rope"):
+        kernel = getattr(mosaic_gemm, fn)
+        monkeypatch.setattr(mosaic_gemm, fn,
+                            lambda *a, fn=fn, kernel=kernel, **kw: calls.append(fn) or kernel(*a, **kw))
+    monkeypatch.setattr(ek, "default_blocks", lambda: blocks)
+    got = Engine(config, params, kernels="pallas", cache_dir=False).sample_actions(obs, jnp.asarray(noise), 2)
+    layers_traced = calls.count("geglu")   # every layer's gate/up, once per program that traces it
+    rope = blocks.mosaic_qkv.rope
+    assert layers_traced >= config.action_expert.depth and calls.count("qkv_rope") == rope * layers_traced
+    assert calls.count("partials") == (2 if rope else 3) * layers_traced   # out, down (and q/k/v without RoPE)
+    np.testing.assert_allclose(got, want, **TOL)
 
 
 @TRANSPOSED_WGMMA
