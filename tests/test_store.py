@@ -149,6 +149,27 @@ def test_a_loaded_program_that_fails_to_run_is_compiled_again(tmp_path, monkeypa
     assert again.loaded == 1
 
 
+def test_a_program_compiled_again_runs_where_its_entry_cannot_be_written(tmp_path, monkeypatch):
+    """A read-only store: the failed program's fresh compile is not written back, and the call still runs."""
+    args = _args()
+    ProgramStore(tmp_path).compile("f", (), _fn, args)
+
+    def broken(*a):
+        raise jax.errors.JaxRuntimeError("INTERNAL: Error dispatching computation: Function fusion not found")
+
+    def read_only(self, path, data):
+        raise PermissionError(13, "Permission denied", str(path))
+
+    monkeypatch.setattr(store_lib.serialize_executable, "deserialize_and_load", lambda *a, **k: broken)
+    monkeypatch.setattr(ProgramStore, "_write", read_only)
+    loaded = ProgramStore(tmp_path).compile("f", (), _fn, args)
+    with pytest.warns(UserWarning) as said:
+        out = loaded(*args)
+    assert ["failed to run" in str(w.message) for w in said] == [True, False]
+    assert "could not write" in str(said[1].message)
+    np.testing.assert_array_equal(out["y"], jax.jit(_fn)(*args)["y"])
+
+
 def test_a_loaded_program_that_runs_out_of_memory_keeps_its_entry(tmp_path, monkeypatch):
     args = _args()
     ProgramStore(tmp_path).compile("f", (), _fn, args)

@@ -167,7 +167,10 @@ class _Loaded:
                 raise
             warnings.warn(f"compiled program {self._path} failed to run ({e}); compiling it again", stacklevel=2)
             self._compiled = self._recompile()
-            self._write(self._compiled)
+            try:
+                self._write(self._compiled)
+            except OSError as err:   # a read-only store: the call still runs, the old entry stays
+                warnings.warn(f"could not write {self._path} again ({err})", stacklevel=2)
             out = self._compiled(*args)
         self._checked = True
         return out
