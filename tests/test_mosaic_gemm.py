@@ -36,8 +36,23 @@ TRANSPOSED_WGMMA = pytest.mark.skipif(jax.__version_info__ < (0, 11),
                                              "lowering is tested on any jax (test_kernels_lower_for_hopper)")
 
 
-# jax 0.10's interpreter takes most of a minute of CI's 2 cores for the engine's call (jax 0.11's: a quarter of that)
-INTERPRETER_MINUTE = pytest.mark.skipif(jax.__version_info__ < (0, 11), reason="jax 0.10's interpreter: a minute of CI")
+# the engine's whole call in Mosaic GPU's interpreter: jax 0.10's (CI's) takes 52-62 s a case on CI's 2 cores, and CI
+# stood at 18:55 of its 20 minutes with one case; jax 0.11's (the GPU image's) runs it in seconds
+INTERPRETER_MINUTE = pytest.mark.skipif(jax.__version_info__ < (0, 11),
+                                        reason="jax 0.10's Mosaic GPU interpreter takes most of a minute of CI for the "
+                                               "engine's call; jax 0.11 (the GPU image's) runs it, and CI keeps the "
+                                               "kernels' and the layers' tests on the same launch")
+
+
+def _record_calls(monkeypatch, label) -> list:
+    """The Mosaic GEMM entry points wrapped: each call appends label(its function's name, its keywords) to the list
+    returned, then runs."""
+    calls = []
+    for fn in ("partials", "geglu", "qkv_rope"):
+        kernel = getattr(mosaic_gemm, fn)
+        monkeypatch.setattr(mosaic_gemm, fn,
+                            lambda *a, fn=fn, kernel=kernel, **kw: calls.append(label(fn, kw)) or kernel(*a, **kw))
+    return calls
 
 
 def _rand(key, *shape, scale=1.0):
@@ -132,11 +147,7 @@ def test_expert_layers_on_the_mosaic_gemm_equal_xla(pi05, blocks, s, monkeypatch
         layer_mods = None if mods is None else (mods[0][i:i + 1], mods[1][i:i + 1])
         want, _, _ = layers.suffix_layer(CFG, w, want, gemma.rope_angles(positions, CFG.head_dim), ck[i], cv[i],
                                          jnp.broadcast_to(pmask[:, None], (B, s, P)), smask, layer_mods)
-    calls = []
-    for fn in ("partials", "geglu", "qkv_rope"):
-        kernel = getattr(mosaic_gemm, fn)
-        monkeypatch.setattr(mosaic_gemm, fn,
-                            lambda *a, kernel=kernel, **kw: calls.append(kw["name"]) or kernel(*a, **kw))
+    calls = _record_calls(monkeypatch, lambda fn, kw: kw["name"])
     cache_k, cache_v = ([layout.cache_kv(c[i], CFG.head_dim) for i in range(CFG.depth)] for c in (ck, cv))
     got = layers.suffix_layers_pallas(CFG, weights, x, positions, cache_k, cache_v, layout.cache_mask(pmask), smask,
                                       mods, blocks=blocks)
@@ -153,9 +164,10 @@ def test_expert_layers_on_the_mosaic_gemm_equal_xla(pi05, blocks, s, monkeypatch
     assert not np.allclose(other, want, **TOL)
 
 
-@pytest.mark.parametrize("preset,blocks", [pytest.param("dummy_pi05", GEGLU, marks=INTERPRETER_MINUTE, id="pi05-geglu"),
-                                           pytest.param("dummy", ROPE, marks=TRANSPOSED_WGMMA, id="pi0-rope"),
-                                           pytest.param("dummy_pi05", ROPE, marks=TRANSPOSED_WGMMA, id="pi05-rope")])
+@pytest.mark.parametrize("preset,blocks", [
+    pytest.param("dummy_pi05", GEGLU, marks=INTERPRETER_MINUTE, id="pi05-geglu"),
+    pytest.param("dummy", ROPE, marks=TRANSPOSED_WGMMA, id="pi0-rope"),
+    pytest.param("dummy_pi05", ROPE, marks=TRANSPOSED_WGMMA, id="pi05-rope")])
 def test_engine_on_the_mosaic_gemms_matches_the_reference(preset, blocks, monkeypatch):
     """The engine's call with the expert's GEMMs on Mosaic GPU as its default launch (q/k/v with RoPE on `qkv_rope`
     or on the split-K kernel) equals the reference sampler. The test presets with the embedded model's towers, two
@@ -169,11 +181,7 @@ def test_engine_on_the_mosaic_gemms_matches_the_reference(preset, blocks, monkey
     obs = make_obs(config)
     noise = jax.random.normal(jax.random.key(1), (2, config.action_horizon, config.action_dim))
     want = jax.jit(pi0.sample_actions, static_argnums=(0, 4))(config, params, obs, noise, 2)
-    calls = []
-    for fn in ("partials", "geglu", "qkv_rope"):
-        kernel = getattr(mosaic_gemm, fn)
-        monkeypatch.setattr(mosaic_gemm, fn,
-                            lambda *a, fn=fn, kernel=kernel, **kw: calls.append(fn) or kernel(*a, **kw))
+    calls = _record_calls(monkeypatch, lambda fn, kw: fn)
     monkeypatch.setattr(ek, "default_blocks", lambda: blocks)
     got = Engine(config, params, kernels="pallas", cache_dir=False).sample_actions(obs, jnp.asarray(noise), 2)
     layers_traced = calls.count("geglu")   # every layer's gate/up, once per program that traces it
