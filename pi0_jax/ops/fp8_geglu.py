@@ -61,7 +61,9 @@ F32 = jnp.float32
 MIN_K = 32   # an e4m3 wgmma's contraction
 TMA_ROWS = 8   # a TMA copy's row tiling: a global array's rows are a multiple of it
 # plgpu.load's index of a whole ref: jax 0.10 needs one (()); jax 0.11 takes none (an index beside it is deprecated)
-_WHOLE = ((),) if inspect.signature(plgpu.load).parameters["idx"].default is inspect.Parameter.empty else ()
+# and jax 0.12 has no index parameter at all
+_IDX = inspect.signature(plgpu.load).parameters.get("idx")
+_WHOLE = ((),) if _IDX is not None and _IDX.default is inspect.Parameter.empty else ()
 
 
 @dataclasses.dataclass(frozen=True)
