@@ -10,7 +10,8 @@ another tiling or split-K on a GPU the counts may differ by those kernels: compa
 
 It needs the CUDA plugin of the installed jaxlib (`pip install "jax[cuda12]==$(python -c 'import jax;
 print(jax.__version__)')"`; the GPU image's compiler, jax 0.11.2 with CUDA 13, is `pip install "jax[cuda13]==0.11.2"` in
-a Python 3.12 environment), not a GPU or a driver: the plugin's compiler is used, with the device described by
+a Python 3.12 environment), not a GPU or a driver (jax 0.12's needs the driver's library for cuDNN's attention, and
+says so): the plugin's compiler is used, with the device described by
 `TARGET` (an H200's figures; `--target h100` an H100 SXM's, whose lower memory bandwidth moves XLA's fusion cost
 model: docs/BENCHMARKS.md, session 82), and jax's own device queries in the engine (`jax.devices()`,
 `jax.default_backend()`) answer as that GPU would. The weights are shapes only (`pi0.param_shapes`; FP8 scales from
@@ -100,11 +101,15 @@ def as_target():
     cudnn.check_compute_capability = lambda c: cc >= tuple(map(int, c.split(".")))
     cudnn.is_cuda_compute_capability_equal = lambda c: cc == tuple(map(int, c.split(".")))
     cudnn.check_cudnn_version = lambda: TargetDevice.cudnn_version
-    # jax 0.11's Pallas Triton lowering asks the default device (here the CPU) for its GPU (the GPU image's jax)
+    # jax 0.11's Pallas Triton lowering asks the default device (here the CPU) for its GPU (the GPU image's jax);
+    # jax 0.12 moved that query to jax._src.gpu_info
     try:
-        from jax._src.pallas.triton import gpu_info as triton_gpu
-    except ImportError:   # jaxlib 0.10
-        triton_gpu = None
+        from jax._src import gpu_info as triton_gpu
+    except ImportError:
+        try:
+            from jax._src.pallas.triton import gpu_info as triton_gpu
+        except ImportError:   # jaxlib 0.10
+            triton_gpu = None
     if triton_gpu:
         saved_info = triton_gpu.get_gpu_info
         triton_gpu.get_gpu_info = lambda: triton_gpu.GpuInfo(gpu_version=None, compute_capability=cc[0] * 10 + cc[1],
@@ -132,7 +137,7 @@ def target_devices(n: int = 1) -> list:
 
 
 def target_sharding():
-    return jax.sharding.SingleDeviceSharding(target_devices()[0])
+    return jax.sharding.make_single_device_sharding(target_devices()[0])
 
 
 COLLECTIVES = ("all-gather", "all-reduce", "reduce-scatter", "collective-permute", "all-to-all")
@@ -337,7 +342,16 @@ def main(argv=None) -> int:
         names = set()
         for stage in engine.call_stages(args.batch, args.steps):
             start = time.perf_counter()
-            program = engine.executable(stage, args.batch, args.steps, cameras, bucket)
+            try:
+                program = engine.executable(stage, args.batch, args.steps, cameras, bucket)
+            except jax.errors.JaxRuntimeError as e:
+                if "deviceless cuDNN" not in str(e):
+                    raise
+                # jax 0.12's XLA builds cuDNN's graphs through the driver's library even when deviceless
+                raise SystemExit(f"{stage}: this jaxlib ({jax.__version__}) compiles cuDNN's fused attention only "
+                                 "with a CUDA driver (libcuda.so.1); without one, compile the stages' attention on "
+                                 "other kernels (e.g. --attention vision=pallas,prefix=xla,denoise=auto), or use "
+                                 "jax 0.11.2's plugin") from e
             hlo = program.as_text()
             if args.hlo:
                 args.hlo.mkdir(parents=True, exist_ok=True)

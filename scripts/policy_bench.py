@@ -164,8 +164,8 @@ def main() -> int:
     # program that only reads them, and into the policy's call with the small arrays as numpy
     dev = jax.devices()[0]
     if "pinned_host" in {m.kind for m in dev.addressable_memories()}:
-        pinned = jax.sharding.SingleDeviceSharding(dev, memory_kind="pinned_host")
-        device = jax.sharding.SingleDeviceSharding(dev, memory_kind="device")
+        pinned = jax.sharding.make_single_device_sharding(dev, memory_kind="pinned_host")
+        device = jax.sharding.make_single_device_sharding(dev, memory_kind="device")
 
         def via_pinned(xs):
             return jax.device_put(jax.device_put(xs, pinned), device)
