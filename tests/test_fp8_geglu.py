@@ -123,6 +123,21 @@ def test_kernel_lowers_for_hopper(m, k, n2, launch):
     assert "mosaic_gpu" in text and f"tensor<{m}x{n2 // 2}xf8E4M3FN>" in text
 
 
+def test_whole_ref_load_takes_each_jaxs_signature():
+    """`plgpu.load` of a whole ref as each jax spells it (the signatures of jax 0.10.2, 0.11.2 and 0.12.1): the module
+    imports, and the GPU lowering passes an index only where one is required (0.12 has none: reading it raised at
+    import, and with it every `pi0_jax.engine` import)."""
+    not_specified = object()
+
+    def load_010(src, idx, *, layout=None, optimized=True): ...
+    def load_011(src, idx=not_specified, *, layout=None, optimized=True): ...
+    def load_012(src, *, layout=None, optimized=True): ...
+
+    assert fp8_geglu.whole_index(load_010) == ((),)
+    assert fp8_geglu.whole_index(load_011) == ()
+    assert fp8_geglu.whole_index(load_012) == ()
+
+
 def test_clusters_only_where_the_rows_fill_them():
     """The engine's launches run in clusters of two where the row tiles are even or many (`clusters_pay`): at π0's
     prefix at B = 8 (51 tiles), the expert's 400 rows at B = 8 (4) and 3,200 at B = 64 (25), SigLIP's 768 rows

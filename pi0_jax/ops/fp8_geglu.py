@@ -60,10 +60,16 @@ from pi0_jax.ops.pallas_base import row_shardings
 F32 = jnp.float32
 MIN_K = 32   # an e4m3 wgmma's contraction
 TMA_ROWS = 8   # a TMA copy's row tiling: a global array's rows are a multiple of it
-# plgpu.load's index of a whole ref: jax 0.10 needs one (()); jax 0.11 takes none (an index beside it is deprecated)
-# and jax 0.12 has no index parameter at all
-_IDX = inspect.signature(plgpu.load).parameters.get("idx")
-_WHOLE = ((),) if _IDX is not None and _IDX.default is inspect.Parameter.empty else ()
+
+
+def whole_index(load) -> tuple:
+    """`plgpu.load`'s positional index of a whole ref: jax 0.10 needs one (()); jax 0.11 takes none (an index beside
+    the ref is deprecated); jax 0.12 has no such parameter."""
+    idx = inspect.signature(load).parameters.get("idx")
+    return ((),) if idx is not None and idx.default is inspect.Parameter.empty else ()
+
+
+_WHOLE = whole_index(plgpu.load)
 
 
 @dataclasses.dataclass(frozen=True)
