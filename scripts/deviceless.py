@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import importlib
 import json
 import os
 import re
@@ -89,6 +90,14 @@ class TargetDevice:
     cudnn_version = 90800   # TARGET's dnn_version
 
 
+def _module(name: str):
+    """The module, or None where this jax has none of that name."""
+    try:
+        return importlib.import_module(name)
+    except ImportError:
+        return None
+
+
 @contextlib.contextmanager
 def as_target():
     """jax's device queries answer as the target GPU while programs are traced and lowered: the engine's, and
@@ -101,15 +110,9 @@ def as_target():
     cudnn.check_compute_capability = lambda c: cc >= tuple(map(int, c.split(".")))
     cudnn.is_cuda_compute_capability_equal = lambda c: cc == tuple(map(int, c.split(".")))
     cudnn.check_cudnn_version = lambda: TargetDevice.cudnn_version
-    # jax 0.11's Pallas Triton lowering asks the default device (here the CPU) for its GPU (the GPU image's jax);
-    # jax 0.12 moved that query to jax._src.gpu_info
-    try:
-        from jax._src import gpu_info as triton_gpu
-    except ImportError:
-        try:
-            from jax._src.pallas.triton import gpu_info as triton_gpu
-        except ImportError:   # jaxlib 0.10
-            triton_gpu = None
+    # Pallas Triton's lowering asks the default device (here the CPU) for its GPU: through jax._src.gpu_info in jax
+    # 0.12, jax._src.pallas.triton.gpu_info in 0.11 (the GPU image's), neither in 0.10
+    triton_gpu = next((m for m in map(_module, ("jax._src.gpu_info", "jax._src.pallas.triton.gpu_info")) if m), None)
     if triton_gpu:
         saved_info = triton_gpu.get_gpu_info
         triton_gpu.get_gpu_info = lambda: triton_gpu.GpuInfo(gpu_version=None, compute_capability=cc[0] * 10 + cc[1],

@@ -36,8 +36,8 @@ TRANSPOSED_WGMMA = pytest.mark.skipif(jax.__version_info__ < (0, 11),
                                              "lowering is tested on any jax (test_kernels_lower_for_hopper)")
 
 
-# the engine's whole call in Mosaic GPU's interpreter: jax 0.10's (CI's) takes 52-62 s a case on CI's 2 cores, and CI
-# stood at 18:55 of its 20 minutes with one case; jax 0.11's (the GPU image's) runs it in seconds
+# the engine's whole call in Mosaic GPU's interpreter: jax 0.10's (CI's) took 52-62 s a case on CI's 2 cores, and CI
+# stood at 18:55 of its 20 minutes with one case
 INTERPRETER_MINUTE = pytest.mark.skipif(jax.__version_info__ < (0, 11),
                                         reason="jax 0.10's Mosaic GPU interpreter takes most of a minute of CI for the "
                                                "engine's call; jax 0.11 (the GPU image's) runs it, and CI keeps the "
@@ -172,9 +172,8 @@ def test_engine_on_the_mosaic_gemms_matches_the_reference(preset, blocks, monkey
     """The engine's call with the expert's GEMMs on Mosaic GPU as its default launch (q/k/v with RoPE on `qkv_rope`
     or on the split-K kernel) equals the reference sampler. The test presets with the embedded model's towers, two
     layers each, whose widths and 32-wide RoPE halves the launches tile; B = 2 with element 1's last camera masked
-    and prompts padded; π0.5's 2 x 10 step rows leave its adaRMS shift a padding row. Runs from jax 0.11 (CI's jax
-    0.10 interprets a case in most of a minute; CI's tests took 18:55 with it); π0 on the plain launches is left to
-    the layers' test above."""
+    and prompts padded; π0.5's 2 x 10 step rows leave its adaRMS shift a padding row. π0 on the plain launches is
+    left to the layers' test above."""
     config = get_config(preset, dtype="float32", paligemma_variant="gemma_small_2l",
                         action_expert_variant="gemma_small_expert_2l")
     params = randomize(pi0.param_shapes(config))
